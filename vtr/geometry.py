@@ -1,0 +1,97 @@
+"""SE(3) helpers on 4x4 numpy matrices (``T_a_b`` maps frame-b coordinates into frame a).
+
+Thin wrappers over GTSAM's Lie-group maps (``Pose3.Expmap``/``Logmap``) and SciPy's rotations,
+so the rest of the package stays in plain float64 arrays. Tangent vectors follow GTSAM's
+ordering ``xi = [omega, v]`` (rotation first, radians; translation second, metres).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import EstimationError
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a 4x4 transform from a 3x3 rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, float).reshape(3)
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of one (4, 4) or a stack (..., 4, 4) of rigid transforms, without a general inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply T_a_b to points p_b of shape (N, 3); returns p_a (N, 3)."""
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Exponential map of a twist ``[omega, v]`` (6,) to a 4x4 transform (GTSAM convention)."""
+    return gtsam.Pose3.Expmap(np.asarray(xi, float)).matrix()
+
+
+def log_se3(T: np.ndarray) -> np.ndarray:
+    """Logarithm of a 4x4 transform as a twist ``[omega, v]`` (GTSAM convention)."""
+    return gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, float)))
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices of vectors of shape (..., 3) -> (..., 3, 3)."""
+    w = np.asarray(w, float)
+    S = np.zeros(w.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -w[..., 2], w[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = w[..., 2], -w[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -w[..., 1], w[..., 0]
+    return S
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices (..., 3, 3)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def T_to_tum(T: np.ndarray) -> np.ndarray:
+    """4x4 transform(s) (..., 4, 4) -> (..., 7) ``x y z qx qy qz qw``."""
+    T = np.asarray(T, float)
+    q = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat()
+    return np.concatenate([T[..., :3, 3].reshape(-1, 3), q], axis=1).reshape(T.shape[:-2] + (7,))
+
+
+def tum_to_T(xyzq: np.ndarray) -> np.ndarray:
+    """(..., 7) ``x y z qx qy qz qw`` -> (..., 4, 4) transforms."""
+    xyzq = np.asarray(xyzq, float)
+    flat = xyzq.reshape(-1, 7)
+    T = np.tile(np.eye(4), (len(flat), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(flat[:, 3:]).as_matrix()
+    T[:, :3, 3] = flat[:, :3]
+    return T.reshape(xyzq.shape[:-1] + (4, 4))
+
+
+def check_se3(T: np.ndarray, what: str = "transform", tol: float = 1e-6) -> np.ndarray:
+    """Validate a 4x4 rigid transform; raise ``EstimationError`` naming ``what`` otherwise."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise EstimationError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise EstimationError(f"{what}: contains NaN or infinity")
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol):
+        raise EstimationError(f"{what}: last row is {T[3]}, not [0 0 0 1]")
+    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+        raise EstimationError(f"{what}: rotation block is not orthonormal with det +1")
+    return T

@@ -1,0 +1,40 @@
+"""Frame sources (one interface for every logged format) and trajectory writers."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import DataError
+from .base import FrameSource, GroundTruth, StereoImages, parse_frame_range
+from .euroc import EurocSource, euroc_root
+from .kitti import KittiSource, KittiWriter, is_kitti
+
+# format name -> (detector on a path, opener); later formats register here
+FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]] = {
+    "kitti": (is_kitti, KittiSource),
+    "euroc": (lambda p: euroc_root(p) is not None, EurocSource),
+}
+
+
+def open_source(path: str | Path, format: str | None = None) -> FrameSource:
+    """Open a logged stereo source, detecting its format unless ``format`` forces one."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if format is not None:
+        if format not in FORMATS:
+            raise DataError(f"unknown format {format!r}; known: {', '.join(FORMATS)}")
+        return FORMATS[format][1](path)
+    for _name, (detect, opener) in FORMATS.items():
+        if detect(path):
+            return opener(path)
+    if path.is_dir() and not any(path.iterdir()):
+        raise DataError(f"{path}: empty folder")
+    raise DataError(f"{path}: unknown layout (expected one of: {', '.join(FORMATS)})")
+
+
+__all__ = [
+    "FORMATS", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
+    "StereoImages", "open_source", "parse_frame_range",
+]

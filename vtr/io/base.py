@@ -1,0 +1,115 @@
+"""One frame-source interface for every logged format.
+
+A ``FrameSource`` yields ``StereoImages`` (timestamped, rectified, greyscale) and carries the
+``StereoCamera`` that describes them. Sources are sequences (random access by index, ``len``)
+and context managers; images are read lazily so a long log is never held in memory.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import StereoCamera
+from ..errors import DataError
+
+
+@dataclass(frozen=True)
+class StereoImages:
+    """One rectified stereo pair: ``t_ns`` is the left image's time, ``index`` its position in the source."""
+
+    t_ns: int
+    index: int
+    left: np.ndarray
+    right: np.ndarray
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Reference poses of the left rectified camera: ``T_world_cam`` (N, 4, 4) at ``t_ns`` (N,)."""
+
+    t_ns: np.ndarray
+    T_world_cam: np.ndarray
+
+
+class FrameSource(ABC, Sequence):
+    """Random-access sequence of rectified stereo pairs with their calibration."""
+
+    path: Path
+    camera: StereoCamera
+    format_name: str = "?"
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def timestamps(self) -> np.ndarray:
+        """int64 ns time of every frame, in order."""
+
+    @abstractmethod
+    def _load(self, index: int) -> StereoImages: ...
+
+    def __getitem__(self, index: int) -> StereoImages:  # type: ignore[override]
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} outside {self.path} ({n} frames)")
+        return self._load(index % n)
+
+    def __iter__(self) -> Iterator[StereoImages]:
+        for i in range(len(self)):
+            yield self._load(i)
+
+    def ground_truth(self) -> GroundTruth | None:
+        """Reference trajectory of the left rectified camera, when the format carries one."""
+        return None
+
+    def close(self) -> None:
+        """Release files or handles held by the source."""
+
+    def __enter__(self) -> FrameSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def check_image(self, img: np.ndarray | None, where: str | Path) -> np.ndarray:
+        """Validate a decoded image against the calibration; raise ``DataError`` naming ``where``."""
+        if img is None:
+            raise DataError(f"{where}: cannot decode image (missing or corrupt file)")
+        h, w = img.shape[:2]
+        if (w, h) != self.camera.size:
+            raise DataError(
+                f"{where}: image is {w}x{h} but the calibration says {self.camera.width}x{self.camera.height}"
+            )
+        return img
+
+
+def parse_frame_range(spec: str | None, n: int, source: str = "source") -> list[int]:
+    """Indices selected by ``START:STOP:STEP`` (Python slice semantics) over ``n`` frames.
+
+    Raises ``DataError`` when the selection is malformed or falls outside the source.
+    """
+    if not spec:
+        return list(range(n))
+    parts = spec.split(":")
+    if len(parts) > 3:
+        raise DataError(f"--frames {spec!r}: expected START:STOP:STEP")
+    try:
+        vals = [int(p) if p.strip() else None for p in parts] + [None] * (3 - len(parts))
+    except ValueError as err:
+        raise DataError(f"--frames {spec!r}: not integers") from err
+    start, stop, step = vals
+    if step is not None and step <= 0:
+        raise DataError(f"--frames {spec!r}: STEP must be positive")
+    if start is not None and not 0 <= start < n:
+        raise DataError(f"--frames {spec!r}: START {start} outside {source} with {n} frames")
+    if stop is not None and not 0 <= stop <= n:
+        raise DataError(f"--frames {spec!r}: STOP {stop} outside {source} with {n} frames")
+    idx = list(range(n))[slice(start, stop, step)]
+    if not idx:
+        raise DataError(f"--frames {spec!r}: selects no frame of {source} ({n} frames)")
+    return idx

@@ -1,0 +1,125 @@
+"""EuRoC ASL layout: ``mav0/cam0``, ``mav0/cam1`` (``data.csv`` of ns stamps, ``data/*.png``,
+``sensor.yaml`` with intrinsics, radial-tangential distortion and ``T_BS``). Raw images are
+rectified on load; the rectified left camera's pose on the body is ``camera.T_vehicle_sensor``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from ..camera import RawCamera, StereoRectifier
+from ..errors import CalibrationError, DataError
+from .base import FrameSource, GroundTruth, StereoImages
+
+PAIR_TOLERANCE_NS = 1_000_000  # left/right stamps of one hardware-synchronised pair differ by < 1 ms
+
+
+def euroc_root(path: Path) -> Path | None:
+    """The ``mav0`` folder of an ASL dataset at ``path`` (or ``path`` itself), else None."""
+    for cand in (path / "mav0", path):
+        if (cand / "cam0" / "data.csv").is_file() and (cand / "cam1").is_dir():
+            return cand
+    return None
+
+
+def read_sensor_yaml(path: Path) -> RawCamera:
+    """Parse an ASL camera ``sensor.yaml`` (OpenCV's %YAML:1.0 header tolerated)."""
+    if not path.is_file():
+        raise CalibrationError(f"{path}: missing camera calibration")
+    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("%YAML"))
+    try:
+        d = yaml.safe_load(text)
+        fu, fv, cu, cv = (float(v) for v in d["intrinsics"])
+        w, h = (int(v) for v in d["resolution"])
+        dist = np.array(d.get("distortion_coefficients", [0, 0, 0, 0]), float)
+        T = np.array(d["T_BS"]["data"], float).reshape(4, 4)
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as err:
+        raise CalibrationError(f"{path}: malformed camera calibration ({err!r})") from err
+    model = d.get("distortion_model", "radial-tangential")
+    if model not in ("radial-tangential", "radtan", "none"):
+        raise CalibrationError(f"{path}: distortion model {model!r} not supported (radial-tangential only)")
+    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
+    return RawCamera(K=K, dist=dist, width=w, height=h, T_body_cam=T)
+
+
+def read_stamp_csv(path: Path) -> tuple[np.ndarray, list[str]]:
+    """``#timestamp [ns],filename`` rows -> (int64 ns, filenames)."""
+    if not path.is_file():
+        raise DataError(f"{path}: missing image list")
+    t, names = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = [p.strip() for p in line.split(",")]
+        try:
+            t.append(int(parts[0]))
+            names.append(parts[1])
+        except (ValueError, IndexError) as err:
+            raise DataError(f"{path}:{lineno}: malformed row {line!r}") from err
+    return np.array(t, np.int64), names
+
+
+class EurocSource(FrameSource):
+    """Reader of an EuRoC ASL stereo sequence, rectified on the fly."""
+
+    format_name = "euroc"
+
+    def __init__(self, path: str | Path, alpha: float = 0.0):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"{self.path}: no such folder")
+        root = euroc_root(self.path)
+        if root is None:
+            raise DataError(f"{self.path}: not an EuRoC ASL layout (needs mav0/cam0/data.csv and mav0/cam1)")
+        self.root = root
+        left = read_sensor_yaml(root / "cam0" / "sensor.yaml")
+        right = read_sensor_yaml(root / "cam1" / "sensor.yaml")
+        self.rectifier = StereoRectifier.from_raw(left, right, alpha=alpha)
+        self.camera = self.rectifier.camera
+        tl, nl = read_stamp_csv(root / "cam0" / "data.csv")
+        tr, nr = read_stamp_csv(root / "cam1" / "data.csv")
+        if len(tl) == 0:
+            raise DataError(f"{root / 'cam0' / 'data.csv'}: no images")
+        # pair left and right by nearest stamp within tolerance
+        j = np.clip(np.searchsorted(tr, tl), 1, max(len(tr) - 1, 1)) if len(tr) > 1 else np.zeros_like(tl)
+        j = np.where(np.abs(tr[j - 1] - tl) < np.abs(tr[j] - tl), j - 1, j) if len(tr) > 1 else j
+        ok = np.abs(tr[j] - tl) <= PAIR_TOLERANCE_NS if len(tr) else np.zeros(len(tl), bool)
+        if not np.any(ok):
+            raise DataError(f"{root}: no left image has a right image within {PAIR_TOLERANCE_NS} ns")
+        self._t_ns = tl[ok]
+        self._left = [root / "cam0" / "data" / nl[i] for i in np.flatnonzero(ok)]
+        self._right = [root / "cam1" / "data" / nr[k] for k in j[ok]]
+
+    def __len__(self) -> int:
+        return len(self._t_ns)
+
+    def timestamps(self) -> np.ndarray:
+        return self._t_ns
+
+    def _load_raw(self, f: Path) -> np.ndarray:
+        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        return self.check_image(img, f)
+
+    def _load(self, index: int) -> StereoImages:
+        left, right = self.rectifier.rectify(self._load_raw(self._left[index]), self._load_raw(self._right[index]))
+        return StereoImages(int(self._t_ns[index]), index, left, right)
+
+    def ground_truth(self) -> GroundTruth | None:
+        """Left rectified camera poses from ``state_groundtruth_estimate0`` (body poses), if present."""
+        gt = self.root / "state_groundtruth_estimate0" / "data.csv"
+        if not gt.is_file():
+            return None
+        try:
+            rows = np.loadtxt(gt, delimiter=",", comments="#", ndmin=2)
+        except ValueError as err:
+            raise DataError(f"{gt}: malformed ({err})") from err
+        t = rows[:, 0].astype(np.int64)
+        T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
+        T_world_body[:, :3, 3] = rows[:, 1:4]
+        T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
+        return GroundTruth(t, T_world_body @ self.camera.T_vehicle_sensor)

@@ -1,0 +1,174 @@
+"""KITTI odometry layout: ``image_0/`` (left), ``image_1/`` (right), ``calib.txt`` (P0, P1),
+``times.txt`` (s) and optionally ``poses.txt`` (T_world_cam0 as 3x4 rows, world = first camera).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..camera import StereoCamera
+from ..errors import CalibrationError, DataError
+from .base import FrameSource, GroundTruth, StereoImages
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
+
+
+def is_kitti(path: Path) -> bool:
+    return (path / "image_0").is_dir() and (path / "image_1").is_dir()
+
+
+def read_kitti_calib(path: Path, width: int, height: int) -> StereoCamera:
+    """Parse ``calib.txt`` (rectified P0/P1) into a ``StereoCamera`` of the given image size."""
+    if not path.is_file():
+        raise CalibrationError(f"{path}: missing calibration file (KITTI layout needs calib.txt with P0, P1)")
+    P: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if ":" not in line:
+            continue
+        key, vals = line.split(":", 1)
+        try:
+            P[key.strip()] = np.array(vals.split(), float).reshape(3, 4)
+        except ValueError as err:
+            raise CalibrationError(f"{path}:{lineno}: {key.strip()} is not 12 numbers") from err
+    for key in ("P0", "P1"):
+        if key not in P:
+            raise CalibrationError(f"{path}: no {key} line (need P0 and P1)")
+    P0, P1 = P["P0"], P["P1"]
+    fx = P0[0, 0]
+    if not np.allclose(P0[:, :3], P1[:, :3]):
+        raise CalibrationError(f"{path}: P0 and P1 have different intrinsics; images are not rectified")
+    return StereoCamera(fx=fx, fy=P0[1, 1], cx=P0[0, 2], cy=P0[1, 2],
+                        baseline=-(P1[0, 3] - P0[0, 3]) / fx, width=width, height=height)
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+class KittiSource(FrameSource):
+    """Reader of a KITTI-layout stereo folder (rectified greyscale images)."""
+
+    format_name = "kitti"
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"{self.path}: no such folder")
+        if not is_kitti(self.path):
+            raise DataError(f"{self.path}: not a KITTI layout (needs image_0/ and image_1/)")
+        self.left_files = _list_images(self.path / "image_0")
+        self.right_files = _list_images(self.path / "image_1")
+        if not self.left_files:
+            raise DataError(f"{self.path / 'image_0'}: no images")
+        if len(self.left_files) != len(self.right_files):
+            raise DataError(f"{self.path}: {len(self.left_files)} left images but "
+                            f"{len(self.right_files)} right images")
+        first = cv2.imread(str(self.left_files[0]), cv2.IMREAD_GRAYSCALE)
+        if first is None:
+            raise DataError(f"{self.left_files[0]}: cannot decode image (missing or corrupt file)")
+        self.camera = read_kitti_calib(self.path / "calib.txt", first.shape[1], first.shape[0])
+        self._t_ns = self._read_times()
+
+    def _read_times(self) -> np.ndarray:
+        n = len(self.left_files)
+        exact = self.path / "times_ns.txt"
+        if exact.is_file():
+            # written by KittiWriter: exact int64 ns (times.txt in seconds cannot hold Unix ns)
+            try:
+                t_ns = np.loadtxt(exact, ndmin=1, dtype=np.int64)
+            except ValueError as err:
+                raise DataError(f"{exact}: malformed ({err})") from err
+            if len(t_ns) != n:
+                raise DataError(f"{exact}: {len(t_ns)} times for {n} images")
+            return t_ns
+        times = self.path / "times.txt"
+        if not times.is_file():
+            # KITTI's nominal 10 Hz when the clip ships no times.txt
+            return np.arange(n, dtype=np.int64) * 100_000_000
+        try:
+            t = np.loadtxt(times, ndmin=1, dtype=float)
+        except ValueError as err:
+            raise DataError(f"{times}: malformed ({err})") from err
+        if len(t) != n:
+            raise DataError(f"{times}: {len(t)} times for {n} images")
+        t_ns = np.round(t * 1e9).astype(np.int64)
+        if np.any(np.diff(t_ns) <= 0):
+            raise DataError(f"{times}: timestamps are not strictly increasing")
+        return t_ns
+
+    def __len__(self) -> int:
+        return len(self.left_files)
+
+    def timestamps(self) -> np.ndarray:
+        return self._t_ns
+
+    def _load(self, index: int) -> StereoImages:
+        lf, rf = self.left_files[index], self.right_files[index]
+        left = self.check_image(cv2.imread(str(lf), cv2.IMREAD_GRAYSCALE), lf)
+        right = self.check_image(cv2.imread(str(rf), cv2.IMREAD_GRAYSCALE), rf)
+        return StereoImages(int(self._t_ns[index]), index, left, right)
+
+    def ground_truth(self) -> GroundTruth | None:
+        poses = self.path / "poses.txt"
+        if not poses.is_file():
+            return None
+        T = read_kitti_poses(poses)
+        if len(T) != len(self):
+            raise DataError(f"{poses}: {len(T)} poses for {len(self)} images")
+        return GroundTruth(self._t_ns.copy(), T)
+
+
+def read_kitti_poses(path: Path) -> np.ndarray:
+    """KITTI pose file (3x4 row-major per line) -> (N, 4, 4)."""
+    try:
+        rows = np.loadtxt(path, ndmin=2)
+    except ValueError as err:
+        raise DataError(f"{path}: malformed pose file ({err})") from err
+    if rows.shape[1] != 12:
+        raise DataError(f"{path}: expected 12 numbers per line, got {rows.shape[1]}")
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :] = rows.reshape(-1, 3, 4)
+    return T
+
+
+def write_kitti_poses(path: Path, T: np.ndarray) -> None:
+    """Write (N, 4, 4) poses in KITTI's 3x4 row-major format."""
+    np.savetxt(path, np.asarray(T)[:, :3, :].reshape(-1, 12), fmt="%.9e")
+
+
+def write_kitti_calib(path: Path, camera: StereoCamera) -> None:
+    """Write P0/P1 of a rectified stereo camera as KITTI ``calib.txt``."""
+    K = camera.K
+    P0 = np.hstack([K, np.zeros((3, 1))])
+    P1 = P0.copy()
+    P1[0, 3] = -camera.fb
+    with open(path, "w") as f:
+        for name, P in (("P0", P0), ("P1", P1)):
+            f.write(f"{name}: " + " ".join(f"{v:.12e}" for v in P.ravel()) + "\n")
+
+
+class KittiWriter:
+    """Writes stereo pairs into a KITTI-layout folder (PNG, lossless)."""
+
+    def __init__(self, path: str | Path, camera: StereoCamera):
+        self.path = Path(path)
+        (self.path / "image_0").mkdir(parents=True, exist_ok=True)
+        (self.path / "image_1").mkdir(parents=True, exist_ok=True)
+        write_kitti_calib(self.path / "calib.txt", camera)
+        self._times: list[int] = []
+
+    def add(self, t_ns: int, left: np.ndarray, right: np.ndarray) -> None:
+        name = f"{len(self._times):06d}.png"
+        cv2.imwrite(str(self.path / "image_0" / name), left)
+        cv2.imwrite(str(self.path / "image_1" / name), right)
+        self._times.append(int(t_ns))
+
+    def close(self, T_world_cam: np.ndarray | None = None) -> None:
+        """Write times.txt (and poses.txt when given) once all frames are in."""
+        np.savetxt(self.path / "times.txt", np.asarray(self._times) / 1e9, fmt="%.9f")
+        np.savetxt(self.path / "times_ns.txt", np.asarray(self._times, np.int64), fmt="%d")
+        if T_world_cam is not None:
+            write_kitti_poses(self.path / "poses.txt", T_world_cam)
