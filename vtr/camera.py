@@ -148,7 +148,8 @@ class StereoRectifier:
         T_right_left = np.linalg.inv(right.T_body_cam) @ left.T_body_cam
         R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
             left.K, left.dist, right.K, right.dist, size,
-            T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy(), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+            T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy(),
+            flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
         )
         fx = P1[0, 0]
         baseline = -P2[0, 3] / fx

@@ -58,10 +58,12 @@ def config_cmd() -> None:
 
 
 def _register() -> None:
+    """Import every sibling module; each adds its commands to ``main``."""
+    import pkgutil
     from importlib import import_module
 
-    for name in ("odometry",):
-        import_module(f"{__name__}.{name}")
+    for info in pkgutil.iter_modules(__path__):
+        import_module(f"{__name__}.{info.name}")
 
 
 _register()

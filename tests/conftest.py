@@ -1,0 +1,24 @@
+"""Shared fixtures: paths of the shipped sample data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+DATASETS = Path(__file__).resolve().parents[1] / "datasets"
+
+
+@pytest.fixture(scope="session")
+def kitti_clip() -> Path:
+    return DATASETS / "kitti06_clip"
+
+
+@pytest.fixture(scope="session")
+def euroc_micro() -> Path:
+    return DATASETS / "euroc_v101_micro"
+
+
+@pytest.fixture(scope="session")
+def euroc_pairs() -> Path:
+    return DATASETS / "euroc_revisit_pairs"

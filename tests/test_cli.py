@@ -1,0 +1,123 @@
+"""The `vtr` command as a user runs it: outputs on real data, one-line errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vtr.io.trajectory import read_tum
+
+
+def vtr(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vtr", *map(str, args)], capture_output=True, text=True)
+
+
+def test_version_and_dependency_versions():
+    r = vtr("versions")
+    assert r.returncode == 0, r.stderr
+    for name in ("opencv", "gtsam", "open3d", "rosbags"):
+        assert name in r.stdout
+
+
+def test_odometry_writes_outputs(kitti_clip, tmp_path):
+    out = tmp_path / "odo"
+    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:12")
+    assert r.returncode == 0, r.stderr
+    assert "keyframes" in r.stdout and "t_err" in r.stdout
+    t_ns, T = read_tum(out / "trajectory_tum.txt")
+    assert len(t_ns) == 12 and np.all(np.diff(t_ns) == 100_000_000)
+    assert T[-1, 2, 3] > 10.0  # the car drives ~1.2 m per frame along camera z
+    rows = (out / "frames.csv").read_text().splitlines()
+    assert rows[0] == "t_ns,result,matches,inliers,keyframe_id" and len(rows) == 13
+    run = json.loads((out / "run.json").read_text())
+    assert run["summary"]["frames"] == 12 and "gtsam" in run["versions"]
+    assert (out / "trajectory.png").stat().st_size > 1000
+    assert (out / "config.yaml").is_file()
+    # the written config is reusable
+    r2 = vtr("odometry", kitti_clip, "--out", tmp_path / "again", "--frames", "0:3",
+             "--config", out / "config.yaml")
+    assert r2.returncode == 0, r2.stderr
+
+
+def test_export_trajectory_formats(kitti_clip, tmp_path):
+    out = tmp_path / "odo"
+    assert vtr("odometry", kitti_clip, "--out", out, "--frames", "0:4").returncode == 0
+    for fmt in ("kitti", "euroc"):
+        r = vtr("export-trajectory", out / "trajectory_tum.txt", tmp_path / f"traj.{fmt}", "--to", fmt)
+        assert r.returncode == 0, r.stderr
+    assert len((tmp_path / "traj.kitti").read_text().splitlines()) == 4
+    euroc = (tmp_path / "traj.euroc").read_text().splitlines()
+    assert euroc[0].startswith("#timestamp") and len(euroc) == 5
+
+
+def _copy_clip(src: Path, dst: Path, n: int = 3) -> Path:
+    for sub in ("image_0", "image_1"):
+        (dst / sub).mkdir(parents=True)
+        for f in sorted((src / sub).iterdir())[:n]:
+            shutil.copy(f, dst / sub / f.name)
+    shutil.copy(src / "calib.txt", dst / "calib.txt")
+    return dst
+
+
+def _assert_one_line_error(r: subprocess.CompletedProcess, *needles: str) -> None:
+    assert r.returncode == 1
+    assert "Traceback" not in r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("vtr: error:")
+    for n in needles:
+        assert n in line
+
+
+def test_missing_calibration(kitti_clip, tmp_path):
+    clip = _copy_clip(kitti_clip, tmp_path / "clip")
+    (clip / "calib.txt").unlink()
+    _assert_one_line_error(vtr("odometry", clip, "--out", tmp_path / "o"), "calib.txt")
+
+
+def test_mismatched_image_size(kitti_clip, tmp_path):
+    import cv2
+
+    clip = _copy_clip(kitti_clip, tmp_path / "clip")
+    bad = clip / "image_1" / "000001.png"
+    cv2.imwrite(str(bad), np.zeros((100, 200), np.uint8))
+    _assert_one_line_error(vtr("odometry", clip, "--out", tmp_path / "o"), "000001.png", "200x100")
+
+
+def test_corrupt_png(kitti_clip, tmp_path):
+    clip = _copy_clip(kitti_clip, tmp_path / "clip")
+    (clip / "image_0" / "000002.png").write_bytes(b"\x89PNG garbage")
+    _assert_one_line_error(vtr("odometry", clip, "--out", tmp_path / "o"), "000002.png")
+
+
+def test_empty_folder_and_unknown_layout(tmp_path):
+    (tmp_path / "empty").mkdir()
+    _assert_one_line_error(vtr("odometry", tmp_path / "empty", "--out", tmp_path / "o"), "empty")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "readme.txt").write_text("hello")
+    _assert_one_line_error(vtr("odometry", tmp_path / "other", "--out", tmp_path / "o"), "unknown layout")
+
+
+@pytest.mark.parametrize("spec", ["60:70", "0:5:0", "a:b"])
+def test_frames_outside_source(kitti_clip, tmp_path, spec):
+    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--frames", spec), "--frames")
+
+
+def test_bad_config(kitti_clip, tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("odometry:\n  no_such_key: 3\n")
+    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--config", cfg), "no_such_key")
+
+
+def test_euroc_sequence_runs(euroc_micro, tmp_path):
+    r = vtr("odometry", euroc_micro, "--out", tmp_path / "e")
+    assert r.returncode == 0, r.stderr
+    t_ns, T = read_tum(tmp_path / "e" / "trajectory_tum.txt")
+    assert len(t_ns) == 12
+    # the vehicle is nearly static in this excerpt
+    assert np.linalg.norm(T[-1, :3, 3]) < 0.2

@@ -1,0 +1,72 @@
+"""``vtr odometry``, ``vtr export-trajectory`` and ``vtr demo``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from . import main
+from .common import config_option, format_option, frames_option, load_config, progress_bar, source_argument
+
+DEMO_CLIP = "kitti06_clip"
+
+
+def _find_datasets() -> Path:
+    """The shipped ``datasets/`` folder (source checkout), or VTR_DATASETS."""
+    import os
+
+    env = os.environ.get("VTR_DATASETS")
+    if env:
+        return Path(env)
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "datasets" / DEMO_CLIP).is_dir():
+            return parent / "datasets"
+    return Path("datasets")
+
+
+@main.command("odometry")
+@source_argument
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@frames_option
+@config_option
+@format_option
+def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None, fmt: str | None) -> None:
+    """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
+    from ..pipeline import odometry_command
+
+    summary = odometry_command(source, out, frames, load_config(config_path), fmt, progress_bar())
+    for line in summary.lines():
+        click.echo(line)
+    click.echo(f"wrote {out}/trajectory_tum.txt, frames.csv, trajectory.png, run.json")
+
+
+@main.command("export-trajectory")
+@click.argument("tum_file", type=click.Path(path_type=Path))
+@click.argument("out_file", type=click.Path(path_type=Path))
+@click.option("--to", "fmt", type=click.Choice(["tum", "kitti", "euroc"]), required=True)
+def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str) -> None:
+    """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
+    from ..io.trajectory import read_tum, write_trajectory
+
+    if not tum_file.is_file():
+        raise FileNotFoundError(f"{tum_file}: no such file")
+    t_ns, T = read_tum(tum_file)
+    write_trajectory(out_file, t_ns, T, fmt)
+    click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")
+
+
+@main.command("demo")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
+def demo_cmd(out: Path) -> None:
+    """Odometry on the shipped KITTI clip with a short report."""
+    from ..config import Config
+    from ..pipeline import odometry_command
+
+    clip = _find_datasets() / DEMO_CLIP
+    click.echo(f"vtr demo: stereo odometry on {clip}")
+    summary = odometry_command(clip, out / "odometry", None, Config(), None, progress_bar())
+    for line in summary.lines():
+        click.echo(line)
+    click.echo(f"report: {out}/odometry/trajectory.png, trajectory_tum.txt, frames.csv, run.json")

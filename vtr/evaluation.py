@@ -1,0 +1,80 @@
+"""Trajectory accuracy against ground truth: KITTI-style relative errors over sub-segments.
+
+``t_err`` is the mean translation error of the relative pose over every sub-segment of the given
+lengths (percent of the length), ``r_err`` the mean rotation error (degrees per metre), as the
+KITTI odometry benchmark defines them; ``end_pct`` the end-point error over the travelled distance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .geometry import inv_T, rotation_angle
+
+SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
+
+
+@dataclass(frozen=True)
+class DriftMetrics:
+    t_err_pct: float
+    r_err_deg_per_m: float
+    end_pct: float
+    length_ratio: float    # estimated path length / true path length
+    distance_m: float
+    segments: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def __str__(self) -> str:
+        return (f"t_err {self.t_err_pct:.3f} %  r_err {self.r_err_deg_per_m:.4f} deg/m  "
+                f"end {self.end_pct:.3f} %  path length x{self.length_ratio:.4f}  "
+                f"({self.distance_m:.1f} m, {self.segments} segments)")
+
+
+def path_length(T: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
+
+
+def drift_metrics(T_est: np.ndarray, T_gt: np.ndarray,
+                  lengths: tuple[float, ...] = SEGMENT_LENGTHS_M) -> DriftMetrics:
+    """KITTI-style drift of an estimated trajectory against ground truth (same frames, same order).
+
+    Both are re-expressed relative to their first pose first.
+    """
+    T_est = inv_T(T_est[0]) @ T_est
+    T_gt = inv_T(T_gt[0]) @ T_gt
+    d = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1))]
+    t_err, r_err = [], []
+    for L in lengths:
+        i = np.arange(len(T_gt))
+        j = np.searchsorted(d, d + L)
+        ok = j < len(T_gt)
+        i, j = i[ok], j[ok]
+        if len(i) == 0:
+            continue
+        rel_gt = inv_T(T_gt[i]) @ T_gt[j]
+        rel_est = inv_T(T_est[i]) @ T_est[j]
+        E = inv_T(rel_gt) @ rel_est
+        t_err.append(np.linalg.norm(E[:, :3, 3], axis=1) / L)
+        r_err.append(np.degrees(rotation_angle(E[:, :3, :3])) / L)
+    dist = float(d[-1])
+    n = int(sum(len(e) for e in t_err))
+    return DriftMetrics(
+        t_err_pct=float(100 * np.mean(np.concatenate(t_err))) if n else float("nan"),
+        r_err_deg_per_m=float(np.mean(np.concatenate(r_err))) if n else float("nan"),
+        end_pct=float(100 * np.linalg.norm(T_est[-1, :3, 3] - T_gt[-1, :3, 3]) / dist) if dist > 0 else float("nan"),
+        length_ratio=path_length(T_est) / dist if dist > 0 else float("nan"),
+        distance_m=dist,
+        segments=n,
+    )
+
+
+def associate(t_est: np.ndarray, t_gt: np.ndarray, tolerance_ns: int = 20_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (estimate, ground truth) whose times agree within ``tolerance_ns``."""
+    j = np.clip(np.searchsorted(t_gt, t_est), 1, len(t_gt) - 1)
+    j = np.where(np.abs(t_gt[j - 1] - t_est) <= np.abs(t_gt[j] - t_est), j - 1, j)
+    ok = np.abs(t_gt[j] - t_est) <= tolerance_ns
+    return np.flatnonzero(ok), j[ok]
