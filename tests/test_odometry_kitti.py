@@ -36,8 +36,11 @@ def test_better_than_naive_odometry(kitti_run):
     assert kitti_run[2].t_err_pct < NAIVE_T_ERR_PCT
 
 
-@pytest.mark.xfail(strict=True, reason="measured t_err 1.38 %, r_err 0.024 deg/m (two-view refinement)")
-def test_drift_within_bounds(kitti_run):
-    m = kitti_run[2]
-    assert m.t_err_pct <= T_ERR_BOUND_PCT
-    assert m.r_err_deg_per_m <= R_ERR_BOUND_DEG_PER_M
+def test_rotation_drift_within_bound(kitti_run):
+    assert kitti_run[2].r_err_deg_per_m <= R_ERR_BOUND_DEG_PER_M
+
+
+@pytest.mark.xfail(strict=True, reason="measured t_err 1.34 % (path length +1.1 %: KITTI's stereo calibration "
+                   "makes disparities ~0.13 px small; windowed BA, far points rotation-only)")
+def test_translation_drift_within_bound(kitti_run):
+    assert kitti_run[2].t_err_pct <= T_ERR_BOUND_PCT

@@ -60,12 +60,17 @@ class OdometryConfig:
     refine_iterations: int = 10           # Gauss-Newton iterations of the two-view stereo bundle adjustment
     huber_px: float = 1.5                 # robust kernel width in the refinement
     far_point_baselines: float = 40.0     # points beyond this many baselines constrain rotation only
+    far_disparity_weight: float = 0.01    # weight of a far point's disparity row (1 = full, 0 = ignored)
     keyframe_translation_m: float = 0.3   # new vertex when translation exceeds this
     keyframe_rotation_deg: float = 3.0    # ... or rotation exceeds this
     keyframe_min_inliers: int = 50        # ... or inliers fall below this
     max_step_translation_m: float = 2.0   # larger steps are implausible: FAILURE
     max_step_rotation_deg: float = 20.0
     window_keyframes: int = 5             # keyframes in the local map matched and refined together
+    window_iterations: int = 6            # Levenberg-Marquardt iterations of the windowed bundle adjustment
+    still_translation_m: float = 1e-3     # a step below this (and still_rotation_deg) is DO_NOTHING
+    still_rotation_deg: float = 0.01
+    failure_variance: float = 100.0       # variance put on an edge carried by the motion prior alone
     seed: int = 0                         # RANSAC seed (runs are reproducible)
 
 

@@ -85,90 +85,154 @@ def refine_two_view(T_q_r: np.ndarray, points_r: np.ndarray, z_r: np.ndarray, z_
                     outlier_px: float) -> RefineResult:
     """Two-view stereo bundle adjustment of T_q_r and the landmarks (reference view held fixed).
 
-    ``z_r`` (N, 3): stereo measurements (u_l, v, u_r) of each landmark in the reference view;
-    ``z_q`` (N, 3): in the query view, with u_r NaN where the query feature has no stereo match
-    (then only u_l, v count). Landmarks are eliminated with the Schur complement (3x3 blocks),
-    so each iteration costs O(N). Levenberg-Marquardt damping keeps steps safe.
+    ``z_r``/``z_q`` (N, 3): stereo measurements (u_l, v, u_r) of each landmark in the reference and
+    query views, u_r NaN where a view has no right match (only u_l, v count there).
     """
-    T = T_q_r.copy()
-    X = points_r.copy()
-    n = len(X)
-    mono_q = ~np.isfinite(z_q[:, 2])
-    mono_r = ~np.isfinite(z_r[:, 2])
-    zq = np.where(mono_q[:, None], np.c_[z_q[:, :2], np.zeros(n)], z_q)
-    zr = np.where(mono_r[:, None], np.c_[z_r[:, :2], np.zeros(n)], z_r)
-    w_q_rows = np.ones((n, 3))
-    w_q_rows[mono_q, 2] = 0.0
-    w_r_rows = np.ones((n, 3))
-    w_r_rows[mono_r, 2] = 0.0
-    info = 1.0 / sigma_px**2
-    k = huber_px / sigma_px
+    n = len(points_r)
+    z = np.concatenate([z_r, z_q])
+    rows = np.isfinite(z).astype(float)
+    res = bundle_adjust(np.stack([np.eye(4), T_q_r]), np.array([True, False]), points_r,
+                        np.r_[np.zeros(n, int), np.ones(n, int)], np.r_[np.arange(n), np.arange(n)],
+                        np.nan_to_num(z), rows, camera, sigma_px, huber_px, iterations)
+    e2 = np.maximum(res.error_sq[:n], res.error_sq[n:])
+    inlier = e2 <= outlier_px**2
+    sq = np.r_[res.error_sq[:n][inlier], res.error_sq[n:][inlier]] / 3
+    rms = float(np.sqrt(np.mean(sq))) if inlier.any() else float("nan")
+    return RefineResult(res.T_cam_world[1], res.pose_covariance[1], res.points, inlier, rms)
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Refined camera poses ``T_cam_world`` (K, 4, 4), landmarks (L, 3) in world, per-observation
+    squared reprojection error (px^2, over the measured rows) and the marginal 6x6 covariance of
+    each free pose ([rot, trans], left perturbation; zeros for fixed poses)."""
+
+    T_cam_world: np.ndarray
+    points: np.ndarray
+    error_sq: np.ndarray
+    pose_covariance: np.ndarray
+    cost: float
+
+
+def _pose_jacobian(Y: np.ndarray, J_Y: np.ndarray) -> np.ndarray:
+    """d(measurement)/d(left perturbation [omega, v] of T_cam_world), given Y = T X and dz/dY."""
+    dY = np.concatenate([-skew(Y), np.broadcast_to(np.eye(3), Y.shape[:1] + (3, 3))], axis=2)
+    return J_Y @ dY
+
+
+def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
+                  obs_point: np.ndarray, z: np.ndarray, row_weight: np.ndarray, camera: StereoCamera,
+                  sigma_px: float, huber_px: float, iterations: int, fix_points: bool = False) -> BundleResult:
+    """Levenberg-Marquardt bundle adjustment on stereo reprojection errors (u_l, v, u_r).
+
+    ``obs_pose``/``obs_point`` index the pose and landmark of each observation, ``z`` (M, 3) its
+    measurement and ``row_weight`` (M, 3) a weight per measured row (0 for a missing right match,
+    small for the disparity of a far landmark). Landmarks are eliminated by the Schur complement
+    (3x3 blocks), so the solve is over the free poses only; ``fix_points`` refines poses alone.
+    """
+    T = T_cam_world.copy()
+    X = points.copy()
+    K, L = len(T), len(X)
+    free = np.flatnonzero(~fixed)
+    slot = -np.ones(K, int)
+    slot[free] = np.arange(len(free))
+    info_rows = row_weight / sigma_px**2
+    zz = np.where(row_weight > 0, z, 0.0)
+    k_huber = huber_px / sigma_px
+    order = np.argsort(obs_point, kind="stable")
+    counts = np.bincount(obs_point, minlength=L)
+    starts = np.cumsum(counts) - counts
+
+    def evaluate(T_, X_):
+        Y = np.einsum("mij,mj->mi", T_[obs_pose, :3, :3], X_[obs_point]) + T_[obs_pose, :3, 3]
+        e = (camera.project(Y) - zz) * (row_weight > 0)
+        r2 = (info_rows * e**2).sum(1)
+        w = _huber_weights(r2, k_huber)
+        return Y, e, r2, w, float(np.sum(w * r2 * (2 - w)))
+
+    Y, e, _, w, cost = evaluate(T, X)
+    if not np.all(Y[:, 2] > 0):
+        raise ValueError("bundle_adjust: a landmark starts behind its camera")
     lam = 1e-4
-
-    def residuals(T_, X_):
-        Y = X_ @ T_[:3, :3].T + T_[:3, 3]
-        er = (camera.project(X_) - zr) * w_r_rows
-        eq = (camera.project(Y) - zq) * w_q_rows
-        return Y, er, eq
-
-    def cost(er, eq):
-        r2r = (er**2).sum(1) * info
-        r2q = (eq**2).sum(1) * info
-        wr, wq = _huber_weights(r2r, k), _huber_weights(r2q, k)
-        return float(np.sum(wr * r2r * (2 - wr)) + np.sum(wq * r2q * (2 - wq))), wr, wq
-
-    Y, er, eq = residuals(T, X)
-    valid = (X[:, 2] > 0) & (Y[:, 2] > 0)
-    c0, wr, wq = cost(er[valid], eq[valid])
-    S = np.eye(6)
+    Hpp_blocks = np.zeros((K, 6, 6))
     for _ in range(iterations):
-        Xv, Yv = X[valid], Y[valid]
-        erv, eqv = er[valid], eq[valid]
-        _, wr, wq = cost(erv, eqv)
-        R = T[:3, :3]
-        Jr_X = stereo_jacobian(Xv, camera) * w_r_rows[valid][:, :, None]                     # (m, 3, 3)
-        Jq_Y = stereo_jacobian(Yv, camera) * w_q_rows[valid][:, :, None]
-        Jq_X = Jq_Y @ R
-        dY_dxi = np.concatenate([-skew(Yv), np.broadcast_to(np.eye(3), Yv.shape[:1] + (3, 3))], axis=2)
-        Jq_P = Jq_Y @ dY_dxi                                     # (m, 3, 6)
-        Wr = (wr * info)[:, None, None]
-        Wq = (wq * info)[:, None, None]
-        Hll = (np.swapaxes(Jr_X, 1, 2) @ (Wr * Jr_X)) + (np.swapaxes(Jq_X, 1, 2) @ (Wq * Jq_X))
-        Hpl = np.swapaxes(Jq_P, 1, 2) @ (Wq * Jq_X)              # (m, 6, 3)
-        Hpp = np.einsum("mki,mkj->ij", Jq_P, Wq * Jq_P)
-        bl = -(np.einsum("mki,mk->mi", Jr_X, (wr * info)[:, None] * erv)
-               + np.einsum("mki,mk->mi", Jq_X, (wq * info)[:, None] * eqv))
-        bp = -np.einsum("mki,mk->i", Jq_P, (wq * info)[:, None] * eqv)
+        J_Y = stereo_jacobian(Y, camera)
+        J_p = _pose_jacobian(Y, J_Y)                                  # (M, 3, 6)
+        J_x = J_Y @ T[obs_pose, :3, :3]                               # (M, 3, 3)
+        Wd = (w[:, None] * info_rows)                                 # (M, 3) diagonal weights
+        WJp = Wd[:, :, None] * J_p
+        WJx = Wd[:, :, None] * J_x
+        Hpp_blocks = np.zeros((K, 6, 6))
+        np.add.at(Hpp_blocks, obs_pose, np.swapaxes(J_p, 1, 2) @ WJp)
+        bp = np.zeros((K, 6))
+        np.add.at(bp, obs_pose, -np.einsum("mki,mk->mi", J_p, Wd * e))
+        if not fix_points:
+            Hll = np.zeros((L, 3, 3))
+            np.add.at(Hll, obs_point, np.swapaxes(J_x, 1, 2) @ WJx)
+            bl = np.zeros((L, 3))
+            np.add.at(bl, obs_point, -np.einsum("mki,mk->mi", J_x, Wd * e))
+            Hpl = np.swapaxes(J_p, 1, 2) @ WJx                        # (M, 6, 3)
         improved = False
-        for _attempt in range(6):
-            Hll_d = Hll + lam * np.eye(3) * (1 + np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3)
-            Hll_inv = np.linalg.inv(Hll_d)
-            HplHinv = Hpl @ Hll_inv                               # (m, 6, 3)
-            S = Hpp - np.einsum("mij,mkj->ik", HplHinv, Hpl)
-            g = bp - np.einsum("mij,mj->i", HplHinv, bl)
+        for _attempt in range(8):
+            F = len(free)
+            if fix_points:
+                S = np.zeros((F * 6, F * 6))
+                g = np.zeros(F * 6)
+                for k in free:
+                    s = slot[k] * 6
+                    S[s:s + 6, s:s + 6] = Hpp_blocks[k]
+                    g[s:s + 6] = bp[k]
+            else:
+                Hll_d = Hll + lam * (np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9))
+                Hll_inv = np.linalg.inv(Hll_d)
+                A = Hpl @ Hll_inv[obs_point]                          # (M, 6, 3)
+                # pairs of observations of the same landmark -> Schur blocks (k_o, k_o')
+                o1 = np.repeat(order, counts[obs_point[order]])
+                grp = obs_point[o1]
+                rank = np.arange(len(o1)) - np.repeat(np.cumsum(counts[obs_point[order]])
+                                                        - counts[obs_point[order]], counts[obs_point[order]])
+                o2 = order[starts[grp] + rank]
+                S_full = np.zeros((K, K, 6, 6))
+                for k in range(K):
+                    S_full[k, k] += Hpp_blocks[k]
+                np.add.at(S_full, (obs_pose[o1], obs_pose[o2]), -(A[o1] @ np.swapaxes(Hpl[o2], 1, 2)))
+                g_full = bp.copy()
+                np.add.at(g_full, obs_pose, -np.einsum("mij,mj->mi", A, bl[obs_point]))
+                S = S_full[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(F * 6, F * 6)
+                g = g_full[free].reshape(-1)
             S_d = S + lam * np.diag(np.diag(S) + 1e-9)
-            dp = np.linalg.solve(S_d, g)
-            dl = np.einsum("mij,mj->mi", Hll_inv, bl - np.einsum("mji,j->mi", Hpl, dp))
-            T_new = exp_se3(dp) @ T
-            X_new = X.copy()
-            X_new[valid] += dl
-            Y_new, er_new, eq_new = residuals(T_new, X_new)
-            ok_new = (X_new[valid, 2] > 0) & (Y_new[valid, 2] > 0)
-            c_new = cost(er_new[valid], eq_new[valid])[0] if np.all(ok_new) else np.inf
-            if c_new < c0:
-                T, X, Y, er, eq, c0 = T_new, X_new, Y_new, er_new, eq_new, c_new
+            try:
+                dp = np.linalg.solve(S_d, g).reshape(F, 6)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            T_new = T.copy()
+            for k in free:
+                T_new[k] = exp_se3(dp[slot[k]]) @ T[k]
+            X_new = X
+            if not fix_points:
+                dpk = np.zeros((K, 6))
+                dpk[free] = dp
+                rhs = bl.copy()
+                np.add.at(rhs, obs_point, -np.einsum("mji,mj->mi", Hpl, dpk[obs_pose]))
+                X_new = X + np.einsum("lij,lj->li", Hll_inv, rhs)
+            Y_n, e_n, _, w_n, cost_n = evaluate(T_new, X_new)
+            if np.all(Y_n[:, 2] > 0) and cost_n < cost:
+                T, X, Y, e, w, cost = T_new, X_new, Y_n, e_n, w_n, cost_n
                 lam = max(lam / 10, 1e-7)
                 improved = True
                 break
             lam *= 10
-        if not improved or np.linalg.norm(dp) < 1e-10:
+        if not improved or np.abs(dp).max() < 1e-10:
             break
-    e2 = np.maximum((er**2).sum(1), (eq**2).sum(1))
-    inlier = valid & (e2 <= outlier_px**2)
-    try:
-        cov = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        cov = np.full((6, 6), np.nan)
-    sq = np.r_[(er[inlier] ** 2).sum(1), (eq[inlier] ** 2).sum(1)] / 3
-    rms = float(np.sqrt(np.mean(sq))) if inlier.any() else float("nan")
-    return RefineResult(T, cov, X, inlier, rms)
+    cov = np.zeros((K, 6, 6))
+    if len(free):
+        try:
+            Sinv = np.linalg.inv(S)
+            for k in free:
+                s = slot[k] * 6
+                cov[k] = Sinv[s:s + 6, s:s + 6]
+        except np.linalg.LinAlgError:
+            cov[free] = np.nan
+    err_sq = ((camera.project(Y) - zz) ** 2 * (row_weight > 0)).sum(1)
+    return BundleResult(T, X, err_sq, cov, cost)

@@ -1,9 +1,13 @@
 """Keyframe stereo visual odometry (the teach front end).
 
-Per frame (VT&R3's "petiole" scheme): stereo features of the new frame are matched to the
-landmarks of the last keyframe around where a constant-velocity prior predicts them, P3P RANSAC
-rejects outliers, a two-view stereo bundle adjustment refines ``T_frame_keyframe`` (and the
-landmarks), and the keyframe test decides whether the frame becomes a new vertex.
+Per frame: stereo features of the new frame are matched to the landmarks of a local map (the
+last few keyframes) around where a constant-velocity prior predicts them; P3P RANSAC rejects
+outliers; the pose is refined on stereo reprojection errors; the keyframe test (VT&R3's vertex
+test) decides whether the frame becomes a new vertex. Each new keyframe triggers a windowed
+bundle adjustment over the last ``window_keyframes`` keyframes and their landmarks (VT&R3's
+default), stereo reprojection errors in both images, landmarks free along their rays. Far
+landmarks (beyond ``far_point_baselines`` baselines) keep only a token weight on their disparity,
+so they constrain rotation, while the scale comes from near landmarks and multi-view parallax.
 
 Frames: every pose is of the left rectified camera. ``T_world_frame`` is expressed in the first
 camera frame of the run (world = camera 0), as KITTI ground truth is.
@@ -11,6 +15,7 @@ camera frame of the run (world = camera 0), as KITTI ground truth is.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -18,11 +23,13 @@ import numpy as np
 
 from .camera import StereoCamera
 from .config import Config, OdometryConfig
-from .estimation import ransac_pnp, refine_two_view
+from .estimation import bundle_adjust, ransac_pnp
 from .features import best_matches, hamming_pairs, radius_pairs
 from .geometry import exp_se3, inv_T, log_se3, rotation_angle
 from .io.base import StereoImages
 from .stereo import StereoFrame, StereoProcessor
+
+MIN_DEPTH_M = 0.1  # landmarks closer than this in front of the camera are not predicted
 
 
 class FrameKind(StrEnum):
@@ -68,18 +75,58 @@ class OdometryResult:
     T_world_frame: np.ndarray
     covariance: np.ndarray
     new_keyframe: Keyframe | None = None
+    finalized: tuple[Keyframe, ...] = ()
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def vertex_id(self) -> int:
+        """The keyframe this frame belongs to: its own new vertex, else the reference keyframe."""
+        return self.new_keyframe.id if self.new_keyframe is not None else self.keyframe_id
 
 
 @dataclass
-class _Track:
-    """Mutable state carried between frames."""
+class _WindowKeyframe:
+    """A keyframe inside the local map; pose and landmarks still being refined."""
 
-    keyframe: Keyframe
-    T_frame_kf: np.ndarray            # last frame relative to the keyframe
-    t_ns: int
-    velocity: np.ndarray | None       # twist per second of T_frame_prev ([rot, trans])
-    failures: int = 0
+    id: int
+    frame: StereoFrame
+    T_cam_world: np.ndarray
+    landmark_ids: np.ndarray       # (N,) landmark of each feature, -1 if none
+    edge_covariance: np.ndarray
+    edge_inliers: int
+
+
+class LocalMap:
+    """The last keyframes and the landmarks they observe, positions in the world (first camera) frame."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.keyframes: deque[_WindowKeyframe] = deque()
+        self.positions = np.zeros((0, 3))
+        self.descriptors = np.zeros((0, 32), np.uint8)
+
+    def add_landmarks(self, points_world: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+        ids = np.arange(len(self.positions), len(self.positions) + len(points_world))
+        self.positions = np.concatenate([self.positions, points_world])
+        self.descriptors = np.concatenate([self.descriptors, descriptors])
+        return ids
+
+    def active(self) -> np.ndarray:
+        """Ids of landmarks observed by a keyframe in the window."""
+        if not self.keyframes:
+            return np.zeros(0, int)
+        ids = np.concatenate([kf.landmark_ids for kf in self.keyframes])
+        return np.unique(ids[ids >= 0])
+
+    def compact(self) -> None:
+        """Drop landmarks no keyframe in the window observes (keeps memory flat)."""
+        keep = self.active()
+        remap = -np.ones(len(self.positions), int)
+        remap[keep] = np.arange(len(keep))
+        self.positions, self.descriptors = self.positions[keep], self.descriptors[keep]
+        for kf in self.keyframes:
+            ok = kf.landmark_ids >= 0
+            kf.landmark_ids[ok] = remap[kf.landmark_ids[ok]]
 
 
 class StereoOdometry:
@@ -89,130 +136,253 @@ class StereoOdometry:
         self.config = config or Config()
         self.camera = camera
         self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo)
-        self._track: _Track | None = None
+        self.map = LocalMap(self.config.odometry.window_keyframes)
         self._next_id = 0
+        self._T_cw_last: np.ndarray | None = None    # last frame's T_cam_world
+        self._t_last = 0
+        self._velocity: np.ndarray | None = None     # twist per second of T_cur_prev ([rot, trans])
+        self._keyframe_poses: dict[int, np.ndarray] = {}   # id -> T_world_kf (latest estimate)
+        self._previous_final: Keyframe | None = None
+        self._frame_refs: list[tuple[int, np.ndarray]] = []
 
     @property
-    def keyframe(self) -> Keyframe | None:
-        return self._track.keyframe if self._track else None
+    def far_depth_m(self) -> float:
+        return self.config.odometry.far_point_baselines * self.camera.baseline
 
     def process(self, images: StereoImages) -> OdometryResult:
         """Stereo-process a rectified pair, then track it (``process_frame``)."""
         return self.process_frame(self.stereo.process(images))
 
     def process_frame(self, frame: StereoFrame) -> OdometryResult:
-        """Track one stereo frame against the last keyframe."""
+        """Track one stereo frame against the local map; returns what happened to it."""
         cfg = self.config.odometry
-        if self._track is None:
+        if self._T_cw_last is None:
             return self._start(frame)
-        tr = self._track
-        kf = tr.keyframe
-        dt = (frame.t_ns - tr.t_ns) * 1e-9
-        T_pred = tr.T_frame_kf if tr.velocity is None else exp_se3(tr.velocity * dt) @ tr.T_frame_kf
-        radius = cfg.match_radius_px if tr.velocity is not None else cfg.match_radius_no_prior_px
-        est = self._estimate(kf.frame, frame, T_pred, radius)
+        ref = self.map.keyframes[-1]
+        dt = (frame.t_ns - self._t_last) * 1e-9
+        T_pred = self._T_cw_last if self._velocity is None else exp_se3(self._velocity * dt) @ self._T_cw_last
+        radius = cfg.match_radius_px if self._velocity is not None else cfg.match_radius_no_prior_px
+        est = self._track(frame, T_pred, radius)
         if est is None and radius < cfg.match_radius_no_prior_px:
-            est = self._estimate(kf.frame, frame, T_pred, cfg.match_radius_no_prior_px)
-        if est is not None and not self._plausible(est[0], tr.T_frame_kf):
+            est = self._track(frame, T_pred, cfg.match_radius_no_prior_px)
+        if est is not None and not self._plausible(est[0]):
             est = None
         if est is None:
-            return self._fail(frame, T_pred)
-        T_frame_kf, cov, n_matches, n_inliers = est
-        T_step = T_frame_kf @ inv_T(tr.T_frame_kf)
-        velocity = log_se3(T_step) / dt if dt > 0 else tr.velocity
-        T_kf_frame = inv_T(T_frame_kf)
-        T_world_frame = kf.T_world_kf @ T_kf_frame
+            return self._fail(frame, T_pred, ref)
+        T_cw, cov, lm_ids, feat_idx, n_matches = est
+        n_inliers = len(lm_ids)
+        T_step = T_cw @ inv_T(self._T_cw_last)
+        if dt > 0:
+            self._velocity = log_se3(T_step) / dt
+        self._T_cw_last, self._t_last = T_cw, frame.t_ns
+        T_world_frame = inv_T(T_cw)
+        T_kf_frame = ref.T_cam_world @ T_world_frame
         trans = np.linalg.norm(T_kf_frame[:3, 3])
         rot = np.degrees(rotation_angle(T_kf_frame[:3, :3]))
+        new_kf, finalized = None, ()
         if trans > cfg.keyframe_translation_m or rot > cfg.keyframe_rotation_deg \
                 or n_inliers < cfg.keyframe_min_inliers:
-            new_kf = Keyframe(self._take_id(), frame, T_world_frame, T_kf_frame, cov, n_inliers)
-            self._track = _Track(new_kf, np.eye(4), frame.t_ns, velocity)
+            new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, lm_ids, feat_idx)
             kind = FrameKind.CREATE_VERTEX
+            T_world_frame = self._keyframe_poses[new_kf.id]
+            T_kf_frame = inv_T(self._keyframe_poses[ref.id]) @ T_world_frame
         else:
-            new_kf = None
-            moved = np.linalg.norm(T_step[:3, 3]) > 1e-3 or rotation_angle(T_step[:3, :3]) > 1e-4
-            self._track = _Track(kf, T_frame_kf, frame.t_ns, velocity)
+            moved = np.linalg.norm(T_step[:3, 3]) > cfg.still_translation_m \
+                or np.degrees(rotation_angle(T_step[:3, :3])) > cfg.still_rotation_deg
             kind = FrameKind.CREATE_CANDIDATE if moved else FrameKind.DO_NOTHING
-        return OdometryResult(frame.t_ns, frame.index, kind, n_matches, n_inliers, kf.id, T_kf_frame,
-                              T_world_frame, cov, new_kf)
+        self._frame_refs.append((new_kf.id if new_kf else ref.id,
+                                 np.eye(4) if new_kf else T_kf_frame))
+        return OdometryResult(frame.t_ns, frame.index, kind, n_matches, n_inliers, ref.id, T_kf_frame,
+                              T_world_frame, cov, new_kf, finalized)
+
+    def flush(self) -> list[Keyframe]:
+        """Finalize every keyframe still in the window (call at the end of a run)."""
+        out = []
+        while self.map.keyframes:
+            out.append(self._finalize(self.map.keyframes.popleft()))
+        return out
 
     def final_poses(self, results: list[OdometryResult]) -> np.ndarray:
-        """Poses (N, 4, 4) of the processed frames in the first camera frame, as finally estimated."""
-        return np.array([r.T_world_frame for r in results]).reshape(-1, 4, 4)
+        """Poses (N, 4, 4) of the frames processed so far (in order), in the first camera frame,
+        with keyframes as refined by the windowed bundle adjustment."""
+        refs = self._frame_refs[-len(results):] if results else []
+        return np.array([self._keyframe_poses[k] @ T for k, T in refs]).reshape(-1, 4, 4)
 
     def _take_id(self) -> int:
         self._next_id += 1
         return self._next_id - 1
 
-    def _start(self, frame: StereoFrame) -> OdometryResult:
-        kf = Keyframe(self._take_id(), frame, np.eye(4), np.eye(4), np.zeros((6, 6)), 0)
-        self._track = _Track(kf, np.eye(4), frame.t_ns, None)
+    def _start(self, frame: StereoFrame, T_cw: np.ndarray | None = None,
+               covariance: np.ndarray | None = None) -> OdometryResult:
+        T_cw = np.eye(4) if T_cw is None else T_cw
+        kf = self._new_window_keyframe(frame, T_cw, covariance if covariance is not None else np.zeros((6, 6)),
+                                       0, np.zeros(0, int), np.zeros(0, int))
+        self._T_cw_last, self._t_last = T_cw, frame.t_ns
+        self._frame_refs.append((kf.id, np.eye(4)))
+        new = self._public(kf)
         return OdometryResult(frame.t_ns, frame.index, FrameKind.CREATE_VERTEX, 0, 0, kf.id, np.eye(4),
-                              np.eye(4), np.zeros((6, 6)), kf)
+                              inv_T(T_cw), new.edge_covariance, new)
 
-    def _plausible(self, T_frame_kf: np.ndarray, T_prev_frame_kf: np.ndarray) -> bool:
+    def _new_window_keyframe(self, frame: StereoFrame, T_cw: np.ndarray, cov: np.ndarray, inliers: int,
+                             lm_ids: np.ndarray, feat_idx: np.ndarray) -> _WindowKeyframe:
+        """Register a keyframe: matched features keep their landmarks, other stereo features start new ones."""
+        ids = -np.ones(len(frame.features), int)
+        ids[feat_idx] = lm_ids
+        self.map.descriptors[lm_ids] = frame.features.descriptors[feat_idx]
+        fresh = np.flatnonzero((ids < 0) & frame.has_depth)
+        T_wc = inv_T(T_cw)
+        ids[fresh] = self.map.add_landmarks(frame.points[fresh] @ T_wc[:3, :3].T + T_wc[:3, 3],
+                                            frame.features.descriptors[fresh])
+        kf = _WindowKeyframe(self._take_id(), frame, T_cw, ids, cov, inliers)
+        self.map.keyframes.append(kf)
+        self._keyframe_poses[kf.id] = T_wc
+        return kf
+
+    def _add_keyframe(self, frame, T_cw, cov, inliers, lm_ids, feat_idx):
+        kf = self._new_window_keyframe(frame, T_cw, cov, inliers, lm_ids, feat_idx)
+        self._bundle_adjust()
+        finalized = []
+        while len(self.map.keyframes) > self.map.size:
+            finalized.append(self._finalize(self.map.keyframes.popleft()))
+        if finalized:
+            self.map.compact()
+        self._T_cw_last = kf.T_cam_world
+        return self._public(kf), tuple(finalized)
+
+    def _public(self, kf: _WindowKeyframe) -> Keyframe:
+        T_world_kf = self._keyframe_poses[kf.id]
+        prev = self._previous_final
+        T_prev_kf = inv_T(prev.T_world_kf) @ T_world_kf if prev is not None else np.eye(4)
+        return Keyframe(kf.id, kf.frame, T_world_kf, T_prev_kf, kf.edge_covariance, kf.edge_inliers)
+
+    def _finalize(self, kf: _WindowKeyframe) -> Keyframe:
+        """A keyframe leaving the window: its pose is final; the edge joins it to the previous final one."""
+        out = self._public(kf)
+        self._previous_final = out
+        return out
+
+    def _observations(self):
+        """Observations of landmarks seen by >= 2 window keyframes: (pose slot, landmark, z, row weights)."""
+        kfs = list(self.map.keyframes)
+        slots, lms, feats = [], [], []
+        for s, kf in enumerate(kfs):
+            f = np.flatnonzero(kf.landmark_ids >= 0)
+            slots.append(np.full(len(f), s))
+            lms.append(kf.landmark_ids[f])
+            feats.append(f)
+        slot, lm = np.concatenate(slots), np.concatenate(lms)
+        seen = np.bincount(lm, minlength=len(self.map.positions))
+        keep = seen[lm] >= 2
+        z = np.concatenate([kf.frame.stereo_measurements[f] for kf, f in zip(kfs, feats, strict=True)])
+        return slot[keep], lm[keep], z[keep], np.concatenate(feats)[keep]
+
+    def _row_weights(self, z: np.ndarray) -> np.ndarray:
+        """Weights of (u_l, v, u_r): no right match -> 0; far (small disparity) -> token weight."""
+        w = np.ones((len(z), 3))
+        disparity = z[:, 0] - z[:, 2]
+        w[~np.isfinite(disparity), 2] = 0.0
+        far = np.isfinite(disparity) & (disparity < self.camera.fb / self.far_depth_m)
+        w[far, 2] = self.config.odometry.far_disparity_weight
+        return w
+
+    def _bundle_adjust(self) -> None:
+        """Windowed bundle adjustment: oldest keyframe fixed, the others and their landmarks free."""
         cfg = self.config.odometry
-        step = T_frame_kf @ inv_T(T_prev_frame_kf)
+        kfs = list(self.map.keyframes)
+        if len(kfs) < 2:
+            return
+        slot, lm, z, feat = self._observations()
+        if len(lm) == 0:
+            return
+        uniq, lm_local = np.unique(lm, return_inverse=True)
+        T = np.stack([kf.T_cam_world for kf in kfs])
+        fixed = np.zeros(len(kfs), bool)
+        fixed[0] = True
+        try:
+            res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z),
+                                self._row_weights(z), self.camera, self.config.stereo.pixel_sigma,
+                                cfg.huber_px, cfg.window_iterations)
+        except ValueError:
+            return
+        for s, kf in enumerate(kfs):
+            kf.T_cam_world = res.T_cam_world[s]
+            self._keyframe_poses[kf.id] = inv_T(kf.T_cam_world)
+        self.map.positions[uniq] = res.points
+        # observations that no longer fit are detached from their landmark
+        bad = res.error_sq > cfg.ransac_threshold_px**2
+        for s in np.unique(slot[bad]):
+            kfs[s].landmark_ids[feat[bad & (slot == s)]] = -1
+
+    def _plausible(self, T_cw: np.ndarray) -> bool:
+        cfg = self.config.odometry
+        step = T_cw @ inv_T(self._T_cw_last)
         return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_step_translation_m
                     and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_step_rotation_deg)
 
-    def _fail(self, frame: StereoFrame, T_pred: np.ndarray) -> OdometryResult:
-        """No reliable estimate: carry the pose by the motion prior; restart from this frame."""
-        tr = self._track
-        kf = tr.keyframe
-        T_kf_frame = inv_T(T_pred)
-        T_world_frame = kf.T_world_kf @ T_kf_frame
-        # the frame becomes the new reference so tracking can resume; its edge is the prior (unknown covariance)
-        big = np.diag([1e2] * 6)
-        new_kf = Keyframe(self._take_id(), frame, T_world_frame, T_kf_frame, big, 0)
-        self._track = _Track(new_kf, np.eye(4), frame.t_ns, tr.velocity, tr.failures + 1)
-        return OdometryResult(frame.t_ns, frame.index, FrameKind.FAILURE, 0, 0, kf.id, T_kf_frame,
-                              T_world_frame, big, new_kf)
+    def _fail(self, frame: StereoFrame, T_pred: np.ndarray, ref: _WindowKeyframe) -> OdometryResult:
+        """No reliable estimate: carry the pose by the motion prior and restart the local map here."""
+        finalized = tuple(self.flush())
+        self.map = LocalMap(self.config.odometry.window_keyframes)
+        unknown = np.eye(6) * self.config.odometry.failure_variance
+        res = self._start(frame, T_pred, unknown)
+        T_kf_frame = inv_T(self._keyframe_poses[ref.id]) @ inv_T(T_pred)
+        return OdometryResult(frame.t_ns, frame.index, FrameKind.FAILURE, 0, 0, ref.id, T_kf_frame,
+                              res.T_world_frame, unknown, res.new_keyframe, finalized)
 
-    def _estimate(self, ref: StereoFrame, cur: StereoFrame, T_pred: np.ndarray, radius: float):
-        """Match, RANSAC and refine ``T_cur_ref``; None when too few inliers."""
+    def _track(self, frame: StereoFrame, T_pred: np.ndarray, radius: float):
+        """Match to the local map, RANSAC, refine ``T_cam_world``; None when too few inliers.
+
+        Returns (T_cam_world, 6x6 covariance, inlier landmark ids, their feature indices, matches).
+        """
         cfg: OdometryConfig = self.config.odometry
-        ia, jb = match_to_landmarks(ref, cur, T_pred, self.camera, radius, cfg.max_descriptor_distance,
-                                    cfg.ratio_test)
-        if len(ia) < cfg.min_inliers:
+        active = self.map.active()
+        lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
+                                   self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
+        lm = active[lm]
+        if len(lm) < cfg.min_inliers:
             return None
-        rs = ransac_pnp(ref.points[ia], cur.features.uv[jb], self.camera, cfg.ransac_iterations,
+        rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
                         cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
-        ia_in, jb_in = ia[rs.inliers], jb[rs.inliers]
-        ref_z = ref.stereo_measurements[ia_in]
-        cur_z = cur.stereo_measurements[jb_in]
-        # far landmarks: their disparity is too small to trust for depth, so they constrain rotation only
-        far = ref.points[ia_in, 2] > cfg.far_point_baselines * self.camera.baseline
-        ref_z[far, 2] = np.nan
-        cur_z[far, 2] = np.nan
-        rf = refine_two_view(rs.T_q_r, ref.points[ia_in], ref_z, cur_z, self.camera,
-                             self.config.stereo.pixel_sigma, cfg.huber_px, cfg.refine_iterations,
-                             cfg.ransac_threshold_px)
-        n_in = int(rf.inlier.sum())
-        if n_in < cfg.min_inliers:
+        lm_in, feat_in = lm[rs.inliers], feat[rs.inliers]
+        depth = self.map.positions[lm_in] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
+        lm_in, feat_in = lm_in[depth > MIN_DEPTH_M], feat_in[depth > MIN_DEPTH_M]
+        z = frame.stereo_measurements[feat_in]
+        n = len(lm_in)
+        res = bundle_adjust(rs.T_q_r[None], np.array([False]), self.map.positions[lm_in], np.zeros(n, int),
+                            np.arange(n), np.nan_to_num(z), self._row_weights(z), self.camera,
+                            self.config.stereo.pixel_sigma, cfg.huber_px, cfg.refine_iterations, fix_points=True)
+        ok = res.error_sq <= cfg.ransac_threshold_px**2
+        if ok.sum() < cfg.min_inliers:
             return None
-        return rf.T_q_r, rf.covariance, len(ia), n_in
+        return res.T_cam_world[0], res.pose_covariance[0], lm_in[ok], feat_in[ok], len(lm)
+
+
+def match_landmarks(points_world: np.ndarray, descriptors: np.ndarray, frame: StereoFrame, T_cam_world: np.ndarray,
+                    camera: StereoCamera, radius: float, max_distance: int,
+                    ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Match landmarks (world points with descriptors) to a frame's features near their predicted projection.
+
+    Returns (landmark indices, feature indices).
+    """
+    P = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    idx = np.flatnonzero(P[:, 2] > MIN_DEPTH_M)
+    pred = camera.project(P[idx])[:, :2]
+    inside = (pred[:, 0] >= -radius) & (pred[:, 0] < camera.width + radius) \
+        & (pred[:, 1] >= -radius) & (pred[:, 1] < camera.height + radius)
+    idx, pred = idx[inside], pred[inside]
+    pi, cj = radius_pairs(pred, frame.features.uv, radius)
+    ia = idx[pi]
+    dist = hamming_pairs(descriptors, frame.features.descriptors, ia, cj)
+    qi, tj, _ = best_matches(dist, ia, cj, max_distance, ratio=ratio, mutual=True)
+    return qi, tj
 
 
 def match_to_landmarks(ref: StereoFrame, cur: StereoFrame, T_cur_ref: np.ndarray, camera: StereoCamera,
                        radius: float, max_distance: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Match reference landmarks (with depth) to current features near their predicted projection.
-
-    Returns (reference indices, current indices).
-    """
+    """Match a reference frame's landmarks (with depth) to a current frame: (ref indices, cur indices)."""
     ref_idx = np.flatnonzero(ref.has_depth)
-    P = ref.points[ref_idx] @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
-    front = P[:, 2] > 0.1
-    ref_idx, P = ref_idx[front], P[front]
-    pred = camera.project(P)[:, :2]
-    inside = (pred[:, 0] >= -radius) & (pred[:, 0] < camera.width + radius) \
-        & (pred[:, 1] >= -radius) & (pred[:, 1] < camera.height + radius)
-    ref_idx, pred = ref_idx[inside], pred[inside]
-    pi, cj = radius_pairs(pred, cur.features.uv, radius)
-    ia = ref_idx[pi]
-    dist = hamming_pairs(ref.features.descriptors, cur.features.descriptors, ia, cj)
-    qi, tj, _ = best_matches(dist, ia, cj, max_distance, ratio=ratio, mutual=True)
-    return qi, tj
+    qi, tj = match_landmarks(ref.points[ref_idx], ref.features.descriptors[ref_idx], cur, T_cur_ref, camera,
+                             radius, max_distance, ratio)
+    return ref_idx[qi], tj
