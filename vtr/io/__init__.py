@@ -7,13 +7,18 @@ from pathlib import Path
 
 from ..errors import DataError
 from .base import FrameSource, GroundTruth, StereoImages, parse_frame_range
+from .cloud import CloudRun, is_cloud_run, refuse_cloud_stereo
 from .euroc import EurocSource, euroc_root
 from .kitti import KittiSource, KittiWriter, is_kitti
+from .rosbag import RosbagSource, RosbagWriter, is_rosbag
 
 # format name -> (detector on a path, opener); later formats register here
 FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]] = {
     "kitti": (is_kitti, KittiSource),
     "euroc": (lambda p: euroc_root(p) is not None, EurocSource),
+    "rosbag": (is_rosbag, RosbagSource),
+    # CLOUD runs are monocular: detected so that open_source can say why they are refused
+    "cloud": (is_cloud_run, refuse_cloud_stereo),
 }
 
 
@@ -35,6 +40,6 @@ def open_source(path: str | Path, format: str | None = None) -> FrameSource:
 
 
 __all__ = [
-    "FORMATS", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
-    "StereoImages", "open_source", "parse_frame_range",
+    "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
+    "RosbagSource", "RosbagWriter", "StereoImages", "open_source", "parse_frame_range",
 ]

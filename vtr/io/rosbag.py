@@ -1,0 +1,797 @@
+"""ROS bags as a stereo ``FrameSource`` (reader) and a stereo bag writer, through ``rosbags``.
+
+Formats: ROS 1 ``.bag``; ROS 2 bags (a folder with ``metadata.yaml``) with the ``sqlite3`` (``.db3``)
+or ``mcap`` storage. A ROS 2 bag is opened from its folder or from its ``.db3``/``.mcap`` file (the
+folder's metadata is used when it sits next to the file; a lone storage file also opens).
+
+Messages:
+
+- ``sensor_msgs/Image`` with encoding ``mono8`` (lossless), ``mono16`` (scaled to 8 bit by keeping
+  the high byte, ``value >> MONO16_SHIFT``: the full 16-bit range maps linearly onto 0..255; pass
+  ``mono16_shift=4`` for a 12-bit sensor stored in 16-bit words, values above 255 saturate),
+  ``bgr8``/``rgb8``/``bgra8``/``rgba8`` (converted to grey with OpenCV's luma weights);
+- ``sensor_msgs/CompressedImage`` (any format OpenCV decodes: jpeg, png), converted to grey;
+- ``sensor_msgs/CameraInfo`` for both cameras (the first message of each topic is used; the
+  calibration is taken to be constant over the bag).
+
+Calibration: the rectified stereo camera comes from the CameraInfo projection matrices
+``P = [fx 0 cx Tx; 0 fy cy 0; 0 0 1 0]``: intrinsics from ``P[:, :3]`` (left and right must agree),
+``baseline = -P_right[0, 3] / P_right[0, 0]`` (m). Images are *raw* when the distortion ``D`` is
+non-zero or the rectification rotation ``R`` is not the identity; raw images are rectified on load
+with ``K``, ``D``, ``R``, ``P`` of each camera (as ROS ``image_proc`` does; ``plumb_bob``,
+``rational_polynomial`` and ``equidistant`` models). ``T_vehicle_sensor`` of the camera comes from
+``/tf_static`` when it holds a chain from a root frame to the left camera's ``frame_id`` (composed
+with ``R^T`` of the left camera, so it places the *rectified* left camera), otherwise identity.
+
+Time: a frame's ``t_ns`` is the left image's ``header.stamp`` (int64 ns). Left and right images are
+paired by header stamp within ``pair_tolerance_ns``; by default any image without a partner is an
+error (``allow_unpaired=True`` keeps only the matched pairs).
+
+Memory: the bag is never loaded whole. Opening makes one pass over the two image topics and keeps
+only stamps and log times (a few int64 per image). Iterating the source (``for f in src`` or
+``iter_frames``) is the efficient path: one sequential pass, holding a pair at a time. Random
+access ``src[i]`` seeks by log time (an SQL index for ``.db3``, the chunk index for ``.mcap`` and
+``.bag``), which costs one index walk per call on ROS 1 bags.
+"""
+
+from __future__ import annotations
+
+import struct
+from array import array
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..camera import StereoCamera
+from ..errors import CalibrationError, DataError
+from .base import FrameSource, StereoImages
+
+IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
+COMPRESSED_MSGTYPE = "sensor_msgs/msg/CompressedImage"
+IMAGE_MSGTYPES = (IMAGE_MSGTYPE, COMPRESSED_MSGTYPE)
+INFO_MSGTYPE = "sensor_msgs/msg/CameraInfo"
+TF_MSGTYPE = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPIC = "/tf_static"
+
+#: left/right images of one stereo pair carry header stamps closer than this (ns)
+DEFAULT_PAIR_TOLERANCE_NS = 5_000_000
+#: mono16 -> mono8 by ``value >> MONO16_SHIFT`` (keep the high byte)
+MONO16_SHIFT = 8
+#: topic-name hints used to detect the left and right cameras
+LEFT_HINTS = ("left", "cam0")
+RIGHT_HINTS = ("right", "cam1")
+#: a distortion coefficient or rotation entry below this is taken as exactly zero / identity
+CALIB_EPS = 1e-12
+#: longest /tf_static chain followed from the camera frame to its root
+MAX_TF_DEPTH = 32
+#: rosbag2 metadata version written
+ROS2_BAG_VERSION = 8
+BAG_KINDS = ("rosbag1", "rosbag2", "mcap")
+ROS1_SUFFIX = ".bag"
+ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")
+NS_PER_S = 1_000_000_000
+
+_GREY_FROM = {
+    "bgr8": (3, cv2.COLOR_BGR2GRAY), "rgb8": (3, cv2.COLOR_RGB2GRAY),
+    "bgra8": (4, cv2.COLOR_BGRA2GRAY), "rgba8": (4, cv2.COLOR_RGBA2GRAY),
+}
+_MONO8 = ("mono8", "8uc1")
+_MONO16 = ("mono16", "16uc1")
+_COMPRESSED_FORMATS = ("png", "jpeg")
+
+
+# ---------------------------------------------------------------------------------------------
+# calibration
+
+
+@dataclass(frozen=True)
+class CameraInfoData:
+    """Contents of one ``sensor_msgs/CameraInfo``: image size (px), ``K`` (3x3), ``D`` (distortion
+    coefficients of ``distortion_model``), ``R`` (3x3 rotation raw camera -> rectified camera),
+    ``P`` (3x4 projection of the rectified camera; ``P[0, 3] = -fx * baseline`` for the right one),
+    and the optical ``frame_id`` (x right, y down, z forward)."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    D: np.ndarray
+    R: np.ndarray
+    P: np.ndarray
+    distortion_model: str = "plumb_bob"
+    frame_id: str = ""
+
+    @property
+    def is_raw(self) -> bool:
+        """True when images need undistortion/rectification (non-zero D or R not the identity)."""
+        return bool(np.any(np.abs(self.D) > CALIB_EPS) or not np.allclose(self.R, np.eye(3), atol=CALIB_EPS))
+
+    @staticmethod
+    def from_stereo(camera: StereoCamera, left_frame: str = "camera_left_optical",
+                    right_frame: str = "camera_right_optical") -> tuple[CameraInfoData, CameraInfoData]:
+        """CameraInfo of both cameras of a rectified pair (D = 0, R = I, P from K and the baseline)."""
+        P = np.hstack([camera.K, np.zeros((3, 1))])
+        P_right = P.copy()
+        P_right[0, 3] = -camera.fb
+        common = dict(width=camera.width, height=camera.height, K=camera.K, D=np.zeros(5), R=np.eye(3))
+        return (CameraInfoData(P=P, frame_id=left_frame, **common),
+                CameraInfoData(P=P_right, frame_id=right_frame, **common))
+
+
+def stereo_camera_from_info(left: CameraInfoData, right: CameraInfoData, where: str,
+                            T_vehicle_sensor: np.ndarray | None = None) -> StereoCamera:
+    """Rectified ``StereoCamera`` from the two CameraInfos (intrinsics of P, baseline from the right P)."""
+    if (left.width, left.height) != (right.width, right.height):
+        raise CalibrationError(f"{where}: left CameraInfo is {left.width}x{left.height} but right is "
+                               f"{right.width}x{right.height}")
+    Pl, Pr = left.P, right.P
+    if Pr[0, 0] <= 0 or not np.all(np.isfinite(Pr)):
+        raise CalibrationError(f"{where}: right CameraInfo has no projection matrix P (uncalibrated camera?)")
+    if not np.allclose(Pl[:, :3], Pr[:, :3], rtol=1e-6, atol=1e-6):
+        raise CalibrationError(f"{where}: left and right CameraInfo P have different intrinsics "
+                               "(not a rectified stereo pair)")
+    baseline = -Pr[0, 3] / Pr[0, 0]
+    if baseline <= 0:
+        raise CalibrationError(f"{where}: right CameraInfo P[0,3] = {Pr[0, 3]} gives baseline {baseline} m "
+                               "(must be > 0: are left and right swapped?)")
+    return StereoCamera(fx=Pr[0, 0], fy=Pr[1, 1], cx=Pr[0, 2], cy=Pr[1, 2], baseline=baseline,
+                        width=left.width, height=left.height,
+                        T_vehicle_sensor=np.eye(4) if T_vehicle_sensor is None else T_vehicle_sensor)
+
+
+def _rectify_maps(info: CameraInfoData, where: str) -> tuple[np.ndarray, np.ndarray]:
+    size = (info.width, info.height)
+    model = info.distortion_model.lower()
+    if model == "equidistant":
+        D = np.zeros(4) if len(info.D) == 0 else np.asarray(info.D[:4], float)
+        return cv2.fisheye.initUndistortRectifyMap(info.K, D, info.R, info.P[:3, :3], size, cv2.CV_16SC2)
+    if model not in ("plumb_bob", "rational_polynomial", "radtan", ""):
+        raise CalibrationError(f"{where}: distortion model {info.distortion_model!r} not supported "
+                               "(plumb_bob, rational_polynomial, equidistant)")
+    D = np.asarray(info.D, float) if len(info.D) else np.zeros(5)
+    return cv2.initUndistortRectifyMap(info.K, D, info.R, info.P, size, cv2.CV_16SC2)
+
+
+# ---------------------------------------------------------------------------------------------
+# bag paths and low-level helpers
+
+
+def _ros2_dir(path: Path) -> Path | None:
+    if path.is_dir() and (path / "metadata.yaml").is_file():
+        return path
+    return None
+
+
+def is_rosbag(path: Path) -> bool:
+    """True for a ROS 1 ``.bag`` file, a ROS 2 bag folder, or a ``.db3``/``.mcap`` storage file."""
+    path = Path(path)
+    if path.is_file():
+        return path.suffix in (ROS1_SUFFIX, *ROS2_STORAGE_SUFFIXES)
+    return _ros2_dir(path) is not None
+
+
+def bag_reader_path(path: Path) -> Path:
+    """The path ``rosbags`` should open: the ROS 2 folder when a storage file sits in one."""
+    path = Path(path)
+    if path.is_file() and path.suffix in ROS2_STORAGE_SUFFIXES and _ros2_dir(path.parent) is not None:
+        meta = (path.parent / "metadata.yaml").read_text(errors="replace")
+        if path.name in meta:
+            return path.parent
+    return path
+
+
+def _read_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean 'this bag is corrupt or truncated' (turned into DataError)."""
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag1 import ReaderError as ReaderError1
+    from rosbags.rosbag2 import ReaderError as ReaderError2
+
+    errs: list[type[BaseException]] = [AnyReaderError, ReaderError1, ReaderError2, OSError, EOFError,
+                                       struct.error, ValueError, KeyError, IndexError, AssertionError]
+    try:
+        import apsw
+
+        errs.append(apsw.Error)
+    except ImportError:  # pragma: no cover - apsw ships with rosbags
+        pass
+    return tuple(errs)
+
+
+def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
+    """``header.stamp`` (ns) of a serialized message whose first field is a ``std_msgs/Header``.
+
+    ROS 1: ``uint32 seq`` then ``uint32 sec, uint32 nsec``. ROS 2 (CDR): a 4-byte encapsulation
+    header (byte 1 odd = little endian) then ``int32 sec, uint32 nanosec``.
+    """
+    if ros2:
+        fmt = "<iI" if raw[1] & 1 else ">iI"
+    else:
+        fmt = "<II"
+    sec, nsec = struct.unpack_from(fmt, raw, 4)
+    return sec * NS_PER_S + nsec
+
+
+def _field(msg: object, *names: str):
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    raise AttributeError(names[0])
+
+
+def _info_from_msg(msg: object) -> CameraInfoData:
+    return CameraInfoData(
+        width=int(msg.width), height=int(msg.height),
+        K=np.asarray(_field(msg, "k", "K"), float).reshape(3, 3),
+        D=np.asarray(_field(msg, "d", "D"), float).ravel(),
+        R=np.asarray(_field(msg, "r", "R"), float).reshape(3, 3),
+        P=np.asarray(_field(msg, "p", "P"), float).reshape(3, 4),
+        distortion_model=str(msg.distortion_model), frame_id=str(msg.header.frame_id),
+    )
+
+
+def _to_grey(img: np.ndarray, where: str, mono16_shift: int) -> np.ndarray:
+    if img.dtype == np.uint16:
+        return np.clip(img >> mono16_shift, 0, 255).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise DataError(f"{where}: pixel type {img.dtype} not supported (8 or 16 bit)")
+    return img
+
+
+def decode_image(msg: object, msgtype: str, where: str, mono16_shift: int = MONO16_SHIFT) -> np.ndarray:
+    """8-bit greyscale image (H, W) of an ``Image`` or ``CompressedImage`` message."""
+    if msgtype == COMPRESSED_MSGTYPE:
+        buf = np.asarray(msg.data, np.uint8)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+        if img is None:
+            raise DataError(f"{where}: cannot decode compressed image (format {msg.format!r})")
+        if img.ndim == 3:
+            code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+            img = cv2.cvtColor(img, code)
+        return _to_grey(img, where, mono16_shift)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    enc = str(msg.encoding).lower()
+    data = np.asarray(msg.data, np.uint8)
+    if data.size < h * step or h <= 0 or w <= 0:
+        raise DataError(f"{where}: image data has {data.size} bytes, expected {h}x{step} (truncated message?)")
+    rows = data[: h * step].reshape(h, step)
+    if enc in _MONO8:
+        return rows[:, :w].copy()  # own, writable memory (the message buffer is read-only)
+    if enc in _MONO16:
+        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
+        img = np.ascontiguousarray(rows[:, : 2 * w]).view(dtype).reshape(h, w).astype(np.uint16)
+        return _to_grey(img, where, mono16_shift)
+    if enc in _GREY_FROM:
+        ch, code = _GREY_FROM[enc]
+        return cv2.cvtColor(np.ascontiguousarray(rows[:, : ch * w]).reshape(h, w, ch), code)
+    raise DataError(f"{where}: image encoding {msg.encoding!r} not supported "
+                    f"({', '.join((*_MONO8[:1], *_MONO16[:1], *_GREY_FROM))}, or CompressedImage)")
+
+
+# ---------------------------------------------------------------------------------------------
+# topic selection
+
+
+def _strip_compressed(topic: str) -> str:
+    return topic[: -len("/compressed")] if topic.endswith("/compressed") else topic
+
+
+def _namespace(topic: str) -> str:
+    return _strip_compressed(topic).rsplit("/", 1)[0]
+
+
+def _pick_image_topic(topics: dict[str, str], hints: Sequence[str], side: str, where: str) -> str:
+    images = sorted(t for t, ty in topics.items() if ty in IMAGE_MSGTYPES)
+    cands = [t for t in images if any(h in t.lower() for h in hints)]
+    # image_transport records 'x' and 'x/compressed': prefer the uncompressed one
+    cands = [t for t in cands if not (t.endswith("/compressed") and _strip_compressed(t) in cands)]
+    if len(cands) == 1:
+        return cands[0]
+    what = "several" if cands else "no"
+    raise DataError(f"{where}: {what} {side} image topic{'s' if cands else ''} found "
+                    f"({', '.join(cands) if cands else 'names containing ' + '/'.join(hints)}); image topics "
+                    f"in the bag: {', '.join(images) or 'none'}; pass {side}_topic (CLI --{side}-topic)")
+
+
+def _pick_info_topic(topics: dict[str, str], image_topic: str, hints: Sequence[str], side: str,
+                     where: str) -> str:
+    infos = sorted(t for t, ty in topics.items() if ty == INFO_MSGTYPE)
+    ns = _namespace(image_topic)
+    same_ns = [t for t in infos if _namespace(t) == ns]
+    if len(same_ns) == 1:
+        return same_ns[0]
+    hinted = [t for t in infos if any(h in t.lower() for h in hints)]
+    if len(hinted) == 1:
+        return hinted[0]
+    raise CalibrationError(
+        f"{where}: no unique CameraInfo topic for {side} image topic {image_topic} (CameraInfo topics: "
+        f"{', '.join(infos) or 'none'}); stereo calibration needs sensor_msgs/CameraInfo for both cameras; "
+        f"pass {side}_info_topic (CLI --{side}-info-topic)")
+
+
+# ---------------------------------------------------------------------------------------------
+# reader
+
+
+@dataclass
+class _Side:
+    topic: str
+    conn: object
+    msgtype: str
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    logs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+class RosbagSource(FrameSource):
+    """Stereo frames of a ROS 1 or ROS 2 bag (see the module docstring for formats and costs).
+
+    ``left_topic``/``right_topic`` (Image or CompressedImage) and ``left_info_topic``/
+    ``right_info_topic`` (CameraInfo) are detected when not given: image topics whose name contains
+    ``left``/``cam0`` and ``right``/``cam1``, and the CameraInfo topic in the same namespace.
+    ``rectify`` forces (True) or skips (False) rectification of raw images; None decides from D/R.
+    """
+
+    format_name = "rosbag"
+
+    def __init__(self, path: str | Path, left_topic: str | None = None, right_topic: str | None = None,
+                 left_info_topic: str | None = None, right_info_topic: str | None = None,
+                 pair_tolerance_ns: int = DEFAULT_PAIR_TOLERANCE_NS, allow_unpaired: bool = False,
+                 mono16_shift: int = MONO16_SHIFT, rectify: bool | None = None):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no such file or folder")
+        if not is_rosbag(self.path):
+            raise DataError(f"{self.path}: not a ROS bag (.bag file, ROS 2 bag folder with metadata.yaml, "
+                            ".db3 or .mcap)")
+        self._errors = _read_errors()
+        self.mono16_shift = int(mono16_shift)
+        self.pair_tolerance_ns = int(pair_tolerance_ns)
+        rpath = bag_reader_path(self.path)
+        self.ros2 = rpath.suffix != ROS1_SUFFIX
+        default = get_typestore(Stores.ROS2_HUMBLE if self.ros2 else Stores.ROS1_NOETIC)
+        self._reader = None
+        try:
+            reader = AnyReader([rpath], default_typestore=default)
+            reader.open()
+        except FileNotFoundError:
+            raise
+        except self._errors as err:
+            hint = " (a truncated ROS 1 bag can be repaired with `rosbag reindex`)" if not self.ros2 else ""
+            raise DataError(f"{self.path}: cannot open bag: {err}{hint}") from err
+        self._reader = reader
+        try:
+            self._setup(left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired, rectify)
+        except BaseException:
+            self.close()
+            raise
+
+    # -- opening
+
+    def _setup(self, left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired, rectify):
+        reader = self._reader
+        where = str(self.path)
+        conns: dict[str, list] = {}
+        for c in reader.connections:
+            conns.setdefault(c.topic, []).append(c)
+        topics = {t: cs[0].msgtype for t, cs in conns.items()}
+        self.topics = dict(topics)
+        if not any(ty in IMAGE_MSGTYPES for ty in topics.values()):
+            listing = ", ".join(f"{t} ({ty})" for t, ty in sorted(topics.items())) or "none"
+            raise DataError(f"{where}: no image topic (sensor_msgs/Image or CompressedImage); topics: {listing}")
+
+        def check(topic: str, types: Sequence[str], what: str) -> str:
+            if topic not in topics:
+                raise DataError(f"{where}: no topic {topic!r} ({what}); topics: {', '.join(sorted(topics))}")
+            if topics[topic] not in types:
+                raise DataError(f"{where}: topic {topic} is {topics[topic]}, expected {' or '.join(types)}")
+            return topic
+
+        lt = check(left_topic, IMAGE_MSGTYPES, "left images") if left_topic else \
+            _pick_image_topic(topics, LEFT_HINTS, "left", where)
+        rt = check(right_topic, IMAGE_MSGTYPES, "right images") if right_topic else \
+            _pick_image_topic(topics, RIGHT_HINTS, "right", where)
+        if lt == rt:
+            raise DataError(f"{where}: left and right image topics are both {lt}")
+        lit = check(left_info_topic, (INFO_MSGTYPE,), "left CameraInfo") if left_info_topic else \
+            _pick_info_topic(topics, lt, LEFT_HINTS, "left", where)
+        rit = check(right_info_topic, (INFO_MSGTYPE,), "right CameraInfo") if right_info_topic else \
+            _pick_info_topic(topics, rt, RIGHT_HINTS, "right", where)
+        if lit == rit:
+            raise CalibrationError(f"{where}: left and right CameraInfo topics are both {lit}")
+        self.left_topic, self.right_topic = lt, rt
+        self.left_info_topic, self.right_info_topic = lit, rit
+        for t in (lt, rt):
+            if len(conns[t]) > 1 and len({c.msgtype for c in conns[t]}) > 1:
+                raise DataError(f"{where}: topic {t} carries several message types")
+        self._left = _Side(lt, conns[lt], topics[lt])
+        self._right = _Side(rt, conns[rt], topics[rt])
+
+        self.left_info = self._first_info(conns[lit], lit)
+        self.right_info = self._first_info(conns[rit], rit)
+        raw = self.left_info.is_raw or self.right_info.is_raw if rectify is None else bool(rectify)
+        self.rectified_on_load = raw
+        T_root_left = self._tf_static_pose(conns, self.left_info.frame_id)
+        T_raw_rect = np.eye(4)
+        T_raw_rect[:3, :3] = self.left_info.R.T
+        self.camera = stereo_camera_from_info(self.left_info, self.right_info, f"{where} [{lit}, {rit}]",
+                                              T_root_left @ T_raw_rect)
+        self._maps = None
+        if raw:
+            self._maps = (_rectify_maps(self.left_info, f"{where} [{lit}]"),
+                          _rectify_maps(self.right_info, f"{where} [{rit}]"))
+        self._index(allow_unpaired)
+
+    def _first_info(self, conns: list, topic: str) -> CameraInfoData:
+        try:
+            for c, _t, raw in self._reader.messages(connections=conns):
+                return _info_from_msg(self._reader.deserialize(raw, c.msgtype))
+        except self._errors as err:
+            raise DataError(f"{self.path} [{topic}]: cannot read CameraInfo: {err}") from err
+        raise CalibrationError(f"{self.path}: CameraInfo topic {topic} has no message; stereo calibration "
+                               "needs sensor_msgs/CameraInfo for both cameras")
+
+    def _tf_static_pose(self, conns: dict[str, list], frame: str) -> np.ndarray:
+        """``T_root_frame`` from /tf_static (identity when absent)."""
+        tf_conns = [c for c in conns.get(TF_STATIC_TOPIC, []) if c.msgtype == TF_MSGTYPE]
+        if not frame or not tf_conns:
+            return np.eye(4)
+        parent_of: dict[str, tuple[str, np.ndarray]] = {}
+        try:
+            for c, _t, raw in self._reader.messages(connections=tf_conns):
+                for tr in self._reader.deserialize(raw, c.msgtype).transforms:
+                    q, p = tr.transform.rotation, tr.transform.translation
+                    T = np.eye(4)
+                    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+                    T[:3, 3] = [p.x, p.y, p.z]
+                    parent_of[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), T)
+        except self._errors as err:
+            raise DataError(f"{self.path} [{TF_STATIC_TOPIC}]: cannot read: {err}") from err
+        T = np.eye(4)
+        node = frame.lstrip("/")
+        for _ in range(MAX_TF_DEPTH):
+            if node not in parent_of:
+                break
+            node, T_parent_child = parent_of[node]
+            T = T_parent_child @ T
+        return T
+
+    def _index(self, allow_unpaired: bool) -> None:
+        """One pass over both image topics keeping header stamps and log times only."""
+        stamps = {self.left_topic: array("q"), self.right_topic: array("q")}
+        logs = {self.left_topic: array("q"), self.right_topic: array("q")}
+        conns = [*self._left.conn, *self._right.conn]
+        counted = 0
+        try:
+            for c, t, raw in self._reader.messages(connections=conns):
+                stamps[c.topic].append(header_stamp_ns(raw, self.ros2))
+                logs[c.topic].append(t)
+                counted += 1
+        except self._errors as err:
+            raise DataError(f"{self.path}: bag is truncated or corrupt: read error after {counted} image "
+                            f"messages on {self.left_topic}, {self.right_topic}: {err}") from err
+        for s in (self._left, self._right):
+            s.stamps = np.frombuffer(stamps[s.topic], np.int64).copy()
+            s.logs = np.frombuffer(logs[s.topic], np.int64).copy()
+            expected = sum(int(getattr(c, "msgcount", 0) or 0) for c in s.conn)
+            if expected and expected != len(s.stamps):
+                raise DataError(f"{self.path}: topic {s.topic}: the bag index lists {expected} messages but "
+                                f"{len(s.stamps)} could be read (truncated or partial bag)")
+            if len(s.stamps) == 0:
+                raise DataError(f"{self.path}: image topic {s.topic} has no message")
+            order = np.argsort(s.stamps, kind="stable")
+            s.stamps, s.logs = s.stamps[order], s.logs[order]
+            dup = np.flatnonzero(np.diff(s.stamps) == 0)
+            if len(dup):
+                raise DataError(f"{self.path}: topic {s.topic} has two images with header stamp "
+                                f"{s.stamps[dup[0]]} ns")
+        li, ri = _pair(self._left.stamps, self._right.stamps, self.pair_tolerance_ns)
+        nl, nr = len(self._left.stamps), len(self._right.stamps)
+        self.unpaired = (nl - len(li), nr - len(ri))
+        if len(li) == 0:
+            raise DataError(f"{self.path}: no left image on {self.left_topic} has a right image on "
+                            f"{self.right_topic} within {self.pair_tolerance_ns} ns")
+        if (len(li) != nl or len(ri) != nr) and not allow_unpaired:
+            raise DataError(
+                f"{self.path}: left topic {self.left_topic} has {nl} images and right topic {self.right_topic} "
+                f"has {nr}; only {len(li)} pairs match by header stamp within {self.pair_tolerance_ns} ns "
+                "(pass allow_unpaired=True, CLI --allow-unpaired, to use the matched pairs only)")
+        self._l_stamp, self._l_log = self._left.stamps[li], self._left.logs[li]
+        self._r_stamp, self._r_log = self._right.stamps[ri], self._right.logs[ri]
+        self._t_ns = self._l_stamp.copy()
+
+    # -- FrameSource
+
+    def __len__(self) -> int:
+        return len(self._t_ns)
+
+    def timestamps(self) -> np.ndarray:
+        return self._t_ns
+
+    def _decode(self, side: _Side, raw, index: int) -> np.ndarray:
+        where = f"{self.path} [{side.topic} frame {index}]"
+        try:
+            msg = self._reader.deserialize(raw, side.msgtype)
+        except self._errors as err:
+            raise DataError(f"{where}: corrupt message: {err}") from err
+        return self.check_image(decode_image(msg, side.msgtype, where, self.mono16_shift), where)
+
+    def _pair_images(self, index: int, raw_left, raw_right) -> StereoImages:
+        left = self._decode(self._left, raw_left, index)
+        right = self._decode(self._right, raw_right, index)
+        if self._maps is not None:
+            left = cv2.remap(left, *self._maps[0], cv2.INTER_LINEAR)
+            right = cv2.remap(right, *self._maps[1], cv2.INTER_LINEAR)
+        return StereoImages(int(self._t_ns[index]), index, left, right)
+
+    def _read_one(self, side: _Side, log_ns: int, stamp_ns: int, index: int):
+        try:
+            for _c, _t, raw in self._reader.messages(connections=side.conn, start=log_ns, stop=log_ns + 1):
+                if header_stamp_ns(raw, self.ros2) == stamp_ns:
+                    return raw
+        except self._errors as err:
+            raise DataError(f"{self.path} [{side.topic} frame {index}]: read error: {err}") from err
+        raise DataError(f"{self.path} [{side.topic}]: message of frame {index} (stamp {stamp_ns} ns) "
+                        "not found on re-read (bag changed or corrupt)")
+
+    def _load(self, index: int) -> StereoImages:
+        self._check_open()
+        raw_l = self._read_one(self._left, int(self._l_log[index]), int(self._l_stamp[index]), index)
+        raw_r = self._read_one(self._right, int(self._r_log[index]), int(self._r_stamp[index]), index)
+        return self._pair_images(index, raw_l, raw_r)
+
+    def __iter__(self) -> Iterator[StereoImages]:
+        return self.iter_frames()
+
+    def iter_frames(self, indices: Iterable[int] | None = None) -> Iterator[StereoImages]:
+        """Stream frames (all, or the given increasing ``indices``) in one sequential pass."""
+        self._check_open()
+        sel = list(range(len(self))) if indices is None else [int(i) for i in indices]
+        if not sel:
+            return
+        if any(not 0 <= i < len(self) for i in sel):
+            raise IndexError(f"frame index outside {self.path} ({len(self)} frames)")
+        if any(b <= a for a, b in zip(sel, sel[1:], strict=False)):
+            # not increasing: random access per frame
+            for i in sel:
+                yield self._load(i)
+            return
+        want = {self.left_topic: {int(self._l_stamp[i]): i for i in sel},
+                self.right_topic: {int(self._r_stamp[i]): i for i in sel}}
+        idx = np.asarray(sel)
+        start = int(min(self._l_log[idx].min(), self._r_log[idx].min()))
+        stop = int(max(self._l_log[idx].max(), self._r_log[idx].max())) + 1
+        pending: dict[int, list] = {}
+        pos = 0
+        try:
+            for c, _t, raw in self._reader.messages(connections=[*self._left.conn, *self._right.conn],
+                                                    start=start, stop=stop):
+                i = want[c.topic].get(header_stamp_ns(raw, self.ros2))
+                if i is None:
+                    continue
+                slot = pending.setdefault(i, [None, None])
+                slot[0 if c.topic == self.left_topic else 1] = raw
+                while pos < len(sel) and sel[pos] in pending and None not in pending[sel[pos]]:
+                    raw_l, raw_r = pending.pop(sel[pos])
+                    frame = self._pair_images(sel[pos], raw_l, raw_r)
+                    pos += 1
+                    yield frame
+        except self._errors as err:
+            raise DataError(f"{self.path}: read error after {pos} of {len(sel)} frames (truncated or "
+                            f"corrupt bag): {err}") from err
+        if pos < len(sel):
+            raise DataError(f"{self.path}: bag ended after {pos} of {len(sel)} frames: frame {sel[pos]} "
+                            f"(t {int(self._t_ns[sel[pos]])} ns) is missing its left or right image")
+
+    def _check_open(self) -> None:
+        if self._reader is None:
+            raise DataError(f"{self.path}: source is closed")
+
+    def close(self) -> None:
+        reader, self._reader = self._reader, None
+        if reader is not None:
+            try:
+                reader.close()
+            except Exception:  # noqa: BLE001 - closing a broken reader must not mask the first error
+                pass
+
+
+def _pair(tl: np.ndarray, tr: np.ndarray, tol: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (into sorted ``tl``, ``tr``) of mutually nearest stamps closer than ``tol`` ns."""
+
+    def nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        if len(b) == 1:
+            return np.zeros(len(a), np.int64)
+        j = np.clip(np.searchsorted(b, a), 1, len(b) - 1)
+        return np.where(np.abs(b[j - 1] - a) <= np.abs(b[j] - a), j - 1, j)
+
+    jl = nearest(tl, tr)
+    jr = nearest(tr, tl)
+    i = np.arange(len(tl))
+    ok = (np.abs(tr[jl] - tl) <= tol) & (jr[jl] == i)
+    return i[ok], jl[ok]
+
+
+# ---------------------------------------------------------------------------------------------
+# writer
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topic names written by ``RosbagWriter``."""
+
+    left: str = "/stereo/left/image_raw"
+    right: str = "/stereo/right/image_raw"
+    left_info: str = "/stereo/left/camera_info"
+    right_info: str = "/stereo/right/camera_info"
+
+
+class RosbagWriter:
+    """Writes stereo pairs as a ROS 1 bag (``kind='rosbag1'``, ``path`` a ``.bag`` file) or a ROS 2 bag
+    folder (``'rosbag2'`` sqlite3 storage, ``'mcap'``), one Image + CameraInfo per camera per frame.
+
+    ``encoding``: ``mono8`` (uint8 (H, W); lossless, the default), ``mono16`` (uint16 (H, W)),
+    ``bgr8``/``rgb8`` (uint8 (H, W, 3) in that channel order), or ``png``/``jpeg`` (CompressedImage).
+    ``camera`` gives rectified CameraInfos (D = 0, R = I); ``infos`` overrides them (e.g. with raw
+    calibrations). When ``write_tf``, ``/tf_static`` holds ``T_base_left`` (``base_frame`` <- left
+    optical frame; default ``camera.T_vehicle_sensor``). ``add`` writes a pair; ``add_image`` writes
+    one camera's image (and CameraInfo), for bags whose cameras are not paired one to one.
+    """
+
+    def __init__(self, path: str | Path, camera: StereoCamera, kind: str = "rosbag1",
+                 topics: BagTopics | None = None, encoding: str = "mono8",
+                 infos: tuple[CameraInfoData, CameraInfoData] | None = None,
+                 write_info: bool = True, write_tf: bool = True, base_frame: str = "base_link",
+                 T_base_left: np.ndarray | None = None):
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        if kind not in BAG_KINDS:
+            raise DataError(f"unknown bag kind {kind!r} (one of {', '.join(BAG_KINDS)})")
+        if encoding not in (*_MONO8[:1], *_MONO16[:1], "bgr8", "rgb8", *_COMPRESSED_FORMATS):
+            raise DataError(f"encoding {encoding!r} not supported for writing")
+        self.path = Path(path)
+        if self.path.exists():
+            raise DataError(f"{self.path}: already exists (not overwriting)")
+        if kind == "rosbag1" and self.path.suffix != ROS1_SUFFIX:
+            raise DataError(f"{self.path}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
+        self.kind, self.encoding, self.camera = kind, encoding, camera
+        self.topics = topics or BagTopics()
+        self.infos = infos or CameraInfoData.from_stereo(camera)
+        self.write_info, self.write_tf, self.base_frame = write_info, write_tf, base_frame
+        self.T_base_left = np.asarray(camera.T_vehicle_sensor if T_base_left is None else T_base_left, float)
+        self.ros2 = kind != "rosbag1"
+        if self.ros2:
+            from rosbags.rosbag2 import StoragePlugin, Writer
+
+            self.ts = get_typestore(Stores.ROS2_HUMBLE)
+            plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer(self.path, version=ROS2_BAG_VERSION, storage_plugin=plugin)
+            self._serialize = self.ts.serialize_cdr
+        else:
+            from rosbags.rosbag1 import Writer
+
+            self.ts = get_typestore(Stores.ROS1_NOETIC)
+            if TF_MSGTYPE not in self.ts.types:
+                self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MSGTYPE))
+            self._writer = Writer(self.path)
+            self._serialize = self.ts.serialize_ros1
+        self._writer.open()
+        img_type = COMPRESSED_MSGTYPE if encoding in _COMPRESSED_FORMATS else IMAGE_MSGTYPE
+        self._img_type = img_type
+        add = self._writer.add_connection
+        self._conn = {"left": add(self.topics.left, img_type, typestore=self.ts),
+                      "right": add(self.topics.right, img_type, typestore=self.ts)}
+        if write_info:
+            self._conn["left_info"] = add(self.topics.left_info, INFO_MSGTYPE, typestore=self.ts)
+            self._conn["right_info"] = add(self.topics.right_info, INFO_MSGTYPE, typestore=self.ts)
+        if write_tf:
+            self._conn["tf"] = add(TF_STATIC_TOPIC, TF_MSGTYPE, typestore=self.ts)
+        self.count = 0
+        self._messages = 0
+        self._closed = False
+
+    def _header(self, t_ns: int, frame_id: str):
+        T = self.ts.types
+        stamp = T["builtin_interfaces/msg/Time"](sec=t_ns // NS_PER_S, nanosec=t_ns % NS_PER_S)
+        if self.ros2:
+            return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+        return T["std_msgs/msg/Header"](seq=self._messages, stamp=stamp, frame_id=frame_id)
+
+    def _image_msg(self, t_ns: int, img: np.ndarray, frame_id: str):
+        T = self.ts.types
+        img = np.asarray(img)
+        header = self._header(t_ns, frame_id)
+        if self.encoding in _COMPRESSED_FORMATS:
+            ok, buf = cv2.imencode("." + ("jpg" if self.encoding == "jpeg" else "png"), img)
+            if not ok:
+                raise DataError(f"cannot encode image as {self.encoding}")
+            return T[COMPRESSED_MSGTYPE](header=header, format=self.encoding, data=buf.ravel())
+        want = {"mono8": (np.uint8, 2), "mono16": (np.uint16, 2), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
+        dtype, ndim = want[self.encoding]
+        if img.dtype != dtype or img.ndim != ndim or (ndim == 3 and img.shape[2] != 3):
+            raise DataError(f"{self.encoding} needs a {np.dtype(dtype).name} image with {ndim} dims, "
+                            f"got {img.dtype} {img.shape}")
+        h, w = img.shape[:2]
+        if (w, h) != (self.infos[0].width, self.infos[0].height):
+            raise DataError(f"image is {w}x{h} but the calibration says {self.infos[0].width}x{self.infos[0].height}")
+        img = np.ascontiguousarray(img)
+        if img.dtype == np.uint16:
+            img = img.astype("<u2")
+        data = img.reshape(-1).view(np.uint8)
+        return T[IMAGE_MSGTYPE](header=header, height=h, width=w, encoding=self.encoding, is_bigendian=0,
+                                step=data.size // h, data=data)
+
+    def _info_msg(self, t_ns: int, info: CameraInfoData):
+        T = self.ts.types
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        mats = {"d": np.asarray(info.D, float), "k": np.asarray(info.K, float).ravel(),
+                "r": np.asarray(info.R, float).ravel(), "p": np.asarray(info.P, float).ravel()}
+        if not self.ros2:
+            mats = {k.upper(): v for k, v in mats.items()}
+        return T[INFO_MSGTYPE](header=self._header(t_ns, info.frame_id), height=info.height, width=info.width,
+                               distortion_model=info.distortion_model, binning_x=0, binning_y=0, roi=roi,
+                               **mats)
+
+    def _tf_msg(self, t_ns: int):
+        T = self.ts.types
+        Tm = self.T_base_left
+        q = Rotation.from_matrix(Tm[:3, :3]).as_quat()
+        tr = T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=Tm[0, 3], y=Tm[1, 3], z=Tm[2, 3]),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        ts = T["geometry_msgs/msg/TransformStamped"](header=self._header(t_ns, self.base_frame),
+                                                     child_frame_id=self.infos[0].frame_id, transform=tr)
+        return T[TF_MSGTYPE](transforms=[ts])
+
+    def _write(self, key: str, t_ns: int, msg) -> None:
+        conn = self._conn[key]
+        self._writer.write(conn, t_ns, self._serialize(msg, conn.msgtype))
+
+    def add_image(self, side: str, t_ns: int, img: np.ndarray) -> None:
+        """Write one image of camera ``side`` ('left' or 'right') stamped ``t_ns`` (int64 ns >= 0; header
+        stamp and bag log time), preceded by its CameraInfo."""
+        t_ns = int(t_ns)
+        if side not in ("left", "right"):
+            raise DataError(f"side must be 'left' or 'right', got {side!r}")
+        if t_ns < 0:
+            raise DataError(f"cannot write negative time {t_ns} ns to a bag")
+        if self._messages == 0 and self.write_tf:
+            self._write("tf", t_ns, self._tf_msg(t_ns))
+        info = self.infos[0 if side == "left" else 1]
+        if self.write_info:
+            self._write(f"{side}_info", t_ns, self._info_msg(t_ns, info))
+        self._write(side, t_ns, self._image_msg(t_ns, img, info.frame_id))
+        self._messages += 1
+
+    def add(self, t_ns: int, left: np.ndarray, right: np.ndarray) -> None:
+        """Write one stereo pair, both images stamped ``t_ns``."""
+        self.add_image("left", t_ns, left)
+        self.add_image("right", t_ns, right)
+        self.count += 1
+
+    def close(self) -> None:
+        """Finish the bag (writes its index / metadata)."""
+        if not self._closed:
+            self._closed = True
+            self._writer.close()
+
+    def __enter__(self) -> RosbagWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def write_bag(path: str | Path, frames: Iterable[StereoImages], camera: StereoCamera, kind: str = "rosbag1",
+              **kwargs) -> int:
+    """Write ``frames`` to a new bag; returns the number of frames written."""
+    with RosbagWriter(path, camera, kind=kind, **kwargs) as w:
+        for f in frames:
+            w.add(f.t_ns, f.left, f.right)
+        return w.count
