@@ -1,0 +1,77 @@
+"""Perception model for visual teach and repeat (thesis §7.3): angles, model, fits, chance constraint.
+
+- ``angles``: parallax and view angles of trunk landmarks (radians, frame ``o``);
+- ``model``: ``PerceptionModel`` ``p = c1 cos(c2 theta) exp(c3 alpha)`` with JSON save/load;
+- ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation;
+- ``constraint``: the chance constraint ``mu - c_bar sigma >= L_min`` with analytic gradients over
+  an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
+- ``io``: ``landmarks.csv`` and position readers;  ``synthetic``: synthetic labels and scenes;
+- ``cli``: the ``perception-model`` command.
+
+The package does not depend on ``vtr``; its errors derive from ``PerceptionModelError``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from .errors import PerceptionModelError, PerceptionModelWarning
+
+# public name -> defining module; imported on first use so that e.g. a controller importing
+# ``perception_model.constraint`` does not pay for scipy.optimize (fitting) at start-up
+_LAZY = {
+    "optical_axis": "angles",
+    "parallax_angle": "angles",
+    "view_angle": "angles",
+    "ConstraintEvaluation": "constraint",
+    "Linearization": "constraint",
+    "PerceptionConstraint": "constraint",
+    "c_bar_from_delta": "constraint",
+    "poisson_binomial_tail": "constraint",
+    "FitResult": "fit",
+    "evaluate": "fit",
+    "fit_binned": "fit",
+    "fit_mle": "fit",
+    "fit_observations": "fit",
+    "Observations": "io",
+    "read_landmarks_csv": "io",
+    "read_landmarks_csvs": "io",
+    "PerceptionModel": "model",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'perception_model' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+__all__ = [
+    "ConstraintEvaluation",
+    "FitResult",
+    "Linearization",
+    "Observations",
+    "PerceptionConstraint",
+    "PerceptionModel",
+    "PerceptionModelError",
+    "PerceptionModelWarning",
+    "c_bar_from_delta",
+    "evaluate",
+    "fit_binned",
+    "fit_mle",
+    "fit_observations",
+    "optical_axis",
+    "parallax_angle",
+    "poisson_binomial_tail",
+    "read_landmarks_csv",
+    "read_landmarks_csvs",
+    "view_angle",
+]

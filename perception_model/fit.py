@@ -1,0 +1,755 @@
+"""Fitting the perception model to inlier labels, and judging a model on held-out data.
+
+Two estimators of ``c = (c1, c2, c3)`` (constants in the model's angle unit, inputs in radians):
+
+- ``fit_binned`` - the thesis protocol (§7.3.1): group observations into (alpha, theta) bins,
+  take the normalized inlier frequency of each bin, and fit the model by weighted nonlinear least
+  squares (``scipy.optimize.least_squares``, weights = bin counts, the model evaluated at each
+  bin's mean angles). Reports the count-weighted R^2 over bins. Confidence intervals from the
+  heteroscedasticity-robust (sandwich) covariance of the weighted least-squares estimate, or
+  from a bootstrap over observations (``ci="bootstrap"``).
+- ``fit_mle`` - per-observation Bernoulli maximum likelihood (``scipy.optimize.minimize``,
+  L-BFGS-B with the analytic gradient of the log-likelihood). Probabilities are clipped to
+  ``[PROB_EPS, 1 - PROB_EPS]`` inside the logarithms; the gradient is zero where clipped.
+  Confidence intervals from the expected Fisher information ``sum J J^T / (p (1 - p))``.
+
+Both return a ``FitResult`` with the model, intervals, R^2, log-loss and counts, and optionally an
+``Evaluation`` on held-out observations (log-loss, Brier score, R^2, calibration table).
+``fit_observations`` splits by localization (so landmarks of one keyframe never straddle the
+split) and runs either estimator.
+
+Sign convention: ``cos`` is even, so only ``|c2|`` is identifiable; fits constrain ``c2 >= 0``
+and ``c1 > 0``. Bad input (empty, NaN angles, all labels equal, too few bins) raises
+``FitError`` naming the data source.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import optimize, special
+
+from .errors import FitError, PerceptionModelError, PerceptionModelWarning
+from .io import Observations
+from .model import (
+    DEFAULT_ALPHA_MAX_RAD,
+    DEFAULT_THETA_MAX_RAD,
+    THESIS_CONSTANTS_DEG,
+    UNIT_SCALE,
+    PerceptionModel,
+)
+
+#: Probabilities are clipped to [PROB_EPS, 1 - PROB_EPS] in log-likelihoods and log-loss.
+PROB_EPS = 1e-6
+#: Default bin widths for the binned fit and binned R^2 (radians): 1 deg parallax x 2.5 deg view.
+DEFAULT_ALPHA_BIN_RAD = math.radians(1.0)
+DEFAULT_THETA_BIN_RAD = math.radians(2.5)
+#: Bins with fewer observations than this are left out of binned fits and R^2.
+DEFAULT_MIN_BIN_COUNT = 10
+#: A binned fit needs at least this many usable bins (3 constants + residual freedom).
+MIN_FIT_BINS = 6
+#: Default confidence level of intervals.
+DEFAULT_CONFIDENCE = 0.95
+#: Number of equal-width predicted-probability bins of the calibration table.
+DEFAULT_CALIBRATION_BINS = 10
+#: Default held-out fraction of localizations in ``fit_observations``.
+DEFAULT_HOLDOUT_FRACTION = 0.2
+#: Default bootstrap replicates when ``ci="bootstrap"``.
+DEFAULT_BOOTSTRAP = 200
+#: Optimizer tolerances.
+LSQ_TOL = 1e-12
+MLE_FTOL = 1e-15
+MLE_GTOL = 1e-10
+MLE_MAXITER = 2000
+#: Lower bound on c1 during fits (the model requires c1 > 0).
+C1_FLOOR = 1e-9
+#: An MLE counts as converged when the remaining Fisher-scoring step is below this many standard errors.
+MLE_STEP_TOL = 1e-3
+
+CONSTANT_NAMES = ("c1", "c2", "c3")
+Method = Literal["binned", "mle"]
+CiMethod = Literal["sandwich", "bootstrap"]
+
+
+# --------------------------------------------------------------------------- result types
+@dataclass(frozen=True)
+class ConstantInterval:
+    """Estimate and confidence interval of one constant (model angle unit)."""
+
+    name: str
+    estimate: float
+    low: float
+    high: float
+    std_err: float
+
+    def contains(self, value: float) -> bool:
+        """True if ``low <= value <= high``."""
+        return self.low <= value <= self.high
+
+
+@dataclass(frozen=True)
+class CalibrationBin:
+    """One row of a calibration table: predictions in ``[p_low, p_high)`` vs observed frequency."""
+
+    p_low: float
+    p_high: float
+    n: int
+    mean_predicted: float
+    observed: float
+    std_err: float
+
+
+@dataclass(frozen=True)
+class BinSpec:
+    """Regular (alpha, theta) grid for binning (radians) and the minimum count of a used bin."""
+
+    alpha_width: float = DEFAULT_ALPHA_BIN_RAD
+    theta_width: float = DEFAULT_THETA_BIN_RAD
+    min_count: int = DEFAULT_MIN_BIN_COUNT
+
+    def __post_init__(self) -> None:
+        if not (self.alpha_width > 0 and self.theta_width > 0 and self.min_count >= 1):
+            raise FitError("bin widths must be > 0 and min_count >= 1")
+
+
+@dataclass(frozen=True)
+class BinnedFrequencies:
+    """Inlier frequency per (alpha, theta) bin (radians).
+
+    Flat arrays hold the used bins (count >= ``min_count``): mean angles, counts, inliers,
+    frequencies. Grid arrays ``(n_alpha_bins, n_theta_bins)`` hold all bins, for heatmaps.
+    """
+
+    alpha: NDArray[np.float64]
+    theta: NDArray[np.float64]
+    count: NDArray[np.int64]
+    inliers: NDArray[np.int64]
+    alpha_edges: NDArray[np.float64]
+    theta_edges: NDArray[np.float64]
+    count_grid: NDArray[np.int64]
+    inlier_grid: NDArray[np.int64]
+
+    @property
+    def frequency(self) -> NDArray[np.float64]:
+        """Normalized inlier frequency of the used bins."""
+        return self.inliers / self.count
+
+    @property
+    def frequency_grid(self) -> NDArray[np.float64]:
+        """Frequency per grid cell, NaN for empty cells."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.count_grid > 0, self.inlier_grid / self.count_grid, np.nan)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Quality of a model on a set of observations."""
+
+    n: int
+    n_inliers: int
+    log_loss: float
+    brier: float
+    r2: float
+    n_bins: int
+    calibration: tuple[CalibrationBin, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {
+            "n": self.n,
+            "n_inliers": self.n_inliers,
+            "log_loss": self.log_loss,
+            "brier": self.brier,
+            "r2_binned": self.r2,
+            "n_bins": self.n_bins,
+            "calibration": [vars(c) for c in self.calibration],
+        }
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of a fit: model, intervals (model unit), quality on training and held-out data."""
+
+    model: PerceptionModel
+    method: str
+    n: int
+    n_inliers: int
+    intervals: tuple[ConstantInterval, ...]
+    covariance: NDArray[np.float64]
+    confidence: float
+    ci_method: str
+    r2: float
+    log_loss: float
+    n_bins: int
+    binned: BinnedFrequencies
+    converged: bool
+    message: str
+    holdout: Evaluation | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary for the model file's ``fit`` section."""
+        out: dict[str, Any] = {
+            "method": self.method,
+            "angle_unit": self.model.angle_unit,
+            "n": self.n,
+            "n_inliers": self.n_inliers,
+            "confidence": self.confidence,
+            "ci_method": self.ci_method,
+            "intervals": {
+                c.name: {"estimate": c.estimate, "low": c.low, "high": c.high, "std_err": c.std_err}
+                for c in self.intervals
+            },
+            "covariance": self.covariance.tolist(),
+            "r2_binned": self.r2,
+            "log_loss": self.log_loss,
+            "n_bins": self.n_bins,
+            "converged": self.converged,
+            "message": self.message,
+            "holdout": None if self.holdout is None else self.holdout.to_dict(),
+        }
+        out.update(self.extra)
+        return out
+
+
+# --------------------------------------------------------------------------- helpers
+def _check_data(
+    alpha: ArrayLike, theta: ArrayLike, inlier: ArrayLike, source: str, *, need_both: bool = True
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    a = np.asarray(alpha, dtype=np.float64).reshape(-1)
+    t = np.asarray(theta, dtype=np.float64).reshape(-1)
+    y = np.asarray(inlier).reshape(-1)
+    if not (a.shape == t.shape == y.shape):
+        raise FitError(f"{source}: alpha, theta and inlier lengths differ ({a.size}, {t.size}, {y.size})")
+    if a.size == 0:
+        raise FitError(f"{source}: no observations")
+    bad = ~(np.isfinite(a) & np.isfinite(t))
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise FitError(
+            f"{source}: {int(bad.sum())} observation(s) with NaN/inf angles (first at row {first})"
+        )
+    if (a < 0).any() or (t < 0).any():
+        raise FitError(f"{source}: negative angles (parallax/view angles are in [0, pi])")
+    yf = y.astype(np.float64)
+    if not np.isin(yf, (0.0, 1.0)).all():
+        raise FitError(f"{source}: inlier labels must be 0/1")
+    if need_both:
+        k = int(yf.sum())
+        if k == 0:
+            raise FitError(f"{source}: all {a.size} observations are outliers (inlier = 0); nothing to fit")
+        if k == a.size:
+            raise FitError(f"{source}: all {a.size} observations are inliers (inlier = 1); nothing to fit")
+    return a, t, yf
+
+
+def _unit_constants(c: NDArray[np.float64]) -> tuple[float, float, float]:
+    return float(c[0]), float(c[1]), float(c[2])
+
+
+def _prob_and_jac(
+    c: NDArray[np.float64], a_u: NDArray[np.float64], t_u: NDArray[np.float64], lo: float, hi: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Clipped probability and its Jacobian ``(n, 3)`` w.r.t. c, for angles in the model unit.
+
+    Clipped to ``[lo, hi]``; ``p = lo`` beyond the cosine's first zero. Jacobian zero where clipped.
+    """
+    c1, c2, c3 = _unit_constants(c)
+    e = np.exp(c3 * a_u)
+    arg = c2 * t_u
+    cs = np.cos(arg)
+    raw = c1 * cs * e
+    cut = np.abs(arg) > 0.5 * math.pi
+    inside = ~cut & (raw > lo) & (raw < hi)
+    p = np.where(cut, lo, np.clip(raw, lo, hi))
+    jac = np.stack([cs * e, -c1 * t_u * np.sin(arg) * e, a_u * raw], axis=-1)
+    jac *= inside[:, None]
+    return p, jac
+
+
+def _intervals(
+    est: NDArray[np.float64], cov: NDArray[np.float64], confidence: float
+) -> tuple[ConstantInterval, ...]:
+    z = float(special.ndtri(0.5 + 0.5 * confidence))
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if np.all(np.isfinite(cov)) else np.full(3, np.nan)
+    return tuple(
+        ConstantInterval(name, float(e), float(e - z * s), float(e + z * s), float(s))
+        for name, e, s in zip(CONSTANT_NAMES, est, se, strict=True)
+    )
+
+
+def _safe_inverse(m: NDArray[np.float64], what: str) -> NDArray[np.float64]:
+    try:
+        inv = np.linalg.inv(m)
+    except np.linalg.LinAlgError:
+        inv = np.full_like(m, np.nan)
+    if not np.all(np.isfinite(inv)) or np.any(np.diag(inv) < 0):
+        warnings.warn(
+            f"{what} is singular; confidence intervals are not available",
+            PerceptionModelWarning,
+            stacklevel=3,
+        )
+        return np.full_like(m, np.nan)
+    return inv
+
+
+def initial_constants(angle_unit: str) -> NDArray[np.float64]:
+    """Starting point of fits: the thesis constants expressed in ``angle_unit``."""
+    f = UNIT_SCALE["deg"] / UNIT_SCALE[angle_unit]
+    c1, c2, c3 = THESIS_CONSTANTS_DEG
+    return np.array([c1, c2 * f, c3 * f])
+
+
+def _make_model(
+    c: NDArray[np.float64],
+    angle_unit: str,
+    a: NDArray[np.float64],
+    t: NDArray[np.float64],
+    source: str,
+    converged: bool,
+    message: str,
+) -> PerceptionModel:
+    """Model with the fitted constants, documented for the angle range of the data.
+
+    Warns (``PerceptionModelWarning``) when the optimizer did not converge or the fitted surface
+    leaves [0, 1] inside the data range.
+    """
+    alpha_max = float(min(math.pi, a.max())) if a.max() > 0 else DEFAULT_ALPHA_MAX_RAD
+    theta_max = float(min(math.pi, t.max())) if t.max() > 0 else DEFAULT_THETA_MAX_RAD
+    try:
+        model = PerceptionModel(float(c[0]), float(abs(c[1])), float(c[2]), angle_unit, alpha_max, theta_max)
+    except PerceptionModelError as err:
+        raise FitError(f"{source}: the fit gave unusable constants {c.tolist()} ({err})") from None
+    if not converged:
+        warnings.warn(
+            f"{source}: the optimizer did not converge ({message})", PerceptionModelWarning, stacklevel=3
+        )
+    for problem in model.range_problems():
+        warnings.warn(f"{source}: fitted model: {problem}", PerceptionModelWarning, stacklevel=3)
+    return model
+
+
+# --------------------------------------------------------------------------- binning and scores
+def bin_observations(
+    alpha: ArrayLike, theta: ArrayLike, inlier: ArrayLike, spec: BinSpec | None = None
+) -> BinnedFrequencies:
+    """Group observations (radians) on a regular grid starting at 0; mean angles per bin."""
+    spec = spec or BinSpec()
+    a = np.asarray(alpha, dtype=np.float64).reshape(-1)
+    t = np.asarray(theta, dtype=np.float64).reshape(-1)
+    y = np.asarray(inlier, dtype=np.float64).reshape(-1)
+    na = max(1, int(np.floor(a.max() / spec.alpha_width)) + 1) if a.size else 1
+    nt = max(1, int(np.floor(t.max() / spec.theta_width)) + 1) if t.size else 1
+    ia = np.minimum((a / spec.alpha_width).astype(np.int64), na - 1)
+    it = np.minimum((t / spec.theta_width).astype(np.int64), nt - 1)
+    flat = ia * nt + it
+    size = na * nt
+    count = np.bincount(flat, minlength=size)
+    inl = np.bincount(flat, weights=y, minlength=size).round().astype(np.int64)
+    sum_a = np.bincount(flat, weights=a, minlength=size)
+    sum_t = np.bincount(flat, weights=t, minlength=size)
+    used = count >= spec.min_count
+    return BinnedFrequencies(
+        alpha=sum_a[used] / count[used],
+        theta=sum_t[used] / count[used],
+        count=count[used].astype(np.int64),
+        inliers=inl[used],
+        alpha_edges=np.arange(na + 1) * spec.alpha_width,
+        theta_edges=np.arange(nt + 1) * spec.theta_width,
+        count_grid=count.reshape(na, nt).astype(np.int64),
+        inlier_grid=inl.reshape(na, nt),
+    )
+
+
+def weighted_r2(freq: NDArray[np.float64], pred: NDArray[np.float64], weight: NDArray[np.float64]) -> float:
+    """``1 - sum w (f - p)^2 / sum w (f - mean_w f)^2`` (NaN if the frequencies are constant)."""
+    mean = np.sum(weight * freq) / np.sum(weight)
+    ss_tot = float(np.sum(weight * (freq - mean) ** 2))
+    ss_res = float(np.sum(weight * (freq - pred) ** 2))
+    return 1.0 - ss_res / ss_tot if ss_tot > 0 else math.nan
+
+
+def log_loss(p: ArrayLike, y: ArrayLike) -> float:
+    """Mean negative Bernoulli log-likelihood, probabilities clipped to ``[PROB_EPS, 1 - PROB_EPS]``."""
+    pc = np.clip(np.asarray(p, dtype=np.float64), PROB_EPS, 1.0 - PROB_EPS)
+    yy = np.asarray(y, dtype=np.float64)
+    return float(-np.mean(yy * np.log(pc) + (1.0 - yy) * np.log1p(-pc)))
+
+
+def calibration_table(
+    p: ArrayLike, y: ArrayLike, n_bins: int = DEFAULT_CALIBRATION_BINS
+) -> tuple[CalibrationBin, ...]:
+    """Predicted-probability bins (equal width on [0, 1]) vs observed inlier frequency; empty bins omitted."""
+    pp = np.asarray(p, dtype=np.float64).reshape(-1)
+    yy = np.asarray(y, dtype=np.float64).reshape(-1)
+    edges = np.linspace(0.0, 1.0, n_bins + 1)
+    idx = np.clip(np.searchsorted(edges, pp, side="right") - 1, 0, n_bins - 1)
+    rows = []
+    for k in range(n_bins):
+        m = idx == k
+        n = int(m.sum())
+        if n == 0:
+            continue
+        f = float(yy[m].mean())
+        rows.append(
+            CalibrationBin(
+                float(edges[k]), float(edges[k + 1]), n, float(pp[m].mean()), f, math.sqrt(f * (1.0 - f) / n)
+            )
+        )
+    return tuple(rows)
+
+
+def evaluate(
+    model: PerceptionModel,
+    alpha: ArrayLike,
+    theta: ArrayLike,
+    inlier: ArrayLike,
+    *,
+    bins: BinSpec | None = None,
+    calibration_bins: int = DEFAULT_CALIBRATION_BINS,
+    source: str = "<data>",
+) -> Evaluation:
+    """Log-loss, Brier score, binned R^2 and calibration of ``model`` on observations (radians)."""
+    a, t, y = _check_data(alpha, theta, inlier, source, need_both=False)
+    p = model.probability(a, t)
+    binned = bin_observations(a, t, y, bins)
+    r2 = math.nan
+    if binned.count.size >= 2:
+        r2 = weighted_r2(binned.frequency, model.probability(binned.alpha, binned.theta), binned.count)
+    return Evaluation(
+        n=int(a.size),
+        n_inliers=int(y.sum()),
+        log_loss=log_loss(p, y),
+        brier=float(np.mean((p - y) ** 2)),
+        r2=r2,
+        n_bins=int(binned.count.size),
+        calibration=calibration_table(p, y, calibration_bins),
+    )
+
+
+# --------------------------------------------------------------------------- binned least squares
+def _lsq_binned(binned: BinnedFrequencies, k: float, x0: NDArray[np.float64]) -> optimize.OptimizeResult:
+    a_u = binned.alpha * k
+    t_u = binned.theta * k
+    w = np.sqrt(binned.count.astype(np.float64))
+    f = binned.frequency
+
+    def resid(c: NDArray[np.float64]) -> NDArray[np.float64]:
+        return w * (_prob_and_jac(c, a_u, t_u, 0.0, 1.0)[0] - f)
+
+    def jac(c: NDArray[np.float64]) -> NDArray[np.float64]:
+        return w[:, None] * _prob_and_jac(c, a_u, t_u, 0.0, 1.0)[1]
+
+    lower = np.array([C1_FLOOR, 0.0, -np.inf])
+    start = np.clip(x0, lower + 1e-12, None)
+    return optimize.least_squares(
+        resid,
+        start,
+        jac=jac,
+        bounds=(lower, np.full(3, np.inf)),
+        method="trf",
+        x_scale="jac",
+        ftol=LSQ_TOL,
+        xtol=LSQ_TOL,
+        gtol=LSQ_TOL,
+    )
+
+
+def fit_binned(
+    alpha: ArrayLike,
+    theta: ArrayLike,
+    inlier: ArrayLike,
+    *,
+    angle_unit: str = "deg",
+    bins: BinSpec | None = None,
+    ci: CiMethod = "sandwich",
+    n_bootstrap: int = DEFAULT_BOOTSTRAP,
+    confidence: float = DEFAULT_CONFIDENCE,
+    seed: int = 0,
+    initial: ArrayLike | None = None,
+    source: str = "<data>",
+) -> FitResult:
+    """Thesis protocol: weighted least squares of the model to per-bin inlier frequencies.
+
+    Angles in radians; constants returned for ``angle_unit``. ``ci="sandwich"`` uses the robust
+    covariance ``B^-1 (sum n_b^2 e_b^2 J_b J_b^T) B^-1`` with ``B = sum n_b J_b J_b^T``;
+    ``ci="bootstrap"`` resamples observations ``n_bootstrap`` times (percentile intervals).
+    """
+    a, t, y = _check_data(alpha, theta, inlier, source)
+    if angle_unit not in UNIT_SCALE:
+        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    spec = bins or BinSpec()
+    k = UNIT_SCALE[angle_unit]
+    binned = bin_observations(a, t, y, spec)
+    if binned.count.size < MIN_FIT_BINS:
+        raise FitError(
+            f"{source}: only {binned.count.size} (alpha, theta) bins hold >= {spec.min_count} "
+            f"observations; need {MIN_FIT_BINS} (collect more data or widen the bins)"
+        )
+    x0 = initial_constants(angle_unit) if initial is None else np.asarray(initial, dtype=np.float64)
+    res = _lsq_binned(binned, k, x0)
+    c = res.x
+    p_bins, jac = _prob_and_jac(c, binned.alpha * k, binned.theta * k, 0.0, 1.0)
+    n_b = binned.count.astype(np.float64)
+    e_b = binned.frequency - p_bins
+    if ci == "bootstrap":
+        cov, intervals = _bootstrap(a, t, y, spec, k, c, n_bootstrap, confidence, seed)
+    elif ci == "sandwich":
+        bread = _safe_inverse(jac.T @ (n_b[:, None] * jac), "the least-squares normal matrix")
+        meat = (jac * ((n_b * e_b) ** 2)[:, None]).T @ jac
+        cov = bread @ meat @ bread
+        intervals = _intervals(c, cov, confidence)
+    else:
+        raise FitError(f"unknown ci method {ci!r} (use 'sandwich' or 'bootstrap')")
+    model = _make_model(c, angle_unit, a, t, source, bool(res.success), str(res.message))
+    return FitResult(
+        model=model,
+        method="binned",
+        n=int(a.size),
+        n_inliers=int(y.sum()),
+        intervals=intervals,
+        covariance=cov,
+        confidence=confidence,
+        ci_method=ci,
+        r2=weighted_r2(binned.frequency, p_bins, n_b),
+        log_loss=log_loss(model.probability(a, t), y),
+        n_bins=int(binned.count.size),
+        binned=binned,
+        converged=bool(res.success),
+        message=str(res.message),
+        extra={
+            "bins": {
+                "alpha_width": spec.alpha_width * k,
+                "theta_width": spec.theta_width * k,
+                "min_count": spec.min_count,
+                "unit": angle_unit,
+            }
+        },
+    )
+
+
+def _bootstrap(
+    a: NDArray[np.float64],
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    spec: BinSpec,
+    k: float,
+    c: NDArray[np.float64],
+    n_boot: int,
+    confidence: float,
+    seed: int,
+) -> tuple[NDArray[np.float64], tuple[ConstantInterval, ...]]:
+    if n_boot < 2:
+        raise FitError("bootstrap needs n_bootstrap >= 2")
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(n_boot):
+        idx = rng.integers(0, a.size, a.size)
+        b = bin_observations(a[idx], t[idx], y[idx], spec)
+        if b.count.size < MIN_FIT_BINS:
+            continue
+        draws.append(_lsq_binned(b, k, c).x)
+    if len(draws) < 2:
+        raise FitError("bootstrap failed: too few resamples had enough bins")
+    d = np.array(draws)
+    cov = np.cov(d, rowvar=False)
+    lo_q, hi_q = 0.5 - 0.5 * confidence, 0.5 + 0.5 * confidence
+    lo, hi = np.quantile(d, lo_q, axis=0), np.quantile(d, hi_q, axis=0)
+    se = d.std(axis=0, ddof=1)
+    intervals = tuple(
+        ConstantInterval(n, float(e), float(low), float(high), float(s))
+        for n, e, low, high, s in zip(CONSTANT_NAMES, c, lo, hi, se, strict=True)
+    )
+    return cov, intervals
+
+
+# --------------------------------------------------------------------------- maximum likelihood
+def neg_log_likelihood(
+    c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[float, NDArray[np.float64]]:
+    """Mean negative Bernoulli log-likelihood and its analytic gradient w.r.t. c (angles in model unit)."""
+    cc = np.asarray(c, dtype=np.float64)
+    p, jac = _prob_and_jac(cc, a_u, t_u, PROB_EPS, 1.0 - PROB_EPS)
+    n = y.size
+    value = -float(np.sum(y * np.log(p) + (1.0 - y) * np.log1p(-p))) / n
+    dl_dp = y / p - (1.0 - y) / (1.0 - p)
+    grad = -(dl_dp @ jac) / n
+    return value, grad
+
+
+def fisher_information(
+    c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Expected Fisher information ``sum J J^T / (p (1 - p))`` of n Bernoulli observations (model unit)."""
+    p, jac = _prob_and_jac(np.asarray(c, dtype=np.float64), a_u, t_u, PROB_EPS, 1.0 - PROB_EPS)
+    w = 1.0 / (p * (1.0 - p))
+    return (jac * w[:, None]).T @ jac
+
+
+def fit_mle(
+    alpha: ArrayLike,
+    theta: ArrayLike,
+    inlier: ArrayLike,
+    *,
+    angle_unit: str = "deg",
+    bins: BinSpec | None = None,
+    confidence: float = DEFAULT_CONFIDENCE,
+    initial: ArrayLike | None = None,
+    source: str = "<data>",
+) -> FitResult:
+    """Per-observation Bernoulli maximum likelihood; intervals from the Fisher information.
+
+    Starts from ``initial`` (default: a binned fit when enough bins exist, else the thesis
+    constants). Angles in radians; constants returned for ``angle_unit``.
+    """
+    a, t, y = _check_data(alpha, theta, inlier, source)
+    if angle_unit not in UNIT_SCALE:
+        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    k = UNIT_SCALE[angle_unit]
+    spec = bins or BinSpec()
+    if initial is None:
+        try:
+            with warnings.catch_warnings():  # only a starting point: its warnings do not concern the MLE
+                warnings.simplefilter("ignore", PerceptionModelWarning)
+                x0 = fit_binned(a, t, y, angle_unit=angle_unit, bins=spec, source=source).model.constants
+        except FitError:
+            x0 = initial_constants(angle_unit)
+    else:
+        x0 = np.asarray(initial, dtype=np.float64)
+    a_u, t_u = a * k, t * k
+    scale = np.where(np.abs(x0) > 0, np.abs(x0), 1.0)
+
+    def fun(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        v, g = neg_log_likelihood(x * scale, a_u, t_u, y)
+        return v, g * scale
+
+    bounds = [(C1_FLOOR / scale[0], None), (0.0, None), (None, None)]
+    res = optimize.minimize(
+        fun,
+        x0 / scale,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"ftol": MLE_FTOL, "gtol": MLE_GTOL, "maxiter": MLE_MAXITER},
+    )
+    c = res.x * scale
+    _, grad = neg_log_likelihood(c, a_u, t_u, y)
+    info = fisher_information(c, a_u, t_u)
+    cov = _safe_inverse(info, "the Fisher information")
+    # converged: the optimizer's verdict, or the remaining Fisher-scoring step is negligible next to
+    # the standard errors (L-BFGS-B may stop on its function tolerance when already at the optimum)
+    with np.errstate(invalid="ignore"):
+        step = cov @ (grad * a.size)
+        near_optimum = bool(np.all(np.abs(step) <= MLE_STEP_TOL * np.sqrt(np.diag(cov))))
+    converged = bool(res.success) or near_optimum
+    model = _make_model(c, angle_unit, a, t, source, converged, str(res.message))
+    binned = bin_observations(a, t, y, spec)
+    r2 = math.nan
+    if binned.count.size >= 2:
+        r2 = weighted_r2(binned.frequency, model.probability(binned.alpha, binned.theta), binned.count)
+    return FitResult(
+        model=model,
+        method="mle",
+        n=int(a.size),
+        n_inliers=int(y.sum()),
+        intervals=_intervals(c, cov, confidence),
+        covariance=cov,
+        confidence=confidence,
+        ci_method="fisher",
+        r2=r2,
+        log_loss=log_loss(model.probability(a, t), y),
+        n_bins=int(binned.count.size),
+        binned=binned,
+        converged=converged,
+        message=str(res.message),
+        extra={"neg_log_likelihood_mean": float(res.fun), "iterations": int(res.nit)},
+    )
+
+
+# --------------------------------------------------------------------------- observations front end
+def holdout_split(groups: NDArray[np.int64], fraction: float, seed: int) -> NDArray[np.bool_]:
+    """Boolean mask of held-out rows: a random ``fraction`` of the groups (localizations)."""
+    if not 0.0 <= fraction < 1.0:
+        raise FitError(f"holdout fraction must be in [0, 1), got {fraction}")
+    uniq = np.unique(groups)
+    if fraction == 0.0:
+        return np.zeros(groups.shape, dtype=bool)
+    rng = np.random.default_rng(seed)
+    n_hold = int(round(fraction * uniq.size))
+    if uniq.size < 2 or n_hold == 0:
+        # one localization only: split rows instead of groups
+        return rng.random(groups.shape) < fraction
+    held = rng.choice(uniq, size=n_hold, replace=False)
+    return np.isin(groups, held)
+
+
+def fit_observations(
+    obs: Observations,
+    *,
+    method: Method = "binned",
+    angle_unit: str = "deg",
+    holdout_fraction: float = DEFAULT_HOLDOUT_FRACTION,
+    seed: int = 0,
+    bins: BinSpec | None = None,
+    ci: CiMethod = "sandwich",
+    n_bootstrap: int = DEFAULT_BOOTSTRAP,
+    confidence: float = DEFAULT_CONFIDENCE,
+    calibration_bins: int = DEFAULT_CALIBRATION_BINS,
+) -> FitResult:
+    """Fit on a random ``1 - holdout_fraction`` of the localizations, evaluate on the rest."""
+    source = obs.source_names
+    _check_data(obs.alpha, obs.theta, obs.inlier, source)  # whole data first: clearer messages
+    held = holdout_split(obs.frame_groups(), holdout_fraction, seed)
+    train = obs.take(~held)
+    if method == "binned":
+        result = fit_binned(
+            train.alpha,
+            train.theta,
+            train.inlier,
+            angle_unit=angle_unit,
+            bins=bins,
+            ci=ci,
+            n_bootstrap=n_bootstrap,
+            confidence=confidence,
+            seed=seed,
+            source=source,
+        )
+    elif method == "mle":
+        result = fit_mle(
+            train.alpha,
+            train.theta,
+            train.inlier,
+            angle_unit=angle_unit,
+            bins=bins,
+            confidence=confidence,
+            source=source,
+        )
+    else:
+        raise FitError(f"unknown method {method!r} (use 'binned' or 'mle')")
+    holdout = None
+    if held.any():
+        test = obs.take(held)
+        holdout = evaluate(
+            result.model,
+            test.alpha,
+            test.theta,
+            test.inlier,
+            bins=bins,
+            calibration_bins=calibration_bins,
+            source=f"{source} (held out)",
+        )
+    extra = dict(result.extra, holdout_fraction=holdout_fraction, seed=seed)
+    return FitResult(**{**vars(result), "holdout": holdout, "extra": extra})
+
+
+def simulate_labels(
+    model: PerceptionModel, alpha: ArrayLike, theta: ArrayLike, rng: np.random.Generator
+) -> NDArray[np.bool_]:
+    """Bernoulli inlier labels drawn from ``model`` at the given angles (radians)."""
+    p = model.probability(alpha, theta)
+    return rng.random(p.shape) < p
