@@ -30,6 +30,7 @@ from .io.base import StereoImages
 from .stereo import StereoFrame, StereoProcessor
 
 MIN_DEPTH_M = 0.1  # landmarks closer than this in front of the camera are not predicted
+MIN_FRAME_INTERVAL_S = 1e-3  # frames closer in time are judged as if this far apart
 
 
 class FrameKind(StrEnum):
@@ -165,7 +166,7 @@ class StereoOdometry:
         est = self._track(frame, T_pred, radius)
         if est is None and radius < cfg.match_radius_no_prior_px:
             est = self._track(frame, T_pred, cfg.match_radius_no_prior_px)
-        if est is not None and not self._plausible(est[0]):
+        if est is not None and not self._plausible(est[0], dt):
             est = None
         if est is None:
             return self._fail(frame, T_pred, ref)
@@ -313,11 +314,13 @@ class StereoOdometry:
         for s in np.unique(slot[bad]):
             kfs[s].landmark_ids[feat[bad & (slot == s)]] = -1
 
-    def _plausible(self, T_cw: np.ndarray) -> bool:
+    def _plausible(self, T_cw: np.ndarray, dt: float) -> bool:
+        """Speed and rotation rate of the step since the last frame within the configured bounds."""
         cfg = self.config.odometry
         step = T_cw @ inv_T(self._T_cw_last)
-        return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_step_translation_m
-                    and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_step_rotation_deg)
+        dt = max(dt, MIN_FRAME_INTERVAL_S)
+        return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_speed_mps * dt
+                    and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt)
 
     def _fail(self, frame: StereoFrame, T_pred: np.ndarray, ref: _WindowKeyframe) -> OdometryResult:
         """No reliable estimate: carry the pose by the motion prior and restart the local map here."""

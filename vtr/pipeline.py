@@ -108,3 +108,166 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
     if not results:
         raise DataError(f"{source_path}: no frames processed")
     return summary
+
+
+# ---------------------------------------------------------------------------------------- teach
+
+
+@dataclass(frozen=True)
+class TeachSummary:
+    frames: int
+    vertices: int
+    failures: int
+    seconds: float
+    map_path: Path
+
+    def lines(self) -> list[str]:
+        fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
+        return [f"teach: frames {self.frames}  vertices {self.vertices}  failures {self.failures}  "
+                f"{fps:.1f} frames/s  -> {self.map_path}"]
+
+
+def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
+                  fmt: str | None = None, progress: Callable | None = None) -> TeachSummary:
+    """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path)."""
+    from .map import Map
+    from .repeat import Teach
+
+    with open_source(source_path, fmt) as source:
+        indices = parse_frame_range(frames, len(source), str(source_path))
+        t0 = time.perf_counter()
+        results = []
+        with Map.create(map_path, source.camera, config.map) as m:
+            teach = Teach(m, source.camera, config, source=str(source_path))
+            for i in iterate(indices, len(indices), progress, "teach"):
+                results.append(teach.process(source[i]))
+            n_vertices = teach.finish()
+            poses = teach.odometry.final_poses(results)
+        seconds = time.perf_counter() - t0
+        failures = sum(r.kind == FrameKind.FAILURE for r in results)
+        summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            log = RunLog(out, "teach", config, [source_path])
+            kf = [r.vertex_id for r in results]
+            first = {k: i for i, k in reversed(list(enumerate(kf)))}
+            sel = sorted(first.values())
+            write_tum(out / "trajectory_tum.txt", np.array([results[i].t_ns for i in sel], np.int64), poses[sel])
+            write_frames_csv(out / "frames.csv", results)
+            log.write({"frames": summary.frames, "vertices": n_vertices, "failures": failures,
+                       "seconds": seconds, "map": str(map_path)})
+    return summary
+
+
+# --------------------------------------------------------------------------------------- repeat
+
+LOCALIZATION_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers",
+                           "x", "y", "z", "qx", "qy", "qz", "qw",
+                           "var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z",
+                           "consecutive_failures", "distance_since_success_m")
+LANDMARKS_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg",
+                        "range_m", "matched")
+
+
+@dataclass(frozen=True)
+class RepeatSummary:
+    frames: int
+    vertices: int
+    localized: int
+    seconds: float
+    localization_seconds: float
+    median_inliers: float
+    path_error_m: float
+
+    @property
+    def success_rate(self) -> float:
+        return self.localized / self.vertices if self.vertices else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"frames": self.frames, "vertices": self.vertices, "localized": self.localized,
+                "success_rate": self.success_rate, "seconds": self.seconds,
+                "fps": self.frames / self.seconds if self.seconds > 0 else None,
+                "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
+                "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m}
+
+    def lines(self) -> list[str]:
+        fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
+        return [f"repeat: frames {self.frames}  vertices {self.vertices}  localized {self.localized} "
+                f"({100 * self.success_rate:.1f} %)  median inliers {self.median_inliers:.0f}  {fps:.1f} frames/s",
+                f"path-tracking error to the taught path: median {self.path_error_m:.3f} m"]
+
+
+def write_localization_csv(path: Path, locs) -> None:
+    from .geometry import T_to_tum
+
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(LOCALIZATION_CSV_HEADER)
+        for loc in locs:
+            pose = T_to_tum(loc.T_leaf_trunk)
+            var = np.diag(loc.covariance)
+            w.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, int(loc.success),
+                        loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
+                        loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
+
+
+def write_landmarks_csv(path: Path, locs) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(LANDMARKS_CSV_HEADER)
+        for loc in locs:
+            r = loc.landmarks
+            if r is None or not loc.success:
+                continue
+            for k in range(len(r.landmark_id)):
+                w.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, int(r.landmark_id[k]), int(r.inlier[k]),
+                            f"{np.degrees(r.parallax_rad[k]):.5f}", f"{np.degrees(r.view_rad[k]):.5f}",
+                            f"{r.range_m[k]:.4f}", int(r.matched[k])])
+
+
+def path_errors(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Distance (m) of each point (N, 3) to the polyline ``path`` (M, 3)."""
+    if len(path) == 1:
+        return np.linalg.norm(points - path[0], axis=1)
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    t = np.einsum("nmk,mk->nm", points[:, None, :] - a[None], ab) / np.maximum((ab**2).sum(1), 1e-12)
+    closest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
+    return np.linalg.norm(points[:, None, :] - closest, axis=2).min(axis=1)
+
+
+def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
+                   fmt: str | None = None, progress: Callable | None = None) -> RepeatSummary:
+    """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path."""
+    from .map import Map
+    from .repeat import Repeat
+    from .report import plot_repeat
+
+    with open_source(source_path, fmt) as source, Map.open(map_path, "a") as m:
+        m.check_camera(source.camera)
+        indices = parse_frame_range(frames, len(source), str(source_path))
+        out.mkdir(parents=True, exist_ok=True)
+        log = RunLog(out, "repeat", config, [source_path, map_path])
+        repeat = Repeat(m, config, source=str(source_path))
+        steps, t_loc = [], 0.0
+        t0 = time.perf_counter()
+        for i in iterate(indices, len(indices), progress, "repeat"):
+            images = source[i]
+            steps.append(repeat.process(images))
+            t_loc += repeat.last_localization_seconds
+        seconds = time.perf_counter() - t0
+        locs = [s.localization for s in steps if s.localization is not None]
+        t_ns = np.array([s.odometry.t_ns for s in steps], np.int64)
+        T_teach = np.array([s.T_teach_frame for s in steps])
+        write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
+        write_localization_csv(out / "localization.csv", locs)
+        write_landmarks_csv(out / "landmarks.csv", locs)
+        _, T_priv = m.privileged_poses()
+        errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
+        plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors)
+        ok = [loc for loc in locs if loc.success]
+        summary = RepeatSummary(len(steps), len(locs), len(ok), seconds, t_loc,
+                                float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
+                                float(np.median(errors)))
+        log.write(summary.to_dict())
+    return summary

@@ -35,3 +35,39 @@ def plot_trajectory(path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = Non
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns: np.ndarray,
+                path_error_m: np.ndarray) -> None:
+    """Repeat report: inliers along the path (failures marked), path-tracking error over time, and the
+    taught and repeated paths in plan view (teach run's first camera frame: x right, z forward)."""
+    plt = _pyplot()
+    fig = plt.figure(figsize=(12, 7))
+    ax1 = fig.add_subplot(2, 2, 1)
+    ax2 = fig.add_subplot(2, 2, 3)
+    ax3 = fig.add_subplot(1, 2, 2)
+    t0 = t_ns[0] if len(t_ns) else 0
+    tl = np.array([(loc.t_ns - t0) * 1e-9 for loc in locs])
+    inl = np.array([loc.inliers for loc in locs])
+    ok = np.array([loc.success for loc in locs], bool)
+    if len(locs):
+        ax1.plot(tl, inl, ".-", color="C0", label="localization inliers")
+        ax1.plot(tl[~ok], np.zeros((~ok).sum()), "x", color="C3", label="failure")
+    ax1.set_ylabel("inliers")
+    ax1.set_xlabel("time [s]")
+    ax1.legend()
+    ax1.grid(True, alpha=0.3)
+    ax2.plot((t_ns - t0) * 1e-9, path_error_m, color="C2")
+    ax2.set_ylabel("distance to taught path [m]")
+    ax2.set_xlabel("time [s]")
+    ax2.grid(True, alpha=0.3)
+    ax3.plot(T_priv[:, 0, 3], T_priv[:, 2, 3], "o-", color="k", ms=3, label="taught (privileged) path")
+    ax3.plot(T_teach[:, 0, 3], T_teach[:, 2, 3], ".-", color="C0", ms=2, label="repeat")
+    ax3.set_xlabel("x [m]")
+    ax3.set_ylabel("z [m]")
+    ax3.set_aspect("equal", adjustable="datalim")
+    ax3.legend()
+    ax3.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,238 @@
+"""Localization of repeat keyframes against the taught (privileged) path.
+
+The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
+
+    privileged (teach) path   o────o────b────o────o────t────o────o───▶
+                                        ▲                ▲
+                                 T_w_b  │                │  T_l_t  (estimated at each new leaf)
+                                        │                │
+    current (repeat) path          o────w────o────o────l
+                               w: twig (last localized repeat vertex), b: branch (its trunk),
+                               l: leaf (newest repeat vertex),  t: trunk (closest taught vertex)
+
+    prior      T_l_t = T_l_w @ T_w_b @ T_b_t
+               (odometry along the repeat path, last localization, the taught path)
+
+Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's
+first camera frame; those of repeat vertices in the repeat run's own first camera frame; the
+chain only ever composes transforms between adjacent frames, so the two worlds never mix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import StereoCamera
+from .config import LocalizationConfig, OdometryConfig
+from .estimation import ransac_pnp, refine_two_view
+from .features import best_matches, hamming_pairs
+from .geometry import inv_T, log_se3
+from .odometry import MIN_DEPTH_M, match_landmarks
+from .stereo import StereoFrame
+
+
+@dataclass(frozen=True)
+class LandmarkRecord:
+    """Taught landmarks of one localization that lay in the leaf's view (arrays of equal length).
+
+    ``landmark_id`` is the feature index in the trunk vertex; ``matched``/``inlier`` say whether it
+    was matched / a localization inlier; angles in radians (DESIGN.md §5); ``range_m`` is the
+    distance from the leaf camera.
+    """
+
+    landmark_id: np.ndarray
+    matched: np.ndarray
+    inlier: np.ndarray
+    parallax_rad: np.ndarray
+    view_rad: np.ndarray
+    range_m: np.ndarray
+
+
+@dataclass(frozen=True)
+class Localization:
+    """One localization attempt of leaf ``leaf_id`` against trunk ``trunk_id``.
+
+    ``T_leaf_trunk`` maps trunk-camera coordinates into the leaf camera (the prior on failure) and
+    ``covariance`` is its 6x6 covariance ([rot, trans]). ``twig_id``/``branch_id`` are the chain's
+    twig and branch *before* this attempt (-1 before the first success).
+    """
+
+    t_ns: int
+    leaf_id: int
+    trunk_id: int
+    twig_id: int
+    branch_id: int
+    success: bool
+    matches: int
+    inliers: int
+    T_leaf_trunk: np.ndarray
+    covariance: np.ndarray
+    consecutive_failures: int
+    distance_since_success_m: float
+    landmarks: LandmarkRecord | None = None
+
+
+def pose_distance(T: np.ndarray, rotation_weight: float) -> float:
+    """Trunk-search metric ``||rho|| + w ||phi||`` of a relative transform (m and rad)."""
+    xi = log_se3(T)
+    return float(np.linalg.norm(xi[3:]) + rotation_weight * np.linalg.norm(xi[:3]))
+
+
+class LocalizationChain:
+    """Bookkeeping of trunk/branch/twig/leaf and the prior ``T_l_t`` (no image work here).
+
+    ``T_world_privileged`` (N, 4, 4) are the taught vertices' poses along the path (ids
+    ``privileged_ids``); the current path is described by the repeat odometry poses handed to
+    ``prior``.
+    """
+
+    def __init__(self, privileged_ids: np.ndarray, T_world_privileged: np.ndarray, config: LocalizationConfig,
+                 start_index: int = 0):
+        if len(privileged_ids) == 0:
+            raise ValueError("the privileged path is empty")
+        self.ids = np.asarray(privileged_ids)
+        self.T_priv = np.asarray(T_world_privileged)
+        self.config = config
+        self.trunk = start_index                 # index along the privileged path
+        # Until the first success the chain assumes the repeat starts at the taught vertex
+        # ``start_index``: a virtual twig (the repeat's first camera) on a virtual branch.
+        self.branch = start_index                # index of the branch on the privileged path
+        self.localized = False
+        self.twig_id: int = -1
+        self.T_world_twig = np.eye(4)            # twig pose in the repeat run's world
+        self.T_twig_branch = np.eye(4)
+        self.consecutive_failures = 0
+        self.distance_since_success = 0.0
+        self._last_leaf_position: np.ndarray | None = None
+
+    def prior(self, T_world_leaf: np.ndarray) -> tuple[int, np.ndarray]:
+        """Trunk index and prior ``T_leaf_trunk`` for a leaf at repeat-odometry pose ``T_world_leaf``.
+
+        The trunk is searched in a window around the previous one along the path.
+        """
+        if self._last_leaf_position is not None:
+            self.distance_since_success += float(np.linalg.norm(T_world_leaf[:3, 3] - self._last_leaf_position))
+        self._last_leaf_position = T_world_leaf[:3, 3].copy()
+        T_l_b = inv_T(T_world_leaf) @ self.T_world_twig @ self.T_twig_branch
+        c = self.config
+        lo = max(0, self.trunk - c.trunk_window_back)
+        hi = min(len(self.ids), self.trunk + c.trunk_window_forward + 1)
+        candidates = np.arange(lo, hi)
+        T_l_v = T_l_b @ inv_T(self.T_priv[self.branch]) @ self.T_priv[candidates]
+        cost = [pose_distance(T, c.rotation_weight) for T in T_l_v]
+        best = int(np.argmin(cost))
+        self.trunk = int(candidates[best])
+        return self.trunk, T_l_v[best]
+
+    def update(self, leaf_id: int, T_world_leaf: np.ndarray, trunk: int, T_leaf_trunk: np.ndarray | None) -> None:
+        """After an attempt: on success twig/branch move to leaf/trunk; on failure odometry carries the chain."""
+        if T_leaf_trunk is None:
+            self.consecutive_failures += 1
+            return
+        self.localized = True
+        self.twig_id = leaf_id
+        self.T_world_twig = T_world_leaf
+        self.branch = trunk
+        self.trunk = trunk
+        self.T_twig_branch = T_leaf_trunk
+        self.consecutive_failures = 0
+        self.distance_since_success = 0.0
+
+
+@dataclass(frozen=True)
+class TaughtVertex:
+    """What localization needs of a taught vertex: id, stereo frame (landmarks in its camera frame)."""
+
+    id: int
+    frame: StereoFrame
+
+
+class Localizer:
+    """Matches a leaf's features to a trunk's landmarks and estimates ``T_leaf_trunk``."""
+
+    def __init__(self, camera: StereoCamera, config: LocalizationConfig, odometry: OdometryConfig,
+                 pixel_sigma: float):
+        self.camera = camera
+        self.config = config
+        self.odometry = odometry
+        self.pixel_sigma = pixel_sigma
+
+    def localize(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None,
+                 seed: int = 0) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray, np.ndarray]:
+        """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
+
+        Returns (T_leaf_trunk or None, covariance, matches, matched trunk indices, inlier mask).
+        """
+        c = self.config
+        ti, lj = self._match(leaf, trunk, T_prior)
+        empty = np.zeros(0, bool)
+        if len(ti) < c.min_matches:
+            return None, np.full((6, 6), np.nan), len(ti), ti, empty[:0] if len(ti) == 0 else np.zeros(len(ti), bool)
+        rs = ransac_pnp(trunk.points[ti], leaf.features.uv[lj], self.camera, c.ransac_iterations,
+                        c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
+        inlier = np.zeros(len(ti), bool)
+        if rs is None or len(rs.inliers) < c.min_inliers:
+            return None, np.full((6, 6), np.nan), len(ti), ti, inlier
+        sel = rs.inliers
+        depth = trunk.points[ti[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
+        sel = sel[depth > MIN_DEPTH_M]
+        rf = refine_two_view(rs.T_q_r, trunk.points[ti[sel]], trunk.stereo_measurements[ti[sel]],
+                             leaf.stereo_measurements[lj[sel]], self.camera, self.pixel_sigma,
+                             self.odometry.huber_px, self.odometry.refine_iterations, c.ransac_threshold_px)
+        inlier[sel[rf.inlier]] = True
+        if inlier.sum() < c.min_inliers:
+            return None, np.full((6, 6), np.nan), len(ti), ti, inlier
+        return rf.T_q_r, rf.covariance, len(ti), ti, inlier
+
+    def _match(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None):
+        c = self.config
+        if T_prior is not None:
+            ti, lj = match_to_trunk(trunk, leaf, T_prior, self.camera, c.match_radius_px, c.max_descriptor_distance,
+                                    self.odometry.ratio_test)
+            if len(ti) >= c.min_matches:
+                return ti, lj
+        # unguided: every trunk landmark against every leaf feature, ratio test
+        ti_all = np.flatnonzero(trunk.has_depth)
+        n_l = len(leaf.features)
+        ia = np.repeat(ti_all, n_l)
+        jb = np.tile(np.arange(n_l), len(ti_all))
+        dist = hamming_pairs(trunk.features.descriptors, leaf.features.descriptors, ia, jb)
+        qi, tj, _ = best_matches(dist, ia, jb, c.max_descriptor_distance, ratio=self.odometry.ratio_test)
+        return qi, tj
+
+
+def match_to_trunk(trunk: StereoFrame, leaf: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera,
+                   radius: float, max_distance: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Trunk landmarks (with depth) matched to leaf features near their projection under the prior."""
+    idx = np.flatnonzero(trunk.has_depth)
+    qi, tj = match_landmarks(trunk.points[idx], trunk.features.descriptors[idx], leaf, T_leaf_trunk, camera,
+                             radius, max_distance, ratio)
+    return idx[qi], tj
+
+
+def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
+                    inlier: np.ndarray) -> LandmarkRecord:
+    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5).
+
+    Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
+    for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera
+    centre in the trunk frame, ``z`` = leaf optical axis in the trunk frame.
+    """
+    from perception_model.angles import parallax_angle, view_angle
+
+    idx = np.flatnonzero(trunk.has_depth)
+    P_leaf = trunk.points[idx] @ T_leaf_trunk[:3, :3].T + T_leaf_trunk[:3, 3]
+    uv = camera.project(P_leaf)
+    in_view = (P_leaf[:, 2] > MIN_DEPTH_M) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) \
+        & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    idx, P_leaf = idx[in_view], P_leaf[in_view]
+    T_trunk_leaf = inv_T(T_leaf_trunk)
+    p_is = trunk.points[idx]
+    p_ao = T_trunk_leaf[:3, 3]
+    z = T_trunk_leaf[:3, 2]
+    is_matched = np.isin(idx, matched)
+    is_inlier = np.isin(idx, matched[inlier]) if len(inlier) else np.zeros(len(idx), bool)
+    return LandmarkRecord(idx, is_matched, is_inlier, parallax_angle(p_is, p_ao), view_angle(p_is, p_ao, z),
+                          np.linalg.norm(P_leaf, axis=1))
