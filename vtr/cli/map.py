@@ -1,0 +1,83 @@
+"""``vtr map info`` and ``vtr export-map``: inspect and export pose-graph maps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from . import main
+
+map_argument = click.argument("map_path", metavar="MAP", type=click.Path(path_type=Path))
+
+
+def _size(n_bytes: int) -> str:
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n_bytes >= scale:
+            return f"{n_bytes / scale:.1f} {unit}"
+    return f"{n_bytes} B"
+
+
+@main.group("map")
+def map_group() -> None:
+    """Inspect pose-graph maps written by `vtr teach` / `vtr repeat`."""
+
+
+@map_group.command("info")
+@map_argument
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+def map_info_cmd(map_path: Path, as_json: bool) -> None:
+    """Runs, vertex/edge/landmark counts, size on disk and format version of MAP."""
+    from ..map import Map
+
+    with Map.open(map_path, "r") as m:
+        stats = m.stats()
+        runs = m.runs()
+        cam = m.camera
+        created = m.meta.get("created", "?")
+    if as_json:
+        stats["created"] = created
+        stats["camera"] = cam.to_dict()
+        stats["run_list"] = [
+            {"id": r.id, "kind": r.kind, "privileged": r.privileged, "finished": r.finished,
+             "vertices": r.n_vertices, "source": r.source, "created": r.created} for r in runs
+        ]
+        click.echo(json.dumps(stats, indent=2))
+        return
+    click.echo(f"map: {map_path}")
+    click.echo(f"format version: {stats['format_version']}  created: {created}")
+    click.echo(f"camera: {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} "
+               f"cy={cam.cy:.2f} baseline={cam.baseline:.4f} m")
+    click.echo(f"size on disk: {_size(stats['bytes'])} ({stats['bytes']} bytes)")
+    click.echo(f"vertices: {stats['vertices']}  edges: {stats['edges']} (temporal {stats['temporal_edges']}, "
+               f"spatial {stats['spatial_edges']})  landmarks: {stats['landmarks']}  features: {stats['features']}")
+    click.echo(f"runs: {stats['runs']}")
+    if runs:
+        click.echo(f"  {'id':>4}  {'kind':<6}  {'privileged':<10}  {'finished':<8}  {'vertices':>8}  source")
+        for r in runs:
+            click.echo(f"  {r.id:>4}  {r.kind:<6}  {'yes' if r.privileged else 'no':<10}  "
+                       f"{'yes' if r.finished else 'no':<8}  {r.n_vertices:>8}  {r.source or '-'}")
+
+
+@main.command("export-map")
+@map_argument
+@click.option("--ply", "ply_path", type=click.Path(path_type=Path), required=True,
+              help="Output point cloud (.ply): landmarks of every run, coloured by run.")
+def export_map_cmd(map_path: Path, ply_path: Path) -> None:
+    """Export the landmarks of MAP as a PLY point cloud in the first teach run's world frame.
+
+    Repeat runs linked to the teach run by spatial edges are placed through them; an unlinked
+    run stays in its own world frame (reported as "own frame").
+    """
+    from ..map import Map
+    from ..map.export import export_landmarks_ply
+
+    with Map.open(map_path, "r") as m:
+        summary = export_landmarks_ply(m, ply_path)
+    total = sum(s.points for s in summary)
+    for s in summary:
+        rgb = "#" + "".join(f"{round(c * 255):02x}" for c in s.colour)
+        frame = "map frame" if s.aligned else "own frame"
+        click.echo(f"run {s.run} ({s.kind}): {s.points} landmarks, colour {rgb}, {frame}")
+    click.echo(f"wrote {total} points to {ply_path}")

@@ -1,0 +1,105 @@
+"""SQLite schema of the map file (format version 1).
+
+Tables:
+
+- ``meta(key, value)``: ``format_version``, ``camera`` (JSON of ``StereoCamera.to_dict``), ``created``
+  (ISO-8601 UTC), ``vtr_version``, ``compress_level``.
+- ``runs``: one row per teach/repeat session; ``finished`` becomes 1 when the session closes (or
+  a later run begins), after which the run is append-closed.
+- ``vertices``: the pose index, one small row per keyframe: ``id = run << 32 | idx``, ``t_ns``,
+  ``T_world_vertex`` and ``T_vehicle_sensor`` as 16 little-endian float64 (128-byte blobs,
+  row-major), feature/landmark counts and the source frame index. Poses are read from here without
+  touching feature data.
+- ``vertex_data(id, data)``: the keyframe arrays behind the magic ``VTRV\\x01``: zlib of the
+  feature count N (uint32) then the raw little-endian bytes of uv (N, 2) float64, octave (N,)
+  int32, descriptors (N, 32) uint8, u_right (N,) float64, points (N, 3) float64, in that order.
+- ``edges``: ``T_from_to`` (128-byte blob), ``covariance`` (6x6, 288-byte blob), kind, inliers.
+
+Triggers make vertices, vertex data and edges append-only, and refuse new vertices or temporal
+edges in a finished run, so a taught run cannot change once its session ended, whatever code
+writes to the file.
+"""
+
+from __future__ import annotations
+
+MATRIX4_BYTES = 16 * 8
+MATRIX6_BYTES = 36 * 8
+
+SCHEMA = f"""
+CREATE TABLE meta (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+) WITHOUT ROWID;
+
+CREATE TABLE runs (
+    id INTEGER PRIMARY KEY,
+    kind TEXT NOT NULL CHECK (kind IN ('teach', 'repeat')),
+    privileged INTEGER NOT NULL CHECK (privileged IN (0, 1)),
+    source TEXT NOT NULL,
+    created TEXT NOT NULL,
+    finished INTEGER NOT NULL DEFAULT 0 CHECK (finished IN (0, 1))
+);
+
+CREATE TABLE vertices (
+    id INTEGER PRIMARY KEY,
+    run INTEGER NOT NULL REFERENCES runs(id),
+    idx INTEGER NOT NULL,
+    t_ns INTEGER NOT NULL,
+    T_world_vertex BLOB NOT NULL CHECK (length(T_world_vertex) = {MATRIX4_BYTES}),
+    T_vehicle_sensor BLOB NOT NULL CHECK (length(T_vehicle_sensor) = {MATRIX4_BYTES}),
+    n_features INTEGER NOT NULL,
+    n_landmarks INTEGER NOT NULL,
+    frame_index INTEGER NOT NULL,
+    CHECK (id = ((run << 32) | idx) AND idx >= 0 AND idx <= 4294967295)
+);
+
+CREATE TABLE vertex_data (
+    id INTEGER PRIMARY KEY REFERENCES vertices(id),
+    data BLOB NOT NULL
+);
+
+CREATE TABLE edges (
+    from_id INTEGER NOT NULL REFERENCES vertices(id),
+    to_id INTEGER NOT NULL REFERENCES vertices(id),
+    kind TEXT NOT NULL CHECK (kind IN ('temporal', 'spatial')),
+    T_from_to BLOB NOT NULL CHECK (length(T_from_to) = {MATRIX4_BYTES}),
+    covariance BLOB NOT NULL CHECK (length(covariance) = {MATRIX6_BYTES}),
+    inliers INTEGER NOT NULL CHECK (inliers >= 0),
+    PRIMARY KEY (from_id, to_id, kind),
+    CHECK (from_id <> to_id)
+) WITHOUT ROWID;
+
+CREATE INDEX edges_by_to ON edges(to_id);
+
+CREATE TRIGGER vertices_append_only_update BEFORE UPDATE ON vertices
+BEGIN SELECT RAISE(ABORT, 'map vertices are immutable'); END;
+CREATE TRIGGER vertices_append_only_delete BEFORE DELETE ON vertices
+BEGIN SELECT RAISE(ABORT, 'map vertices are immutable'); END;
+CREATE TRIGGER vertex_data_append_only_update BEFORE UPDATE ON vertex_data
+BEGIN SELECT RAISE(ABORT, 'map vertex data is immutable'); END;
+CREATE TRIGGER vertex_data_append_only_delete BEFORE DELETE ON vertex_data
+BEGIN SELECT RAISE(ABORT, 'map vertex data is immutable'); END;
+CREATE TRIGGER edges_append_only_update BEFORE UPDATE ON edges
+BEGIN SELECT RAISE(ABORT, 'map edges are immutable'); END;
+CREATE TRIGGER edges_append_only_delete BEFORE DELETE ON edges
+BEGIN SELECT RAISE(ABORT, 'map edges are immutable'); END;
+
+CREATE TRIGGER runs_fixed BEFORE UPDATE OF id, kind, privileged, source, created ON runs
+BEGIN SELECT RAISE(ABORT, 'map runs are immutable (only finished may change)'); END;
+CREATE TRIGGER runs_stay_finished BEFORE UPDATE OF finished ON runs WHEN OLD.finished = 1
+BEGIN SELECT RAISE(ABORT, 'a finished run cannot be reopened'); END;
+CREATE TRIGGER runs_no_delete BEFORE DELETE ON runs
+BEGIN SELECT RAISE(ABORT, 'map runs are immutable'); END;
+
+CREATE TRIGGER vertices_only_in_open_run BEFORE INSERT ON vertices
+WHEN (SELECT finished FROM runs WHERE id = NEW.run) = 1
+BEGIN SELECT RAISE(ABORT, 'cannot add a vertex to a finished run'); END;
+CREATE TRIGGER temporal_edges_only_in_open_run BEFORE INSERT ON edges
+WHEN NEW.kind = 'temporal' AND (SELECT finished FROM runs WHERE id = (NEW.from_id >> 32)) = 1
+BEGIN SELECT RAISE(ABORT, 'cannot add a temporal edge to a finished run'); END;
+CREATE TRIGGER spatial_edges_touch_open_run BEFORE INSERT ON edges
+WHEN NEW.kind = 'spatial'
+    AND (SELECT finished FROM runs WHERE id = (NEW.from_id >> 32)) = 1
+    AND (SELECT finished FROM runs WHERE id = (NEW.to_id >> 32)) = 1
+BEGIN SELECT RAISE(ABORT, 'a spatial edge must touch an open run'); END;
+"""

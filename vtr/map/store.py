@@ -1,0 +1,769 @@
+"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges.
+
+Vertices are keyframes (time, features, descriptors, 3-D landmarks in the vertex camera frame,
+``T_vehicle_sensor``); edges are relative transforms with covariance, ``temporal`` (odometry
+between consecutive vertices of a run) or ``spatial`` (localization of a repeat vertex against a
+taught one). Teach runs are *privileged*: their vertices form the path a repeat follows. Each
+run's poses ``T_world_vertex`` are expressed in that run's first camera frame.
+
+Durability: WAL journal, ``synchronous=FULL``, one transaction per vertex, so a process killed at
+any point leaves a map that opens with every vertex whose ``add_vertex`` returned (and survives
+power loss too). A map appends only to its *open run* (the latest one, while its session lasts);
+beginning a run or closing the session finishes the previous one, after which its vertices and
+temporal edges can never change (enforced by SQLite triggers as well as here). One writing process
+at a time; the per-session caches (vertex LRU, privileged path, k-d tree) do not see writes made
+by other processes after opening.
+
+Memory stays bounded on long routes: :meth:`Map.vertex` keeps at most ``cache_size`` decoded
+vertices, and poses, the privileged path, windows and nearest-vertex queries come from the small
+pose index without reading feature data.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import __version__
+from ..camera import StereoCamera
+from ..config import MapConfig
+from ..errors import MapError, VtrError
+from .records import (
+    EDGE_KINDS,
+    INDEX_MASK,
+    RUN_KINDS,
+    RUN_SHIFT,
+    EdgeRecord,
+    RunInfo,
+    VertexRecord,
+    blob_matrix,
+    check_covariance,
+    check_transform,
+    count_landmarks,
+    decode_arrays,
+    encode_arrays,
+    frame_arrays,
+    make_vertex_record,
+    matrix_blob,
+    split_vertex_id,
+    vertex_id,
+)
+from .schema import SCHEMA
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+    from ..odometry import Keyframe
+    from ..stereo import StereoFrame
+
+MAP_FORMAT_VERSION = 1
+APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
+SQLITE_MAGIC = b"SQLite format 3\x00"
+VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
+BUSY_TIMEOUT_MS = 10_000             # wait for another connection's write lock before failing
+SYNCHRONOUS = "FULL"                 # fsync the WAL at every commit: durable across power loss too
+MODES = ("r", "a")
+
+
+def _utc_now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _run_range(run: int) -> tuple[int, int]:
+    """Smallest and largest vertex id of a run."""
+    lo = int(run) << RUN_SHIFT
+    return lo, lo | INDEX_MASK
+
+
+def _inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (..., 4, 4)."""
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _check_int(value, what: str, minimum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise MapError(f"{what}: expected an integer, got {type(value).__name__}")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise MapError(f"{what}: {value} < {minimum}")
+    return value
+
+
+def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
+    if readonly:
+        target, uri = path.absolute().as_uri() + "?mode=ro", True
+    else:
+        target, uri = str(path), False
+    conn = sqlite3.connect(target, uri=uri, isolation_level=None, check_same_thread=False,
+                           timeout=BUSY_TIMEOUT_MS / 1000)
+    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+    conn.execute("PRAGMA foreign_keys = ON")
+    if readonly:
+        conn.execute("PRAGMA query_only = ON")
+    else:
+        conn.execute(f"PRAGMA synchronous = {SYNCHRONOUS}")
+    return conn
+
+
+class Map:
+    """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
+
+    ``camera`` is the rectified stereo calibration the map was taught with; ``path`` the file.
+    """
+
+    def __init__(self, path: Path, conn: sqlite3.Connection, mode: str, camera: StereoCamera,
+                 meta: dict[str, str], cache_size: int) -> None:
+        self.path = path
+        self.mode = mode
+        self.camera = camera
+        self.meta = dict(meta)
+        self.format_version = int(meta["format_version"])
+        self._conn: sqlite3.Connection | None = conn
+        self._lock = threading.RLock()
+        self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
+        self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
+        self._cache_size = _check_int(cache_size, "cache_size", 1)
+        self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
+        self._path_cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._tree_cache: tuple[int, cKDTree] | None = None
+        self._open_run: int | None = None
+        self._open_run_privileged = False
+        self._open_run_touched = False  # this session began or wrote to the open run
+        if mode == "a":
+            row = conn.execute("SELECT id, finished, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+            if row is not None and not row[1]:
+                self._open_run, self._open_run_privileged = int(row[0]), bool(row[2])
+
+    # ------------------------------------------------------------ opening
+
+    @classmethod
+    def create(cls, path, camera: StereoCamera, config: MapConfig | None = None, *,
+               cache_size: int = VERTEX_CACHE_SIZE) -> Map:
+        """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything."""
+        path = Path(path)
+        _check_int(cache_size, "cache_size", 1)
+        config = config or MapConfig()
+        level = _check_int(config.compress_level, "map.compress_level", 0)
+        if level > 9:
+            raise MapError(f"map.compress_level: {level} > 9")
+        if not isinstance(camera, StereoCamera):
+            raise MapError(f"camera: expected a StereoCamera, got {type(camera).__name__}")
+        leftovers = [p for p in (path, Path(f"{path}-wal"), Path(f"{path}-journal")) if p.exists()]
+        if leftovers:
+            raise MapError(f"{leftovers[0]} already exists: refusing to overwrite a map "
+                           "(remove it or choose another path)")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise MapError(f"{path}: cannot create the map folder ({err})") from err
+        meta = {
+            "format_version": str(MAP_FORMAT_VERSION),
+            "camera": json.dumps(camera.to_dict()),
+            "created": _utc_now(),
+            "vtr_version": __version__,
+            "compress_level": str(level),
+        }
+        conn = None
+        try:
+            conn = _connect(path, readonly=False)
+            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
+            conn.executescript("BEGIN IMMEDIATE;" + SCHEMA)
+            conn.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", sorted(meta.items()))
+            conn.execute("COMMIT")
+        except (sqlite3.Error, MapError) as err:
+            if conn is not None:
+                conn.close()
+            for p in (path, Path(f"{path}-wal"), Path(f"{path}-shm")):
+                p.unlink(missing_ok=True)
+            if isinstance(err, MapError):
+                raise
+            raise MapError(f"{path}: cannot create map ({err})") from err
+        return cls(path, conn, "a", camera, meta, cache_size)
+
+    @classmethod
+    def open(cls, path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
+        """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs."""
+        if mode not in MODES:
+            raise MapError(f"map open mode must be one of {MODES}, got {mode!r}")
+        _check_int(cache_size, "cache_size", 1)
+        path = Path(path)
+        if not path.exists():
+            raise MapError(f"no map at {path}")
+        if path.is_dir():
+            raise MapError(f"{path} is a directory, not a map file")
+        try:
+            with path.open("rb") as fh:
+                head = fh.read(len(SQLITE_MAGIC))
+        except OSError as err:
+            raise MapError(f"{path}: cannot read map ({err})") from err
+        if head != SQLITE_MAGIC:
+            raise MapError(f"{path} is not a vtr map (not an SQLite database)")
+        conn = None
+        try:
+            conn = _connect(path, readonly=mode == "r")
+            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+            if app_id != APPLICATION_ID:
+                raise MapError(f"{path} is not a vtr map (SQLite database without the vtr application id)")
+            meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+            if "format_version" not in meta:
+                raise MapError(f"{path} is not a vtr map (no format version)")
+            version = int(meta["format_version"])
+            if version != MAP_FORMAT_VERSION:
+                hint = "written by a newer vtr: upgrade vtr" if version > MAP_FORMAT_VERSION else \
+                    "written by an older vtr: teach it again"
+                raise MapError(f"{path}: map format version {version}, this vtr {__version__} reads only "
+                               f"format version {MAP_FORMAT_VERSION} ({hint})")
+            camera = StereoCamera.from_dict(json.loads(meta["camera"]))
+            if mode == "a":
+                jm = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+                if str(jm).lower() != "wal":
+                    raise MapError(f"{path}: cannot switch the map to WAL journal mode (got {jm})")
+            return cls(path, conn, mode, camera, meta, cache_size)
+        except MapError:
+            if conn is not None:
+                conn.close()
+            raise
+        except (sqlite3.Error, ValueError, KeyError, VtrError) as err:
+            if conn is not None:
+                conn.close()
+            raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
+
+    def close(self) -> None:
+        """Finish the run this session wrote (it becomes immutable) and close the file. Idempotent."""
+        with self._lock:
+            if self._conn is None:
+                return
+            try:
+                if self.mode == "a" and self._open_run is not None and self._open_run_touched:
+                    with self._tx() as conn:
+                        conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
+                    self._open_run = None
+            finally:
+                self._conn.close()
+                self._conn = None
+                self._cache.clear()
+
+    def __enter__(self) -> Map:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._conn is None else f"mode={self.mode!r}"
+        return f"Map({str(self.path)!r}, {state})"
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    @property
+    def open_run(self) -> int | None:
+        """The run new vertices go to (``None`` when read-only or when no run is open)."""
+        return self._open_run
+
+    def check_camera(self, camera: StereoCamera) -> None:
+        """Raise ``MapError`` unless ``camera`` is the calibration the map was taught with."""
+        if not camera.matches(self.camera):
+            m, c = self.camera, camera
+            raise MapError(
+                f"map was taught with another camera: {self.path} has {m.width}x{m.height} fx={m.fx:.6g} "
+                f"fy={m.fy:.6g} cx={m.cx:.6g} cy={m.cy:.6g} baseline={m.baseline:.6g} m, the input has "
+                f"{c.width}x{c.height} fx={c.fx:.6g} fy={c.fy:.6g} cx={c.cx:.6g} cy={c.cy:.6g} "
+                f"baseline={c.baseline:.6g} m"
+            )
+
+    # ------------------------------------------------------------ database access
+
+    @contextmanager
+    def _db(self) -> Iterator[sqlite3.Connection]:
+        """The connection under the lock, with SQLite errors turned into ``MapError``."""
+        with self._lock:
+            if self._conn is None:
+                raise MapError(f"{self.path}: map is closed")
+            try:
+                yield self._conn
+            except sqlite3.Error as err:
+                raise MapError(f"{self.path}: {err}") from err
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction: committed when the block ends, rolled back on any error."""
+        with self._db() as conn:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield conn
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+
+    def _check_writable(self) -> None:
+        if self._conn is None:
+            raise MapError(f"{self.path}: map is closed")
+        if self.mode != "a":
+            raise MapError(f"{self.path}: map opened read-only (open it with mode='a' to write)")
+
+    def _check_open_run(self, run: int, what: str) -> None:
+        if self._open_run is None:
+            raise MapError(f"{self.path}: {what}: no open run (call begin_run first); finished runs are immutable")
+        if run != self._open_run:
+            raise MapError(f"{self.path}: {what}: run {run} is not the open run ({self._open_run}); "
+                           "finished runs are immutable")
+
+    def _run_row(self, conn: sqlite3.Connection, run: int) -> tuple:
+        row = conn.execute("SELECT id, kind, privileged FROM runs WHERE id = ?", (int(run),)).fetchone()
+        if row is None:
+            raise MapError(f"{self.path}: no run {run}")
+        return row
+
+    # ------------------------------------------------------------ writing
+
+    def begin_run(self, kind: str, source: str = "", privileged: bool | None = None) -> int:
+        """Start a new run (``"teach"`` or ``"repeat"``) and return its id; it becomes the open run.
+
+        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. Any
+        earlier run still open is finished first.
+        """
+        self._check_writable()
+        if kind not in RUN_KINDS:
+            raise MapError(f"run kind must be one of {RUN_KINDS}, got {kind!r}")
+        privileged = kind == "teach" if privileged is None else bool(privileged)
+        with self._tx() as conn:
+            conn.execute("UPDATE runs SET finished = 1 WHERE finished = 0")
+            run = conn.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM runs").fetchone()[0]
+            vertex_id(run, 0)  # checks the run id range
+            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, finished) VALUES (?, ?, ?, ?, ?, 0)",
+                         (run, kind, int(privileged), str(source), _utc_now()))
+        self._open_run, self._open_run_touched = int(run), True
+        self._open_run_privileged = privileged
+        return int(run)
+
+    def finish_run(self) -> None:
+        """Finish the open run now (it becomes immutable); ``close`` does this too."""
+        self._check_writable()
+        if self._open_run is None:
+            return
+        with self._tx() as conn:
+            conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
+        self._open_run = None
+
+    def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
+                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
+        """Append a keyframe to the open run ``run`` in one transaction; returns the stored record.
+
+        ``T_world_vertex`` (4x4) is the keyframe's left camera pose in the run's first camera frame;
+        ``T_vehicle_sensor`` defaults to the map camera's. The vertex index is the next in the run.
+        Arrays are stored with dtypes uv/u_right/points float64, octave int32, descriptors uint8
+        (lossless conversion only, else ``MapError``).
+        """
+        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
+
+    def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
+                     link_previous: bool = True) -> VertexRecord:
+        """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
+
+        The edge (``T_prev_kf``, ``edge_covariance``, ``edge_inliers``) is written in the same
+        transaction as the vertex when the run already has a vertex and ``link_previous`` is true
+        (pass false for the first keyframe of a new odometry session, e.g. after resuming a teach).
+        """
+        edge = None
+        if link_previous:
+            T = check_transform(keyframe.T_prev_kf, "keyframe T_prev_kf")
+            C = check_covariance(keyframe.edge_covariance, "keyframe edge_covariance")
+            edge = (T, C, _check_int(keyframe.edge_inliers, "keyframe edge_inliers", 0))
+        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
+                                edge)
+
+    def _add_vertex(self, run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge) -> VertexRecord:
+        self._check_writable()
+        run = _check_int(run, "run", 0)
+        self._check_open_run(run, "add_vertex")
+        t_ns = _check_int(t_ns, "t_ns")
+        T_wv = check_transform(T_world_vertex, "T_world_vertex")
+        T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
+                               "T_vehicle_sensor")
+        arrays = frame_arrays(frame)
+        frame_index = int(getattr(frame, "index", -1))
+        blob = encode_arrays(arrays, self._compress_level)
+        lo, hi = _run_range(run)
+        with self._tx() as conn:
+            last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
+            index = 0 if last is None else (int(last) & INDEX_MASK) + 1
+            vid = vertex_id(run, index)
+            conn.execute(
+                "INSERT INTO vertices(id, run, idx, t_ns, T_world_vertex, T_vehicle_sensor, n_features, "
+                "n_landmarks, frame_index) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), len(arrays["uv"]),
+                 count_landmarks(arrays["points"]), frame_index),
+            )
+            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, blob))
+            if edge is not None and last is not None:
+                T, C, inliers = edge
+                conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
+                             "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
+                                                                    inliers))
+        self._open_run_touched = True
+        if self._open_run_privileged:
+            self._generation += 1  # the privileged path grew: drop its caches
+        record = make_vertex_record(vid, t_ns, T_wv, T_vs, arrays, frame_index)
+        self._cache_put(record)
+        return record
+
+    def add_edge(self, from_id: int, to_id: int, T_from_to: np.ndarray, covariance: np.ndarray, kind: str,
+                 inliers: int = 0) -> None:
+        """Add an edge; ``T_from_to`` (4x4) maps to-vertex coordinates into the from-vertex frame.
+
+        ``temporal`` edges join consecutive vertices (index i -> i+1) of the open run; ``spatial``
+        edges may join any two vertices as long as one of them is in the open run (e.g. a repeat
+        vertex to a taught one). Validates SE(3), finiteness and a symmetric PSD 6x6 covariance;
+        on any error nothing is written.
+        """
+        self._check_writable()
+        if kind not in EDGE_KINDS:
+            raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
+        from_id = _check_int(from_id, "from_id", 0)
+        to_id = _check_int(to_id, "to_id", 0)
+        if from_id == to_id:
+            raise MapError(f"edge from vertex {from_id} to itself")
+        T = check_transform(T_from_to, f"edge {from_id}->{to_id} T_from_to")
+        C = check_covariance(covariance, f"edge {from_id}->{to_id} covariance")
+        inliers = _check_int(inliers, "inliers", 0)
+        (run_f, idx_f), (run_t, idx_t) = split_vertex_id(from_id), split_vertex_id(to_id)
+        for vid in (from_id, to_id):
+            if not self.has_vertex(vid):
+                raise MapError(f"{self.path}: no vertex {vid} (run {vid >> RUN_SHIFT}, index {vid & INDEX_MASK})")
+        if kind == "temporal":
+            if run_f != run_t or idx_t != idx_f + 1:
+                raise MapError(f"temporal edge must join consecutive vertices of one run, got "
+                               f"({run_f}, {idx_f}) -> ({run_t}, {idx_t})")
+            self._check_open_run(run_f, "temporal edge")
+        elif self._open_run is None or self._open_run not in (run_f, run_t):
+            raise MapError(f"{self.path}: spatial edge ({run_f}, {idx_f}) -> ({run_t}, {idx_t}) must touch the "
+                           f"open run ({self._open_run}); finished runs are immutable")
+        with self._db() as conn:
+            dup = conn.execute("SELECT 1 FROM edges WHERE from_id = ? AND to_id = ? AND kind = ?",
+                               (from_id, to_id, kind)).fetchone()
+        if dup:
+            raise MapError(f"{self.path}: {kind} edge {from_id}->{to_id} already exists")
+        with self._tx() as conn:
+            conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
+                         "VALUES (?, ?, ?, ?, ?, ?)", (from_id, to_id, kind, matrix_blob(T), matrix_blob(C), inliers))
+        self._open_run_touched = True
+
+    # ------------------------------------------------------------ reading
+
+    def runs(self) -> list[RunInfo]:
+        """All runs in id order, with their vertex counts."""
+        with self._db() as conn:
+            rows = conn.execute(
+                "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.finished, "
+                "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
+                "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
+        return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
+                        n_vertices=int(r[6]), finished=bool(r[5])) for r in rows]
+
+    def run(self, run: int) -> RunInfo:
+        """One run's info (``MapError`` if absent)."""
+        for info in self.runs():
+            if info.id == run:
+                return info
+        raise MapError(f"{self.path}: no run {run}")
+
+    def has_vertex(self, vid: int) -> bool:
+        if int(vid) in self._cache:
+            return True
+        with self._db() as conn:
+            return conn.execute("SELECT 1 FROM vertices WHERE id = ?", (int(vid),)).fetchone() is not None
+
+    __contains__ = has_vertex
+
+    def vertex_ids(self, run: int) -> np.ndarray:
+        """(N,) int64 vertex ids of ``run`` in index order."""
+        lo, hi = _run_range(_check_int(run, "run", 0))
+        with self._db() as conn:
+            self._run_row(conn, run)
+            ids = [r[0] for r in conn.execute("SELECT id FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id", (lo, hi))]
+        return np.array(ids, dtype=np.int64)
+
+    def poses(self, run: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (N,) int64, T_world_vertex (N, 4, 4))`` of a run in index order, from the pose index only."""
+        lo, hi = _run_range(_check_int(run, "run", 0))
+        with self._db() as conn:
+            self._run_row(conn, run)
+            rows = conn.execute("SELECT id, T_world_vertex FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
+                                (lo, hi)).fetchall()
+        return self._pose_arrays(rows)
+
+    @staticmethod
+    def _pose_arrays(rows) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.array([r[0] for r in rows], dtype=np.int64)
+        T = np.frombuffer(b"".join(r[1] for r in rows), dtype="<f8").astype(np.float64).reshape(-1, 4, 4)
+        return ids, T
+
+    def timestamps(self, run: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (N,) int64, t_ns (N,) int64)`` of a run in index order."""
+        lo, hi = _run_range(_check_int(run, "run", 0))
+        with self._db() as conn:
+            self._run_row(conn, run)
+            rows = conn.execute("SELECT id, t_ns FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
+                                (lo, hi)).fetchall()
+        return (np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1] for r in rows], dtype=np.int64))
+
+    def vertex(self, vid: int) -> VertexRecord:
+        """The keyframe ``vid`` with its features (decoded once, then served from a bounded LRU cache)."""
+        vid = _check_int(vid, "vertex id", 0)
+        with self._lock:
+            record = self._cache.get(vid)
+            if record is not None:
+                self._cache.move_to_end(vid)
+                return record
+            with self._db() as conn:
+                row = conn.execute(
+                    "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
+                    "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (vid,)).fetchone()
+            if row is None:
+                run, index = split_vertex_id(vid)
+                raise MapError(f"{self.path}: no vertex {vid} (run {run}, index {index})")
+            record = self._decode_vertex(vid, row)
+            self._cache_put(record)
+            return record
+
+    def _decode_vertex(self, vid: int, row) -> VertexRecord:
+        t_ns, T_wv, T_vs, frame_index, data = row
+        arrays = decode_arrays(data, f"{self.path} vertex {vid}")
+        return make_vertex_record(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), arrays,
+                                  frame_index)
+
+    def _cache_put(self, record: VertexRecord) -> None:
+        with self._lock:
+            self._cache[record.id] = record
+            self._cache.move_to_end(record.id)
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+
+    def iter_vertices(self, run: int) -> Iterator[VertexRecord]:
+        """Every vertex of a run in index order, streamed (bypasses the cache; memory stays flat)."""
+        for vid in self.vertex_ids(run):
+            with self._db() as conn:
+                row = conn.execute(
+                    "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
+                    "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (int(vid),)).fetchone()
+            yield self._decode_vertex(int(vid), row)
+
+    def edges(self, run: int | None = None, kind: str | None = None) -> list[EdgeRecord]:
+        """Edges touching ``run`` (either end; all runs when ``None``), optionally of one ``kind``."""
+        if kind is not None and kind not in EDGE_KINDS:
+            raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
+        sql = "SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges"
+        where, args = [], []
+        if run is not None:
+            lo, hi = _run_range(_check_int(run, "run", 0))
+            where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")
+            args += [lo, hi, lo, hi]
+        if kind is not None:
+            where.append("kind = ?")
+            args.append(kind)
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        with self._db() as conn:
+            if run is not None:
+                self._run_row(conn, run)
+            rows = conn.execute(sql + " ORDER BY from_id, to_id, kind", args).fetchall()
+        return [EdgeRecord(from_id=int(r[0]), to_id=int(r[1]), kind=r[2], T_from_to=blob_matrix(r[3], (4, 4)),
+                           covariance=blob_matrix(r[4], (6, 6)), inliers=int(r[5])) for r in rows]
+
+    def edge(self, from_id: int, to_id: int, kind: str) -> EdgeRecord:
+        """The edge ``from_id -> to_id`` of ``kind`` (``MapError`` if absent)."""
+        with self._db() as conn:
+            r = conn.execute("SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges "
+                             "WHERE from_id = ? AND to_id = ? AND kind = ?",
+                             (int(from_id), int(to_id), kind)).fetchone()
+        if r is None:
+            raise MapError(f"{self.path}: no {kind} edge {from_id}->{to_id}")
+        return EdgeRecord(int(r[0]), int(r[1]), r[2], blob_matrix(r[3], (4, 4)), blob_matrix(r[4], (6, 6)), int(r[5]))
+
+    # ------------------------------------------------------------ the privileged path
+
+    def _privileged(self) -> tuple[np.ndarray, np.ndarray]:
+        with self._lock:
+            cached = self._path_cache
+            if cached is not None and cached[0] == self._generation:
+                return cached[1], cached[2]
+            with self._db() as conn:
+                rows = conn.execute(
+                    "SELECT v.id, v.T_world_vertex FROM vertices v JOIN runs r ON r.id = v.run "
+                    "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
+            ids, T = self._pose_arrays(rows)
+            ids.flags.writeable = False
+            T.flags.writeable = False
+            self._path_cache = (self._generation, ids, T)
+            return ids, T
+
+    def privileged_path(self) -> np.ndarray:
+        """(N,) int64 ids of the privileged (teach) vertices in path order (run, then index).
+
+        Raises ``MapError`` "map has no taught run" when there is no privileged vertex.
+        """
+        ids, _T = self._privileged()
+        if len(ids) == 0:
+            raise MapError(f"{self.path}: map has no taught run (no privileged vertices)")
+        return ids
+
+    def privileged_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (N,), T_world_vertex (N, 4, 4))`` along the privileged path (each in its run's world frame)."""
+        ids = self.privileged_path()
+        return ids, self._privileged()[1]
+
+    def window(self, center_id: int, back: int, forward: int) -> list[int]:
+        """Ids along the privileged path from ``back`` vertices before ``center_id`` to ``forward`` after
+        (clipped at the ends of the path), in path order."""
+        back = _check_int(back, "back", 0)
+        forward = _check_int(forward, "forward", 0)
+        path = self.privileged_path()
+        i = int(np.searchsorted(path, int(center_id)))
+        if i >= len(path) or path[i] != int(center_id):
+            run, index = split_vertex_id(center_id)
+            raise MapError(f"{self.path}: vertex {center_id} (run {run}, index {index}) is not on the privileged path")
+        return [int(v) for v in path[max(0, i - back): i + forward + 1]]
+
+    def nearest_vertices(self, position_world: np.ndarray, k: int = 1) -> np.ndarray:
+        """(min(k, N),) int64 ids of the privileged vertices nearest to ``position_world`` (3,), metres,
+        nearest first. Positions are camera centres in their run's world frame (the teach frame)."""
+        k = _check_int(k, "k", 1)
+        p = np.asarray(position_world, dtype=float).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise MapError(f"nearest_vertices: position must be 3 finite numbers, got {position_world!r}")
+        ids = self.privileged_path()
+        with self._lock:
+            if self._tree_cache is None or self._tree_cache[0] != self._generation:
+                from scipy.spatial import cKDTree
+
+                self._tree_cache = (self._generation, cKDTree(self._privileged()[1][:, :3, 3]))
+            tree = self._tree_cache[1]
+        _d, idx = tree.query(p, k=min(k, len(ids)))
+        return ids[np.atleast_1d(idx)].astype(np.int64)
+
+    # ------------------------------------------------------------ export
+
+    def reference_run(self) -> int | None:
+        """The first privileged run: its world frame is the map frame of exports (``None`` if none)."""
+        for info in self.runs():
+            if info.privileged:
+                return info.id
+        return None
+
+    def poses_in_map_frame(self, run: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """``(ids, T_map_vertex (N, 4, 4), aligned)`` of a run in the map frame (first teach run's world).
+
+        A run other than the reference is placed through its spatial edges to the reference run:
+        each vertex goes through the localized vertex nearest to it in index order
+        (``T_map_v = T_map_t T_t_l T_l_v``, with ``T_l_v`` from the run's own odometry). Without any
+        such edge the run stays in its own world frame and ``aligned`` is false.
+        """
+        ids, T_run_v = self.poses(run)
+        ref = self.reference_run()
+        if ref == run:
+            return ids, T_run_v, True
+        if ref is None or len(ids) == 0:
+            return ids, T_run_v, False
+        ref_ids, T_map_t = self.poses(ref)
+        links = []  # (index in run, T_map_run via this edge, inliers)
+        for e in self.edges(run=run, kind="spatial"):
+            rf, rt = e.from_id >> RUN_SHIFT, e.to_id >> RUN_SHIFT
+            if rf == run and rt == ref:
+                l_id, t_id, T_l_t = e.from_id, e.to_id, e.T_from_to
+            elif rf == ref and rt == run:
+                l_id, t_id, T_l_t = e.to_id, e.from_id, _inv_T(e.T_from_to)
+            else:
+                continue
+            i_l = int(np.searchsorted(ids, l_id))
+            i_t = int(np.searchsorted(ref_ids, t_id))
+            T_map_run = T_map_t[i_t] @ _inv_T(T_l_t) @ _inv_T(T_run_v[i_l])
+            links.append((i_l, T_map_run, e.inliers))
+        if not links:
+            return ids, T_run_v, False
+        links.sort(key=lambda x: (x[0], -x[2]))
+        link_idx = np.array([x[0] for x in links])
+        keep = np.concatenate([[True], np.diff(link_idx) > 0])
+        link_idx = link_idx[keep]
+        link_T = np.stack([x[1] for x, k in zip(links, keep, strict=True) if k])
+        # for each vertex, the link nearest in index order
+        ar = np.arange(len(ids))
+        right = np.clip(np.searchsorted(link_idx, ar), 0, len(link_idx) - 1)
+        left = np.clip(right - 1, 0, len(link_idx) - 1)
+        choice = np.where(np.abs(ar - link_idx[left]) <= np.abs(link_idx[right] - ar), left, right)
+        return ids, link_T[choice] @ T_run_v, True
+
+    def landmarks(self, run: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(points (M, 3) metres, run_of_point (M,) int64)``: every vertex landmark in the map frame.
+
+        The map frame is the world frame of the first teach run; other runs are placed through
+        their spatial edges (see :meth:`poses_in_map_frame`), or left in their own world frame when
+        unlinked. Streams feature data vertex by vertex (no cache pollution).
+        """
+        run_ids = [r.id for r in self.runs()] if run is None else [self._run_id(run)]
+        pts, owner = [], []
+        for r in run_ids:
+            ids, T_map_v, _aligned = self.poses_in_map_frame(r)
+            for i, rec in enumerate(self.iter_vertices(r)):
+                p = rec.points[rec.landmark_mask]
+                pts.append(p @ T_map_v[i, :3, :3].T + T_map_v[i, :3, 3])
+                owner.append(np.full(len(p), r, dtype=np.int64))
+        if not pts:
+            return np.empty((0, 3)), np.empty(0, dtype=np.int64)
+        return np.concatenate(pts), np.concatenate(owner)
+
+    def _run_id(self, run: int) -> int:
+        run = _check_int(run, "run", 0)
+        with self._db() as conn:
+            self._run_row(conn, run)
+        return run
+
+    def stats(self) -> dict:
+        """Counts and size: runs, vertices, features, landmarks, edges (and by kind), bytes on disk."""
+        with self._db() as conn:
+            n_runs = conn.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+            n_v, n_f, n_l = conn.execute(
+                "SELECT COUNT(*), COALESCE(SUM(n_features), 0), COALESCE(SUM(n_landmarks), 0) FROM vertices"
+            ).fetchone()
+            by_kind = dict(conn.execute("SELECT kind, COUNT(*) FROM edges GROUP BY kind").fetchall())
+        return {
+            "path": str(self.path),
+            "format_version": self.format_version,
+            "runs": int(n_runs),
+            "vertices": int(n_v),
+            "features": int(n_f),
+            "landmarks": int(n_l),
+            "edges": int(sum(by_kind.values())),
+            "temporal_edges": int(by_kind.get("temporal", 0)),
+            "spatial_edges": int(by_kind.get("spatial", 0)),
+            "bytes": self.bytes_on_disk(),
+        }
+
+    def bytes_on_disk(self) -> int:
+        """Size of the map file plus its write-ahead log, bytes."""
+        total = 0
+        for p in (self.path, Path(f"{self.path}-wal")):
+            try:
+                total += p.stat().st_size
+            except FileNotFoundError:
+                pass
+        return total
