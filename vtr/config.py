@@ -83,7 +83,9 @@ class LocalizationConfig:
     ransac_iterations: int = 6000
     ransac_threshold_px: float = 10.0
     min_inliers: int = 6                  # fewer: localization failure
+    min_inliers_unlocalized: int = 20     # before the first success (no trusted prior) demand this many
     min_matches: int = 20                 # fewer candidate matches: do not try
+    min_inlier_ratio: float = 0.4         # fewer inliers per match: a chance alignment, reported as failure
     match_radius_px: float = 60.0         # search radius around the prior's prediction
     max_descriptor_distance: int = 64
     trunk_window_back: int = 10           # trunk search window along the privileged path

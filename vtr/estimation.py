@@ -114,6 +114,40 @@ class BundleResult:
     cost: float
 
 
+RELATIVE_COST_TOLERANCE = 1e-6   # bundle adjustment stops when a step lowers the cost by less than this
+
+
+def inv_sym3(A: np.ndarray) -> np.ndarray:
+    """Inverse of symmetric 3x3 matrices (..., 3, 3) by the adjugate (vectorized, no LAPACK call)."""
+    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
+    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(A.shape)
+    return out / det[..., None, None]
+
+
+def _observation_pairs(obs_point: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """All ordered pairs (o1, o2) of observations of the same landmark (including o1 == o2)."""
+    order = np.argsort(obs_point, kind="stable")
+    counts = np.bincount(obs_point, minlength=n_points)
+    starts = np.cumsum(counts) - counts
+    c_sorted = counts[obs_point[order]]
+    o1 = np.repeat(order, c_sorted)
+    rank = np.arange(len(o1)) - np.repeat(np.cumsum(c_sorted) - c_sorted, c_sorted)
+    return o1, order[starts[obs_point[o1]] + rank]
+
+
+def segment_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Sum rows of ``values`` (M, ...) into ``n`` bins by ``index`` (M,) -> (n, ...) (fast ``np.add.at``)."""
+    tail = values.shape[1:]
+    width = int(np.prod(tail)) if tail else 1
+    flat = (index[:, None] * width + np.arange(width)[None, :]).ravel()
+    out = np.bincount(flat, weights=values.reshape(-1), minlength=n * width)
+    return out.reshape((n, *tail))
+
+
 def _pose_jacobian(Y: np.ndarray, J_Y: np.ndarray) -> np.ndarray:
     """d(measurement)/d(left perturbation [omega, v] of T_cam_world), given Y = T X and dz/dY."""
     dY = np.concatenate([-skew(Y), np.broadcast_to(np.eye(3), Y.shape[:1] + (3, 3))], axis=2)
@@ -139,9 +173,8 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     info_rows = row_weight / sigma_px**2
     zz = np.where(row_weight > 0, z, 0.0)
     k_huber = huber_px / sigma_px
-    order = np.argsort(obs_point, kind="stable")
-    counts = np.bincount(obs_point, minlength=L)
-    starts = np.cumsum(counts) - counts
+    if not fix_points:
+        o1, o2 = _observation_pairs(obs_point, L)
 
     def evaluate(T_, X_):
         Y = np.einsum("mij,mj->mi", T_[obs_pose, :3, :3], X_[obs_point]) + T_[obs_pose, :3, 3]
@@ -162,17 +195,13 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
         Wd = (w[:, None] * info_rows)                                 # (M, 3) diagonal weights
         WJp = Wd[:, :, None] * J_p
         WJx = Wd[:, :, None] * J_x
-        Hpp_blocks = np.zeros((K, 6, 6))
-        np.add.at(Hpp_blocks, obs_pose, np.swapaxes(J_p, 1, 2) @ WJp)
-        bp = np.zeros((K, 6))
-        np.add.at(bp, obs_pose, -np.einsum("mki,mk->mi", J_p, Wd * e))
+        Hpp_blocks = segment_sum(obs_pose, np.swapaxes(J_p, 1, 2) @ WJp, K)
+        bp = -segment_sum(obs_pose, np.einsum("mki,mk->mi", J_p, Wd * e), K)
         if not fix_points:
-            Hll = np.zeros((L, 3, 3))
-            np.add.at(Hll, obs_point, np.swapaxes(J_x, 1, 2) @ WJx)
-            bl = np.zeros((L, 3))
-            np.add.at(bl, obs_point, -np.einsum("mki,mk->mi", J_x, Wd * e))
+            Hll = segment_sum(obs_point, np.swapaxes(J_x, 1, 2) @ WJx, L)
+            bl = -segment_sum(obs_point, np.einsum("mki,mk->mi", J_x, Wd * e), L)
             Hpl = np.swapaxes(J_p, 1, 2) @ WJx                        # (M, 6, 3)
-        improved = False
+        improved = converged = False
         for _attempt in range(8):
             F = len(free)
             if fix_points:
@@ -184,20 +213,13 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                     g[s:s + 6] = bp[k]
             else:
                 Hll_d = Hll + lam * (np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9))
-                Hll_inv = np.linalg.inv(Hll_d)
+                Hll_inv = inv_sym3(Hll_d)
                 A = Hpl @ Hll_inv[obs_point]                          # (M, 6, 3)
-                # pairs of observations of the same landmark -> Schur blocks (k_o, k_o')
-                o1 = np.repeat(order, counts[obs_point[order]])
-                grp = obs_point[o1]
-                rank = np.arange(len(o1)) - np.repeat(np.cumsum(counts[obs_point[order]])
-                                                        - counts[obs_point[order]], counts[obs_point[order]])
-                o2 = order[starts[grp] + rank]
-                S_full = np.zeros((K, K, 6, 6))
-                for k in range(K):
-                    S_full[k, k] += Hpp_blocks[k]
-                np.add.at(S_full, (obs_pose[o1], obs_pose[o2]), -(A[o1] @ np.swapaxes(Hpl[o2], 1, 2)))
-                g_full = bp.copy()
-                np.add.at(g_full, obs_pose, -np.einsum("mij,mj->mi", A, bl[obs_point]))
+                # pairs of observations of the same landmark give the Schur blocks (k_o, k_o')
+                S_full = -segment_sum(obs_pose[o1] * K + obs_pose[o2], A[o1] @ np.swapaxes(Hpl[o2], 1, 2),
+                                      K * K).reshape(K, K, 6, 6)
+                S_full[np.arange(K), np.arange(K)] += Hpp_blocks
+                g_full = bp - segment_sum(obs_pose, np.einsum("mij,mj->mi", A, bl[obs_point]), K)
                 S = S_full[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(F * 6, F * 6)
                 g = g_full[free].reshape(-1)
             S_d = S + lam * np.diag(np.diag(S) + 1e-9)
@@ -213,17 +235,17 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
             if not fix_points:
                 dpk = np.zeros((K, 6))
                 dpk[free] = dp
-                rhs = bl.copy()
-                np.add.at(rhs, obs_point, -np.einsum("mji,mj->mi", Hpl, dpk[obs_pose]))
+                rhs = bl - segment_sum(obs_point, np.einsum("mji,mj->mi", Hpl, dpk[obs_pose]), L)
                 X_new = X + np.einsum("lij,lj->li", Hll_inv, rhs)
             Y_n, e_n, _, w_n, cost_n = evaluate(T_new, X_new)
             if np.all(Y_n[:, 2] > 0) and cost_n < cost:
+                converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost
                 T, X, Y, e, w, cost = T_new, X_new, Y_n, e_n, w_n, cost_n
                 lam = max(lam / 10, 1e-7)
                 improved = True
                 break
             lam *= 10
-        if not improved or np.abs(dp).max() < 1e-10:
+        if not improved or converged:
             break
     cov = np.zeros((K, 6, 6))
     if len(free):

@@ -78,3 +78,39 @@ def associate(t_est: np.ndarray, t_gt: np.ndarray, tolerance_ns: int = 20_000_00
     j = np.where(np.abs(t_gt[j - 1] - t_est) <= np.abs(t_gt[j] - t_est), j - 1, j)
     ok = np.abs(t_gt[j] - t_est) <= tolerance_ns
     return np.flatnonzero(ok), j[ok]
+
+
+@dataclass(frozen=True)
+class LocalizationErrors:
+    """Errors of estimated ``T_leaf_trunk`` against ground truth (successful localizations only)."""
+
+    translation_m: np.ndarray
+    rotation_deg: np.ndarray
+
+    @property
+    def median_translation_m(self) -> float:
+        return float(np.median(self.translation_m)) if len(self.translation_m) else float("nan")
+
+    @property
+    def median_rotation_deg(self) -> float:
+        return float(np.median(self.rotation_deg)) if len(self.rotation_deg) else float("nan")
+
+    def __str__(self) -> str:
+        return (f"T_leaf_trunk error vs ground truth: median {1000 * self.median_translation_m:.1f} mm, "
+                f"{self.median_rotation_deg:.3f} deg (max {1000 * np.max(self.translation_m, initial=0):.1f} mm, "
+                f"{np.max(self.rotation_deg, initial=0):.3f} deg; {len(self.translation_m)} localizations)")
+
+
+def localization_errors(T_leaf_trunk: np.ndarray, leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray,
+                        gt_t_ns: np.ndarray, gt_T_world_cam: np.ndarray,
+                        tolerance_ns: int = 20_000_000) -> LocalizationErrors:
+    """Compare estimates with ground truth ``inv(G_leaf) @ G_trunk`` (teach and repeat sharing one world,
+    as when both come from one source). Leaves or trunks without ground truth within tolerance are skipped."""
+    il, gl = associate(np.asarray(leaf_t_ns), gt_t_ns, tolerance_ns)
+    it, gtr = associate(np.asarray(trunk_t_ns), gt_t_ns, tolerance_ns)
+    both = np.intersect1d(il, it)
+    gl = gl[np.searchsorted(il, both)]
+    gtr = gtr[np.searchsorted(it, both)]
+    G = inv_T(gt_T_world_cam[gl]) @ gt_T_world_cam[gtr]
+    E = inv_T(G) @ np.asarray(T_leaf_trunk)[both]
+    return LocalizationErrors(np.linalg.norm(E[:, :3, 3], axis=1), np.degrees(rotation_angle(E[:, :3, :3])))

@@ -127,7 +127,8 @@ def best_matches(dist: np.ndarray, ia: np.ndarray, jb: np.ndarray, max_distance:
     if len(ia) == 0:
         e = np.zeros(0, int)
         return e, e, np.zeros(0, np.int32)
-    order = np.lexsort((dist, ia))
+    big = np.int64(np.max(dist)) + 1
+    order = np.argsort(ia.astype(np.int64) * big + dist, kind="stable")   # by query, closest first
     ia_s, jb_s, d_s = ia[order], jb[order], dist[order]
     first = np.r_[True, ia_s[1:] != ia_s[:-1]]
     best = np.flatnonzero(first)
@@ -140,7 +141,7 @@ def best_matches(dist: np.ndarray, ia: np.ndarray, jb: np.ndarray, max_distance:
     qi, tj, dd = ia_s[best], jb_s[best], d_s[best]
     if mutual and len(qi):
         # for every train feature keep the closest query
-        o = np.lexsort((dd, tj))
+        o = np.argsort(tj.astype(np.int64) * big + dd, kind="stable")
         keep_first = np.r_[True, tj[o][1:] != tj[o][:-1]]
         sel = o[keep_first]
         qi, tj, dd = qi[sel], tj[sel], dd[sel]

@@ -160,12 +160,16 @@ class Localizer:
         self.pixel_sigma = pixel_sigma
 
     def localize(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None,
-                 seed: int = 0) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray, np.ndarray]:
+                 seed: int = 0, trusted_prior: bool = True) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray,
+                                                                    np.ndarray]:
         """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
 
+        Without a trusted prior (before the first success) a localization needs
+        ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong.
         Returns (T_leaf_trunk or None, covariance, matches, matched trunk indices, inlier mask).
         """
         c = self.config
+        min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
         ti, lj = self._match(leaf, trunk, T_prior)
         empty = np.zeros(0, bool)
         if len(ti) < c.min_matches:
@@ -173,7 +177,7 @@ class Localizer:
         rs = ransac_pnp(trunk.points[ti], leaf.features.uv[lj], self.camera, c.ransac_iterations,
                         c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
         inlier = np.zeros(len(ti), bool)
-        if rs is None or len(rs.inliers) < c.min_inliers:
+        if rs is None or len(rs.inliers) < min_inliers:
             return None, np.full((6, 6), np.nan), len(ti), ti, inlier
         sel = rs.inliers
         depth = trunk.points[ti[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
@@ -182,7 +186,7 @@ class Localizer:
                              leaf.stereo_measurements[lj[sel]], self.camera, self.pixel_sigma,
                              self.odometry.huber_px, self.odometry.refine_iterations, c.ransac_threshold_px)
         inlier[sel[rf.inlier]] = True
-        if inlier.sum() < c.min_inliers:
+        if inlier.sum() < max(min_inliers, c.min_inlier_ratio * len(ti)):
             return None, np.full((6, 6), np.nan), len(ti), ti, inlier
         return rf.T_q_r, rf.covariance, len(ti), ti, inlier
 

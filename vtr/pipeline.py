@@ -14,7 +14,7 @@ import numpy as np
 
 from .config import Config
 from .errors import DataError
-from .evaluation import DriftMetrics, associate, drift_metrics
+from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
 from .geometry import inv_T
 from .io import open_source, parse_frame_range
 from .io.base import FrameSource
@@ -178,6 +178,7 @@ class RepeatSummary:
     localization_seconds: float
     median_inliers: float
     path_error_m: float
+    errors: LocalizationErrors | None = None
 
     @property
     def success_rate(self) -> float:
@@ -188,13 +189,16 @@ class RepeatSummary:
                 "success_rate": self.success_rate, "seconds": self.seconds,
                 "fps": self.frames / self.seconds if self.seconds > 0 else None,
                 "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
-                "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m}
+                "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m,
+                "median_error_m": self.errors.median_translation_m if self.errors else None,
+                "median_error_deg": self.errors.median_rotation_deg if self.errors else None}
 
     def lines(self) -> list[str]:
         fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
         return [f"repeat: frames {self.frames}  vertices {self.vertices}  localized {self.localized} "
                 f"({100 * self.success_rate:.1f} %)  median inliers {self.median_inliers:.0f}  {fps:.1f} frames/s",
-                f"path-tracking error to the taught path: median {self.path_error_m:.3f} m"]
+                f"path-tracking error to the taught path: median {self.path_error_m:.3f} m",
+                *([str(self.errors)] if self.errors is not None else [])]
 
 
 def write_localization_csv(path: Path, locs) -> None:
@@ -266,8 +270,21 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
         plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors)
         ok = [loc for loc in locs if loc.success]
+        gt_errors = _errors_against_ground_truth(source, m, ok)
         summary = RepeatSummary(len(steps), len(locs), len(ok), seconds, t_loc,
                                 float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                                float(np.median(errors)))
+                                float(np.median(errors)), gt_errors)
         log.write(summary.to_dict())
     return summary
+
+
+def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:
+    """Localization errors when the repeat source's ground truth also covers the taught vertices
+    (teach and repeat taken from one source, e.g. even and odd frames of a clip)."""
+    gt = source.ground_truth()
+    teach = m.reference_run()
+    if gt is None or not locs or teach is None or str(source.path) != m.run(teach).source:
+        return None
+    trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
+    return localization_errors(np.array([loc.T_leaf_trunk for loc in locs]), np.array([loc.t_ns for loc in locs]),
+                               trunk_t, gt.t_ns, gt.T_world_cam)

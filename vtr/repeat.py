@@ -147,7 +147,8 @@ class Repeat:
         trunk_frame = frame_of_vertex(trunk_vertex)
         self._attempts += 1
         T, cov, n_matches, matched, inlier = self.localizer.localize(
-            kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts)
+            kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
+            trusted_prior=c.localized)
         success = T is not None
         if success:
             self.map.add_edge(leaf_id, trunk_vertex.id, T, _usable_covariance(cov), "spatial", int(inlier.sum()))

@@ -711,6 +711,21 @@ def aerial_route(
                         altitude_m, pitch_down_rad, lateral_offset_m, vertical_offset_m, yaw_offset_rad)
 
 
+def drifting_aerial_route(length_m: float, spacing_m: float, lateral_offset_m: float, vertical_offset_m: float,
+                          ramp_m: float, start_offset_m: float = 0.0, **kwargs) -> np.ndarray:
+    """An aerial repeat that starts on the taught path and drifts to a constant offset over ``ramp_m``
+    metres (as a vehicle leaving its path does; a repeat starts where the teach started). Same
+    frames as :func:`aerial_route`; only the camera centres move."""
+    on_path = aerial_route(length_m, spacing_m, start_offset_m=start_offset_m, **kwargs)
+    off = aerial_route(length_m, spacing_m, lateral_offset_m=lateral_offset_m, vertical_offset_m=vertical_offset_m,
+                       start_offset_m=start_offset_m, **kwargs)
+    along = np.arange(len(on_path)) * spacing_m
+    s = np.clip(along / max(ramp_m, 1e-9), 0.0, 1.0)
+    T = on_path.copy()
+    T[:, :3, 3] = (1 - s)[:, None] * on_path[:, :3, 3] + s[:, None] * off[:, :3, 3]
+    return T
+
+
 def turning_route(
     spacing_m: float = 0.25,
     *,

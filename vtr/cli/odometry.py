@@ -60,13 +60,25 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str) -> None:
 @main.command("demo")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
 def demo_cmd(out: Path) -> None:
-    """Odometry on the shipped KITTI clip with a short report."""
+    """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report."""
     from ..config import Config
-    from ..pipeline import odometry_command
+    from ..pipeline import odometry_command, repeat_command, teach_command
 
     clip = _find_datasets() / DEMO_CLIP
-    click.echo(f"vtr demo: stereo odometry on {clip}")
-    summary = odometry_command(clip, out / "odometry", None, Config(), None, progress_bar())
-    for line in summary.lines():
-        click.echo(line)
-    click.echo(f"report: {out}/odometry/trajectory.png, trajectory_tum.txt, frames.csv, run.json")
+    config = Config()
+    out.mkdir(parents=True, exist_ok=True)
+    map_path = out / "route.vtrmap"
+    for stale in out.glob("route.vtrmap*"):
+        stale.unlink()
+    click.echo(f"vtr demo on {clip}")
+    click.echo("1/3 stereo odometry over all frames")
+    for line in odometry_command(clip, out / "odometry", None, config, None, progress_bar()).lines():
+        click.echo("    " + line)
+    click.echo("2/3 teach on the even frames")
+    for line in teach_command(clip, map_path, "0::2", config, out / "teach", None, progress_bar()).lines():
+        click.echo("    " + line)
+    click.echo("3/3 repeat on the odd frames, localizing against the taught path")
+    for line in repeat_command(clip, map_path, out / "repeat", "1::2", config, None, progress_bar()).lines():
+        click.echo("    " + line)
+    click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
+               f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")

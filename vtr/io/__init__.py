@@ -8,7 +8,7 @@ from pathlib import Path
 from ..errors import DataError
 from .base import FrameSource, GroundTruth, StereoImages, parse_frame_range
 from .cloud import CloudRun, is_cloud_run, refuse_cloud_stereo
-from .euroc import EurocSource, euroc_root
+from .euroc import EurocSource, StereoPairsSource, euroc_root, is_stereo_pairs
 from .kitti import KittiSource, KittiWriter, is_kitti
 from .rosbag import RosbagSource, RosbagWriter, is_rosbag
 
@@ -16,6 +16,7 @@ from .rosbag import RosbagSource, RosbagWriter, is_rosbag
 FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]] = {
     "kitti": (is_kitti, KittiSource),
     "euroc": (lambda p: euroc_root(p) is not None, EurocSource),
+    "stereo-pairs": (is_stereo_pairs, StereoPairsSource),
     "rosbag": (is_rosbag, RosbagSource),
     # CLOUD runs are monocular: detected so that open_source can say why they are refused
     "cloud": (is_cloud_run, refuse_cloud_stereo),
@@ -41,5 +42,5 @@ def open_source(path: str | Path, format: str | None = None) -> FrameSource:
 
 __all__ = [
     "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
-    "RosbagSource", "RosbagWriter", "StereoImages", "open_source", "parse_frame_range",
+    "RosbagSource", "RosbagWriter", "StereoImages", "StereoPairsSource", "open_source", "parse_frame_range",
 ]

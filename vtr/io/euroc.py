@@ -123,3 +123,60 @@ class EurocSource(FrameSource):
         T_world_body[:, :3, 3] = rows[:, 1:4]
         T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
         return GroundTruth(t, T_world_body @ self.camera.T_vehicle_sensor)
+
+
+def is_stereo_pairs(path: Path) -> bool:
+    return (path / "sensor_left.yaml").is_file() and (path / "left_0.png").is_file()
+
+
+class StereoPairsSource(FrameSource):
+    """Raw stereo pairs ``left_K.png``/``right_K.png`` with ``sensor_left.yaml``/``sensor_right.yaml``
+    (ASL camera yamls) and optional ``groundtruth.csv`` (index, p_x, p_y, p_z, q_w, q_x, q_y, q_z of
+    T_world_body): the layout of the shipped EuRoC revisit pairs. Rectified on load; frames are
+    K = 0, 1, ... with nominal times K seconds (the pairs carry no timestamps).
+    """
+
+    format_name = "stereo-pairs"
+
+    def __init__(self, path: str | Path, alpha: float = 0.0):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise FileNotFoundError(f"{self.path}: no such folder")
+        left = read_sensor_yaml(self.path / "sensor_left.yaml")
+        right = read_sensor_yaml(self.path / "sensor_right.yaml")
+        self.rectifier = StereoRectifier.from_raw(left, right, alpha=alpha)
+        self.camera = self.rectifier.camera
+        n = 0
+        while (self.path / f"left_{n}.png").is_file():
+            n += 1
+        if n == 0:
+            raise DataError(f"{self.path}: no left_0.png")
+        self._n = n
+
+    def __len__(self) -> int:
+        return self._n
+
+    def timestamps(self) -> np.ndarray:
+        return np.arange(self._n, dtype=np.int64) * 1_000_000_000
+
+    def _load(self, index: int) -> StereoImages:
+        raw = []
+        for side in ("left", "right"):
+            f = self.path / f"{side}_{index}.png"
+            raw.append(self.check_image(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), f))
+        left, right = self.rectifier.rectify(*raw)
+        return StereoImages(int(self.timestamps()[index]), index, left, right)
+
+    def ground_truth(self) -> GroundTruth | None:
+        gt = self.path / "groundtruth.csv"
+        if not gt.is_file():
+            return None
+        try:
+            rows = np.loadtxt(gt, delimiter=",", comments="#", ndmin=2)
+        except ValueError as err:
+            raise DataError(f"{gt}: malformed ({err})") from err
+        T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
+        T_world_body[:, :3, 3] = rows[:, 1:4]
+        T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
+        t = rows[:, 0].astype(np.int64) * 1_000_000_000
+        return GroundTruth(t, T_world_body @ self.camera.T_vehicle_sensor)

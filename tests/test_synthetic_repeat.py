@@ -1,0 +1,58 @@
+"""Teach an aerial route in a synthetic scene and repeat it with lateral offsets: localization
+succeeds and recovers the true offset (exact ground truth from the generator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vtr import synthetic as syn
+from vtr.config import Config
+from vtr.geometry import inv_T
+from vtr.io import open_source
+from vtr.map import Map, split_vertex_id
+from vtr.repeat import Repeat, Teach
+
+LENGTH_M = 16.0
+RAMP_M = 5.0
+OFFSET_TOLERANCE = 0.05       # estimated lateral offset within 5 % of the true one
+ZERO_OFFSET_TOLERANCE_M = 0.05
+
+
+@pytest.fixture(scope="module")
+def taught(tmp_path_factory):
+    root = tmp_path_factory.mktemp("aerial")
+    cam, scene = syn.zed_camera(), syn.aerial_scene(0)
+    T = syn.aerial_route(LENGTH_M, 1.0)
+    teach_dir = syn.write_sequence(root / "teach", scene, cam, T, syn.route_times(T, 4.0))
+    with open_source(teach_dir) as src, Map.create(root / "route.vtrmap", src.camera) as m:
+        teach = Teach(m, src.camera, Config(), str(teach_dir))
+        for images in src:
+            teach.process(images)
+        teach.finish()
+    return root, scene, cam, T
+
+
+@pytest.mark.parametrize("lateral", [0.0, 2.0, 4.0])
+def test_repeat_recovers_lateral_offset(taught, lateral):
+    root, scene, cam, T_teach = taught
+    T_rep = syn.drifting_aerial_route(LENGTH_M - 1.0, 1.0, lateral, 0.0, RAMP_M, start_offset_m=0.5)
+    rep_dir = syn.write_sequence(root / f"rep{lateral:g}", scene, cam, T_rep, syn.route_times(T_rep, 4.0),
+                                 noise_seed=1)
+    path = root / f"map{lateral:g}.vtrmap"
+    path.write_bytes((root / "route.vtrmap").read_bytes())
+    with open_source(rep_dir) as src, Map.open(path, "a") as m:
+        teach_t = {int(i): m.vertex(int(i)).t_ns for i in m.privileged_path()}
+        rp = Repeat(m, Config(), str(rep_dir))
+        locs = [s.localization for s in (rp.process(im) for im in src) if s.localization is not None]
+    teach_t_ns = syn.route_times(T_teach, 4.0)
+    settled = [loc for loc in locs if split_vertex_id(loc.leaf_id)[1] >= RAMP_M]
+    assert all(loc.success for loc in settled)
+    est = []
+    for loc in settled:
+        k = int(np.searchsorted(teach_t_ns, teach_t[loc.trunk_id]))
+        p_world = (T_teach[k] @ inv_T(loc.T_leaf_trunk))[:3, 3]
+        est.append(p_world[1] - T_teach[0, 1, 3])        # route heads along +x: left is +y
+    est = np.array(est)
+    tol = max(OFFSET_TOLERANCE * lateral, ZERO_OFFSET_TOLERANCE_M)
+    assert np.all(np.abs(est - lateral) <= tol), est
