@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .camera import StereoCamera
-from .geometry import exp_se3, skew
+from .geometry import exp_se3
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,8 @@ class BundleResult:
 
 
 RELATIVE_COST_TOLERANCE = 1e-6   # bundle adjustment stops when a step lowers the cost by less than this
+MAX_LM_ATTEMPTS = 8              # damping increases per iteration before giving up
+MIN_LM_DAMPING = 1e-7
 
 
 def inv_sym3(A: np.ndarray) -> np.ndarray:
@@ -128,17 +130,6 @@ def inv_sym3(A: np.ndarray) -> np.ndarray:
     return out / det[..., None, None]
 
 
-def _observation_pairs(obs_point: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """All ordered pairs (o1, o2) of observations of the same landmark (including o1 == o2)."""
-    order = np.argsort(obs_point, kind="stable")
-    counts = np.bincount(obs_point, minlength=n_points)
-    starts = np.cumsum(counts) - counts
-    c_sorted = counts[obs_point[order]]
-    o1 = np.repeat(order, c_sorted)
-    rank = np.arange(len(o1)) - np.repeat(np.cumsum(c_sorted) - c_sorted, c_sorted)
-    return o1, order[starts[obs_point[o1]] + rank]
-
-
 def segment_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """Sum rows of ``values`` (M, ...) into ``n`` bins by ``index`` (M,) -> (n, ...) (fast ``np.add.at``)."""
     tail = values.shape[1:]
@@ -148,100 +139,91 @@ def segment_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out.reshape((n, *tail))
 
 
-def _pose_jacobian(Y: np.ndarray, J_Y: np.ndarray) -> np.ndarray:
-    """d(measurement)/d(left perturbation [omega, v] of T_cam_world), given Y = T X and dz/dY."""
-    dY = np.concatenate([-skew(Y), np.broadcast_to(np.eye(3), Y.shape[:1] + (3, 3))], axis=2)
-    return J_Y @ dY
-
-
 def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
                   obs_point: np.ndarray, z: np.ndarray, row_weight: np.ndarray, camera: StereoCamera,
                   sigma_px: float, huber_px: float, iterations: int, fix_points: bool = False) -> BundleResult:
     """Levenberg-Marquardt bundle adjustment on stereo reprojection errors (u_l, v, u_r).
 
-    ``obs_pose``/``obs_point`` index the pose and landmark of each observation, ``z`` (M, 3) its
-    measurement and ``row_weight`` (M, 3) a weight per measured row (0 for a missing right match,
-    small for the disparity of a far landmark). Landmarks are eliminated by the Schur complement
-    (3x3 blocks), so the solve is over the free poses only; ``fix_points`` refines poses alone.
+    ``obs_pose``/``obs_point`` index the pose and landmark of each observation (a landmark is seen at
+    most once per pose), ``z`` (M, 3) its measurement and ``row_weight`` (M, 3) a weight per measured
+    row (0 for a missing right match, small for the disparity of a far landmark). Landmarks are
+    eliminated by the Schur complement (3x3 blocks): the reduced camera system is one dense GEMM over
+    a landmark-by-pose coupling array, so the solve is over the free poses only; ``fix_points``
+    refines poses alone. Poses are perturbed on the left, ``T <- Exp(xi) T`` with ``xi = [omega, v]``.
     """
     T = T_cam_world.copy()
     X = points.copy()
     K, L = len(T), len(X)
     free = np.flatnonzero(~fixed)
-    slot = -np.ones(K, int)
-    slot[free] = np.arange(len(free))
+    free_rows = (free[:, None] * 6 + np.arange(6)).ravel()
     info_rows = row_weight / sigma_px**2
     zz = np.where(row_weight > 0, z, 0.0)
     k_huber = huber_px / sigma_px
-    if not fix_points:
-        o1, o2 = _observation_pairs(obs_point, L)
+    by_pose = [np.flatnonzero(obs_pose == k) for k in range(K)]
 
     def evaluate(T_, X_):
-        Y = np.einsum("mij,mj->mi", T_[obs_pose, :3, :3], X_[obs_point]) + T_[obs_pose, :3, 3]
+        Y = (T_[obs_pose, :3, :3] @ X_[obs_point][:, :, None])[:, :, 0] + T_[obs_pose, :3, 3]
         e = (camera.project(Y) - zz) * (row_weight > 0)
         r2 = (info_rows * e**2).sum(1)
         w = _huber_weights(r2, k_huber)
-        return Y, e, r2, w, float(np.sum(w * r2 * (2 - w)))
+        return Y, e, w, float(np.sum(w * r2 * (2 - w)))
 
-    Y, e, _, w, cost = evaluate(T, X)
+    Y, e, w, cost = evaluate(T, X)
     if not np.all(Y[:, 2] > 0):
         raise ValueError("bundle_adjust: a landmark starts behind its camera")
     lam = 1e-4
-    Hpp_blocks = np.zeros((K, 6, 6))
+    S = np.eye(6 * K)
     for _ in range(iterations):
-        J_Y = stereo_jacobian(Y, camera)
-        J_p = _pose_jacobian(Y, J_Y)                                  # (M, 3, 6)
-        J_x = J_Y @ T[obs_pose, :3, :3]                               # (M, 3, 3)
-        Wd = (w[:, None] * info_rows)                                 # (M, 3) diagonal weights
-        WJp = Wd[:, :, None] * J_p
-        WJx = Wd[:, :, None] * J_x
-        Hpp_blocks = segment_sum(obs_pose, np.swapaxes(J_p, 1, 2) @ WJp, K)
-        bp = -segment_sum(obs_pose, np.einsum("mki,mk->mi", J_p, Wd * e), K)
+        J_Y = stereo_jacobian(Y, camera)                               # (M, 3, 3)
+        J_p = np.empty((len(Y), 3, 6))
+        J_p[:, :, :3] = np.cross(Y[:, None, :], J_Y)                  # d/d omega of Exp(xi) Y = -J_Y [Y]x
+        J_p[:, :, 3:] = J_Y
+        sw = np.sqrt(w[:, None] * info_rows)                          # (M, 3) square-root weights
+        Jp_w = J_p * sw[:, :, None]
+        e_w = e * sw
+        H = np.zeros((6 * K, 6 * K))
+        b = np.zeros(6 * K)
+        for k, sel in enumerate(by_pose):
+            A = Jp_w[sel].reshape(-1, 6)
+            H[6 * k:6 * k + 6, 6 * k:6 * k + 6] = A.T @ A
+            b[6 * k:6 * k + 6] = -A.T @ e_w[sel].reshape(-1)
         if not fix_points:
-            Hll = segment_sum(obs_point, np.swapaxes(J_x, 1, 2) @ WJx, L)
-            bl = -segment_sum(obs_point, np.einsum("mki,mk->mi", J_x, Wd * e), L)
-            Hpl = np.swapaxes(J_p, 1, 2) @ WJx                        # (M, 6, 3)
+            Jx_w = (J_Y @ T[obs_pose, :3, :3]) * sw[:, :, None]
+            Hll = segment_sum(obs_point, np.swapaxes(Jx_w, 1, 2) @ Jx_w, L)
+            bl = -segment_sum(obs_point, (Jx_w * e_w[:, :, None]).sum(1), L)
+            B = np.zeros((L, K, 6, 3))                                # pose-landmark coupling blocks
+            B[obs_point, obs_pose] = np.swapaxes(Jp_w, 1, 2) @ Jx_w
+            B = B.reshape(L, 6 * K, 3)
         improved = converged = False
-        for _attempt in range(8):
-            F = len(free)
+        for _attempt in range(MAX_LM_ATTEMPTS):
             if fix_points:
-                S = np.zeros((F * 6, F * 6))
-                g = np.zeros(F * 6)
-                for k in free:
-                    s = slot[k] * 6
-                    S[s:s + 6, s:s + 6] = Hpp_blocks[k]
-                    g[s:s + 6] = bp[k]
+                S, g = H, b
             else:
-                Hll_d = Hll + lam * (np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9))
-                Hll_inv = inv_sym3(Hll_d)
-                A = Hpl @ Hll_inv[obs_point]                          # (M, 6, 3)
-                # pairs of observations of the same landmark give the Schur blocks (k_o, k_o')
-                S_full = -segment_sum(obs_pose[o1] * K + obs_pose[o2], A[o1] @ np.swapaxes(Hpl[o2], 1, 2),
-                                      K * K).reshape(K, K, 6, 6)
-                S_full[np.arange(K), np.arange(K)] += Hpp_blocks
-                g_full = bp - segment_sum(obs_pose, np.einsum("mij,mj->mi", A, bl[obs_point]), K)
-                S = S_full[np.ix_(free, free)].transpose(0, 2, 1, 3).reshape(F * 6, F * 6)
-                g = g_full[free].reshape(-1)
-            S_d = S + lam * np.diag(np.diag(S) + 1e-9)
+                # damping on the landmark blocks too: far landmarks seen along one ray are ill-conditioned
+                Hll_inv = inv_sym3(Hll + lam * np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3
+                                                             + 1e-9))
+                C = B @ Hll_inv
+                S = H - np.tensordot(C, B, axes=([0, 2], [0, 2]))
+                g = b - np.tensordot(C, bl, axes=([0, 2], [0, 1]))
+            S_f = S[np.ix_(free_rows, free_rows)]
             try:
-                dp = np.linalg.solve(S_d, g).reshape(F, 6)
+                dp = np.linalg.solve(S_f + lam * np.diag(np.diag(S_f) + 1e-9), g[free_rows])
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
+            dpk = np.zeros(6 * K)
+            dpk[free_rows] = dp
             T_new = T.copy()
             for k in free:
-                T_new[k] = exp_se3(dp[slot[k]]) @ T[k]
+                T_new[k] = exp_se3(dpk[6 * k:6 * k + 6]) @ T[k]
             X_new = X
             if not fix_points:
-                dpk = np.zeros((K, 6))
-                dpk[free] = dp
-                rhs = bl - segment_sum(obs_point, np.einsum("mji,mj->mi", Hpl, dpk[obs_pose]), L)
-                X_new = X + np.einsum("lij,lj->li", Hll_inv, rhs)
-            Y_n, e_n, _, w_n, cost_n = evaluate(T_new, X_new)
+                X_new = X + (Hll_inv @ (bl - np.swapaxes(B, 1, 2) @ dpk)[:, :, None])[:, :, 0]
+            Y_n, e_n, w_n, cost_n = evaluate(T_new, X_new)
             if np.all(Y_n[:, 2] > 0) and cost_n < cost:
                 converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost
                 T, X, Y, e, w, cost = T_new, X_new, Y_n, e_n, w_n, cost_n
-                lam = max(lam / 10, 1e-7)
+                lam = max(lam / 10, MIN_LM_DAMPING)
                 improved = True
                 break
             lam *= 10
@@ -250,10 +232,9 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     cov = np.zeros((K, 6, 6))
     if len(free):
         try:
-            Sinv = np.linalg.inv(S)
-            for k in free:
-                s = slot[k] * 6
-                cov[k] = Sinv[s:s + 6, s:s + 6]
+            Sinv = np.linalg.inv(S[np.ix_(free_rows, free_rows)])
+            for j, k in enumerate(free):
+                cov[k] = Sinv[6 * j:6 * j + 6, 6 * j:6 * j + 6]
         except np.linalg.LinAlgError:
             cov[free] = np.nan
     err_sq = ((camera.project(Y) - zz) ** 2 * (row_weight > 0)).sum(1)

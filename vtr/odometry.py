@@ -28,6 +28,7 @@ from .features import best_matches, hamming_pairs, radius_pairs
 from .geometry import exp_se3, inv_T, log_se3, rotation_angle
 from .io.base import StereoImages
 from .stereo import StereoFrame, StereoProcessor
+from .timing import StageTimer
 
 MIN_DEPTH_M = 0.1  # landmarks closer than this in front of the camera are not predicted
 MIN_FRAME_INTERVAL_S = 1e-3  # frames closer in time are judged as if this far apart
@@ -136,7 +137,8 @@ class StereoOdometry:
     def __init__(self, camera: StereoCamera, config: Config | None = None):
         self.config = config or Config()
         self.camera = camera
-        self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo)
+        self.timer = StageTimer()
+        self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo, self.timer)
         self.map = LocalMap(self.config.odometry.window_keyframes)
         self._next_id = 0
         self._T_cw_last: np.ndarray | None = None    # last frame's T_cam_world
@@ -241,7 +243,8 @@ class StereoOdometry:
 
     def _add_keyframe(self, frame, T_cw, cov, inliers, lm_ids, feat_idx):
         kf = self._new_window_keyframe(frame, T_cw, cov, inliers, lm_ids, feat_idx)
-        self._bundle_adjust()
+        with self.timer("window_ba"):
+            self._bundle_adjust()
         finalized = []
         while len(self.map.keyframes) > self.map.size:
             finalized.append(self._finalize(self.map.keyframes.popleft()))
@@ -338,12 +341,19 @@ class StereoOdometry:
         Returns (T_cam_world, 6x6 covariance, inlier landmark ids, their feature indices, matches).
         """
         cfg: OdometryConfig = self.config.odometry
-        active = self.map.active()
-        lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
-                                   self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
-        lm = active[lm]
+        with self.timer("matching"):
+            active = self.map.active()
+            lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
+                                       self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
+            lm = active[lm]
         if len(lm) < cfg.min_inliers:
             return None
+        with self.timer("estimation"):
+            return self._estimate(frame, lm, feat)
+
+    def _estimate(self, frame: StereoFrame, lm: np.ndarray, feat: np.ndarray):
+        """RANSAC then pose refinement on the matched landmarks (see ``_track``)."""
+        cfg = self.config.odometry
         rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
                         cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:

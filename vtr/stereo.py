@@ -12,6 +12,7 @@ from .camera import StereoCamera
 from .config import FeatureConfig, StereoConfig
 from .features import FeatureExtractor, Features, best_matches, hamming_pairs
 from .io.base import StereoImages
+from .timing import StageTimer
 
 
 @dataclass(frozen=True)
@@ -100,8 +101,10 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: 
 class StereoProcessor:
     """Turns a rectified stereo pair into a ``StereoFrame``."""
 
-    def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig):
+    def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
+                 timer: StageTimer | None = None):
         self.camera = camera
+        self.timer = timer or StageTimer()
         self.cfg = stereo
         self.extractor = FeatureExtractor(features, camera.size)
         self.scales = self.extractor.level_scales
@@ -117,8 +120,13 @@ class StereoProcessor:
 
     def process(self, images: StereoImages) -> StereoFrame:
         """Features on both images, stereo matches, subpixel disparity, triangulation."""
-        left = self.extractor.extract(images.left)
-        right = self.extractor.extract(images.right)
+        with self.timer("features"):
+            left = self.extractor.extract(images.left)
+            right = self.extractor.extract(images.right)
+        with self.timer("stereo"):
+            return self._triangulate(images, left, right)
+
+    def _triangulate(self, images: StereoImages, left: Features, right: Features) -> StereoFrame:
         qi, tj = self.match(left, right)
         c = self.cfg
         ul, ur = refine_disparity(images.left, images.right, left.uv[qi, 0], left.uv[qi, 1],
