@@ -49,7 +49,7 @@ class StereoConfig:
 class OdometryConfig:
     """Frame-to-keyframe odometry, its robust estimation and the keyframe test."""
 
-    match_radius_px: float = 40.0         # search radius around the predicted projection
+    match_radius_px: float = 20.0         # search radius around the predicted projection
     match_radius_no_prior_px: float = 200.0   # radius when the motion prior is not trusted
     max_descriptor_distance: int = 64
     ratio_test: float = 0.9               # best/second-best Hamming ratio for temporal matches
@@ -69,7 +69,7 @@ class OdometryConfig:
     max_speed_mps: float = 40.0
     max_rotation_rate_dps: float = 200.0
     window_keyframes: int = 5             # keyframes in the local map matched and refined together
-    window_iterations: int = 6            # Levenberg-Marquardt iterations of the windowed bundle adjustment
+    window_iterations: int = 4            # Levenberg-Marquardt iterations of the windowed bundle adjustment
     still_translation_m: float = 1e-3     # a step below this (and still_rotation_deg) is DO_NOTHING
     still_rotation_deg: float = 0.01
     failure_variance: float = 100.0       # variance put on an edge carried by the motion prior alone
