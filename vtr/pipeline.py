@@ -179,6 +179,7 @@ class RepeatSummary:
     median_inliers: float
     path_error_m: float
     errors: LocalizationErrors | None = None
+    state: dict | None = None          # state.csv: rate, rows, smoother cost, smoothed path errors
 
     @property
     def success_rate(self) -> float:
@@ -191,14 +192,18 @@ class RepeatSummary:
                 "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
                 "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m,
                 "median_error_m": self.errors.median_translation_m if self.errors else None,
-                "median_error_deg": self.errors.median_rotation_deg if self.errors else None}
+                "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
+                "state": self.state}
 
     def lines(self) -> list[str]:
         fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
         return [f"repeat: frames {self.frames}  vertices {self.vertices}  localized {self.localized} "
                 f"({100 * self.success_rate:.1f} %)  median inliers {self.median_inliers:.0f}  {fps:.1f} frames/s",
                 f"path-tracking error to the taught path: median {self.path_error_m:.3f} m",
-                *([str(self.errors)] if self.errors is not None else [])]
+                *([str(self.errors)] if self.errors is not None else []),
+                *([f"state.csv: {self.state['rows']} rows at {self.state['rate_hz']:g} Hz, smoothed lateral error "
+                   f"median {self.state['median_abs_lateral_m']:.3f} m, smoother "
+                   f"{self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
 
 
 def write_localization_csv(path: Path, locs) -> None:
@@ -241,25 +246,34 @@ def path_errors(points: np.ndarray, path: np.ndarray) -> np.ndarray:
 
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
-                   fmt: str | None = None, progress: Callable | None = None) -> RepeatSummary:
-    """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path."""
+                   fmt: str | None = None, progress: Callable | None = None,
+                   rate_hz: float | None = None) -> RepeatSummary:
+    """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
+    the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv."""
+    from .controller_log import ControllerLog, check_rate, write_state_csv
     from .map import Map
     from .repeat import Repeat
     from .report import plot_repeat
 
+    rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
     with open_source(source_path, fmt) as source, Map.open(map_path, "a") as m:
         m.check_camera(source.camera)
         indices = parse_frame_range(frames, len(source), str(source_path))
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "repeat", config, [source_path, map_path])
         repeat = Repeat(m, config, source=str(source_path))
+        clog = ControllerLog(config, repeat.chain.ids, repeat.chain.T_priv, m.camera.T_vehicle_sensor)
         steps, t_loc = [], 0.0
         t0 = time.perf_counter()
         for i in iterate(indices, len(indices), progress, "repeat"):
             images = source[i]
             steps.append(repeat.process(images))
             t_loc += repeat.last_localization_seconds
+            clog.add(steps[-1])
+        clog.finish()
+        state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
+        write_state_csv(out / "state.csv", state)
         locs = [s.localization for s in steps if s.localization is not None]
         t_ns = np.array([s.odometry.t_ns for s in steps], np.int64)
         T_teach = np.array([s.T_teach_frame for s in steps])
@@ -268,12 +282,16 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         write_landmarks_csv(out / "landmarks.csv", locs)
         _, T_priv = m.privileged_poses()
         errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
-        plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors)
+        plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
+        state_info = {"rate_hz": rate_hz, "rows": len(state),
+                      "smoother_ms_per_frame": 1000 * clog.seconds / max(len(steps), 1),
+                      "median_abs_lateral_m": float(np.nanmedian(np.abs(state.lateral))) if len(state) else None,
+                      "median_abs_vertical_m": float(np.nanmedian(np.abs(state.vertical))) if len(state) else None}
         summary = RepeatSummary(len(steps), len(locs), len(ok), seconds, t_loc,
                                 float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                                float(np.median(errors)), gt_errors)
+                                float(np.median(errors)), gt_errors, state_info)
         log.write(summary.to_dict())
     return summary
 

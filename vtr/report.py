@@ -38,9 +38,12 @@ def plot_trajectory(path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = Non
 
 
 def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns: np.ndarray,
-                path_error_m: np.ndarray) -> None:
+                path_error_m: np.ndarray, state=None) -> None:
     """Repeat report: inliers along the path (failures marked), path-tracking error over time, and the
-    taught and repeated paths in plan view (teach run's first camera frame: x right, z forward)."""
+    taught and repeated paths in plan view (teach run's first camera frame: x right, z forward).
+
+    ``state`` (optional, e.g. a :class:`vtr.controller_log.StateTable`: ``t_ns``, ``lateral``, ``vertical``)
+    adds the smoothed signed lateral and vertical errors to the path-tracking panel."""
     plt = _pyplot()
     fig = plt.figure(figsize=(12, 7))
     ax1 = fig.add_subplot(2, 2, 1)
@@ -57,8 +60,14 @@ def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns:
     ax1.set_xlabel("time [s]")
     ax1.legend()
     ax1.grid(True, alpha=0.3)
-    ax2.plot((t_ns - t0) * 1e-9, path_error_m, color="C2")
-    ax2.set_ylabel("distance to taught path [m]")
+    ax2.plot((t_ns - t0) * 1e-9, path_error_m, color="C2", label="distance (chain poses)")
+    if state is not None and len(state.t_ns):
+        ts = (np.asarray(state.t_ns) - t0) * 1e-9
+        ax2.plot(ts, state.lateral, color="C1", lw=1, label="lateral, smoothed (+ left)")
+        ax2.plot(ts, state.vertical, color="C4", lw=1, label="vertical, smoothed (+ up)")
+        ax2.axhline(0.0, color="k", lw=0.5)
+        ax2.legend(fontsize="small")
+    ax2.set_ylabel("error to taught path [m]")
     ax2.set_xlabel("time [s]")
     ax2.grid(True, alpha=0.3)
     ax3.plot(T_priv[:, 0, 3], T_priv[:, 2, 3], "o-", color="k", ms=3, label="taught (privileged) path")

@@ -36,14 +36,17 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @map_option
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @frames_option
+@click.option("--rate", "rate_hz", type=float, default=None, metavar="HZ",
+              help="Rate of the smoothed controller state in state.csv (default: smoothing.rate_hz, 50).")
 @config_option
 @format_option
-def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, config_path: Path | None,
-               fmt: str | None) -> None:
+def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
+               config_path: Path | None, fmt: str | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map."""
     from ..pipeline import repeat_command
 
-    summary = repeat_command(source, map_path, out, frames, load_config(config_path), fmt, progress_bar())
+    summary = repeat_command(source, map_path, out, frames, load_config(config_path), fmt, progress_bar(),
+                             rate_hz=rate_hz)
     for line in summary.lines():
         click.echo(line)
-    click.echo(f"wrote {out}/localization.csv, landmarks.csv, trajectory_tum.txt, report.png, run.json")
+    click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")

@@ -1,0 +1,215 @@
+"""Controller state of a repeat (state.csv): the smoother fed by the localization chain, queried at a fixed
+rate in the gravity-aligned trunk frame o. KITTI: teach even frames 0:30:2, repeat odd frames 1:30:2;
+synthetic chains for the anchoring before the first localization and for a camera offset on the vehicle."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from vtr.cli import main
+from vtr.config import Config
+from vtr.controller_log import (
+    STATE_CSV_HEADER,
+    VEHICLE_FROM_LEVEL_CAMERA,
+    ControllerLog,
+    output_times,
+    read_state_csv,
+)
+from vtr.errors import ConfigError
+from vtr.geometry import inv_T, make_T
+from vtr.io.trajectory import read_tum
+from vtr.localization import Localization
+from vtr.map import Map
+from vtr.odometry import FrameKind, Keyframe, OdometryResult
+from vtr.pipeline import repeat_command, teach_command
+from vtr.repeat import RepeatStep
+
+RATE_HZ = 50.0
+MAX_VERTEX_OFFSET_M = 0.08          # smoothed position at a localized vertex vs the chain's pose
+MAX_MEDIAN_VERTEX_OFFSET_M = 0.03
+SPEED_TOLERANCE = 0.05
+MAX_MEDIAN_LATERAL_M = 0.1
+
+
+@pytest.fixture(scope="module")
+def kitti_run(kitti_clip, tmp_path_factory):
+    d = tmp_path_factory.mktemp("state")
+    teach_command(kitti_clip, d / "route.vtrmap", "0:30:2", Config())
+    summary = repeat_command(kitti_clip, d / "route.vtrmap", d / "out", "1:30:2", Config())
+    return d, summary
+
+
+def _columns(path):
+    return (path / "state.csv").read_text().splitlines()[0].split(",")
+
+
+def test_state_csv_layout(kitti_run):
+    d, summary = kitti_run
+    out = d / "out"
+    assert tuple(_columns(out)) == STATE_CSV_HEADER
+    s = read_state_csv(out / "state.csv")
+    t_frames, _ = read_tum(out / "trajectory_tum.txt")
+    duration = (t_frames[-1] - t_frames[0]) * 1e-9
+    assert len(s) == int(np.floor(duration * RATE_HZ + 1e-9)) + 1
+    assert s.t_ns[0] == t_frames[0] and t_frames[-1] - s.t_ns[-1] < 1e9 / RATE_HZ
+    assert np.all(np.abs(np.diff(s.t_ns) - 1e9 / RATE_HZ) <= 1)
+    for a in (s.position, s.velocity, s.acceleration, s.yaw, s.lateral, s.vertical, s.along_track):
+        assert np.all(np.isfinite(a))
+    with Map.open(d / "route.vtrmap") as m:
+        ids, _ = m.privileged_poses()
+    assert set(s.trunk_id) <= set(ids.tolist())
+    assert np.all(np.diff(s.along_track) > 0)        # the car drives forward along the taught path
+    state = json.loads((out / "run.json").read_text())["summary"]["state"]
+    assert state["rows"] == len(s) and state["rate_hz"] == RATE_HZ
+    print(f"smoother + state output: {state['smoother_ms_per_frame']:.2f} ms/frame "
+          f"(repeat {1000 * summary.seconds / summary.frames:.0f} ms/frame)")
+    assert state["smoother_ms_per_frame"] < 0.1 * 1000 * summary.seconds / summary.frames
+
+
+def test_state_matches_localized_poses(kitti_run):
+    """At each localized vertex the smoothed position is within a few cm of the chain's pose, both in o."""
+    d, _ = kitti_run
+    out = d / "out"
+    s = read_state_csv(out / "state.csv")
+    t_frames, T_teach = read_tum(out / "trajectory_tum.txt")
+    loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
+    with Map.open(d / "route.vtrmap") as m:
+        ids, T_priv = m.privileged_poses()
+        clog = ControllerLog(Config(), ids, T_priv, m.camera.T_vehicle_sensor)
+    index = {int(v): i for i, v in enumerate(ids)}
+    offsets = []
+    for t, trunk, ok in zip(loc["t_ns"], loc["trunk_id"], loc["success"], strict=True):
+        if not ok:
+            continue
+        T_wt, T_o_t = clog.trunk_frame(index[int(trunk)])
+        T_w_a = T_teach[np.flatnonzero(t_frames == t)[0]] @ clog.T_sensor_vehicle
+        p_chain = (T_o_t @ inv_T(T_wt) @ T_w_a)[:3, 3]
+        rows = s.trunk_id == trunk
+        assert s.t_ns[rows][0] <= t <= s.t_ns[rows][-1]
+        p_state = np.array([np.interp(t, s.t_ns[rows], s.position[rows, i]) for i in range(3)])
+        offsets.append(np.linalg.norm(p_state - p_chain))
+    assert len(offsets) >= 0.9 * len(loc)
+    print(f"smoothed vs chain at localized vertices: median {1000 * np.median(offsets):.1f} mm, "
+          f"max {1000 * np.max(offsets):.1f} mm")
+    assert np.max(offsets) < MAX_VERTEX_OFFSET_M
+    assert np.median(offsets) < MAX_MEDIAN_VERTEX_OFFSET_M
+
+
+def test_speed_and_path_error(kitti_run, kitti_clip):
+    d, _ = kitti_run
+    s = read_state_csv(d / "out" / "state.csv")
+    gt = np.loadtxt(kitti_clip / "poses.txt").reshape(-1, 3, 4)[1:30:2, :, 3]
+    times = np.loadtxt(kitti_clip / "times.txt")[1:30:2]
+    gt_speed = np.median(np.linalg.norm(np.diff(gt, axis=0), axis=1) / np.diff(times))
+    speed = np.linalg.norm(s.velocity, axis=1)
+    print(f"speed: state median {np.median(speed):.3f} m/s, ground truth {gt_speed:.3f} m/s; lateral error median "
+          f"{1000 * np.median(np.abs(s.lateral)):.1f} mm, vertical {1000 * np.median(np.abs(s.vertical)):.1f} mm")
+    assert abs(np.median(speed) / gt_speed - 1) < SPEED_TOLERANCE
+    assert np.all(np.abs(speed / gt_speed - 1) < 2 * SPEED_TOLERANCE)
+    assert np.median(np.abs(s.lateral)) < MAX_MEDIAN_LATERAL_M
+    assert np.median(np.abs(s.vertical)) < MAX_MEDIAN_LATERAL_M
+    assert np.all(np.abs(s.velocity[:, 0]) > 0.95 * speed)    # along o's x: the trunk's heading
+    assert np.all(np.abs(s.yaw) < 0.05)
+
+
+@pytest.mark.parametrize("rate", ["0", "-5"])
+def test_bad_rate_is_one_line_error(kitti_run, kitti_clip, tmp_path, rate):
+    d, _ = kitti_run
+    path = tmp_path / "route.vtrmap"
+    path.write_bytes((d / "route.vtrmap").read_bytes())
+    with Map.open(path) as m:
+        runs = [r.kind for r in m.runs()]
+    args = ["repeat", kitti_clip, "--map", path, "--out", tmp_path / "o", "--frames", "1:5:2", "--rate", rate]
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vtr: error:") and "rate" in lines[0]
+    with Map.open(path) as m:
+        assert [r.kind for r in m.runs()] == runs      # nothing appended
+    with pytest.raises(ConfigError, match="rate"):
+        repeat_command(kitti_clip, path, tmp_path / "o", "1:5:2", Config(), rate_hz=float("nan"))
+
+
+def test_output_times():
+    t = output_times(1_000, 1_000 + 2 * 10**9, 3.0)
+    assert len(t) == 7 and t[0] == 1_000 and t[-1] == 1_000 + 2 * 10**9
+    assert len(output_times(0, 10**9 - 1, 1.0)) == 1
+    with pytest.raises(ConfigError):
+        output_times(0, 10, float("inf"))
+
+
+def test_level_camera_frame_o():
+    """Identity T_vehicle_sensor: o has z up = -y of the first camera, x along the trunk camera's z."""
+    yaw = np.radians(30.0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
+    T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
+    clog = ControllerLog(Config(), np.array([0, 1]), T_priv, np.eye(4))
+    for k in range(2):
+        T_wt, T_o_t = clog.trunk_frame(k)
+        C_world_o = T_wt[:3, :3] @ T_o_t[:3, :3].T
+        assert np.allclose(C_world_o[:, 2], [0, -1, 0])
+        assert np.allclose(C_world_o[:, 0], T_priv[k][:3, 2])
+
+
+# ------------------------------------------------------------------------------ synthetic chains
+
+SPEED = 10.0            # m/s along the camera's z (forward)
+DT_NS = 50_000_000      # one repeat vertex every 0.05 s
+OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])   # repeat world in the teach world: 0.3 m right, 0.5 m ahead
+
+
+def _synthetic_steps(n: int, failed: set[int]):
+    """Repeat steps on a straight taught path (vertices every metre along the camera z axis)."""
+    T_priv = np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)])
+    steps, prev = [], None
+    for j in range(n):
+        t = j * DT_NS
+        T_w = make_T(np.eye(3), [0.0, 0.0, SPEED * t * 1e-9])
+        T_teach = OFFSET @ T_w
+        trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
+        cov = np.diag([1e-8] * 3 + [1e-6] * 3)
+        kf = Keyframe(j, None, T_w, np.eye(4) if prev is None else inv_T(prev) @ T_w, cov, 100)
+        odo = OdometryResult(t, j, FrameKind.CREATE_VERTEX, 100, 100, max(j - 1, 0), np.eye(4), T_w,
+                             cov if j else np.zeros((6, 6)), kf)
+        ok = j not in failed
+        T_l_t = inv_T(T_teach) @ T_priv[trunk]
+        loc = Localization(t, 1000 + j, trunk, -1, -1, ok, 50, 50 if ok else 0, T_l_t,
+                           np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan), 0, 0.0)
+        T_chain = T_teach if not failed.issuperset(range(j + 1)) else T_w     # the chain's assumption until then
+        steps.append(RepeatStep(odo, loc, 1000 + j, T_chain))
+        prev = T_w
+    return np.arange(n), T_priv, steps
+
+
+@pytest.mark.parametrize("T_vehicle_sensor", [np.eye(4), VEHICLE_FROM_LEVEL_CAMERA @ make_T(np.eye(3), [0, -1.5, 1.0])])
+def test_anchored_at_first_localization(T_vehicle_sensor):
+    """The first three localizations fail: the vertices wait and are placed by the first success."""
+    ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})
+    clog = ControllerLog(Config(), ids, T_priv, T_vehicle_sensor)
+    for step in steps:
+        clog.add(step)
+    clog.finish()
+    s = clog.output(RATE_HZ)
+    assert len(s) == int((len(steps) - 1) * DT_NS * 1e-9 * RATE_HZ) + 1
+    assert np.allclose(s.lateral, -0.3, atol=1e-3)      # camera 0.3 m right of the taught path
+    assert np.allclose(s.vertical, 0.0, atol=1e-3)
+    assert np.allclose(np.linalg.norm(s.velocity, axis=1), SPEED, rtol=1e-3)
+    assert np.allclose(s.along_track, 0.5 + SPEED * (s.t_ns - s.t_ns[0]) * 1e-9, atol=1e-3)
+    assert np.allclose(s.yaw, 0.0, atol=1e-6)
+    assert np.allclose(s.position[:, 1:], [[-0.3, 0.0]], atol=1e-3)
+
+
+def test_never_localized_uses_chain_assumption():
+    ids, T_priv, steps = _synthetic_steps(10, failed=set(range(10)))
+    clog = ControllerLog(Config(), ids, T_priv, np.eye(4))
+    for step in steps:
+        clog.add(step)
+    clog.finish()
+    s = clog.output(RATE_HZ)
+    assert np.allclose(s.lateral, 0.0, atol=1e-3)       # started at the first taught vertex, as assumed
+    assert np.allclose(np.linalg.norm(s.velocity, axis=1), SPEED, rtol=1e-3)

@@ -1,0 +1,366 @@
+"""Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
+queried at a fixed rate in the gravity-aligned trunk frame o (DESIGN.md §4; thesis §6.3.4).
+
+**Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.repeat.RepeatStep` at a time). The
+smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
+per repeat *vertex* (keyframe), not per frame:
+
+* a relative pose from repeat odometry between consecutive vertices, ``inv(T_world_prev) @ T_world_leaf``
+  (repeat world), with the odometry covariance of the leaf (the same measurement and covariance as the
+  map's temporal edge);
+* at a successfully localized vertex, an absolute pose in the teach world,
+  ``T_teach_leaf = T_priv[trunk] @ inv(T_leaf_trunk)`` (= ``RepeatStep.T_teach_frame`` there), with the
+  localization covariance. Privileged poses are taken as exact (the repeat is expressed relative to the
+  taught path, as the chain does).
+
+Why vertices and these two measurements: (1) localization, the only measurement of the pose in the teach
+frame, exists only at vertices; the chain's ``T_teach_frame`` of the other frames is localization composed
+with odometry, and feeding it as an absolute pose would count the same localization again at every frame;
+(2) a non-keyframe frame's pose is measured against the same landmarks as the next keyframe's, so adding it
+as an independent measurement would count the same landmark errors twice; (3) DESIGN.md §4 puts the
+smoother's states at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
+between them (and extrapolates after the last one) at the output rate. Both covariances use the left
+perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.estimation), which is the right perturbation of the
+inverse pose the smoother uses, so they are passed unchanged.
+
+Before the first successful localization nothing ties the repeat to the teach frame: those vertices wait.
+At the first success, that localization is moved to the first waiting vertex through repeat odometry (the
+smoother's first knot needs an absolute pose; the information is counted once, only its place changes) and
+the waiting vertices are fed in order. A run that never localizes is fed with the chain's assumption (it
+started at the taught vertex ``start_index``) as the first knot's prior, which only fixes the gauge.
+
+**Gravity.** The teach world is the teach run's first camera frame (KITTI and the other sources: x right,
+y down, z forward). The vehicle frame is FLU (DESIGN.md §3), placed by ``T_vehicle_sensor``; when that is
+the identity (KITTI), the camera is taken as a level, forward-looking vehicle: vehicle frame = camera
+centre with x = camera z, y = -camera x, z = -camera y (:data:`VEHICLE_FROM_LEVEL_CAMERA`). The vehicle at
+the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
+there: ``C_g_world = C_vehicle_sensor``; for a level first camera, up is ``-y`` of that camera. Each trunk's
+``T_o_t`` then comes from :func:`vtr.control.gravity_aligned_T_o_t` on ``C_g_trunk``. (A source whose
+``T_vehicle_sensor`` is not FLU, e.g. EuRoC's IMU body frame, breaks that assumption: its o is tilted.)
+
+**Output.** ``state.csv`` is written after the run from the smoother's knots (each as final when it left
+the ``lag_s`` window, the newest ones jointly): a fixed-lag *smoothed* state at ``rate_hz`` from the first
+to the last frame, the WNOA posterior mean between knots, extrapolated after the last one. A controller at
+run time calls :meth:`ControllerLog.state_at` instead, which extrapolates from the newest knot.
+
+**Trunk.** The state at time t is expressed at the chain's trunk of the latest vertex at or before t (the
+trunk a controller would hold at t), so p jumps when the trunk moves on; lateral/vertical errors do not.
+The reference path is the polyline through the privileged vertices' vehicle origins in a window around the
+trunk (the chain's trunk-search window), expressed in o; ``along_track_m`` is the arc length from the start
+of the whole taught path.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config
+from .control import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
+from .errors import ConfigError, DataError, EstimationError
+from .geometry import inv_T
+from .smoothing import NS_PER_S, TrajectorySmoother, adjoint
+
+# T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
+VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
+                                      [-1.0, 0.0, 0.0, 0.0],
+                                      [0.0, -1.0, 0.0, 0.0],
+                                      [0.0, 0.0, 0.0, 1.0]])
+# Absolute prior on the first knot of a run that never localizes (at the chain's assumption): a single
+# absolute prior does not move the means, it only fixes the gauge. Not weaker: GTSAM declares a system whose
+# information spans more than ~1e7 (odometry rotation variances are ~1e-8 rad^2) indeterminate.
+UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
+UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
+# Covariances are floored at this fraction of their largest eigenvalue (the smoother refuses condition
+# numbers above 1e14).
+MIN_EIGENVALUE_RATIO = 1e-12
+
+STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "trunk_id",
+                    "lateral_m", "vertical_m", "along_track_m")
+
+
+def check_rate(rate_hz: float) -> float:
+    """The state output rate (Hz) as a float; ConfigError unless finite and positive."""
+    try:
+        rate = float(rate_hz)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"state rate {rate_hz!r} is not a number") from err
+    if not (math.isfinite(rate) and rate > 0):
+        raise ConfigError(f"state rate must be a positive number of Hz, got {rate_hz!r}")
+    return rate
+
+
+def output_times(t_first_ns: int, t_last_ns: int, rate_hz: float) -> np.ndarray:
+    """Times (int64 ns) ``t_first + k / rate`` for k = 0, 1, ... up to ``t_last`` (inclusive)."""
+    rate = check_rate(rate_hz)
+    span = int(t_last_ns) - int(t_first_ns)
+    if span < 0:
+        return np.zeros(0, np.int64)
+    k = np.arange(int(math.floor(span * rate / NS_PER_S)) + 2, dtype=np.int64)
+    t = np.round(k * (NS_PER_S / rate)).astype(np.int64)
+    return int(t_first_ns) + t[t <= span]
+
+
+def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
+    """``T_vehicle_sensor`` with the identity read as a level, forward-looking camera (see module doc)."""
+    T = np.asarray(T_vehicle_sensor, float)
+    return VEHICLE_FROM_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
+
+
+def _measurement_covariance(C: np.ndarray) -> np.ndarray | None:
+    """A symmetric covariance the smoother accepts (eigenvalues floored), or None if C is unusable."""
+    C = np.asarray(C, float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return None
+    C = 0.5 * (C + C.T)
+    w, V = np.linalg.eigh(C)
+    if w[-1] <= 0:
+        return None
+    C = (V * np.maximum(w, w[-1] * MIN_EIGENVALUE_RATIO)) @ V.T
+    return 0.5 * (C + C.T)
+
+
+@dataclass(frozen=True)
+class StateTable:
+    """Controller states at a list of times (arrays over the rows; see :data:`STATE_CSV_HEADER`).
+
+    ``position``, ``velocity``, ``acceleration`` (N, 3) of the vehicle origin in o (m, m/s, m/s²), ``yaw``
+    (N,) rad, ``trunk_id`` (N,) map ids, ``lateral``/``vertical``/``along_track`` (N,) m.
+    """
+
+    t_ns: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    yaw: np.ndarray
+    trunk_id: np.ndarray
+    lateral: np.ndarray
+    vertical: np.ndarray
+    along_track: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
+@dataclass
+class _Vertex:
+    t_ns: int
+    T_world_leaf: np.ndarray          # repeat world
+    relative_covariance: np.ndarray | None
+    T_teach_leaf: np.ndarray | None   # localization, teach world
+    localization_covariance: np.ndarray | None
+    T_teach_chain: np.ndarray         # the chain's estimate (used only if the run never localizes)
+
+
+class ControllerLog:
+    """Feeds a :class:`~vtr.smoothing.TrajectorySmoother` from repeat steps; controller states at any time.
+
+    Args:
+        config: ``smoothing`` (Qc, lag), ``localization`` (path window) and ``odometry.failure_variance``
+            (used for an odometry covariance that is unusable) are read.
+        privileged_ids: (N,) map ids of the taught vertices, in path order.
+        T_world_privileged: (N, 4, 4) their camera poses in the teach world.
+        T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
+    """
+
+    def __init__(self, config: Config, privileged_ids: np.ndarray, T_world_privileged: np.ndarray,
+                 T_vehicle_sensor: np.ndarray):
+        self.config = config
+        self.smoother = TrajectorySmoother(config.smoothing)
+        self.ids = np.asarray(privileged_ids, np.int64)
+        self._index = {int(v): i for i, v in enumerate(self.ids)}
+        self.T_priv = np.asarray(T_world_privileged, float)
+        self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
+        self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
+        self.C_g_world = self.T_vehicle_sensor[:3, :3]
+        T_veh = self.T_priv @ self.T_sensor_vehicle                  # taught vehicle poses in the teach world
+        self._T_world_trunk = T_veh
+        step = np.linalg.norm(np.diff(T_veh[:, :3, 3], axis=0), axis=1)
+        self._arc = np.concatenate([[0.0], np.cumsum(step)])
+        self._trunk_cache: dict[int, tuple[np.ndarray, ReferencePath | None, float]] = {}
+        self._pending: list[_Vertex] = []
+        self._anchored = False
+        self._last: _Vertex | None = None
+        self.vertex_t_ns: list[int] = []
+        self.vertex_trunk: list[int] = []     # index along the privileged path
+        self.first_t_ns: int | None = None
+        self.last_t_ns: int | None = None
+        self.seconds = 0.0                    # time spent feeding the smoother and answering queries
+
+    # -- feeding ------------------------------------------------------------------------------------
+
+    def add(self, step) -> None:
+        """Take one :class:`~vtr.repeat.RepeatStep`; a new vertex becomes a smoother knot (or waits for
+        the first successful localization)."""
+        t0 = time.perf_counter()
+        r = step.odometry
+        if self.first_t_ns is None:
+            self.first_t_ns = int(r.t_ns)
+        self.last_t_ns = int(r.t_ns)
+        kf, loc = r.new_keyframe, step.localization
+        if kf is not None:
+            rel_cov = None
+            if self._last is not None or self._pending:
+                rel_cov = _measurement_covariance(r.covariance)
+                if rel_cov is None:
+                    rel_cov = np.eye(6) * self.config.odometry.failure_variance
+            T_teach_leaf = loc_cov = None
+            if loc is not None and loc.success:
+                loc_cov = _measurement_covariance(loc.covariance)
+                if loc_cov is not None:
+                    T_teach_leaf = self.T_priv[self._index[int(loc.trunk_id)]] @ inv_T(loc.T_leaf_trunk)
+            v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
+                        np.asarray(step.T_teach_frame, float))
+            self.vertex_t_ns.append(v.t_ns)
+            trunk = loc.trunk_id if loc is not None else None
+            self.vertex_trunk.append(self._index[int(trunk)] if trunk is not None else
+                                     (self.vertex_trunk[-1] if self.vertex_trunk else 0))
+            if self._anchored:
+                self._feed(v)
+            else:
+                self._pending.append(v)
+                if T_teach_leaf is not None:
+                    self._flush_localized()
+        self.seconds += time.perf_counter() - t0
+
+    def finish(self) -> None:
+        """End of the run: vertices still waiting for a localization are fed with the chain's assumption."""
+        if self._pending:
+            first = self._pending[0]
+            sig = np.r_[[UNLOCALIZED_ROTATION_SIGMA_RAD] * 3, [UNLOCALIZED_TRANSLATION_SIGMA_M] * 3]
+            first.T_teach_leaf, first.localization_covariance = first.T_teach_chain, np.diag(sig**2)
+            self._flush()
+
+    def _flush_localized(self) -> None:
+        """The newest waiting vertex is the first one localized: move its localization to the first waiting
+        vertex through repeat odometry, ``T_teach_first = T_teach_s @ T_s_first`` with the covariance moved
+        by ``Ad(inv(T_s_first))`` (right perturbations), so that the chain starts there, counted once."""
+        first, s = self._pending[0], self._pending[-1]
+        if s is not first:
+            T_s_first = inv_T(s.T_world_leaf) @ first.T_world_leaf
+            A = adjoint(inv_T(T_s_first))
+            first.T_teach_leaf = s.T_teach_leaf @ T_s_first
+            first.localization_covariance = _measurement_covariance(A @ s.localization_covariance @ A.T)
+            s.T_teach_leaf = s.localization_covariance = None
+        self._flush()
+
+    def _flush(self) -> None:
+        pending, self._pending = self._pending, []
+        self._anchored = True
+        for v in pending:
+            self._feed(v)
+
+    def _feed(self, v: _Vertex) -> None:
+        if self._last is not None and v.t_ns <= self._last.t_ns:
+            return      # a repeated timestamp: one knot per time (the next vertex's odometry spans both)
+        kw = {}
+        if self._last is not None and v.relative_covariance is not None:
+            kw["T_prev_cur"] = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
+            kw["relative_covariance"] = v.relative_covariance
+        if v.T_teach_leaf is not None:
+            kw["T_world_sensor"], kw["covariance"] = v.T_teach_leaf, v.localization_covariance
+        self.smoother.add_keyframe(v.t_ns, **kw)
+        self._last = v
+
+    # -- queries ------------------------------------------------------------------------------------
+
+    def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world)."""
+        T_wt = self._T_world_trunk[k]
+        return T_wt, gravity_aligned_T_o_t(self.C_g_world @ T_wt[:3, :3])
+
+    def _trunk(self, k: int) -> tuple[np.ndarray, ReferencePath | None, float]:
+        """``T_o_t``, the reference path in o around trunk k, and the arc length at the path's first point."""
+        if k not in self._trunk_cache:
+            T_wt, T_o_t = self.trunk_frame(k)
+            loc = self.config.localization
+            lo, hi = max(0, k - loc.trunk_window_back), min(len(self.ids), k + loc.trunk_window_forward + 1)
+            try:
+                path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
+            except EstimationError:       # fewer than two distinct taught vertices
+                path = None
+            self._trunk_cache[k] = (T_o_t, path, float(self._arc[lo]))
+        return self._trunk_cache[k]
+
+    def trunk_index_at(self, t_ns: np.ndarray) -> np.ndarray:
+        """Path index of the chain's trunk at the latest vertex at or before each time."""
+        i = np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), np.asarray(t_ns, np.int64), side="right") - 1
+        return np.asarray(self.vertex_trunk, np.int64)[np.maximum(i, 0)]
+
+    def state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
+        """Controller state (vehicle in o at the trunk) at ``t_ns``; no covariance (see the smoother for it)."""
+        k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else trunk_index
+        T_o_t, _, _ = self._trunk(k)
+        s = self.smoother.state_at(int(t_ns), with_covariance=False)
+        return controller_state(s, self._T_world_trunk[k], T_o_t, self.T_sensor_vehicle)
+
+    def states(self, t_ns: np.ndarray) -> StateTable:
+        """Controller states and path errors at the given times (int64 ns, not before the first vertex)."""
+        t0 = time.perf_counter()
+        t_ns = np.asarray(t_ns, np.int64)
+        n = len(t_ns)
+        if n and self.smoother.num_keyframes == 0:
+            raise DataError("no repeat vertex was processed: no state to report")
+        trunks = self.trunk_index_at(t_ns)
+        P, Vel, A = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+        yaw = np.zeros(n)
+        for j in range(n):
+            cs = self.state_at(int(t_ns[j]), int(trunks[j]))
+            P[j], Vel[j], A[j], yaw[j] = cs.position, cs.velocity, cs.acceleration, cs.yaw
+        lat, ver, along = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+        for k in np.unique(trunks):
+            sel = trunks == k
+            _, path, offset = self._trunk(int(k))
+            if path is not None:
+                e: PathError = path.error(P[sel])
+                lat[sel], ver[sel], along[sel] = e.lateral, e.vertical, e.along_track + offset
+        self.seconds += time.perf_counter() - t0
+        return StateTable(t_ns, P, Vel, A, yaw, self.ids[trunks], lat, ver, along)
+
+    def output(self, rate_hz: float) -> StateTable:
+        """States at ``rate_hz`` over the run's span (first to last frame processed)."""
+        if self.first_t_ns is None:
+            raise DataError("no repeat frame was processed: no state to report")
+        return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
+
+
+def write_state_csv(path: Path, table: StateTable) -> None:
+    """``state.csv``: one row per time, columns :data:`STATE_CSV_HEADER` (SI units, yaw in rad)."""
+    lines = [",".join(STATE_CSV_HEADER)]
+    for j in range(len(table)):
+        p, v, a = table.position[j], table.velocity[j], table.acceleration[j]
+        lines.append(f"{table.t_ns[j]},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{v[0]:.6f},{v[1]:.6f},{v[2]:.6f},"
+                     f"{a[0]:.6f},{a[1]:.6f},{a[2]:.6f},{table.yaw[j]:.8f},{table.trunk_id[j]},"
+                     f"{table.lateral[j]:.6f},{table.vertical[j]:.6f},{table.along_track[j]:.6f}")
+    tmp = Path(path).with_suffix(".csv.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    tmp.replace(path)
+
+
+def read_state_csv(path: Path) -> StateTable:
+    """Read a ``state.csv`` written by :func:`write_state_csv`."""
+    text = Path(path).read_text().splitlines()
+    if not text or tuple(text[0].split(",")) != STATE_CSV_HEADER:
+        raise DataError(f"{path}: not a state.csv (header {STATE_CSV_HEADER})")
+    rows = [line.split(",") for line in text[1:] if line]
+    t = np.array([int(r[0]) for r in rows], np.int64)
+    trunk = np.array([int(r[11]) for r in rows], np.int64)
+    f = np.array([[float(x) for i, x in enumerate(r) if i not in (0, 11)] for r in rows], float).reshape(-1, 13)
+    return StateTable(t, f[:, 0:3], f[:, 3:6], f[:, 6:9], f[:, 9], trunk, f[:, 10], f[:, 11], f[:, 12])
+
+
+__all__ = [
+    "STATE_CSV_HEADER",
+    "VEHICLE_FROM_LEVEL_CAMERA",
+    "ControllerLog",
+    "StateTable",
+    "check_rate",
+    "output_times",
+    "read_state_csv",
+    "vehicle_from_sensor",
+    "write_state_csv",
+]
