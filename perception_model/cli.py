@@ -3,6 +3,12 @@
     perception-model fit LANDMARKS.csv... --out model.json [--method binned|mle] [--plot FIG.png]
     perception-model evaluate model.json LANDMARKS.csv...
     perception-model constraint model.json --landmarks L.csv --positions P.csv
+    perception-model constraint model.json --map route.vtrmap --positions P.csv [--out FILE.csv | --out -]
+
+``constraint --map`` reads each position's trunk (nearest taught vertex) and its landmarks from a
+``vtr`` map, in the map frame (the teach run's first camera frame: x right, y down, z forward);
+see ``perception_model.map_landmarks`` for the orientation/yaw convention. ``vtr`` is imported
+only by that option.
 
 A thin adapter over the library: known errors (``PerceptionModelError``, unreadable files)
 become one line ``perception-model: error: ...`` on stderr and exit code 1; library warnings are
@@ -183,7 +189,7 @@ def fit_cmd(
     click.echo(_fit_summary(result, obs.describe()))
     click.echo(f"wrote {out}")
     if plot is not None:
-        _plot_fit(result, plot)
+        plot_fit(result, plot)
         click.echo(f"wrote {plot}")
 
 
@@ -229,7 +235,7 @@ def _evaluation_lines(ev: Any) -> list[str]:
     return lines
 
 
-def _plot_fit(result: Any, path: Path) -> None:
+def plot_fit(result: Any, path: Path) -> None:
     """Observed inlier frequency per (alpha, theta) bin beside the fitted surface (cf. thesis Fig. 7.3)."""
     import matplotlib
 
@@ -367,20 +373,22 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     "map_path",
     type=click.Path(path_type=Path),
     default=None,
-    help="A vtr map (not available yet: use --landmarks).",
+    help="A taught vtr map: positions are in its map frame (the teach run's first camera frame, x right, "
+    "y down, z forward); the trunk of each position is the nearest taught vertex.",
 )
 @click.option(
     "--positions",
     "positions_path",
     required=True,
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] in frame o (yaw in radians).",
+    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] (yaw in radians); frame o, or the "
+    "map frame with --map.",
 )
 @click.option(
     "--taught-camera",
-    default="0,0,0",
-    show_default=True,
-    help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it.",
+    default=None,
+    help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
+    "[default: 0,0,0; --landmarks only].",
 )
 @click.option("--l-min", type=float, default=30.0, show_default=True, help="Minimum inlier count L_min.")
 @click.option(
@@ -395,16 +403,23 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
 @click.option(
     "--pitch-deg",
     type=float,
-    default=DEFAULT_PITCH_DEG,
-    show_default=True,
-    help="Camera pitch below the horizon (degrees).",
+    default=None,
+    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {DEFAULT_PITCH_DEG:g}; "
+    "with --map the trunk's pitch].",
 )
 @click.option(
     "--yaw-deg",
     type=float,
-    default=0.0,
+    default=None,
+    help="Camera yaw (degrees, CCW from x; with --map CCW from the map's +z about its -y) where the positions "
+    "file has no yaw column [default: 0; with --map the trunk's orientation].",
+)
+@click.option(
+    "--in-view/--all-landmarks",
+    default=True,
     show_default=True,
-    help="Camera yaw (degrees, CCW from x) where the positions file has no yaw column.",
+    help="With --map: count only trunk landmarks inside the camera image at each position (the population "
+    "of landmarks.csv), or every trunk landmark.",
 )
 @click.option(
     "--exact/--no-exact",
@@ -415,63 +430,116 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
 @click.option(
     "--out",
     "out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
     default=None,
-    help="Write the per-position table as CSV.",
+    help="Write the per-position table as CSV ('-': CSV on stdout, the summary on stderr).",
 )
 def constraint_cmd(
     model_path: Path,
     landmarks_path: Path | None,
     map_path: Path | None,
     positions_path: Path,
-    taught_camera: str,
+    taught_camera: str | None,
     l_min: float,
     c_bar: float | None,
     delta: float | None,
-    pitch_deg: float,
-    yaw_deg: float,
+    pitch_deg: float | None,
+    yaw_deg: float | None,
+    in_view: bool,
     exact: bool,
     out: Path | None,
 ) -> None:
-    """Evaluate mu, sigma and the chance-constraint margin along a path."""
-    from .constraint import (
-        THESIS_C_BAR,
-        PerceptionConstraint,
-        c_bar_from_delta,
-        delta_from_c_bar,
-        normal_tail,
-        poisson_binomial_tail,
-    )
-    from .io import read_points, read_positions
+    """Evaluate mu, sigma and the chance-constraint margin along a path.
+
+    With --landmarks, landmarks and positions are in the gravity-aligned frame o (ENU-like, z up);
+    the optical axis comes from yaw and --pitch-deg. With --map, each position's trunk is the
+    nearest taught vertex and its landmarks come from the map; without a yaw the camera has the
+    trunk's orientation, with a yaw (heading about the map's -y, 0 along +z, positive to the left)
+    it is pitched by --pitch-deg or the trunk's pitch (see perception_model.map_landmarks).
+    """
+    from .constraint import THESIS_C_BAR, c_bar_from_delta, delta_from_c_bar
+    from .io import read_positions
     from .model import PerceptionModel
 
     if (landmarks_path is None) == (map_path is None):
         raise InputDataError("give exactly one of --landmarks FILE or --map MAP")
-    if map_path is not None:
-        raise InputDataError(
-            f"--map {map_path}: reading landmarks from a vtr map is not available yet "
-            "(the map store is not implemented); export the trunk landmarks to CSV and use "
-            "--landmarks"
-        )
+    if map_path is not None and taught_camera is not None:
+        raise InputDataError("--taught-camera applies to --landmarks only (with --map the trunk is the origin)")
     if c_bar is not None and delta is not None:
         raise InputDataError("give at most one of --c-bar and --delta")
     cbar = c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
     model = PerceptionModel.load(model_path)
-    origin = _parse_vector(taught_camera, "--taught-camera")
-    assert landmarks_path is not None
-    pts = read_points(landmarks_path) - origin
     path = read_positions(positions_path)
-    pos = path.positions - origin
-    yaw = path.yaw if path.yaw is not None else np.full(pos.shape[0], math.radians(yaw_deg))
-    con = PerceptionConstraint(model, pts, l_min=l_min, c_bar=cbar, pitch_down=math.radians(pitch_deg))
-    ev = con.evaluate(pos, yaw, gradient=False)
-    fail_normal = [
-        normal_tail(float(m), float(s), l_min, lower=True) for m, s in zip(ev.mu, ev.sigma, strict=True)
-    ]
-    fail_exact = [poisson_binomial_tail(p, l_min, lower=True) for p in ev.p] if exact else None
+    if map_path is not None:
+        table = _constraint_on_map(model, map_path, path, l_min, cbar, pitch_deg, yaw_deg, in_view, exact)
+    else:
+        assert landmarks_path is not None
+        table = _constraint_on_landmarks(
+            model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact
+        )
+    header, rows, fmt, intro = table
+    to_stdout = out is not None and str(out) == "-"
+    echo = (lambda text: click.echo(text, err=True)) if to_stdout else click.echo
+    echo(f"{intro}, L_min = {l_min:g}, c_bar = {cbar:.4g} (delta = {delta_from_c_bar(cbar):.3g})")
+    if not to_stdout:
+        cols = [(name, max(width, len(name)), spec) for name, width, spec in fmt]
+        echo(" ".join(f"{name:>{width}s}" for name, width, _ in cols))
+        for r in rows:
+            echo(" ".join(f"{r[header.index(name)]:{width}{spec}}" for name, width, spec in cols))
+    g = np.array([r[header.index("g")] for r in rows])
+    worst = int(np.argmin(g))
+    echo(
+        f"constraint mu - c_bar sigma >= L_min violated at {int((g < 0).sum())} of {len(rows)} positions; "
+        f"smallest margin g = {g[worst]:.2f} at index {worst}"
+    )
+    if out is not None:
+        if to_stdout:
+            writer = csv.writer(sys.stdout, lineterminator="\n")
+            writer.writerow(header)
+            writer.writerows(rows)
+            return
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(header)
+            writer.writerows(rows)
+        echo(f"wrote {out}")
 
+
+_Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
+_COMMON_FMT = [
+    ("mu", 8, ".2f"),
+    ("sigma", 7, ".2f"),
+    ("g", 8, ".2f"),
+    ("g_conservative", 8, ".2f"),
+    ("p_fail_normal", 10, ".3e"),
+]
+
+
+def _constraint_on_landmarks(
+    model: Any,
+    landmarks_path: Path,
+    path: Any,
+    l_min: float,
+    cbar: float,
+    pitch_deg: float | None,
+    yaw_deg: float | None,
+    taught_camera: str | None,
+    exact: bool,
+) -> _Table:
+    """Per-position rows for landmarks given in frame o."""
+    from .constraint import PerceptionConstraint, normal_tail, poisson_binomial_tail
+    from .io import read_points
+
+    pitch = DEFAULT_PITCH_DEG if pitch_deg is None else pitch_deg
+    origin = _parse_vector("0,0,0" if taught_camera is None else taught_camera, "--taught-camera")
+    pts = read_points(landmarks_path) - origin
+    pos = path.positions - origin
+    yaw = path.yaw if path.yaw is not None else np.full(pos.shape[0], math.radians(yaw_deg or 0.0))
+    con = PerceptionConstraint(model, pts, l_min=l_min, c_bar=cbar, pitch_down=math.radians(pitch))
+    ev = con.evaluate(pos, yaw, gradient=False)
     header = ["index", "x", "y", "z", "yaw_deg", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
-    if fail_exact is not None:
+    if exact:
         header.append("p_fail_exact")
     rows = []
     for i in range(pos.shape[0]):
@@ -483,40 +551,76 @@ def constraint_cmd(
             float(ev.sigma[i]),
             float(ev.g[i]),
             float(ev.g_conservative[i]),
-            fail_normal[i],
+            normal_tail(float(ev.mu[i]), float(ev.sigma[i]), l_min, lower=True),
         ]
-        if fail_exact is not None:
-            row.append(fail_exact[i])
+        if exact:
+            row.append(poisson_binomial_tail(ev.p[i], l_min, lower=True))
         rows.append(row)
-    click.echo(
-        f"{pts.shape[0]} landmarks, {pos.shape[0]} positions, L_min = {l_min:g}, c_bar = {cbar:.4g} "
-        f"(delta = {delta_from_c_bar(cbar):.3g}), pitch {pitch_deg:g} deg"
+    fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f")]
+    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
+    intro = f"{pts.shape[0]} landmarks, {pos.shape[0]} positions, pitch {pitch:g} deg"
+    return header, rows, fmt, intro
+
+
+def _constraint_on_map(
+    model: Any,
+    map_path: Path,
+    path: Any,
+    l_min: float,
+    cbar: float,
+    pitch_deg: float | None,
+    yaw_deg: float | None,
+    in_view: bool,
+    exact: bool,
+) -> _Table:
+    """Per-position rows with each position's trunk taken from a taught vtr map."""
+    from .map_landmarks import evaluate_on_map
+
+    yaw = path.yaw if path.yaw is not None else (None if yaw_deg is None else math.radians(yaw_deg))
+    t = evaluate_on_map(
+        model,
+        map_path,
+        path.positions,
+        yaw,
+        pitch_down=None if pitch_deg is None else math.radians(pitch_deg),
+        l_min=l_min,
+        c_bar=cbar,
+        in_view=in_view,
+        exact=exact,
     )
-    click.echo(
-        f"{'i':>4s} {'x':>8s} {'y':>8s} {'z':>8s} {'yaw':>7s} {'mu':>8s} {'sigma':>7s} {'g':>8s} "
-        f"{'g_c':>8s} {'P_fail(N)':>10s}" + (f" {'P_fail(ex)':>10s}" if fail_exact is not None else "")
+    header = ["index", "x", "y", "z", "yaw_deg", "pitch_deg", "trunk_id", "trunk_distance_m", "n_landmarks",
+              "n_in_view", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
+    if exact:
+        header.append("p_fail_exact")
+    rows = []
+    for i in range(len(t)):
+        row: list[Any] = [
+            i,
+            *t.positions[i].tolist(),
+            math.degrees(float(t.yaw[i])),
+            math.degrees(float(t.pitch_down[i])),
+            int(t.trunk_id[i]),
+            float(t.trunk_distance_m[i]),
+            int(t.n_landmarks[i]),
+            int(t.n_in_view[i]),
+            float(t.mu[i]),
+            float(t.sigma[i]),
+            float(t.g[i]),
+            float(t.g_conservative[i]),
+            float(t.p_fail_normal[i]),
+        ]
+        if t.p_fail_exact is not None:
+            row.append(float(t.p_fail_exact[i]))
+        rows.append(row)
+    fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f"),
+           ("trunk_id", 12, "d"), ("trunk_distance_m", 6, ".2f"), ("n_in_view", 6, "d")]
+    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
+    orientation = "yaw given" if t.yaw_given else "trunk orientation"
+    intro = (
+        f"map {map_path}: {len(np.unique(t.trunk_id))} trunk(s), {t.n_map_landmarks} landmarks, {len(t)} positions "
+        f"({orientation}, {'in-view landmarks' if in_view else 'all trunk landmarks'})"
     )
-    for r in rows:
-        line = (
-            f"{r[0]:4d} {r[1]:8.2f} {r[2]:8.2f} {r[3]:8.2f} {r[4]:7.1f} {r[5]:8.2f} {r[6]:7.2f} {r[7]:8.2f} "
-            f"{r[8]:8.2f} {r[9]:10.3e}"
-        )
-        if fail_exact is not None:
-            line += f" {r[10]:10.3e}"
-        click.echo(line)
-    worst = int(np.argmin(ev.g))
-    n_bad = int((ev.g < 0).sum())
-    click.echo(
-        f"constraint mu - c_bar sigma >= L_min violated at {n_bad} of {pos.shape[0]} positions; "
-        f"smallest margin g = {ev.g[worst]:.2f} at index {worst}"
-    )
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with out.open("w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(header)
-            writer.writerows(rows)
-        click.echo(f"wrote {out}")
+    return header, rows, fmt, intro
 
 
 if __name__ == "__main__":  # pragma: no cover

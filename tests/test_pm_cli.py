@@ -139,7 +139,7 @@ def test_errors_are_one_line_with_exit_code_1(data, tmp_path):
     good = tmp_path / "thesis.json"
     PerceptionModel.thesis().save(good)
     _assert_one_line_error(
-        _run(["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]), "not available yet"
+        _run(["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]), "is a directory"
     )
     _assert_one_line_error(_run(["constraint", good, "--positions", data / "pos.csv"]), "exactly one")
     _assert_one_line_error(

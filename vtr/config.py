@@ -23,12 +23,12 @@ class FeatureConfig:
     """Detection and description (left and right images)."""
 
     n_features: int = 1500          # features kept per image after grid bucketing
-    detect_factor: float = 2.0      # ORB detects this many times n_features before bucketing
+    detect_factor: float = 1.5      # ORB detects this many times n_features before bucketing
     grid_rows: int = 8              # bucketing grid (cells keep their strongest features)
     grid_cols: int = 16
     scale_factor: float = 1.2       # ORB pyramid scale step
-    n_levels: int = 8               # ORB pyramid levels
-    fast_threshold: int = 12        # FAST corner threshold (grey levels)
+    n_levels: int = 4               # ORB pyramid levels (scale range 1.7: consecutive keyframes, repeats)
+    fast_threshold: int = 20        # FAST corner threshold (grey levels)
     edge_threshold: int = 19        # ORB border (px); also the patch half-size bound
 
 

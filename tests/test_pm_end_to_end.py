@@ -1,0 +1,154 @@
+"""The perception model end to end on imagery.
+
+- A short synthetic aerial teach repeated at lateral and vertical offsets writes landmarks.csv;
+  both fits (through tools/perception_end_to_end.py's analysis) find the inlier probability
+  falling with parallax (c3 < 0, its interval below 0) with finite R^2 and log-loss.
+- ``perception-model constraint --map`` on a small KITTI teach map: one row per position, mu > 0,
+  sigma >= 0, trunks are the nearest taught vertices; the yaw convention; one-line errors.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import io
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from perception_model.cli import main
+from perception_model.map_landmarks import camera_rotation_from_yaw, yaw_pitch_of_axis
+from perception_model.model import PerceptionModel
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+LENGTH_M = 12.0
+RAMP_M = 3.0
+OFFSETS = [(0.0, 0.0), (4.0, 2.0)]  # (lateral left, vertical up), metres
+KITTI_TEACH = "0:12:2"
+
+
+def _load_tool(name: str):
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_synthetic_repeats_fit_falls_with_parallax(tmp_path):
+    offsets = _load_tool("synthetic_offsets")
+    e2e = _load_tool("perception_end_to_end")
+    rows = offsets.run(tmp_path, [], [], LENGTH_M, ramp_m=RAMP_M, offsets=OFFSETS)
+    assert [(r["lateral_m"], r["vertical_m"]) for r in rows] == OFFSETS
+    assert all(r["localized"] > 0 for r in rows), rows
+    files = [tmp_path / offsets.repeat_name(dy, dz) / "landmarks.csv" for dy, dz in OFFSETS]
+    summary = e2e.analyse("synthetic", files, tmp_path, seed=0)
+    print(e2e.table([summary]))
+    assert summary["alpha_deg_percentiles"]["95"] > 5.0  # the offsets give real parallax
+    for method in ("binned", "mle"):
+        fit = summary["fits"][method]
+        assert "error" not in fit, fit
+        c3 = fit["c"]["c3"]
+        assert c3["estimate"] < 0 and c3["high"] < 0, (method, c3)
+        assert fit["falls_with_parallax_significant"]
+        for key in ("r2_binned", "log_loss", "holdout_log_loss"):
+            assert math.isfinite(fit[key]), (method, key, fit[key])
+        assert (tmp_path / f"fit_{method}.png").stat().st_size > 10_000
+        assert PerceptionModel.load(tmp_path / f"model_{method}.json").constants[2] == pytest.approx(c3["estimate"])
+    table = e2e.table([summary])
+    assert "synthetic binned" in table and "synthetic mle" in table
+
+
+# --------------------------------------------------------------------------- constraint --map
+@pytest.fixture(scope="module")
+def kitti_map(tmp_path_factory, kitti_clip):
+    from vtr.config import Config
+    from vtr.pipeline import teach_command
+
+    path = tmp_path_factory.mktemp("pm_map") / "route.vtrmap"
+    teach_command(kitti_clip, path, KITTI_TEACH, Config())
+    return path
+
+
+def _run(args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _rows(text: str) -> list[dict[str, float]]:
+    return [{k: float(v) for k, v in r.items()} for r in csv.DictReader(io.StringIO(text))]
+
+
+def test_constraint_on_a_taught_map(kitti_map, tmp_path):
+    from vtr.map import Map
+
+    with Map.open(kitti_map) as m:
+        ids, T = m.privileged_poses()
+    # half a metre right of and 0.3 m ahead of every taught vertex (map frame: x right, y down, z forward)
+    pos = T[:, :3, 3] + np.array([0.5, 0.0, 0.3])
+    positions = tmp_path / "pos.csv"
+    np.savetxt(positions, pos, delimiter=",", header="x,y,z", comments="")
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    out = tmp_path / "c.csv"
+    r = _run(["constraint", model, "--map", kitti_map, "--positions", positions, "--out", out])
+    assert r.exit_code == 0, r.output
+    assert "smallest margin" in r.stdout and "trunk" in r.stdout
+    rows = _rows(out.read_text())
+    assert len(rows) == len(pos)
+    mu = np.array([row["mu"] for row in rows])
+    sigma = np.array([row["sigma"] for row in rows])
+    assert np.all(mu > 0) and np.all(sigma >= 0)
+    assert [int(row["trunk_id"]) for row in rows] == [int(i) for i in ids]
+    assert np.all([row["n_in_view"] <= row["n_landmarks"] for row in rows])
+    assert np.allclose([row["g"] for row in rows], mu - 3 * sigma - 30)
+    assert all(0 <= row["p_fail_exact"] <= 1 for row in rows)
+
+    # CSV on stdout; with a yaw column: 180 deg looks back along -z, away from every trunk landmark
+    yawed = tmp_path / "pos_yaw.csv"
+    np.savetxt(yawed, np.column_stack([pos, np.full(len(pos), 180.0)]), delimiter=",", header="x,y,z,yaw_deg",
+               comments="")
+    r = _run(["constraint", model, "--map", kitti_map, "--positions", yawed, "--out", "-", "--no-exact"])
+    assert r.exit_code == 0, r.output
+    back = _rows(r.stdout)
+    assert len(back) == len(pos) and all(row["mu"] == 0 and row["n_in_view"] == 0 for row in back)
+    # every trunk landmark (no image test): the model's view cut still leaves those behind at p = 0
+    r = _run(["constraint", model, "--map", kitti_map, "--positions", positions, "--out", "-", "--all-landmarks"])
+    assert r.exit_code == 0, r.output
+    every = _rows(r.stdout)
+    assert len(every) == len(rows)
+    assert all(e["n_in_view"] == e["n_landmarks"] and e["mu"] >= row["mu"] - 1e-9
+               for e, row in zip(every, rows, strict=True))
+
+
+def test_constraint_map_errors_are_one_line(kitti_map, tmp_path):
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    positions = tmp_path / "pos.csv"
+    positions.write_text("x,y,z\n0,0,1\n")
+    for args, match in (
+        (["--map", tmp_path / "missing.vtrmap"], "no map at"),
+        (["--map", model], "not a vtr map"),
+        (["--map", kitti_map, "--taught-camera", "0,0,0"], "--taught-camera"),
+    ):
+        r = _run(["constraint", model, *args, "--positions", positions])
+        assert r.exit_code == 1, r.output
+        errors = [ln for ln in r.stderr.splitlines() if ln.startswith("perception-model: error:")]
+        assert len(errors) == 1 and match in errors[0], r.stderr
+        assert "Traceback" not in r.output
+
+
+def test_yaw_convention_in_the_map_frame():
+    R = camera_rotation_from_yaw(np.radians([0.0, 90.0, -30.0]), np.radians([0.0, 0.0, 50.0]))
+    assert np.allclose(R[0], np.eye(3))
+    assert np.allclose(R[1][:, 2], [-1.0, 0.0, 0.0])  # +90 deg looks left (-x) in x right, y down, z forward
+    for Ri in R:
+        assert np.allclose(Ri.T @ Ri, np.eye(3)) and np.isclose(np.linalg.det(Ri), 1.0)
+        assert abs(Ri[1, 0]) < 1e-12  # no roll: image x stays horizontal
+    yaw, pitch = yaw_pitch_of_axis(R[2][:, 2])
+    assert np.isclose(yaw, np.radians(-30.0)) and np.isclose(pitch, np.radians(50.0))
