@@ -298,3 +298,26 @@ def test_writer_rejects_bad_input(tmp_path):
             w.add(-1, np.zeros((48, 64), np.uint8), np.zeros((48, 64), np.uint8))
     with pytest.raises(DataError, match="already exists"):
         RosbagWriter(tmp_path / "y.bag", SMALL)
+
+
+@pytest.mark.parametrize("kind", ["rosbag1", "mcap"])
+def test_odometry_on_bag_matches_folder(tmp_path, kind):
+    """`vtr odometry` on a bag written from the KITTI folder gives the folder's trajectory."""
+    import subprocess
+    import sys
+
+    from vtr.io.trajectory import read_tum
+
+    n = 10
+    src = open_source(KITTI)
+    frames = [src[i] for i in range(n)]
+    bag = tmp_path / ("clip.bag" if kind == "rosbag1" else "clipm")
+    write_bag(bag, frames, src.camera, kind=kind)
+    runs = {}
+    for name, source, extra in (("folder", KITTI, ["--frames", f"0:{n}"]), ("bag", bag, [])):
+        r = subprocess.run([sys.executable, "-m", "vtr", "odometry", str(source), "--out", str(tmp_path / name),
+                            *extra], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        runs[name] = read_tum(tmp_path / name / "trajectory_tum.txt")
+    np.testing.assert_array_equal(runs["bag"][0], runs["folder"][0])
+    np.testing.assert_allclose(runs["bag"][1], runs["folder"][1], atol=1e-9)

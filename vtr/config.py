@@ -69,6 +69,7 @@ class OdometryConfig:
     max_speed_mps: float = 40.0
     max_rotation_rate_dps: float = 200.0
     window_keyframes: int = 5             # keyframes in the local map matched and refined together
+    window_max_landmarks: int = 400       # landmarks in the windowed bundle adjustment (longest tracks first)
     window_iterations: int = 4            # Levenberg-Marquardt iterations of the windowed bundle adjustment
     still_translation_m: float = 1e-3     # a step below this (and still_rotation_deg) is DO_NOTHING
     still_rotation_deg: float = 0.01

@@ -276,7 +276,14 @@ class StereoOdometry:
             feats.append(f)
         slot, lm = np.concatenate(slots), np.concatenate(lms)
         seen = np.bincount(lm, minlength=len(self.map.positions))
-        keep = seen[lm] >= 2
+        tracked = np.flatnonzero(seen >= 2)
+        cap = self.config.odometry.window_max_landmarks
+        if len(tracked) > cap:
+            # the longest tracks constrain the window best; ties broken by id (deterministic)
+            tracked = tracked[np.lexsort((tracked, -seen[tracked]))[:cap]]
+        selected = np.zeros(len(seen), bool)
+        selected[tracked] = True
+        keep = selected[lm]
         z = np.concatenate([kf.frame.stereo_measurements[f] for kf, f in zip(kfs, feats, strict=True)])
         return slot[keep], lm[keep], z[keep], np.concatenate(feats)[keep]
 

@@ -64,8 +64,8 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
     vo = StereoOdometry(source.camera, config)
     results = []
     t0 = time.perf_counter()
-    for i in iterate(indices, len(indices), progress, "odometry"):
-        results.append(vo.process(source[i]))
+    for images in iterate(source.iter_frames(indices), len(indices), progress, "odometry"):
+        results.append(vo.process(images))
     poses = vo.final_poses(results)
     return results, poses, time.perf_counter() - t0
 
@@ -139,8 +139,8 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
-            for i in iterate(indices, len(indices), progress, "teach"):
-                results.append(teach.process(source[i]))
+            for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
+                results.append(teach.process(images))
             n_vertices = teach.finish()
             poses = teach.odometry.final_poses(results)
         seconds = time.perf_counter() - t0
@@ -265,8 +265,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         clog = ControllerLog(config, repeat.chain.ids, repeat.chain.T_priv, m.camera.T_vehicle_sensor)
         steps, t_loc = [], 0.0
         t0 = time.perf_counter()
-        for i in iterate(indices, len(indices), progress, "repeat"):
-            images = source[i]
+        for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
             steps.append(repeat.process(images))
             t_loc += repeat.last_localization_seconds
             clog.add(steps[-1])

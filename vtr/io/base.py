@@ -8,7 +8,7 @@ and context managers; images are read lazily so a long log is never held in memo
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,6 +62,12 @@ class FrameSource(ABC, Sequence):
     def __iter__(self) -> Iterator[StereoImages]:
         for i in range(len(self)):
             yield self._load(i)
+
+    def iter_frames(self, indices: Iterable[int] | None = None) -> Iterator[StereoImages]:
+        """Frames at ``indices`` (all by default) in order; streaming sources override this to read
+        them in one sequential pass."""
+        for i in range(len(self)) if indices is None else indices:
+            yield self[i]
 
     def ground_truth(self) -> GroundTruth | None:
         """Reference trajectory of the left rectified camera, when the format carries one."""

@@ -11,16 +11,16 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError
-from .base import FrameSource, StereoImages
+from .base import FrameSource
 from .kitti import KittiWriter
-from .rosbag import ROS1_SUFFIX, RosbagSource, RosbagWriter
+from .rosbag import ROS1_SUFFIX, RosbagWriter
 
 TARGETS = ("kitti", "rosbag1", "rosbag2", "mcap")
 PARTIAL_SUFFIX = ".partial"
@@ -58,15 +58,6 @@ def _size(path: Path) -> int:
     if path.is_file():
         return path.stat().st_size
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
-
-
-def iter_selected(source: FrameSource, indices: Sequence[int]) -> Iterator[StereoImages]:
-    """Frames at ``indices``, streamed in one pass when the source supports it (ROS bags)."""
-    if isinstance(source, RosbagSource):
-        yield from source.iter_frames(indices)
-    else:
-        for i in indices:
-            yield source[i]
 
 
 def _gt_poses(source: FrameSource, indices: Sequence[int]) -> np.ndarray | None:
@@ -109,7 +100,7 @@ def convert(source: FrameSource, out: str | Path, to: str | None = None, indices
     try:
         if to == "kitti":
             writer = KittiWriter(tmp, source.camera)
-            for f in iter_selected(source, idx):
+            for f in source.iter_frames(idx):
                 writer.add(f.t_ns, f.left, f.right)
                 times.append(f.t_ns)
                 if progress:
@@ -119,7 +110,7 @@ def convert(source: FrameSource, out: str | Path, to: str | None = None, indices
             wrote_poses = poses is not None
         else:
             with RosbagWriter(tmp, source.camera, kind=to) as bag:
-                for f in iter_selected(source, idx):
+                for f in source.iter_frames(idx):
                     bag.add(f.t_ns, f.left, f.right)
                     times.append(f.t_ns)
                     if progress:
