@@ -87,8 +87,8 @@ class FeatureExtractor:
         kps = self._orb.detect(image, None)
         if not kps:
             return _empty()
-        uv = np.array([k.pt for k in kps], np.float64)
-        response = np.array([k.response for k in kps], np.float64)
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64)
+        response = np.fromiter((k.response for k in kps), np.float64, len(kps))
         c = self.config
         keep = bucket(uv, response, self.image_size, c.grid_rows, c.grid_cols, c.n_features)
         kps = [kps[i] for i in keep]
@@ -96,9 +96,9 @@ class FeatureExtractor:
         if desc is None or not kps:
             return _empty()
         return Features(
-            uv=np.array([k.pt for k in kps], np.float64),
-            octave=np.array([k.octave for k in kps], np.int32),
-            response=np.array([k.response for k in kps], np.float64),
+            uv=cv2.KeyPoint_convert(kps).astype(np.float64),
+            octave=np.fromiter((k.octave for k in kps), np.int32, len(kps)),
+            response=np.fromiter((k.response for k in kps), np.float64, len(kps)),
             descriptors=desc,
         )
 
