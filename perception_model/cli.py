@@ -80,6 +80,15 @@ def main() -> None:
     """Perception model for visual teach and repeat: p = c1 cos(c2 theta) exp(c3 alpha)."""
 
 
+def bin_options(command):
+    """The (alpha, theta) bin widths used by fitting and by R^2 in evaluation (degrees)."""
+    for name, default, what in (("--theta-bin", DEFAULT_THETA_BIN_DEG, "View-angle"),
+                                ("--alpha-bin", DEFAULT_ALPHA_BIN_DEG, "Parallax")):
+        command = click.option(name, type=click.FloatRange(min=0.0, min_open=True), default=default,
+                               show_default=True, help=f"{what} bin width (degrees).")(command)
+    return command
+
+
 # --------------------------------------------------------------------------- fit
 @main.command("fit")
 @click.argument("landmarks", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
@@ -118,20 +127,7 @@ def main() -> None:
     help="Fraction of localizations held out for evaluation.",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the hold-out split/bootstrap.")
-@click.option(
-    "--alpha-bin",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=DEFAULT_ALPHA_BIN_DEG,
-    show_default=True,
-    help="Parallax bin width (degrees).",
-)
-@click.option(
-    "--theta-bin",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=DEFAULT_THETA_BIN_DEG,
-    show_default=True,
-    help="View-angle bin width (degrees).",
-)
+@bin_options
 @click.option(
     "--min-bin-count",
     type=click.IntRange(min=1),
@@ -284,20 +280,7 @@ def plot_fit(result: Any, path: Path) -> None:
 @main.command("evaluate")
 @click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("landmarks", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--alpha-bin",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=DEFAULT_ALPHA_BIN_DEG,
-    show_default=True,
-    help="Parallax bin width for R^2 (degrees).",
-)
-@click.option(
-    "--theta-bin",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=DEFAULT_THETA_BIN_DEG,
-    show_default=True,
-    help="View-angle bin width for R^2 (degrees).",
-)
+@bin_options
 @click.option("--min-bin-count", type=click.IntRange(min=1), default=10, show_default=True)
 @click.option("--calibration-bins", type=click.IntRange(min=1), default=10, show_default=True)
 @click.option(

@@ -21,7 +21,7 @@ def vtr(*args: str) -> subprocess.CompletedProcess:
 def test_version_and_dependency_versions():
     r = vtr("versions")
     assert r.returncode == 0, r.stderr
-    for name in ("opencv", "gtsam", "open3d", "rosbags"):
+    for name in ("cv2", "gtsam", "open3d", "rosbags"):
         assert name in r.stdout
 
 

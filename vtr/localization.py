@@ -29,7 +29,7 @@ from .config import LocalizationConfig, OdometryConfig
 from .estimation import ransac_pnp, refine_two_view
 from .features import best_matches, hamming_pairs
 from .geometry import inv_T, log_se3
-from .odometry import MIN_DEPTH_M, match_landmarks
+from .odometry import MIN_DEPTH_M, match_to_landmarks
 from .stereo import StereoFrame
 
 
@@ -193,7 +193,7 @@ class Localizer:
     def _match(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None):
         c = self.config
         if T_prior is not None:
-            ti, lj = match_to_trunk(trunk, leaf, T_prior, self.camera, c.match_radius_px, c.max_descriptor_distance,
+            ti, lj = match_to_landmarks(trunk, leaf, T_prior, self.camera, c.match_radius_px, c.max_descriptor_distance,
                                     self.odometry.ratio_test)
             if len(ti) >= c.min_matches:
                 return ti, lj
@@ -205,15 +205,6 @@ class Localizer:
         dist = hamming_pairs(trunk.features.descriptors, leaf.features.descriptors, ia, jb)
         qi, tj, _ = best_matches(dist, ia, jb, c.max_descriptor_distance, ratio=self.odometry.ratio_test)
         return qi, tj
-
-
-def match_to_trunk(trunk: StereoFrame, leaf: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera,
-                   radius: float, max_distance: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Trunk landmarks (with depth) matched to leaf features near their projection under the prior."""
-    idx = np.flatnonzero(trunk.has_depth)
-    qi, tj = match_landmarks(trunk.points[idx], trunk.features.descriptors[idx], leaf, T_leaf_trunk, camera,
-                             radius, max_distance, ratio)
-    return idx[qi], tj
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,

@@ -15,16 +15,14 @@ from ..errors import VtrError
 
 
 def _versions() -> str:
-    import cv2
-    import gtsam
-    import numpy
-    import open3d
-    import rosbags
-    import scipy
+    """Import each heavy dependency (so a broken install shows here) and report its installed version."""
+    from importlib import import_module, metadata
 
-    parts = [f"vtr {__version__}", f"numpy {numpy.__version__}", f"scipy {scipy.__version__}",
-             f"opencv {cv2.__version__}", f"gtsam {getattr(gtsam, '__version__', '?')}",
-             f"open3d {open3d.__version__}", f"rosbags {getattr(rosbags, '__version__', '?')}"]
+    parts = [f"vtr {__version__}"]
+    for module, dist in (("numpy", "numpy"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
+                         ("gtsam", "gtsam"), ("open3d", "open3d"), ("rosbags", "rosbags")):
+        import_module(module)
+        parts.append(f"{module} {metadata.version(dist)}")
     return ", ".join(parts)
 
 
