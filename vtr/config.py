@@ -103,6 +103,10 @@ class SmoothingConfig:
     qc_rotation: float = 0.1              # rad^2/s^3
     lag_s: float = 5.0                    # fixed-lag window (s)
     rate_hz: float = 50.0                 # default output rate of state.csv
+    # odometry's own covariance (fixed landmarks) ignores drift; the smoother adds this much per metre
+    # travelled between vertices, so that localizations against the taught path are not outvoted
+    odometry_translation_sigma_per_m: float = 0.02   # m per m (2 % drift)
+    odometry_rotation_sigma_per_m: float = 0.0005    # rad per m
 
 
 @dataclass

@@ -204,10 +204,12 @@ class ControllerLog:
         kf, loc = r.new_keyframe, step.localization
         if kf is not None:
             rel_cov = None
-            if self._last is not None or self._pending:
+            previous = self._pending[-1] if self._pending else self._last
+            if previous is not None:
                 rel_cov = _measurement_covariance(r.covariance)
                 if rel_cov is None:
                     rel_cov = np.eye(6) * self.config.odometry.failure_variance
+                rel_cov = rel_cov + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
             if loc is not None and loc.success:
                 loc_cov = _measurement_covariance(loc.covariance)
@@ -226,6 +228,13 @@ class ControllerLog:
                 if T_teach_leaf is not None:
                     self._flush_localized()
         self.seconds += time.perf_counter() - t0
+
+    def _drift_covariance(self, T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+        """Odometry drift between two vertices, growing with the distance travelled ([rot, trans])."""
+        c = self.config.smoothing
+        d = float(np.linalg.norm(T_world_b[:3, 3] - T_world_a[:3, 3]))
+        return np.diag(np.r_[[(c.odometry_rotation_sigma_per_m * d) ** 2] * 3,
+                             [(c.odometry_translation_sigma_per_m * d) ** 2] * 3])
 
     def finish(self) -> None:
         """End of the run: vertices still waiting for a localization are fed with the chain's assumption."""
