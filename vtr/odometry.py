@@ -85,6 +85,23 @@ class OdometryResult:
         """The keyframe this frame belongs to: its own new vertex, else the reference keyframe."""
         return self.new_keyframe.id if self.new_keyframe is not None else self.keyframe_id
 
+    def record(self) -> FrameRecord:
+        """The few numbers a run log keeps per frame (no images, features or landmarks)."""
+        return FrameRecord(self.t_ns, self.kind, self.matches, self.inliers, self.vertex_id,
+                           self.new_keyframe is not None)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What a long run keeps of each frame: its result, match counts and the vertex it belongs to."""
+
+    t_ns: int
+    kind: FrameKind
+    matches: int
+    inliers: int
+    vertex_id: int
+    new_vertex: bool
+
 
 @dataclass
 class _WindowKeyframe:
@@ -205,11 +222,10 @@ class StereoOdometry:
             out.append(self._finalize(self.map.keyframes.popleft()))
         return out
 
-    def final_poses(self, results: list[OdometryResult]) -> np.ndarray:
-        """Poses (N, 4, 4) of the frames processed so far (in order), in the first camera frame,
-        with keyframes as refined by the windowed bundle adjustment."""
-        refs = self._frame_refs[-len(results):] if results else []
-        return np.array([self._keyframe_poses[k] @ T for k, T in refs]).reshape(-1, 4, 4)
+    def final_poses(self) -> np.ndarray:
+        """Poses (N, 4, 4) of every frame processed (in order), in the first camera frame, with
+        keyframes as refined by the windowed bundle adjustment."""
+        return np.array([self._keyframe_poses[k] @ T for k, T in self._frame_refs]).reshape(-1, 4, 4)
 
     def _take_id(self) -> int:
         self._next_id += 1

@@ -5,6 +5,7 @@ with a progress bar, save, summarize). The library never prints; progress goes t
 from __future__ import annotations
 
 import csv
+import dataclasses
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -19,7 +20,8 @@ from .geometry import inv_T
 from .io import open_source, parse_frame_range
 from .io.base import FrameSource
 from .io.trajectory import write_tum
-from .odometry import FrameKind, OdometryResult, StereoOdometry
+from .localization import Localization
+from .odometry import FrameKind, FrameRecord, StereoOdometry
 from .runlog import RunLog
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
@@ -58,24 +60,23 @@ def iterate(items: Iterable, total: int, progress: Callable | None, desc: str):
 
 
 def run_odometry(source: FrameSource, indices: list[int], config: Config,
-                 progress: Callable | None = None) -> tuple[list[OdometryResult], np.ndarray, float]:
-    """Odometry over the selected frames; returns per-frame results, final poses in the first
+                 progress: Callable | None = None) -> tuple[list[FrameRecord], np.ndarray, float]:
+    """Odometry over the selected frames; returns per-frame records, final poses in the first
     camera frame (N, 4, 4; keyframes as refined by the window) and the elapsed seconds."""
     vo = StereoOdometry(source.camera, config)
-    results = []
+    records = []
     t0 = time.perf_counter()
     for images in iterate(source.iter_frames(indices), len(indices), progress, "odometry"):
-        results.append(vo.process(images))
-    poses = vo.final_poses(results)
-    return results, poses, time.perf_counter() - t0
+        records.append(vo.process(images).record())
+    return records, vo.final_poses(), time.perf_counter() - t0
 
 
-def write_frames_csv(path: Path, results: list[OdometryResult]) -> None:
+def write_frames_csv(path: Path, records: list[FrameRecord]) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(FRAMES_CSV_HEADER)
-        for r in results:
-            w.writerow([r.t_ns, r.kind.value, r.matches, r.inliers, r.keyframe_id])
+        for r in records:
+            w.writerow([r.t_ns, r.kind.value, r.matches, r.inliers, r.vertex_id])
 
 
 def odometry_command(source_path: Path, out: Path, frames: str | None, config: Config,
@@ -102,7 +103,7 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
         failures = np.array([r.kind == FrameKind.FAILURE for r in results])
         plot_trajectory(out / "trajectory.png", poses, T_gt, failures,
                         title=f"{source_path.name}: {len(results)} frames")
-        summary = OdometrySummary(len(results), sum(r.new_keyframe is not None for r in results),
+        summary = OdometrySummary(len(results), sum(r.new_vertex for r in results),
                                   int(failures.sum()), seconds, drift)
         log.write(summary.to_dict())
     if not results:
@@ -140,9 +141,9 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
             for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
-                results.append(teach.process(images))
+                results.append(teach.process(images).record())
             n_vertices = teach.finish()
-            poses = teach.odometry.final_poses(results)
+            poses = teach.odometry.final_poses()
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
         summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
@@ -206,32 +207,46 @@ class RepeatSummary:
                    f"{self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
 
 
-def write_localization_csv(path: Path, locs) -> None:
-    from .geometry import T_to_tum
+class LocalizationWriter:
+    """Appends one ``localization.csv`` row per localization attempt."""
 
+    def __init__(self, file):
+        self._csv = csv.writer(file)
+        self._csv.writerow(LOCALIZATION_CSV_HEADER)
+
+    def write(self, loc: Localization) -> None:
+        from .geometry import T_to_tum
+
+        pose = T_to_tum(loc.T_leaf_trunk)
+        var = np.diag(loc.covariance)
+        self._csv.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, int(loc.success),
+                            loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
+                            loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
+
+
+class LandmarksWriter:
+    """Appends the ``landmarks.csv`` rows of a successful localization (input of ``perception-model fit``)."""
+
+    def __init__(self, file):
+        self._csv = csv.writer(file)
+        self._csv.writerow(LANDMARKS_CSV_HEADER)
+
+    def write(self, loc: Localization) -> None:
+        r = loc.landmarks
+        if r is None or not loc.success:
+            return
+        rows = zip(r.landmark_id, r.inlier, np.degrees(r.parallax_rad), np.degrees(r.view_rad), r.range_m, r.matched,
+                   strict=True)
+        self._csv.writerows([loc.t_ns, loc.leaf_id, loc.trunk_id, int(i), int(inl), f"{a:.5f}", f"{v:.5f}",
+                             f"{d:.4f}", int(mt)] for i, inl, a, v, d, mt in rows)
+
+
+def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
+    """``landmarks.csv`` of a list of localizations."""
     with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(LOCALIZATION_CSV_HEADER)
+        w = LandmarksWriter(f)
         for loc in locs:
-            pose = T_to_tum(loc.T_leaf_trunk)
-            var = np.diag(loc.covariance)
-            w.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, int(loc.success),
-                        loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
-                        loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
-
-
-def write_landmarks_csv(path: Path, locs) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(LANDMARKS_CSV_HEADER)
-        for loc in locs:
-            r = loc.landmarks
-            if r is None or not loc.success:
-                continue
-            for k in range(len(r.landmark_id)):
-                w.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, int(r.landmark_id[k]), int(r.inlier[k]),
-                            f"{np.degrees(r.parallax_rad[k]):.5f}", f"{np.degrees(r.view_rad[k]):.5f}",
-                            f"{r.range_m[k]:.4f}", int(r.matched[k])])
+            w.write(loc)
 
 
 def path_errors(points: np.ndarray, path: np.ndarray) -> np.ndarray:
@@ -263,32 +278,38 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         log = RunLog(out, "repeat", config, [source_path, map_path])
         repeat = Repeat(m, config, source=str(source_path))
         clog = ControllerLog(config, repeat.chain.ids, repeat.chain.T_priv, m.camera.T_vehicle_sensor)
-        steps, t_loc = [], 0.0
+        t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
-        for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
-            steps.append(repeat.process(images))
-            t_loc += repeat.last_localization_seconds
-            clog.add(steps[-1])
+        with open(out / "localization.csv", "w", newline="") as loc_file, \
+                open(out / "landmarks.csv", "w", newline="") as lm_file:
+            loc_csv, lm_csv = LocalizationWriter(loc_file), LandmarksWriter(lm_file)
+            for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
+                step = repeat.process(images)
+                t_loc += repeat.last_localization_seconds
+                clog.add(step)
+                t_ns.append(step.odometry.t_ns)
+                T_teach.append(step.T_teach_frame)
+                if step.localization is not None:
+                    loc_csv.write(step.localization)
+                    lm_csv.write(step.localization)
+                    # keep the numbers, not the per-landmark record: memory stays flat on long routes
+                    locs.append(dataclasses.replace(step.localization, landmarks=None))
         clog.finish()
         state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
         write_state_csv(out / "state.csv", state)
-        locs = [s.localization for s in steps if s.localization is not None]
-        t_ns = np.array([s.odometry.t_ns for s in steps], np.int64)
-        T_teach = np.array([s.T_teach_frame for s in steps])
+        t_ns, T_teach = np.array(t_ns, np.int64), np.array(T_teach)
         write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
-        write_localization_csv(out / "localization.csv", locs)
-        write_landmarks_csv(out / "landmarks.csv", locs)
         _, T_priv = m.privileged_poses()
         errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
         plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
         state_info = {"rate_hz": rate_hz, "rows": len(state),
-                      "smoother_ms_per_frame": 1000 * clog.seconds / max(len(steps), 1),
+                      "smoother_ms_per_frame": 1000 * clog.seconds / max(len(t_ns), 1),
                       "median_abs_lateral_m": float(np.nanmedian(np.abs(state.lateral))) if len(state) else None,
                       "median_abs_vertical_m": float(np.nanmedian(np.abs(state.vertical))) if len(state) else None}
-        summary = RepeatSummary(len(steps), len(locs), len(ok), seconds, t_loc,
+        summary = RepeatSummary(len(t_ns), len(locs), len(ok), seconds, t_loc,
                                 float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
                                 float(np.median(errors)), gt_errors, state_info)
         log.write(summary.to_dict())
