@@ -87,7 +87,9 @@ class LocalizationConfig:
     min_inliers_unlocalized: int = 20     # before the first success (no trusted prior) demand this many
     min_matches: int = 20                 # fewer candidate matches: do not try
     min_inlier_ratio: float = 0.4         # fewer inliers per match: a chance alignment, reported as failure
-    match_radius_px: float = 60.0         # search radius around the prior's prediction
+    match_radius_px: float = 30.0         # search radius around the prior's prediction
+    match_radius_growth: float = 2.0      # ... times this per consecutive failure (the prior grows uncertain)
+    max_match_radius_px: float = 240.0
     max_descriptor_distance: int = 64
     trunk_window_back: int = 10           # trunk search window along the privileged path
     trunk_window_forward: int = 20

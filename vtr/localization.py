@@ -160,20 +160,22 @@ class Localizer:
         self.pixel_sigma = pixel_sigma
 
     def localize(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None,
-                 seed: int = 0, trusted_prior: bool = True) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray,
-                                                                    np.ndarray]:
+                 seed: int = 0, trusted_prior: bool = True,
+                 consecutive_failures: int = 0) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray, np.ndarray]:
         """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
 
         Without a trusted prior (before the first success) a localization needs
-        ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong.
+        ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong. The search
+        radius around the prior's prediction grows with the failures since the last success, as the
+        prior (odometry since then) grows less certain.
         Returns (T_leaf_trunk or None, covariance, matches, matched trunk indices, inlier mask).
         """
         c = self.config
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
-        ti, lj = self._match(leaf, trunk, T_prior)
-        empty = np.zeros(0, bool)
+        radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
+        ti, lj = self._match(leaf, trunk, T_prior, radius)
         if len(ti) < c.min_matches:
-            return None, np.full((6, 6), np.nan), len(ti), ti, empty[:0] if len(ti) == 0 else np.zeros(len(ti), bool)
+            return None, np.full((6, 6), np.nan), len(ti), ti, np.zeros(len(ti), bool)
         rs = ransac_pnp(trunk.points[ti], leaf.features.uv[lj], self.camera, c.ransac_iterations,
                         c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
         inlier = np.zeros(len(ti), bool)
@@ -190,11 +192,11 @@ class Localizer:
             return None, np.full((6, 6), np.nan), len(ti), ti, inlier
         return rf.T_q_r, rf.covariance, len(ti), ti, inlier
 
-    def _match(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None):
+    def _match(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None, radius: float):
         c = self.config
         if T_prior is not None:
-            ti, lj = match_to_landmarks(trunk, leaf, T_prior, self.camera, c.match_radius_px, c.max_descriptor_distance,
-                                    self.odometry.ratio_test)
+            ti, lj = match_to_landmarks(trunk, leaf, T_prior, self.camera, radius, c.max_descriptor_distance,
+                                        self.odometry.ratio_test)
             if len(ti) >= c.min_matches:
                 return ti, lj
         # unguided: every trunk landmark against every leaf feature, ratio test

@@ -148,7 +148,7 @@ class Repeat:
         self._attempts += 1
         T, cov, n_matches, matched, inlier = self.localizer.localize(
             kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
-            trusted_prior=c.localized)
+            trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
         success = T is not None
         if success:
             self.map.add_edge(leaf_id, trunk_vertex.id, T, _usable_covariance(cov), "spatial", int(inlier.sum()))
