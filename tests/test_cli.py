@@ -121,3 +121,14 @@ def test_euroc_sequence_runs(euroc_micro, tmp_path):
     assert len(t_ns) == 12
     # the vehicle is nearly static in this excerpt
     assert np.linalg.norm(T[-1, :3, 3]) < 0.2
+
+
+def test_demo_is_the_readme_main_command(tmp_path):
+    """`vtr demo` (the README's main command) teaches and repeats the shipped clip and reports."""
+    r = vtr("demo", "--out", tmp_path / "demo")
+    assert r.returncode == 0, r.stderr
+    assert "localized 25 (100.0 %)" in r.stdout
+    assert "T_leaf_trunk error vs ground truth" in r.stdout
+    for f in ("odometry/trajectory.png", "repeat/report.png", "repeat/localization.csv", "repeat/landmarks.csv",
+              "repeat/state.csv", "route.vtrmap"):
+        assert (tmp_path / "demo" / f).is_file(), f
