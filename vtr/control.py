@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import EstimationError
-from .geometry import skew
-from .smoothing import TrajectoryState, adjoint, check_transform
+from .geometry import check_se3, inv_T, skew
+from .smoothing import TrajectoryState, adjoint
 
 GRAVITY_UP = np.array([0.0, 0.0, 1.0])    # z axis of o and of any gravity-aligned frame g
 MIN_SEGMENT_LENGTH_M = 1e-9               # shorter path segments are merged away
@@ -37,15 +37,6 @@ def yaw_of(C_o_b: np.ndarray) -> float | np.ndarray:
     """Yaw (rad) of frame b's x axis in o: ``atan2(C[1, 0], C[0, 0])``; works on (..., 3, 3) stacks."""
     C = np.asarray(C_o_b, float)
     return np.arctan2(C[..., 1, 0], C[..., 0, 0])
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    """Inverse of one 4x4 rigid transform."""
-    out = np.eye(4)
-    Rt = T[:3, :3].T
-    out[:3, :3] = Rt
-    out[:3, 3] = -Rt @ T[:3, 3]
-    return out
 
 
 def _rot_z(psi: float) -> np.ndarray:
@@ -65,7 +56,7 @@ def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
         raise EstimationError("C_g_t: expected a finite 3x3 rotation")
     T = np.eye(4)
     T[:3, :3] = _rot_z(float(yaw_of(C_g_t))).T @ C_g_t
-    return check_transform(T, "T_o_t")
+    return check_se3(T, "T_o_t")
 
 
 @dataclass(frozen=True)
@@ -112,7 +103,7 @@ def trunk_in_world(T_world_leaf: np.ndarray, T_leaf_trunk: np.ndarray) -> np.nda
     ``smoother.state_at(t_leaf).pose @ T_sensor_vehicle``); ``T_leaf_trunk`` comes from the chain
     (``T_l_t = T_l_w T_w_b T_b_t``).
     """
-    return check_transform(T_world_leaf, "T_world_leaf") @ check_transform(T_leaf_trunk, "T_leaf_trunk")
+    return check_se3(T_world_leaf, "T_world_leaf") @ check_se3(T_leaf_trunk, "T_leaf_trunk")
 
 
 def _yaw_jacobian(C_o_a: np.ndarray) -> np.ndarray:
@@ -149,11 +140,11 @@ def controller_state(
         T_world_a = state.pose
         Ad_vs = np.eye(6)
     else:
-        T_sv = check_transform(T_sensor_vehicle, "T_sensor_vehicle")
+        T_sv = check_se3(T_sensor_vehicle, "T_sensor_vehicle")
         T_world_a = state.pose @ T_sv
-        Ad_vs = adjoint(_inv(T_sv))
-    T_a_t = _inv(T_world_a) @ check_transform(T_world_trunk, "T_world_trunk")
-    T_o_a = check_transform(T_o_t, "T_o_t") @ _inv(T_a_t)
+        Ad_vs = adjoint(inv_T(T_sv))
+    T_a_t = inv_T(T_world_a) @ check_se3(T_world_trunk, "T_world_trunk")
+    T_o_a = check_se3(T_o_t, "T_o_t") @ inv_T(T_a_t)
     C_o_a = T_o_a[:3, :3]
     twist_a = Ad_vs @ state.velocity
     rate_a = Ad_vs @ state.acceleration
@@ -272,13 +263,13 @@ class ReferencePath:
         T = np.asarray(T_t_vertices, dtype=float)
         if T.ndim != 3 or T.shape[1:] != (4, 4):
             raise EstimationError(f"T_t_vertices: expected shape (N, 4, 4), got {T.shape}")
-        T_o_t = check_transform(T_o_t, "T_o_t")
+        T_o_t = check_se3(T_o_t, "T_o_t")
         return cls(T[:, :3, 3] @ T_o_t[:3, :3].T + T_o_t[:3, 3])
 
     @classmethod
     def from_world(cls, T_world_vertices: np.ndarray, T_world_trunk: np.ndarray, T_o_t: np.ndarray) -> ReferencePath:
         """Path through privileged vertex poses ``T_world_v`` (N, 4, 4) known in the smoother's world frame."""
-        T_t_world = _inv(check_transform(T_world_trunk, "T_world_trunk"))
+        T_t_world = inv_T(check_se3(T_world_trunk, "T_world_trunk"))
         return cls.from_vertices(T_t_world @ np.asarray(T_world_vertices, float), T_o_t)
 
     def error(self, p_o: np.ndarray) -> PathError:

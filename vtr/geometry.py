@@ -11,7 +11,11 @@ import gtsam
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import EstimationError
+from .errors import EstimationError, VtrError
+
+SE3_TOLERANCE = 1e-6   # max deviation of R R^T from I and of the last row from [0 0 0 1]
+_I3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -82,16 +86,26 @@ def tum_to_T(xyzq: np.ndarray) -> np.ndarray:
     return T.reshape(xyzq.shape[:-1] + (4, 4))
 
 
-def check_se3(T: np.ndarray, what: str = "transform", tol: float = 1e-6) -> np.ndarray:
-    """Validate a 4x4 rigid transform; raise ``EstimationError`` naming ``what`` otherwise."""
-    T = np.asarray(T, dtype=float)
+def check_se3(T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE,
+              error: type[VtrError] = EstimationError) -> np.ndarray:
+    """Validate a 4x4 rigid transform; return it as float64 or raise ``error`` naming ``what``.
+
+    Checks shape, finiteness, the last row ``[0 0 0 1]`` and an orthonormal rotation block with
+    determinant +1 (to ``tol``). Scalar arithmetic keeps it cheap enough for per-measurement use.
+    """
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise error(f"{what}: not a numeric 4x4 matrix ({err})") from err
     if T.shape != (4, 4):
-        raise EstimationError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise EstimationError(f"{what}: contains NaN or infinity")
+        raise error(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise error(f"{what}: contains NaN or infinity")
+    if np.abs(T[3] - _LAST_ROW).max() > tol:
+        raise error(f"{what}: last row is {T[3].tolist()}, not [0 0 0 1]")
     R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=tol):
-        raise EstimationError(f"{what}: last row is {T[3]}, not [0 0 0 1]")
-    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
-        raise EstimationError(f"{what}: rotation block is not orthonormal with det +1")
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if np.abs(R @ R.T - _I3).max() > tol or det < 0:
+        raise error(f"{what}: rotation block is not orthonormal with det +1")
     return T

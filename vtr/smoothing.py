@@ -39,7 +39,7 @@ from gtsam.symbol_shorthand import V, X
 
 from .config import SmoothingConfig
 from .errors import ConfigError, EstimationError
-from .geometry import inv_T, skew
+from .geometry import check_se3, inv_T, skew
 
 NS_PER_S = 1_000_000_000
 POSE_DIM = 6                     # pose tangent dimension [rot, trans]
@@ -61,7 +61,6 @@ ITERATIONS_PER_KEYFRAME = 1
 COVARIANCE_REFRESH_KNOTS = 2
 
 # Input validation.
-SE3_TOLERANCE = 1e-6             # orthonormality tolerance of rotation blocks
 SYMMETRY_TOLERANCE = 1e-9        # relative asymmetry allowed in covariances
 MAX_COVARIANCE_CONDITION = 1e14  # larger condition numbers are treated as singular
 
@@ -305,31 +304,6 @@ def _check_time(t_ns: object, what: str = "t_ns") -> int:
     return int(t_ns)
 
 
-_I3 = np.eye(3)
-_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
-
-
-def check_transform(T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE) -> np.ndarray:
-    """Validate a 4x4 rigid transform (same contract as :func:`vtr.geometry.check_se3`, ~10x faster).
-
-    Raises EstimationError naming ``what`` for a wrong shape, NaN/inf, a last row other than
-    ``[0 0 0 1]`` or a rotation block that is not orthonormal with determinant +1 (to ``tol``).
-    Returns the matrix as float64.
-    """
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise EstimationError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.isfinite(T).all():
-        raise EstimationError(f"{what}: contains NaN or infinity")
-    if np.abs(T[3] - _LAST_ROW).max() > tol:
-        raise EstimationError(f"{what}: last row is {T[3]}, not [0 0 0 1]")
-    R = T[:3, :3]
-    # orthonormal rows: det is +-1 and its sign is that of r0 . (r1 x r2)
-    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    if np.abs(R @ R.T - _I3).max() > tol or det < 0:
-        raise EstimationError(f"{what}: rotation block is not orthonormal with det +1")
-    return T
 
 
 def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
@@ -543,10 +517,10 @@ class TrajectorySmoother:
         if c.n == 0 and T_world_sensor is None:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:
-            T_world_sensor = check_transform(T_world_sensor, "T_world_sensor")
+            T_world_sensor = check_se3(T_world_sensor, "T_world_sensor")
             covariance = _check_covariance(covariance, "covariance")
         if T_prev_cur is not None:
-            T_prev_cur = check_transform(T_prev_cur, "T_prev_cur")
+            T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
             relative_covariance = _check_covariance(relative_covariance, "relative_covariance")
         # -- all input valid: nothing below may leave a half-applied state except a solver failure.
         self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance)
@@ -834,7 +808,6 @@ __all__ = [
     "TrajectoryState",
     "adjoint",
     "adjoint_inv",
-    "check_transform",
     "extrapolation_jacobian",
     "interpolation_jacobian",
     "wnoa_Phi",

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import MapError
+from ..geometry import check_se3
 
 RUN_SHIFT = 32                       # bits of the index part of a vertex id
 INDEX_MASK = (1 << RUN_SHIFT) - 1
@@ -21,7 +22,6 @@ MAX_RUN = (1 << 31) - 1              # ids stay positive signed int64 (SQLite IN
 EDGE_KINDS = ("temporal", "spatial")
 RUN_KINDS = ("teach", "repeat")
 
-SE3_TOLERANCE = 1e-6                 # max deviation of R R^T from I and of the last row
 COV_SYMMETRY_RTOL = 1e-9             # |C - C^T| allowed, relative to max |C|
 COV_PSD_RTOL = 1e-9                  # smallest eigenvalue allowed, relative to the largest (negative)
 
@@ -143,20 +143,7 @@ class RunInfo:
 
 def check_transform(T, what: str) -> np.ndarray:
     """A finite 4x4 rigid transform as float64, or ``MapError`` naming ``what``."""
-    try:
-        T = np.array(T, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise MapError(f"{what}: not a numeric 4x4 matrix ({err})") from err
-    if T.shape != (4, 4):
-        raise MapError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise MapError(f"{what}: contains NaN or infinity")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=SE3_TOLERANCE):
-        raise MapError(f"{what}: last row is {T[3].tolist()}, not [0, 0, 0, 1]")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=SE3_TOLERANCE) or np.linalg.det(R) <= 0:
-        raise MapError(f"{what}: rotation block is not orthonormal with determinant +1")
-    return T
+    return check_se3(T, what, error=MapError)
 
 
 def check_covariance(C, what: str) -> np.ndarray:

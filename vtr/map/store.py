@@ -37,6 +37,7 @@ from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, VtrError
+from ..geometry import inv_T
 from .records import (
     EDGE_KINDS,
     INDEX_MASK,
@@ -82,16 +83,6 @@ def _run_range(run: int) -> tuple[int, int]:
     """Smallest and largest vertex id of a run."""
     lo = int(run) << RUN_SHIFT
     return lo, lo | INDEX_MASK
-
-
-def _inv_T(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (..., 4, 4)."""
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def _check_int(value, what: str, minimum: int | None = None) -> int:
@@ -691,12 +682,12 @@ class Map:
             if rf == run and rt == ref:
                 l_id, t_id, T_l_t = e.from_id, e.to_id, e.T_from_to
             elif rf == ref and rt == run:
-                l_id, t_id, T_l_t = e.to_id, e.from_id, _inv_T(e.T_from_to)
+                l_id, t_id, T_l_t = e.to_id, e.from_id, inv_T(e.T_from_to)
             else:
                 continue
             i_l = int(np.searchsorted(ids, l_id))
             i_t = int(np.searchsorted(ref_ids, t_id))
-            T_map_run = T_map_t[i_t] @ _inv_T(T_l_t) @ _inv_T(T_run_v[i_l])
+            T_map_run = T_map_t[i_t] @ inv_T(T_l_t) @ inv_T(T_run_v[i_l])
             links.append((i_l, T_map_run, e.inliers))
         if not links:
             return ids, T_run_v, False
