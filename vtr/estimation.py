@@ -64,14 +64,13 @@ def stereo_jacobian(p: np.ndarray, camera: StereoCamera) -> np.ndarray:
 
 @dataclass(frozen=True)
 class RefineResult:
-    """Refined ``T_q_r``, its 6x6 covariance ([rot, trans], left perturbation), landmarks in r,
-    the final per-correspondence inlier mask and the RMS reprojection error (px)."""
+    """Refined ``T_q_r``, its 6x6 covariance ([rot, trans], left perturbation), landmarks in r and
+    the final per-correspondence inlier mask."""
 
     T_q_r: np.ndarray
     covariance: np.ndarray
     points_r: np.ndarray
     inlier: np.ndarray
-    rms_px: float
 
 
 def _huber_weights(r2: np.ndarray, k: float) -> np.ndarray:
@@ -96,9 +95,7 @@ def refine_two_view(T_q_r: np.ndarray, points_r: np.ndarray, z_r: np.ndarray, z_
                         np.nan_to_num(z), rows, camera, sigma_px, huber_px, iterations)
     e2 = np.maximum(res.error_sq[:n], res.error_sq[n:])
     inlier = e2 <= outlier_px**2
-    sq = np.r_[res.error_sq[:n][inlier], res.error_sq[n:][inlier]] / 3
-    rms = float(np.sqrt(np.mean(sq))) if inlier.any() else float("nan")
-    return RefineResult(res.T_cam_world[1], res.pose_covariance[1], res.points, inlier, rms)
+    return RefineResult(res.T_cam_world[1], res.pose_covariance[1], res.points, inlier)
 
 
 @dataclass(frozen=True)

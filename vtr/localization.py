@@ -141,14 +141,6 @@ class LocalizationChain:
         self.distance_since_success = 0.0
 
 
-@dataclass(frozen=True)
-class TaughtVertex:
-    """What localization needs of a taught vertex: id, stereo frame (landmarks in its camera frame)."""
-
-    id: int
-    frame: StereoFrame
-
-
 class Localizer:
     """Matches a leaf's features to a trunk's landmarks and estimates ``T_leaf_trunk``."""
 

@@ -16,7 +16,7 @@ camera frame of the run (world = camera 0), as KITTI ground truth is.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
@@ -78,7 +78,6 @@ class OdometryResult:
     covariance: np.ndarray
     new_keyframe: Keyframe | None = None
     finalized: tuple[Keyframe, ...] = ()
-    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def vertex_id(self) -> int:
