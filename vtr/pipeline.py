@@ -300,7 +300,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         write_state_csv(out / "state.csv", state)
         t_ns, T_teach = np.array(t_ns, np.int64), np.array(T_teach)
         write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
-        _, T_priv = m.privileged_poses()
+        T_priv = repeat.chain.T_priv
         errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
         plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
         ok = [loc for loc in locs if loc.success]
