@@ -136,6 +136,13 @@ def segment_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out.reshape((n, *tail))
 
 
+def _cross_rows(y: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """Row-wise cross products ``y x J[:, r]`` for y (M, 3) and J (M, R, 3) -> (M, R, 3)."""
+    y0, y1, y2 = y[:, None, 0], y[:, None, 1], y[:, None, 2]
+    j0, j1, j2 = J[:, :, 0], J[:, :, 1], J[:, :, 2]
+    return np.stack([y1 * j2 - y2 * j1, y2 * j0 - y0 * j2, y0 * j1 - y1 * j0], axis=-1)
+
+
 def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
                   obs_point: np.ndarray, z: np.ndarray, row_weight: np.ndarray, camera: StereoCamera,
                   sigma_px: float, huber_px: float, iterations: int, fix_points: bool = False) -> BundleResult:
@@ -154,13 +161,16 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     free = np.flatnonzero(~fixed)
     free_rows = (free[:, None] * 6 + np.arange(6)).ravel()
     info_rows = row_weight / sigma_px**2
-    zz = np.where(row_weight > 0, z, 0.0)
+    measured = row_weight > 0
+    zz = np.where(measured, z, 0.0)
     k_huber = huber_px / sigma_px
     by_pose = [np.flatnonzero(obs_pose == k) for k in range(K)]
 
     def evaluate(T_, X_):
-        Y = (T_[obs_pose, :3, :3] @ X_[obs_point][:, :, None])[:, :, 0] + T_[obs_pose, :3, 3]
-        e = (camera.project(Y) - zz) * (row_weight > 0)
+        Y = np.empty((len(obs_pose), 3))
+        for k, sel in enumerate(by_pose):       # one GEMM per pose instead of M tiny products
+            Y[sel] = X_[obs_point[sel]] @ T_[k, :3, :3].T + T_[k, :3, 3]
+        e = (camera.project(Y) - zz) * measured
         r2 = (info_rows * e**2).sum(1)
         w = _huber_weights(r2, k_huber)
         return Y, e, w, float(np.sum(w * r2 * (2 - w)))
@@ -172,11 +182,11 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     S = np.eye(6 * K)
     for _ in range(iterations):
         J_Y = stereo_jacobian(Y, camera)                               # (M, 3, 3)
-        J_p = np.empty((len(Y), 3, 6))
-        J_p[:, :, :3] = np.cross(Y[:, None, :], J_Y)                  # d/d omega of Exp(xi) Y = -J_Y [Y]x
-        J_p[:, :, 3:] = J_Y
         sw = np.sqrt(w[:, None] * info_rows)                          # (M, 3) square-root weights
-        Jp_w = J_p * sw[:, :, None]
+        Jy_w = J_Y * sw[:, :, None]
+        Jp_w = np.empty((len(Y), 3, 6))
+        Jp_w[:, :, :3] = _cross_rows(Y, Jy_w)                          # d/d omega of Exp(xi) Y = -J_Y [Y]x
+        Jp_w[:, :, 3:] = Jy_w
         e_w = e * sw
         H = np.zeros((6 * K, 6 * K))
         b = np.zeros(6 * K)
@@ -185,12 +195,16 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
             H[6 * k:6 * k + 6, 6 * k:6 * k + 6] = A.T @ A
             b[6 * k:6 * k + 6] = -A.T @ e_w[sel].reshape(-1)
         if not fix_points:
-            Jx_w = (J_Y @ T[obs_pose, :3, :3]) * sw[:, :, None]
+            Jx_w = np.empty_like(Jy_w)
+            for k, sel in enumerate(by_pose):
+                Jx_w[sel] = (Jy_w[sel].reshape(-1, 3) @ T[k, :3, :3]).reshape(-1, 3, 3)
             Hll = segment_sum(obs_point, np.swapaxes(Jx_w, 1, 2) @ Jx_w, L)
-            bl = -segment_sum(obs_point, (Jx_w * e_w[:, :, None]).sum(1), L)
-            B = np.zeros((L, K, 6, 3))                                # pose-landmark coupling blocks
-            B[obs_point, obs_pose] = np.swapaxes(Jp_w, 1, 2) @ Jx_w
-            B = B.reshape(L, 6 * K, 3)
+            bl = -segment_sum(obs_point, np.einsum("mra,mr->ma", Jx_w, e_w), L)
+            # pose-landmark coupling blocks, laid out (pose row, landmark, 3) so that the reduced
+            # camera system below is one contiguous GEMM
+            B = np.zeros((K, 6, L, 3))
+            B[obs_pose, :, obs_point, :] = np.swapaxes(Jp_w, 1, 2) @ Jx_w
+            B = B.reshape(6 * K, L, 3)
         improved = converged = False
         for _attempt in range(MAX_LM_ATTEMPTS):
             if fix_points:
@@ -199,9 +213,9 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 # damping on the landmark blocks too: far landmarks seen along one ray are ill-conditioned
                 Hll_inv = inv_sym3(Hll + lam * np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3
                                                              + 1e-9))
-                C = B @ Hll_inv
-                S = H - np.tensordot(C, B, axes=([0, 2], [0, 2]))
-                g = b - np.tensordot(C, bl, axes=([0, 2], [0, 1]))
+                C = sum(B[:, :, a, None] * Hll_inv[None, :, a, :] for a in range(3)).reshape(6 * K, 3 * L)
+                S = H - C @ B.reshape(6 * K, 3 * L).T
+                g = b - C @ bl.reshape(-1)
             S_f = S[np.ix_(free_rows, free_rows)]
             try:
                 dp = np.linalg.solve(S_f + lam * np.diag(np.diag(S_f) + 1e-9), g[free_rows])
@@ -215,7 +229,8 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 T_new[k] = exp_se3(dpk[6 * k:6 * k + 6]) @ T[k]
             X_new = X
             if not fix_points:
-                X_new = X + (Hll_inv @ (bl - np.swapaxes(B, 1, 2) @ dpk)[:, :, None])[:, :, 0]
+                rhs = bl - (dpk @ B.reshape(6 * K, 3 * L)).reshape(L, 3)
+                X_new = X + np.einsum("lab,lb->la", Hll_inv, rhs)
             Y_n, e_n, w_n, cost_n = evaluate(T_new, X_new)
             if np.all(Y_n[:, 2] > 0) and cost_n < cost:
                 converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost
@@ -234,5 +249,5 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 cov[k] = Sinv[6 * j:6 * j + 6, 6 * j:6 * j + 6]
         except np.linalg.LinAlgError:
             cov[free] = np.nan
-    err_sq = ((camera.project(Y) - zz) ** 2 * (row_weight > 0)).sum(1)
+    err_sq = ((camera.project(Y) - zz) ** 2 * measured).sum(1)
     return BundleResult(T, X, err_sq, cov, cost)
