@@ -30,6 +30,10 @@ class FeatureConfig:
     n_levels: int = 4               # ORB pyramid levels (scale range 1.7: consecutive keyframes, repeats)
     fast_threshold: int = 20        # FAST corner threshold (grey levels)
     edge_threshold: int = 19        # ORB border (px); also the patch half-size bound
+    # ranking of FAST corners before bucketing: "fast" (FAST score, as ORB-SLAM's extractor) or "harris"
+    # (OpenCV ORB's default). On the KITTI clip Harris ranking gave t_err 1.05-1.8 % over five parameter
+    # variants against 0.67-0.90 % for the FAST score, which is also ~2 ms cheaper per image
+    corner_score: str = "fast"
 
 
 @dataclass
@@ -178,6 +182,7 @@ class Config:
         o, s, loc = self.odometry, self.stereo, self.localization
         checks = [
             (self.features.n_features > 0, "features.n_features must be positive"),
+            (self.features.corner_score in ("fast", "harris"), "features.corner_score must be 'fast' or 'harris'"),
             (0 < s.min_disparity_px < s.max_disparity_px, "stereo disparity limits must satisfy 0 < min < max"),
             (o.min_inliers >= 3, "odometry.min_inliers must be at least 3"),
             (o.keyframe_min_inliers >= o.min_inliers, "odometry.keyframe_min_inliers must be >= min_inliers"),

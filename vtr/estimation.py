@@ -20,6 +20,7 @@ import numpy as np
 
 from .camera import StereoCamera
 from .geometry import exp_se3
+from .kernels import bundle as kb
 
 
 @dataclass(frozen=True)
@@ -73,12 +74,6 @@ class RefineResult:
     inlier: np.ndarray
 
 
-def _huber_weights(r2: np.ndarray, k: float) -> np.ndarray:
-    """IRLS weights of the Huber kernel for squared normalised residuals r2."""
-    r = np.sqrt(r2)
-    return np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
-
-
 def refine_two_view(T_q_r: np.ndarray, points_r: np.ndarray, z_r: np.ndarray, z_q: np.ndarray,
                     camera: StereoCamera, sigma_px: float, huber_px: float, iterations: int,
                     outlier_px: float) -> RefineResult:
@@ -116,33 +111,6 @@ MAX_LM_ATTEMPTS = 8              # damping increases per iteration before giving
 MIN_LM_DAMPING = 1e-7
 
 
-def inv_sym3(A: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric 3x3 matrices (..., 3, 3) by the adjugate (vectorized, no LAPACK call)."""
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
-    d, e, f = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(A.shape)
-    return out / det[..., None, None]
-
-
-def segment_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of ``values`` (M, ...) into ``n`` bins by ``index`` (M,) -> (n, ...) (fast ``np.add.at``)."""
-    tail = values.shape[1:]
-    width = int(np.prod(tail)) if tail else 1
-    flat = (index[:, None] * width + np.arange(width)[None, :]).ravel()
-    out = np.bincount(flat, weights=values.reshape(-1), minlength=n * width)
-    return out.reshape((n, *tail))
-
-
-def _cross_rows(y: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """Row-wise cross products ``y x J[:, r]`` for y (M, 3) and J (M, R, 3) -> (M, R, 3)."""
-    y0, y1, y2 = y[:, None, 0], y[:, None, 1], y[:, None, 2]
-    j0, j1, j2 = J[:, :, 0], J[:, :, 1], J[:, :, 2]
-    return np.stack([y1 * j2 - y2 * j1, y2 * j0 - y0 * j2, y0 * j1 - y1 * j0], axis=-1)
-
-
 def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
                   obs_point: np.ndarray, z: np.ndarray, row_weight: np.ndarray, camera: StereoCamera,
                   sigma_px: float, huber_px: float, iterations: int, fix_points: bool = False) -> BundleResult:
@@ -151,71 +119,45 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     ``obs_pose``/``obs_point`` index the pose and landmark of each observation (a landmark is seen at
     most once per pose), ``z`` (M, 3) its measurement and ``row_weight`` (M, 3) a weight per measured
     row (0 for a missing right match, small for the disparity of a far landmark). Landmarks are
-    eliminated by the Schur complement (3x3 blocks): the reduced camera system is one dense GEMM over
-    a landmark-by-pose coupling array, so the solve is over the free poses only; ``fix_points``
-    refines poses alone. Poses are perturbed on the left, ``T <- Exp(xi) T`` with ``xi = [omega, v]``.
+    eliminated by the Schur complement (3x3 blocks), so the solve is over the free poses only;
+    ``fix_points`` refines poses alone. Poses are perturbed on the left, ``T <- Exp(xi) T`` with
+    ``xi = [omega, v]``. The per-observation work runs in compiled kernels (``vtr.kernels.bundle``).
     """
     T = T_cam_world.copy()
-    X = points.copy()
+    X = np.ascontiguousarray(points, dtype=np.float64).copy()
     K, L = len(T), len(X)
     free = np.flatnonzero(~fixed)
     free_rows = (free[:, None] * 6 + np.arange(6)).ravel()
-    info_rows = row_weight / sigma_px**2
-    measured = row_weight > 0
-    zz = np.where(measured, z, 0.0)
+    obs_pose = np.ascontiguousarray(obs_pose, dtype=np.int64)
+    obs_point = np.ascontiguousarray(obs_point, dtype=np.int64)
+    info_rows = np.ascontiguousarray(row_weight / sigma_px**2, dtype=np.float64)
+    measured = (row_weight > 0).astype(np.float64)
+    zz = np.ascontiguousarray(np.where(row_weight > 0, z, 0.0), dtype=np.float64)
     k_huber = huber_px / sigma_px
-    by_pose = [np.flatnonzero(obs_pose == k) for k in range(K)]
+    point_obs = np.argsort(obs_point, kind="stable")
+    point_start = np.searchsorted(obs_point[point_obs], np.arange(L + 1))
+    cam = (camera.fx, camera.fy, camera.cx, camera.cy, camera.fb)
 
     def evaluate(T_, X_):
-        Y = np.empty((len(obs_pose), 3))
-        for k, sel in enumerate(by_pose):       # one GEMM per pose instead of M tiny products
-            Y[sel] = X_[obs_point[sel]] @ T_[k, :3, :3].T + T_[k, :3, 3]
-        e = (camera.project(Y) - zz) * measured
-        r2 = (info_rows * e**2).sum(1)
-        w = _huber_weights(r2, k_huber)
-        return Y, e, w, float(np.sum(w * r2 * (2 - w)))
+        return kb.residuals(np.ascontiguousarray(T_[:, :3, :3]), np.ascontiguousarray(T_[:, :3, 3]), X_,
+                            obs_pose, obs_point, zz, measured, info_rows, k_huber, *cam)
 
-    Y, e, w, cost = evaluate(T, X)
-    if not np.all(Y[:, 2] > 0):
+    Y, e, w, cost, min_depth = evaluate(T, X)
+    if not min_depth > 0:
         raise ValueError("bundle_adjust: a landmark starts behind its camera")
     lam = 1e-4
     S = np.eye(6 * K)
     for _ in range(iterations):
-        J_Y = stereo_jacobian(Y, camera)                               # (M, 3, 3)
-        sw = np.sqrt(w[:, None] * info_rows)                          # (M, 3) square-root weights
-        Jy_w = J_Y * sw[:, :, None]
-        Jp_w = np.empty((len(Y), 3, 6))
-        Jp_w[:, :, :3] = _cross_rows(Y, Jy_w)                          # d/d omega of Exp(xi) Y = -J_Y [Y]x
-        Jp_w[:, :, 3:] = Jy_w
-        e_w = e * sw
-        H = np.zeros((6 * K, 6 * K))
-        b = np.zeros(6 * K)
-        for k, sel in enumerate(by_pose):
-            A = Jp_w[sel].reshape(-1, 6)
-            H[6 * k:6 * k + 6, 6 * k:6 * k + 6] = A.T @ A
-            b[6 * k:6 * k + 6] = -A.T @ e_w[sel].reshape(-1)
-        if not fix_points:
-            Jx_w = np.empty_like(Jy_w)
-            for k, sel in enumerate(by_pose):
-                Jx_w[sel] = (Jy_w[sel].reshape(-1, 3) @ T[k, :3, :3]).reshape(-1, 3, 3)
-            Hll = segment_sum(obs_point, np.swapaxes(Jx_w, 1, 2) @ Jx_w, L)
-            bl = -segment_sum(obs_point, np.einsum("mra,mr->ma", Jx_w, e_w), L)
-            # pose-landmark coupling blocks, laid out (pose row, landmark, 3) so that the reduced
-            # camera system below is one contiguous GEMM
-            B = np.zeros((K, 6, L, 3))
-            B[obs_pose, :, obs_point, :] = np.swapaxes(Jp_w, 1, 2) @ Jx_w
-            B = B.reshape(6 * K, L, 3)
+        R = np.ascontiguousarray(T[:, :3, :3])
+        H, b, Hll, bl, W = kb.normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, L, fix_points,
+                                               camera.fx, camera.fy, camera.fb)
         improved = converged = False
         for _attempt in range(MAX_LM_ATTEMPTS):
             if fix_points:
                 S, g = H, b
             else:
                 # damping on the landmark blocks too: far landmarks seen along one ray are ill-conditioned
-                Hll_inv = inv_sym3(Hll + lam * np.eye(3) * (np.trace(Hll, axis1=1, axis2=2)[:, None, None] / 3
-                                                             + 1e-9))
-                C = sum(B[:, :, a, None] * Hll_inv[None, :, a, :] for a in range(3)).reshape(6 * K, 3 * L)
-                S = H - C @ B.reshape(6 * K, 3 * L).T
-                g = b - C @ bl.reshape(-1)
+                S, g, Hll_inv = kb.schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, lam)
             S_f = S[np.ix_(free_rows, free_rows)]
             try:
                 dp = np.linalg.solve(S_f + lam * np.diag(np.diag(S_f) + 1e-9), g[free_rows])
@@ -229,10 +171,9 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 T_new[k] = exp_se3(dpk[6 * k:6 * k + 6]) @ T[k]
             X_new = X
             if not fix_points:
-                rhs = bl - (dpk @ B.reshape(6 * K, 3 * L)).reshape(L, 3)
-                X_new = X + np.einsum("lab,lb->la", Hll_inv, rhs)
-            Y_n, e_n, w_n, cost_n = evaluate(T_new, X_new)
-            if np.all(Y_n[:, 2] > 0) and cost_n < cost:
+                X_new = kb.back_substitute(X, Hll_inv, bl, W, obs_pose, point_start, point_obs, dpk)
+            Y_n, e_n, w_n, cost_n, depth_n = evaluate(T_new, X_new)
+            if depth_n > 0 and cost_n < cost:
                 converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost
                 T, X, Y, e, w, cost = T_new, X_new, Y_n, e_n, w_n, cost_n
                 lam = max(lam / 10, MIN_LM_DAMPING)

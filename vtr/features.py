@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from .config import FeatureConfig
+from .kernels import matching as km
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,7 @@ class FeatureExtractor:
             edgeThreshold=config.edge_threshold,
             patchSize=config.edge_threshold + 12,
             fastThreshold=config.fast_threshold,
+            scoreType=cv2.ORB_HARRIS_SCORE if config.corner_score == "harris" else cv2.ORB_FAST_SCORE,
         )
 
     @property
@@ -107,53 +109,29 @@ def _empty() -> Features:
     return Features(np.zeros((0, 2)), np.zeros(0, np.int32), np.zeros(0), np.zeros((0, 32), np.uint8))
 
 
-def hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, jb: np.ndarray) -> np.ndarray:
-    """Hamming distances between descriptors ``a[ia]`` and ``b[jb]`` (binary, 32 bytes each)."""
-    if len(ia) == 0:
-        return np.zeros(0, np.int32)
-    a64 = np.ascontiguousarray(a).view(np.uint64)
-    b64 = np.ascontiguousarray(b).view(np.uint64)
-    return np.bitwise_count(a64[ia] ^ b64[jb]).sum(axis=1, dtype=np.int32)
+def descriptor_words(descriptors: np.ndarray) -> np.ndarray:
+    """ORB descriptors (N, 32) uint8 viewed as (N, 4) uint64 words, the matching kernels' input."""
+    return np.ascontiguousarray(descriptors, dtype=np.uint8).view(np.uint64).reshape(len(descriptors), -1)
 
 
-def best_matches(dist: np.ndarray, ia: np.ndarray, jb: np.ndarray, max_distance: int,
-                 ratio: float = 1.0, mutual: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pick one match per query among candidate pairs (ia[k], jb[k]) with distances dist[k].
+def match_within_radius(pred_uv: np.ndarray, query_descriptors: np.ndarray, uv: np.ndarray,
+                        descriptors: np.ndarray, radius: float, max_distance: int, ratio: float = 1.0,
+                        mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Match queries predicted at ``pred_uv`` (N, 2) px to the features at ``uv`` within ``radius`` px.
 
-    Keeps the best candidate of each query when it is within ``max_distance``, passes the ratio
-    test against the query's second-best candidate (``best < ratio * second``) and, with
-    ``mutual``, is also the best query for its train feature. Returns (ia, jb, dist) of matches.
+    Keeps each query's closest descriptor within ``max_distance`` (Hamming) that passes the ratio
+    test ``best < ratio * second`` and, with ``mutual``, is its feature's closest query.
+    Returns (query indices, feature indices).
     """
-    if len(ia) == 0:
-        e = np.zeros(0, int)
-        return e, e, np.zeros(0, np.int32)
-    big = np.int64(np.max(dist)) + 1
-    order = np.argsort(ia.astype(np.int64) * big + dist, kind="stable")   # by query, closest first
-    ia_s, jb_s, d_s = ia[order], jb[order], dist[order]
-    first = np.r_[True, ia_s[1:] != ia_s[:-1]]
-    best = np.flatnonzero(first)
-    ok = d_s[best] <= max_distance
-    if ratio < 1.0:
-        has_second = np.r_[best[1:] - best[:-1] > 1, len(ia_s) - best[-1] > 1]
-        second = np.where(has_second, d_s[np.minimum(best + 1, len(d_s) - 1)], np.iinfo(np.int32).max)
-        ok &= d_s[best] < ratio * second
-    best = best[ok]
-    qi, tj, dd = ia_s[best], jb_s[best], d_s[best]
-    if mutual and len(qi):
-        # for every train feature keep the closest query
-        o = np.argsort(tj.astype(np.int64) * big + dd, kind="stable")
-        keep_first = np.r_[True, tj[o][1:] != tj[o][:-1]]
-        sel = o[keep_first]
-        qi, tj, dd = qi[sel], tj[sel], dd[sel]
-    return qi, tj, dd
+    qi, tj, _ = km.radius_match(np.ascontiguousarray(pred_uv, dtype=np.float64), descriptor_words(query_descriptors),
+                                np.ascontiguousarray(uv, dtype=np.float64), descriptor_words(descriptors),
+                                float(radius), int(max_distance), float(ratio), bool(mutual))
+    return qi, tj
 
 
-def radius_pairs(pred_uv: np.ndarray, uv: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs (i, j) with ``|pred_uv[i] - uv[j]| <= radius`` (px), via KD-trees."""
-    from scipy.spatial import cKDTree
-
-    if len(pred_uv) == 0 or len(uv) == 0:
-        e = np.zeros(0, int)
-        return e, e
-    sdm = cKDTree(pred_uv).sparse_distance_matrix(cKDTree(uv), radius, output_type="ndarray")
-    return sdm["i"].astype(int), sdm["j"].astype(int)
+def match_all(query_descriptors: np.ndarray, descriptors: np.ndarray, max_distance: int, ratio: float = 1.0,
+              mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Match every query descriptor against every descriptor (no position gate); see ``match_within_radius``."""
+    qi, tj, _ = km.all_pairs_match(descriptor_words(query_descriptors), descriptor_words(descriptors),
+                                   int(max_distance), float(ratio), bool(mutual))
+    return qi, tj

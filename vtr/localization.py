@@ -27,7 +27,7 @@ import numpy as np
 from .camera import StereoCamera
 from .config import LocalizationConfig, OdometryConfig
 from .estimation import ransac_pnp, refine_two_view
-from .features import best_matches, hamming_pairs
+from .features import match_all
 from .geometry import inv_T, log_se3
 from .odometry import MIN_DEPTH_M, match_to_landmarks
 from .stereo import StereoFrame
@@ -193,12 +193,9 @@ class Localizer:
                 return ti, lj
         # unguided: every trunk landmark against every leaf feature, ratio test
         ti_all = np.flatnonzero(trunk.has_depth)
-        n_l = len(leaf.features)
-        ia = np.repeat(ti_all, n_l)
-        jb = np.tile(np.arange(n_l), len(ti_all))
-        dist = hamming_pairs(trunk.features.descriptors, leaf.features.descriptors, ia, jb)
-        qi, tj, _ = best_matches(dist, ia, jb, c.max_descriptor_distance, ratio=self.odometry.ratio_test)
-        return qi, tj
+        qi, tj = match_all(trunk.features.descriptors[ti_all], leaf.features.descriptors, c.max_descriptor_distance,
+                           ratio=self.odometry.ratio_test)
+        return ti_all[qi], tj
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,

@@ -24,7 +24,7 @@ import numpy as np
 from .camera import StereoCamera
 from .config import Config, OdometryConfig
 from .estimation import bundle_adjust, ransac_pnp
-from .features import best_matches, hamming_pairs, radius_pairs
+from .features import match_within_radius
 from .geometry import exp_se3, inv_T, log_se3, rotation_angle
 from .io.base import StereoImages
 from .stereo import StereoFrame, StereoProcessor
@@ -407,11 +407,9 @@ def match_landmarks(points_world: np.ndarray, descriptors: np.ndarray, frame: St
     inside = (pred[:, 0] >= -radius) & (pred[:, 0] < camera.width + radius) \
         & (pred[:, 1] >= -radius) & (pred[:, 1] < camera.height + radius)
     idx, pred = idx[inside], pred[inside]
-    pi, cj = radius_pairs(pred, frame.features.uv, radius)
-    ia = idx[pi]
-    dist = hamming_pairs(descriptors, frame.features.descriptors, ia, cj)
-    qi, tj, _ = best_matches(dist, ia, cj, max_distance, ratio=ratio, mutual=True)
-    return qi, tj
+    qi, tj = match_within_radius(pred, descriptors[idx], frame.features.uv, frame.features.descriptors, radius,
+                                 max_distance, ratio=ratio, mutual=True)
+    return idx[qi], tj
 
 
 def match_to_landmarks(ref: StereoFrame, cur: StereoFrame, T_cur_ref: np.ndarray, camera: StereoCamera,

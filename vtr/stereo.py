@@ -10,9 +10,13 @@ import numpy as np
 
 from .camera import StereoCamera
 from .config import FeatureConfig, StereoConfig
-from .features import FeatureExtractor, Features, best_matches, hamming_pairs
+from .features import FeatureExtractor, Features, descriptor_words
 from .io.base import StereoImages
+from .kernels import matching as km
+from .kernels import stereo as ks
 from .timing import StageTimer
+
+MAX_OCTAVE_GAP = 1   # left/right features more pyramid levels apart are not the same corner
 
 
 @dataclass(frozen=True)
@@ -39,62 +43,18 @@ class StereoFrame:
         return np.column_stack([self.features.uv, self.u_right])
 
 
-def row_band_pairs(uv_l: np.ndarray, oct_l: np.ndarray, uv_r: np.ndarray, scales: np.ndarray,
-                   cfg: StereoConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate left/right pairs on (nearly) the same row within the disparity limits."""
-    if len(uv_l) == 0 or len(uv_r) == 0:
-        e = np.zeros(0, int)
-        return e, e
-    order = np.argsort(uv_r[:, 1])
-    v_sorted = uv_r[order, 1]
-    tol = cfg.max_row_diff_px * scales[oct_l]
-    lo = np.searchsorted(v_sorted, uv_l[:, 1] - tol, side="left")
-    hi = np.searchsorted(v_sorted, uv_l[:, 1] + tol, side="right")
-    counts = hi - lo
-    ia = np.repeat(np.arange(len(uv_l)), counts)
-    offs = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    jb = order[np.repeat(lo, counts) + offs]
-    disp = uv_l[ia, 0] - uv_r[jb, 0]
-    ok = (disp >= cfg.min_disparity_px - cfg.refine_search_px) & (disp <= cfg.max_disparity_px)
-    return ia[ok], jb[ok]
-
-
 def refine_disparity(left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: np.ndarray,
                      u_r: np.ndarray, half: int, search: int) -> tuple[np.ndarray, np.ndarray]:
-    """Subpixel right-image columns by SAD block matching along the row around ``u_r``.
+    """Subpixel right-image columns by mean-removed SSD block matching along the row around ``u_r``.
 
     Left patches are centred on the rounded left keypoints; the returned left columns are those
-    rounded positions. Returns (u_left_px, u_right_px), with NaN right columns where the SAD
+    rounded positions. Returns (u_left_px, u_right_px), with NaN right columns where the SSD
     minimum sits on the search border (no reliable match).
     """
-    h, w = left.shape
-    ul = np.rint(u_l).astype(int)
-    vl = np.rint(v_l).astype(int)
-    ur = np.rint(u_r).astype(int)
-    pad = half + search + 1
-    ok = (ul >= pad) & (ul < w - pad) & (ur >= pad) & (ur < w - pad) & (vl >= half) & (vl < h - half)
-    out = np.full(len(u_l), np.nan)
-    if not np.any(ok):
-        return ul.astype(float), out
-    ulo, vlo, uro = ul[ok], vl[ok], ur[ok]
-    d = np.arange(-half, half + 1)
-    rows = (vlo[:, None] + d[None, :])[:, :, None]                       # (n, P, 1)
-    lp = left[rows, (ulo[:, None] + d[None, :])[:, None, :]].astype(np.int32)  # (n, P, P)
-    lp -= lp.mean(axis=(1, 2), keepdims=True, dtype=np.int32)
-    shifts = np.arange(-search, search + 1)
-    cols = uro[:, None, None] + shifts[None, :, None] + d[None, None, :]   # (n, S, P)
-    strip = right[rows[:, None, :, :], cols[:, :, None, :]].astype(np.int32)  # (n, S, P, P)
-    strip -= strip.mean(axis=(2, 3), keepdims=True, dtype=np.int32)
-    sad = ((strip - lp[:, None]).astype(float) ** 2).sum(axis=(2, 3))     # (n, S)
-    k = np.argmin(sad, axis=1)
-    inner = (k > 0) & (k < 2 * search)
-    kk = np.clip(k, 1, 2 * search - 1)
-    idx = np.arange(len(k))
-    c_m, c_0, c_p = sad[idx, kk - 1], sad[idx, kk], sad[idx, kk + 1]
-    denom = c_m - 2 * c_0 + c_p
-    delta = np.where(denom > 0, 0.5 * (c_m - c_p) / np.where(denom > 0, denom, 1), 0.0)
-    refined = uro + shifts[kk] + np.clip(delta, -1, 1)
-    out[np.flatnonzero(ok)[inner]] = refined[inner]
+    ul = np.rint(u_l).astype(np.int64)
+    vl = np.rint(v_l).astype(np.int64)
+    ur = np.rint(u_r).astype(np.int64)
+    out = ks.refine_rows(np.ascontiguousarray(left), np.ascontiguousarray(right), ul, vl, ur, int(half), int(search))
     return ul.astype(float), out
 
 
@@ -111,11 +71,12 @@ class StereoProcessor:
 
     def match(self, left: Features, right: Features) -> tuple[np.ndarray, np.ndarray]:
         """Left/right matches on epipolar rows: (left indices, right indices)."""
-        ia, jb = row_band_pairs(left.uv, left.octave, right.uv, self.scales, self.cfg)
-        near_scale = np.abs(left.octave[ia] - right.octave[jb]) <= 1
-        ia, jb = ia[near_scale], jb[near_scale]
-        dist = hamming_pairs(left.descriptors, right.descriptors, ia, jb)
-        qi, tj, _ = best_matches(dist, ia, jb, self.cfg.max_descriptor_distance, mutual=True)
+        c = self.cfg
+        qi, tj, _ = km.row_band_match(
+            np.ascontiguousarray(left.uv), left.octave.astype(np.int64), descriptor_words(left.descriptors),
+            np.ascontiguousarray(right.uv), right.octave.astype(np.int64), descriptor_words(right.descriptors),
+            c.max_row_diff_px * self.scales, c.min_disparity_px - c.refine_search_px, c.max_disparity_px,
+            MAX_OCTAVE_GAP, c.max_descriptor_distance)
         return qi, tj
 
     def process(self, images: StereoImages) -> StereoFrame:
