@@ -90,19 +90,19 @@ class FeatureExtractor:
         if not kps:
             return _empty()
         uv = cv2.KeyPoint_convert(kps).astype(np.float64)
-        response = np.fromiter((k.response for k in kps), np.float64, len(kps))
+        response_octave = np.array([(k.response, k.octave) for k in kps])
         c = self.config
-        keep = bucket(uv, response, self.image_size, c.grid_rows, c.grid_cols, c.n_features)
-        kps = [kps[i] for i in keep]
-        kps, desc = self._orb.compute(image, kps)
-        if desc is None or not kps:
+        keep = bucket(uv, response_octave[:, 0], self.image_size, c.grid_rows, c.grid_cols, c.n_features)
+        described, desc = self._orb.compute(image, [kps[i] for i in keep])
+        if desc is None or not described:
             return _empty()
-        return Features(
-            uv=cv2.KeyPoint_convert(kps).astype(np.float64),
-            octave=np.fromiter((k.octave for k in kps), np.int32, len(kps)),
-            response=np.fromiter((k.response for k in kps), np.float64, len(kps)),
-            descriptors=desc,
-        )
+        if len(described) != len(keep):
+            # ORB dropped keypoints (border): read back the ones it kept
+            uv = cv2.KeyPoint_convert(described).astype(np.float64)
+            response_octave = np.array([(k.response, k.octave) for k in described])
+            keep = np.arange(len(described))
+        return Features(uv=uv[keep], octave=response_octave[keep, 1].astype(np.int32),
+                        response=response_octave[keep, 0], descriptors=desc)
 
 
 def _empty() -> Features:
@@ -111,7 +111,7 @@ def _empty() -> Features:
 
 def descriptor_words(descriptors: np.ndarray) -> np.ndarray:
     """ORB descriptors (N, 32) uint8 viewed as (N, 4) uint64 words, the matching kernels' input."""
-    return np.ascontiguousarray(descriptors, dtype=np.uint8).view(np.uint64).reshape(len(descriptors), -1)
+    return np.ascontiguousarray(descriptors, dtype=np.uint8).view(np.uint64)
 
 
 def match_within_radius(pred_uv: np.ndarray, query_descriptors: np.ndarray, uv: np.ndarray,
