@@ -19,7 +19,7 @@ def _versions() -> str:
     from importlib import import_module, metadata
 
     parts = [f"vtr {__version__}"]
-    for module, dist in (("numpy", "numpy"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
+    for module, dist in (("numpy", "numpy"), ("numba", "numba"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
                          ("gtsam", "gtsam"), ("open3d", "open3d"), ("rosbags", "rosbags")):
         import_module(module)
         parts.append(f"{module} {metadata.version(dist)}")
