@@ -58,11 +58,11 @@ class Teach:
         return self.vertices
 
     def _write(self, kf: Keyframe) -> None:
-        v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor)
+        edge = None
         if self._previous is not None:
-            prev_id, prev = self._previous
-            self.map.add_edge(prev_id, v.id, inv_T(prev.T_world_kf) @ kf.T_world_kf,
-                              _usable_covariance(kf.edge_covariance), "temporal", kf.edge_inliers)
+            prev = self._previous[1]
+            edge = (inv_T(prev.T_world_kf) @ kf.T_world_kf, _usable_covariance(kf.edge_covariance), kf.edge_inliers)
+        v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
         self._previous = (v.id, kf)
         self.vertices += 1
 
@@ -119,10 +119,10 @@ class Repeat:
         vid = self._leaf[0] if self._leaf else -1
         if result.new_keyframe is not None:
             kf = result.new_keyframe
-            v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor)
+            edge = None
             if self._leaf is not None:
-                self.map.add_edge(self._leaf[0], v.id, inv_T(self._leaf[1]) @ kf.T_world_kf,
-                                  _usable_covariance(result.covariance), "temporal", result.inliers)
+                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, _usable_covariance(result.covariance), result.inliers)
+            v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
             self._leaf = (v.id, kf.T_world_kf)
             vid = v.id
             t0 = time.perf_counter()

@@ -357,15 +357,23 @@ class Map:
         self._open_run = None
 
     def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
+                   T_vehicle_sensor: np.ndarray | None = None,
+                   edge_from_previous: tuple[np.ndarray, np.ndarray, int] | None = None) -> VertexRecord:
         """Append a keyframe to the open run ``run`` in one transaction; returns the stored record.
 
         ``T_world_vertex`` (4x4) is the keyframe's left camera pose in the run's first camera frame;
         ``T_vehicle_sensor`` defaults to the map camera's. The vertex index is the next in the run.
         Arrays are stored with dtypes uv/u_right/points float64, octave int32, descriptors uint8
-        (lossless conversion only, else ``MapError``).
+        (lossless conversion only, else ``MapError``). ``edge_from_previous`` = (T_prev_vertex 4x4,
+        6x6 covariance, inliers) adds the temporal edge from the run's previous vertex in the same
+        transaction (ignored for the run's first vertex).
         """
-        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
+        edge = None
+        if edge_from_previous is not None:
+            T, C, inliers = edge_from_previous
+            edge = (check_transform(T, "temporal edge T_from_to"), check_covariance(C, "temporal edge covariance"),
+                    _check_int(inliers, "temporal edge inliers", 0))
+        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge)
 
     def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
                      link_previous: bool = True) -> VertexRecord:
@@ -375,13 +383,8 @@ class Map:
         transaction as the vertex when the run already has a vertex and ``link_previous`` is true
         (pass false for the first keyframe of a new odometry session, e.g. after resuming a teach).
         """
-        edge = None
-        if link_previous:
-            T = check_transform(keyframe.T_prev_kf, "keyframe T_prev_kf")
-            C = check_covariance(keyframe.edge_covariance, "keyframe edge_covariance")
-            edge = (T, C, _check_int(keyframe.edge_inliers, "keyframe edge_inliers", 0))
-        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
-                                edge)
+        edge = (keyframe.T_prev_kf, keyframe.edge_covariance, keyframe.edge_inliers) if link_previous else None
+        return self.add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor, edge)
 
     def _add_vertex(self, run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge) -> VertexRecord:
         self._check_writable()
