@@ -36,6 +36,7 @@ def run_repeat(map_path: Path, frames: str, config: Config) -> dict:
         idx = parse_frame_range(frames, len(src), str(CLIP))
         images = [src[i] for i in idx]              # decode first: load time is not repeat time
         rp = Repeat(m, config, str(CLIP))
+        rp.timer.reset()
         t_loc, locs = [], []
         t0 = time.perf_counter()
         for im in images:
@@ -49,7 +50,10 @@ def run_repeat(map_path: Path, frames: str, config: Config) -> dict:
         trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in ok], np.int64)
         err = localization_errors(np.array([loc.T_leaf_trunk for loc in ok]), np.array([loc.t_ns for loc in ok]),
                                   trunk_t, gt.t_ns, gt.T_world_cam)
-    return {"frames": len(idx), "fps": len(idx) / seconds, "vertices": len(locs), "localized": len(ok),
+    stages = {k: 1000 * v / len(idx) for k, v in rp.timer.seconds.items()}
+    stages["other"] = 1000 * seconds / len(idx) - sum(stages.values())
+    return {"frames": len(idx), "fps": len(idx) / seconds, "stages": stages, "vertices": len(locs),
+            "localized": len(ok),
             "loc_ms_median": 1000 * float(np.median(t_loc)), "loc_ms_max": 1000 * float(np.max(t_loc)),
             "err_mm": 1000 * err.median_translation_m, "err_deg": err.median_rotation_deg}
 
@@ -80,6 +84,7 @@ def main() -> None:
                   f"{best['localized']}/{best['vertices']} localized, localization {best['loc_ms_median']:.1f} ms "
                   f"median ({best['loc_ms_max']:.1f} max) per keyframe, error {best['err_mm']:.1f} mm "
                   f"{best['err_deg']:.3f} deg (median)")
+            print("    ms/frame: " + "  ".join(f"{k} {v:.1f}" for k, v in best["stages"].items()))
     print(f"threads: 1; load average {np.round(os.getloadavg(), 2).tolist()}")
 
 

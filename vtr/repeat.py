@@ -106,6 +106,7 @@ class Repeat:
         self.chain = LocalizationChain(ids, T, config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
         self.odometry = StereoOdometry(self.camera, config)
+        self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
         self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
@@ -122,11 +123,14 @@ class Repeat:
             edge = None
             if self._leaf is not None:
                 edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, _usable_covariance(result.covariance), result.inliers)
-            v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
+            with self.timer("map_write"):
+                v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor,
+                                        edge)
             self._leaf = (v.id, kf.T_world_kf)
             vid = v.id
             t0 = time.perf_counter()
-            loc = self._localize(v.id, kf)
+            with self.timer("localization"):
+                loc = self._localize(v.id, kf)
             self.last_localization_seconds = time.perf_counter() - t0
             self.latest = loc
         else:
