@@ -37,29 +37,28 @@ def hamming(a, i, b, j):
 
 
 @njit(cache=True)
-def _mutual(best_j, best_d, best_gap, n_train):
-    """Keep each query's match only if it is the closest query of its train feature."""
+def _pack(best_j, best_d, keep):
+    """(query indices, train indices, distances) of the queries marked in ``keep``."""
+    q = np.nonzero(keep)[0].astype(np.int64)
+    return q, best_j[q], best_d[q]
+
+
+@njit(cache=True)
+def _finish(best_j, best_d, best_gap, n_train, mutual):
+    """Each query's best match; with ``mutual`` only if it is also the closest query of its train feature."""
+    matched = best_j != NO_MATCH
+    if not mutual:
+        return _pack(best_j, best_d, matched)
     owner = np.full(n_train, NO_MATCH, np.int64)
     owner_d = np.full(n_train, np.iinfo(np.int64).max, np.int64)
     owner_gap = np.full(n_train, np.inf)
     for q in range(len(best_j)):
         j = best_j[q]
-        if j != NO_MATCH and (best_d[q] < owner_d[j] or (best_d[q] == owner_d[j] and best_gap[q] < owner_gap[j])):
+        if matched[q] and (best_d[q] < owner_d[j] or (best_d[q] == owner_d[j] and best_gap[q] < owner_gap[j])):
             owner[j], owner_d[j], owner_gap[j] = q, best_d[q], best_gap[q]
-    n = 0
     for q in range(len(best_j)):
-        if best_j[q] != NO_MATCH and owner[best_j[q]] == q:
-            n += 1
-    qi = np.empty(n, np.int64)
-    tj = np.empty(n, np.int64)
-    dd = np.empty(n, np.int64)
-    n = 0
-    for q in range(len(best_j)):
-        j = best_j[q]
-        if j != NO_MATCH and owner[j] == q:
-            qi[n], tj[n], dd[n] = q, j, best_d[q]
-            n += 1
-    return qi, tj, dd
+        matched[q] = matched[q] and owner[best_j[q]] == q
+    return _pack(best_j, best_d, matched)
 
 
 @njit(cache=True)
@@ -85,7 +84,7 @@ def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutua
     best_d = np.zeros(n_q, np.int64)
     best_gap = np.zeros(n_q)
     if n_q == 0 or n_t == 0:
-        return _mutual(best_j, best_d, best_gap, n_t)
+        return _finish(best_j, best_d, best_gap, n_t, mutual)
     cell = max(radius, 1.0)
     u0, v0 = uv[:, 0].min(), uv[:, 1].min()
     n_cu = int((uv[:, 0].max() - u0) / cell) + 1
@@ -116,26 +115,7 @@ def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutua
                     best, second, bj, bgap = _consider(hamming(q_desc, q, t_desc, j), gap, j, best, second, bj, bgap)
         if bj != NO_MATCH and best <= max_distance and (ratio >= 1.0 or best < ratio * second):
             best_j[q], best_d[q], best_gap[q] = bj, best, bgap
-    if mutual:
-        return _mutual(best_j, best_d, best_gap, n_t)
-    return _unique_queries(best_j, best_d)
-
-
-@njit(cache=True)
-def _unique_queries(best_j, best_d):
-    n = 0
-    for q in range(len(best_j)):
-        if best_j[q] != NO_MATCH:
-            n += 1
-    qi = np.empty(n, np.int64)
-    tj = np.empty(n, np.int64)
-    dd = np.empty(n, np.int64)
-    n = 0
-    for q in range(len(best_j)):
-        if best_j[q] != NO_MATCH:
-            qi[n], tj[n], dd[n] = q, best_j[q], best_d[q]
-            n += 1
-    return qi, tj, dd
+    return _finish(best_j, best_d, best_gap, n_t, mutual)
 
 
 @njit(cache=True)
@@ -149,7 +129,7 @@ def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_dispar
     best_d = np.zeros(n_l, np.int64)
     best_gap = np.zeros(n_l)
     if n_l == 0 or n_r == 0:
-        return _mutual(best_j, best_d, best_gap, n_r)
+        return _finish(best_j, best_d, best_gap, n_r, True)
     order = np.argsort(uv_r[:, 1], kind="mergesort")
     v_sorted = uv_r[order, 1]
     big = np.iinfo(np.int64).max
@@ -167,7 +147,7 @@ def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_dispar
             best, second, bj, bgap = _consider(hamming(desc_l, i, desc_r, j), gap, j, best, second, bj, bgap)
         if bj != NO_MATCH and best <= max_distance:
             best_j[i], best_d[i], best_gap[i] = bj, best, bgap
-    return _mutual(best_j, best_d, best_gap, n_r)
+    return _finish(best_j, best_d, best_gap, n_r, True)
 
 
 @njit(cache=True)
@@ -184,6 +164,4 @@ def all_pairs_match(q_desc, t_desc, max_distance, ratio, mutual):
             best, second, bj, bgap = _consider(hamming(q_desc, q, t_desc, j), 0.0, j, best, second, bj, bgap)
         if bj != NO_MATCH and best <= max_distance and (ratio >= 1.0 or best < ratio * second):
             best_j[q], best_d[q] = bj, best
-    if mutual:
-        return _mutual(best_j, best_d, best_gap, n_t)
-    return _unique_queries(best_j, best_d)
+    return _finish(best_j, best_d, best_gap, n_t, mutual)
