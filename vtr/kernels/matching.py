@@ -37,6 +37,12 @@ def hamming(a, i, b, j):
 
 
 @njit(cache=True)
+def _no_matches(n):
+    """Per-query best train index (NO_MATCH), its descriptor distance and image gap, for n queries."""
+    return np.full(n, NO_MATCH, np.int64), np.zeros(n, np.int64), np.zeros(n)
+
+
+@njit(cache=True)
 def _pack(best_j, best_d, keep):
     """(query indices, train indices, distances) of the queries marked in ``keep``."""
     q = np.nonzero(keep)[0].astype(np.int64)
@@ -80,9 +86,7 @@ def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutua
     its search disc touches. Returns (query indices, train indices, distances).
     """
     n_q, n_t = len(pred_uv), len(uv)
-    best_j = np.full(n_q, NO_MATCH, np.int64)
-    best_d = np.zeros(n_q, np.int64)
-    best_gap = np.zeros(n_q)
+    best_j, best_d, best_gap = _no_matches(n_q)
     if n_q == 0 or n_t == 0:
         return _finish(best_j, best_d, best_gap, n_t, mutual)
     cell = max(radius, 1.0)
@@ -125,9 +129,7 @@ def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_dispar
     one, disparity in [min_disparity, max_disparity] and pyramid levels at most ``max_octave_gap``
     apart; closest descriptor, mutual. Returns (left indices, right indices, distances)."""
     n_l, n_r = len(uv_l), len(uv_r)
-    best_j = np.full(n_l, NO_MATCH, np.int64)
-    best_d = np.zeros(n_l, np.int64)
-    best_gap = np.zeros(n_l)
+    best_j, best_d, best_gap = _no_matches(n_l)
     if n_l == 0 or n_r == 0:
         return _finish(best_j, best_d, best_gap, n_r, True)
     order = np.argsort(uv_r[:, 1], kind="mergesort")
@@ -154,9 +156,7 @@ def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_dispar
 def all_pairs_match(q_desc, t_desc, max_distance, ratio, mutual):
     """Match every query against every train descriptor (no geometric gate)."""
     n_q, n_t = len(q_desc), len(t_desc)
-    best_j = np.full(n_q, NO_MATCH, np.int64)
-    best_d = np.zeros(n_q, np.int64)
-    best_gap = np.zeros(n_q)
+    best_j, best_d, best_gap = _no_matches(n_q)
     big = np.iinfo(np.int64).max
     for q in range(n_q):
         best, second, bj, bgap = big, big, NO_MATCH, 0.0
