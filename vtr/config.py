@@ -22,7 +22,9 @@ from .errors import ConfigError
 class FeatureConfig:
     """Detection and description (left and right images)."""
 
-    n_features: int = 1500          # features kept per image after grid bucketing
+    # features kept per image after grid bucketing; on the KITTI clip 2000 gave t_err 0.64-0.74 % over
+    # five parameter variants against 0.74-0.90 % for 1500, for ~10 % more time per frame
+    n_features: int = 2000
     detect_factor: float = 1.5      # ORB detects this many times n_features before bucketing
     grid_rows: int = 8              # bucketing grid (cells keep their strongest features)
     grid_cols: int = 16

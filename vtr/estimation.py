@@ -107,6 +107,7 @@ class BundleResult:
 
 
 RELATIVE_COST_TOLERANCE = 1e-6   # bundle adjustment stops when a step lowers the cost by less than this
+POSE_STEP_TOLERANCE = 1e-5       # ... or moves no pose by more than this (rad, m): only landmarks still creep
 MAX_LM_ATTEMPTS = 8              # damping increases per iteration before giving up
 MIN_LM_DAMPING = 1e-7
 
@@ -126,7 +127,8 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     T = T_cam_world.copy()
     X = np.ascontiguousarray(points, dtype=np.float64).copy()
     K, L = len(T), len(X)
-    free = np.flatnonzero(~fixed)
+    pose_free = ~np.asarray(fixed, bool)
+    free = np.flatnonzero(pose_free)
     free_rows = (free[:, None] * 6 + np.arange(6)).ravel()
     obs_pose = np.ascontiguousarray(obs_pose, dtype=np.int64)
     obs_point = np.ascontiguousarray(obs_point, dtype=np.int64)
@@ -149,7 +151,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     S = np.eye(6 * K)
     for _ in range(iterations):
         R = np.ascontiguousarray(T[:, :3, :3])
-        H, b, Hll, bl, W = kb.normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, L, fix_points,
+        H, b, Hll, bl, W = kb.normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, L, pose_free, fix_points,
                                                camera.fx, camera.fy, camera.fb)
         improved = converged = False
         for _attempt in range(MAX_LM_ATTEMPTS):
@@ -157,7 +159,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 S, g = H, b
             else:
                 # damping on the landmark blocks too: far landmarks seen along one ray are ill-conditioned
-                S, g, Hll_inv = kb.schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, lam)
+                S, g, Hll_inv = kb.schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, pose_free, lam)
             S_f = S[np.ix_(free_rows, free_rows)]
             try:
                 dp = np.linalg.solve(S_f + lam * np.diag(np.diag(S_f) + 1e-9), g[free_rows])
@@ -174,7 +176,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
                 X_new = kb.back_substitute(X, Hll_inv, bl, W, obs_pose, point_start, point_obs, dpk)
             Y_n, e_n, w_n, cost_n, depth_n = evaluate(T_new, X_new)
             if depth_n > 0 and cost_n < cost:
-                converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost
+                converged = cost - cost_n < RELATIVE_COST_TOLERANCE * cost or np.max(np.abs(dp)) < POSE_STEP_TOLERANCE
                 T, X, Y, e, w, cost = T_new, X_new, Y_n, e_n, w_n, cost_n
                 lam = max(lam / 10, MIN_LM_DAMPING)
                 improved = True

@@ -41,9 +41,10 @@ def residuals(R, t, X, obs_pose, obs_point, z, measured, info_rows, k_huber, fx,
 
 
 @njit(cache=True)
-def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, fix_points, fx, fy, fb):
+def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, pose_free, fix_points, fx, fy, fb):
     """Gauss-Newton blocks: pose system H (6K, 6K) and b (6K,), landmark blocks Hll (L, 3, 3) and
-    bl (L, 3), and the pose-landmark coupling W (M, 6, 3) of each observation (J_pose^T J_point)."""
+    bl (L, 3), and the pose-landmark coupling W (M, 6, 3) of each observation (J_pose^T J_point).
+    Blocks of poses with ``pose_free`` false stay zero (they are never solved for)."""
     M = len(obs_pose)
     K = len(R)
     H = np.zeros((6 * K, 6 * K))
@@ -74,8 +75,9 @@ def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, fix_p
             Jp[r, 1] = zc * Jy[r, 0] - x * Jy[r, 2]
             Jp[r, 2] = x * Jy[r, 1] - y * Jy[r, 0]
             Jp[r, 3], Jp[r, 4], Jp[r, 5] = Jy[r, 0], Jy[r, 1], Jy[r, 2]
+        free = pose_free[k]
         o = 6 * k
-        for i in range(6):
+        for i in range(6 if free else 0):
             acc = 0.0
             for r in range(3):
                 acc += Jp[r, i] * ew[r]
@@ -97,7 +99,7 @@ def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, fix_p
             bl[l, i] -= Jx[0, i] * ew[0] + Jx[1, i] * ew[1] + Jx[2, i] * ew[2]
             for j in range(3):
                 Hll[l, i, j] += Jx[0, i] * Jx[0, j] + Jx[1, i] * Jx[1, j] + Jx[2, i] * Jx[2, j]
-        for i in range(6):
+        for i in range(6 if free else 0):
             for j in range(3):
                 W[m, i, j] = Jp[0, i] * Jx[0, j] + Jp[1, i] * Jx[1, j] + Jp[2, i] * Jx[2, j]
     return H, b, Hll, bl, W
@@ -118,11 +120,12 @@ def _inv3(A):
 
 
 @njit(cache=True)
-def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, damping):
+def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, pose_free, damping):
     """Reduced camera system S = H - sum_l W_l Hll_l^-1 W_l^T, g = b - sum_l W_l Hll_l^-1 bl_l, with
     ``damping`` (LM lambda) on the landmark blocks too; returns S, g and the damped Hll^-1 (L, 3, 3).
 
-    ``point_obs[point_start[l]:point_start[l + 1]]`` lists the observations of landmark l.
+    ``point_obs[point_start[l]:point_start[l + 1]]`` lists the observations of landmark l; rows and
+    columns of fixed poses (``pose_free`` false) are left as in H.
     """
     S = H.copy()
     g = b.copy()
@@ -139,6 +142,8 @@ def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, damping):
         Hinv[l] = Ai
         for a in range(point_start[l], point_start[l + 1]):
             ma = point_obs[a]
+            if not pose_free[obs_pose[ma]]:
+                continue
             ka = 6 * obs_pose[ma]
             for i in range(6):
                 for j in range(3):
@@ -146,6 +151,8 @@ def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, damping):
                 g[ka + i] -= C[i, 0] * bl[l, 0] + C[i, 1] * bl[l, 1] + C[i, 2] * bl[l, 2]
             for c in range(point_start[l], point_start[l + 1]):
                 mc = point_obs[c]
+                if not pose_free[obs_pose[mc]]:
+                    continue
                 kc = 6 * obs_pose[mc]
                 for i in range(6):
                     for j in range(6):

@@ -34,9 +34,10 @@ VERTEX_ARRAYS: tuple[tuple[str, np.dtype, tuple[int, ...]], ...] = (
     ("u_right", np.dtype("<f8"), ()),
     ("points", np.dtype("<f8"), (3,)),
 )
-BLOB_MAGIC = b"VTRV\x01"             # vertex blob: magic + codec version, then zlib(count + raw arrays)
-COUNT_BYTES = 4                      # uint32 feature count at the start of the decompressed blob
-ROW_BYTES = tuple(dtype.itemsize * int(np.prod(tail, dtype=np.int64)) for _n, dtype, tail in VERTEX_ARRAYS)
+BLOB_MAGIC = b"VTRV\x02"             # vertex blob: magic + codec version (layout in ``encode_arrays``)
+COUNT_BYTES = 4                      # uint32 feature count after the magic
+RAW_ARRAYS = ("descriptors",)        # stored as is: binary descriptors are random bits, zlib gains nothing
+ROW_BYTES = {name: dtype.itemsize * int(np.prod(tail, dtype=np.int64)) for name, dtype, tail in VERTEX_ARRAYS}
 
 
 def vertex_id(run: int, index: int) -> int:
@@ -207,34 +208,42 @@ def count_landmarks(points: np.ndarray) -> int:
 
 
 def encode_arrays(arrays: dict[str, np.ndarray], level: int) -> bytes:
-    """Blob of the vertex arrays: magic, then zlib (``level``) of the feature count N (uint32 LE)
-    followed by each array's raw little-endian bytes in ``VERTEX_ARRAYS`` order (fixed dtypes and
-    trailing shapes, so no per-array header is needed and decoding is a few slices)."""
+    """Blob of the vertex arrays: magic, the feature count N (uint32 LE), the ``RAW_ARRAYS`` as raw
+    bytes, then zlib (``level``) of the other arrays' raw little-endian bytes, each in
+    ``VERTEX_ARRAYS`` order (fixed dtypes and trailing shapes, so no per-array header is needed and
+    decoding is a few slices)."""
     n = len(arrays["uv"])
-    parts = [np.uint32(n).astype("<u4").tobytes()]
-    parts += [np.ascontiguousarray(arrays[name], dtype=dtype).tobytes() for name, dtype, _t in VERTEX_ARRAYS]
-    return BLOB_MAGIC + zlib.compress(b"".join(parts), level)
+
+    def raw(name: str, dtype: np.dtype) -> bytes:
+        return np.ascontiguousarray(arrays[name], dtype=dtype).tobytes()
+
+    stored = b"".join(raw(name, dtype) for name, dtype, _t in VERTEX_ARRAYS if name in RAW_ARRAYS)
+    packed = b"".join(raw(name, dtype) for name, dtype, _t in VERTEX_ARRAYS if name not in RAW_ARRAYS)
+    return BLOB_MAGIC + np.uint32(n).astype("<u4").tobytes() + stored + zlib.compress(packed, level)
 
 
 def decode_arrays(blob: bytes, where: str) -> dict[str, np.ndarray]:
     """Inverse of :func:`encode_arrays` (read-only arrays); ``MapError`` naming ``where`` on a damaged blob."""
     if not blob.startswith(BLOB_MAGIC):
         raise MapError(f"{where}: vertex data has an unknown encoding")
+    head = len(BLOB_MAGIC) + COUNT_BYTES
+    if len(blob) < head:
+        raise MapError(f"{where}: vertex data is damaged (truncated)")
+    n = int(np.frombuffer(blob, dtype="<u4", count=1, offset=len(BLOB_MAGIC))[0])
+    raw_size = n * sum(ROW_BYTES[name] for name in RAW_ARRAYS)
     try:
-        raw = zlib.decompress(blob[len(BLOB_MAGIC):])
+        packed = zlib.decompress(blob[head + raw_size:])
     except zlib.error as err:
         raise MapError(f"{where}: vertex data is damaged ({err})") from err
-    if len(raw) < COUNT_BYTES:
-        raise MapError(f"{where}: vertex data is damaged (truncated)")
-    n = int(np.frombuffer(raw, dtype="<u4", count=1)[0])
-    sizes = ROW_BYTES
-    if len(raw) != COUNT_BYTES + n * sum(sizes):
-        raise MapError(f"{where}: vertex data is damaged ({len(raw)} bytes for {n} features)")
-    out, offset = {}, COUNT_BYTES
-    for (name, dtype, tail), size in zip(VERTEX_ARRAYS, sizes, strict=True):
-        out[name] = np.frombuffer(raw, dtype=dtype, count=n * size // dtype.itemsize, offset=offset).reshape(
+    if len(blob) < head + raw_size or len(packed) != n * sum(ROW_BYTES.values()) - raw_size:
+        raise MapError(f"{where}: vertex data is damaged ({len(blob)} bytes for {n} features)")
+    out, offsets = {}, {"raw": head, "packed": 0}
+    for name, dtype, tail in VERTEX_ARRAYS:
+        source, key = (blob, "raw") if name in RAW_ARRAYS else (packed, "packed")
+        size = n * ROW_BYTES[name]
+        out[name] = np.frombuffer(source, dtype=dtype, count=size // dtype.itemsize, offset=offsets[key]).reshape(
             (n, *tail)).astype(dtype.newbyteorder("="), copy=False)
-        offset += n * size
+        offsets[key] += size
     return out
 
 

@@ -66,7 +66,7 @@ if TYPE_CHECKING:
     from ..odometry import Keyframe
     from ..stereo import StereoFrame
 
-MAP_FORMAT_VERSION = 1
+MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
