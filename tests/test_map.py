@@ -304,6 +304,9 @@ def test_create_refuses_to_overwrite(tmp_path):
     with pytest.raises(MapError, match="compress_level"):
         Map.create(tmp_path / "x.vtrmap", CAMERA, MapConfig(compress_level=12))
     assert not (tmp_path / "x.vtrmap").exists()
+    with pytest.raises(MapError, match="is a directory: a vtr map is one SQLite file"):
+        Map.create(tmp_path, CAMERA)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["teach.vtrmap"]
 
 
 def test_empty_map_opens_and_has_no_taught_path(tmp_path):

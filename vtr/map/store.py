@@ -153,6 +153,9 @@ class Map:
             raise MapError(f"map.compress_level: {level} > 9")
         if not isinstance(camera, StereoCamera):
             raise MapError(f"camera: expected a StereoCamera, got {type(camera).__name__}")
+        if path.is_dir():
+            raise MapError(f"{path} is a directory: a vtr map is one SQLite file, give a file path such as "
+                           f"{path / 'route.vtrmap'}")
         leftovers = [p for p in (path, Path(f"{path}-wal"), Path(f"{path}-journal")) if p.exists()]
         if leftovers:
             raise MapError(f"{leftovers[0]} already exists: refusing to overwrite a map "
