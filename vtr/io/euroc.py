@@ -111,18 +111,23 @@ class EurocSource(FrameSource):
 
     def ground_truth(self) -> GroundTruth | None:
         """Left rectified camera poses from ``state_groundtruth_estimate0`` (body poses), if present."""
-        gt = self.root / "state_groundtruth_estimate0" / "data.csv"
-        if not gt.is_file():
-            return None
-        try:
-            rows = np.loadtxt(gt, delimiter=",", comments="#", ndmin=2)
-        except ValueError as err:
-            raise DataError(f"{gt}: malformed ({err})") from err
-        t = rows[:, 0].astype(np.int64)
-        T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
-        T_world_body[:, :3, 3] = rows[:, 1:4]
-        T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
-        return GroundTruth(t, T_world_body @ self.camera.T_vehicle_sensor)
+        return body_ground_truth(self.root / "state_groundtruth_estimate0" / "data.csv", 1,
+                                 self.camera.T_vehicle_sensor)
+
+
+def body_ground_truth(path: Path, ns_per_unit: int, T_body_cam: np.ndarray) -> GroundTruth | None:
+    """Camera poses from a CSV of body poses (time, x y z, qw qx qy qz; time in units of
+    ``ns_per_unit`` ns) composed with the camera's place on the body; None when the file is absent."""
+    if not path.is_file():
+        return None
+    try:
+        rows = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
+    except ValueError as err:
+        raise DataError(f"{path}: malformed ({err})") from err
+    T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
+    T_world_body[:, :3, 3] = rows[:, 1:4]
+    T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
+    return GroundTruth(rows[:, 0].astype(np.int64) * ns_per_unit, T_world_body @ T_body_cam)
 
 
 def is_stereo_pairs(path: Path) -> bool:
@@ -168,15 +173,5 @@ class StereoPairsSource(FrameSource):
         return StereoImages(int(self.timestamps()[index]), index, left, right)
 
     def ground_truth(self) -> GroundTruth | None:
-        gt = self.path / "groundtruth.csv"
-        if not gt.is_file():
-            return None
-        try:
-            rows = np.loadtxt(gt, delimiter=",", comments="#", ndmin=2)
-        except ValueError as err:
-            raise DataError(f"{gt}: malformed ({err})") from err
-        T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
-        T_world_body[:, :3, 3] = rows[:, 1:4]
-        T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
-        t = rows[:, 0].astype(np.int64) * 1_000_000_000
-        return GroundTruth(t, T_world_body @ self.camera.T_vehicle_sensor)
+        """Left rectified camera poses from ``groundtruth.csv`` (body poses, time in seconds)."""
+        return body_ground_truth(self.path / "groundtruth.csv", 1_000_000_000, self.camera.T_vehicle_sensor)
