@@ -8,6 +8,7 @@ Pixel coordinates are level-0 (full resolution) left-image pixels.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from operator import attrgetter
 
 import cv2
 import numpy as np
@@ -90,19 +91,26 @@ class FeatureExtractor:
         if not kps:
             return _empty()
         uv = cv2.KeyPoint_convert(kps).astype(np.float64)
-        response_octave = np.array([(k.response, k.octave) for k in kps])
+        response = _keypoint_field(kps, "response", np.float64)
         c = self.config
-        keep = bucket(uv, response_octave[:, 0], self.image_size, c.grid_rows, c.grid_cols, c.n_features)
-        described, desc = self._orb.compute(image, [kps[i] for i in keep])
+        keep = bucket(uv, response, self.image_size, c.grid_rows, c.grid_cols, c.n_features)
+        kept = [kps[i] for i in keep]
+        described, desc = self._orb.compute(image, kept)
         if desc is None or not described:
             return _empty()
-        if len(described) != len(keep):
+        if len(described) != len(kept):
             # ORB dropped keypoints (border): read back the ones it kept
-            uv = cv2.KeyPoint_convert(described).astype(np.float64)
-            response_octave = np.array([(k.response, k.octave) for k in described])
-            keep = np.arange(len(described))
-        return Features(uv=uv[keep], octave=response_octave[keep, 1].astype(np.int32),
-                        response=response_octave[keep, 0], descriptors=desc)
+            kept = described
+            uv = cv2.KeyPoint_convert(kept).astype(np.float64)
+            response = _keypoint_field(kept, "response", np.float64)
+            keep = np.arange(len(kept))
+        return Features(uv=uv[keep], octave=_keypoint_field(kept, "octave", np.int32), response=response[keep],
+                        descriptors=desc)
+
+
+def _keypoint_field(keypoints, name: str, dtype) -> np.ndarray:
+    """One attribute of OpenCV keypoints as an array (``attrgetter`` + ``fromiter``: ~6x faster than tuples)."""
+    return np.fromiter(map(attrgetter(name), keypoints), dtype, len(keypoints))
 
 
 def _empty() -> Features:
