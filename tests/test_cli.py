@@ -108,10 +108,12 @@ def test_frames_outside_source(kitti_clip, tmp_path, spec):
     _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--frames", spec), "--frames")
 
 
-def test_bad_config(kitti_clip, tmp_path):
+@pytest.mark.parametrize("text, named", [("odometry:\n  no_such_key: 3\n", "no_such_key"),
+                                         ("features:\n  corner_score: sift\n", "corner_score")])
+def test_bad_config(kitti_clip, tmp_path, text, named):
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("odometry:\n  no_such_key: 3\n")
-    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--config", cfg), "no_such_key")
+    cfg.write_text(text)
+    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--config", cfg), named)
 
 
 def test_euroc_sequence_runs(euroc_micro, tmp_path):
