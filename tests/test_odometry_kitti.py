@@ -42,3 +42,21 @@ def test_rotation_drift_within_bound(kitti_run):
 
 def test_translation_drift_within_bound(kitti_run):
     assert kitti_run[2].t_err_pct <= T_ERR_BOUND_PCT
+
+
+def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_run):
+    """Teach and repeat run odometry with keep_history=False: same keyframes, no per-frame memory."""
+    from vtr.odometry import StereoOdometry
+
+    with open_source(kitti_clip) as src:
+        vo = StereoOdometry(src.camera, Config(), keep_history=False)
+        finalized = []
+        for images in src.iter_frames(range(len(src))):
+            finalized += vo.process(images).finalized
+        finalized += vo.flush()
+        assert len(vo._keyframe_poses) == 0      # every keyframe's pose was handed out and dropped
+    with pytest.raises(RuntimeError, match="keep_history"):
+        vo.final_poses()
+    poses = kitti_run[1]
+    assert len(finalized) == len(poses)                    # every KITTI frame is a keyframe
+    assert np.allclose(np.array([kf.T_world_kf for kf in finalized]), poses, atol=1e-9)

@@ -150,8 +150,11 @@ class LocalMap:
 class StereoOdometry:
     """Keyframe stereo visual odometry; feed frames in time order with ``process``."""
 
-    def __init__(self, camera: StereoCamera, config: Config | None = None):
+    def __init__(self, camera: StereoCamera, config: Config | None = None, keep_history: bool = True):
+        """``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
+        store keyframes as they are finalized, turn it off so memory does not grow with the route."""
         self.config = config or Config()
+        self.keep_history = keep_history
         self.camera = camera
         self.timer = StageTimer()
         self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo, self.timer)
@@ -204,13 +207,12 @@ class StereoOdometry:
             new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, lm_ids, feat_idx)
             kind = FrameKind.CREATE_VERTEX
             T_world_frame = self._keyframe_poses[new_kf.id]
-            T_kf_frame = inv_T(self._keyframe_poses[ref.id]) @ T_world_frame
+            T_kf_frame = ref.T_cam_world @ T_world_frame   # ref may have just left the window
         else:
             moved = np.linalg.norm(T_step[:3, 3]) > cfg.still_translation_m \
                 or np.degrees(rotation_angle(T_step[:3, :3])) > cfg.still_rotation_deg
             kind = FrameKind.CREATE_CANDIDATE if moved else FrameKind.DO_NOTHING
-        self._frame_refs.append((new_kf.id if new_kf else ref.id,
-                                 np.eye(4) if new_kf else T_kf_frame))
+        self._remember(new_kf.id if new_kf else ref.id, np.eye(4) if new_kf else T_kf_frame)
         return OdometryResult(frame.t_ns, frame.index, kind, n_matches, n_inliers, ref.id, T_kf_frame,
                               T_world_frame, cov, new_kf, finalized)
 
@@ -224,7 +226,13 @@ class StereoOdometry:
     def final_poses(self) -> np.ndarray:
         """Poses (N, 4, 4) of every frame processed (in order), in the first camera frame, with
         keyframes as refined by the windowed bundle adjustment."""
+        if not self.keep_history:
+            raise RuntimeError("final_poses: this odometry was created with keep_history=False")
         return np.array([self._keyframe_poses[k] @ T for k, T in self._frame_refs]).reshape(-1, 4, 4)
+
+    def _remember(self, keyframe_id: int, T_kf_frame: np.ndarray) -> None:
+        if self.keep_history:
+            self._frame_refs.append((keyframe_id, T_kf_frame))
 
     def _take_id(self) -> int:
         self._next_id += 1
@@ -236,7 +244,7 @@ class StereoOdometry:
         kf = self._new_window_keyframe(frame, T_cw, covariance if covariance is not None else np.zeros((6, 6)),
                                        0, np.zeros(0, int), np.zeros(0, int))
         self._T_cw_last, self._t_last = T_cw, frame.t_ns
-        self._frame_refs.append((kf.id, np.eye(4)))
+        self._remember(kf.id, np.eye(4))
         new = self._public(kf)
         return OdometryResult(frame.t_ns, frame.index, FrameKind.CREATE_VERTEX, 0, 0, kf.id, np.eye(4),
                               inv_T(T_cw), new.edge_covariance, new)
@@ -278,6 +286,8 @@ class StereoOdometry:
         """A keyframe leaving the window: its pose is final; the edge joins it to the previous final one."""
         out = self._public(kf)
         self._previous_final = out
+        if not self.keep_history:
+            del self._keyframe_poses[kf.id]
         return out
 
     def _observations(self):
@@ -353,7 +363,7 @@ class StereoOdometry:
         self.map = LocalMap(self.config.odometry.window_keyframes)
         unknown = np.eye(6) * self.config.odometry.failure_variance
         res = self._start(frame, T_pred, unknown)
-        T_kf_frame = inv_T(self._keyframe_poses[ref.id]) @ inv_T(T_pred)
+        T_kf_frame = ref.T_cam_world @ inv_T(T_pred)
         return OdometryResult(frame.t_ns, frame.index, FrameKind.FAILURE, 0, 0, ref.id, T_kf_frame,
                               res.T_world_frame, unknown, res.new_keyframe, finalized)
 

@@ -143,17 +143,15 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
             for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
                 results.append(teach.process(images).record())
             n_vertices = teach.finish()
-            poses = teach.odometry.final_poses()
+            _, t_taught = m.timestamps(teach.run)
+            _, T_taught = m.poses(teach.run)
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
         summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             log = RunLog(out, "teach", config, [source_path])
-            kf = [r.vertex_id for r in results]
-            first = {k: i for i, k in reversed(list(enumerate(kf)))}
-            sel = sorted(first.values())
-            write_tum(out / "trajectory_tum.txt", np.array([results[i].t_ns for i in sel], np.int64), poses[sel])
+            write_tum(out / "trajectory_tum.txt", t_taught, T_taught)
             write_frames_csv(out / "frames.csv", results)
             log.write({"frames": summary.frames, "vertices": n_vertices, "failures": failures,
                        "seconds": seconds, "map": str(map_path)})

@@ -38,7 +38,7 @@ class Teach:
     def __init__(self, map_: Map, camera: StereoCamera, config: Config, source: str = ""):
         self.map = map_
         self.camera = camera
-        self.odometry = StereoOdometry(camera, config)
+        self.odometry = StereoOdometry(camera, config, keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._previous: tuple[int, Keyframe] | None = None
         self.vertices = 0
@@ -105,7 +105,7 @@ class Repeat:
         ids, T = map_.privileged_poses()
         self.chain = LocalizationChain(ids, T, config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
-        self.odometry = StereoOdometry(self.camera, config)
+        self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
