@@ -53,6 +53,17 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     return gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, float)))
 
 
+def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
+    """Distance of each point (N, D) to the polyline through ``polyline`` (M, D) vertices, any D."""
+    points, polyline = np.atleast_2d(points), np.atleast_2d(polyline)
+    if len(polyline) == 1:
+        return np.linalg.norm(points - polyline[0], axis=1)
+    a, ab = polyline[:-1], np.diff(polyline, axis=0)
+    t = np.einsum("nmk,mk->nm", points[:, None, :] - a[None], ab) / np.maximum((ab**2).sum(1), 1e-12)
+    closest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
+    return np.linalg.norm(points[:, None, :] - closest, axis=2).min(axis=1)
+
+
 def skew(w: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrices of vectors of shape (..., 3) -> (..., 3, 3)."""
     w = np.asarray(w, float)

@@ -16,7 +16,7 @@ import numpy as np
 from .config import Config
 from .errors import DataError
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
-from .geometry import inv_T
+from .geometry import distance_to_polyline, inv_T
 from .io import open_source, parse_frame_range
 from .io.base import FrameSource
 from .io.trajectory import write_tum
@@ -247,17 +247,6 @@ def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
             w.write(loc)
 
 
-def path_errors(points: np.ndarray, path: np.ndarray) -> np.ndarray:
-    """Distance (m) of each point (N, 3) to the polyline ``path`` (M, 3)."""
-    if len(path) == 1:
-        return np.linalg.norm(points - path[0], axis=1)
-    a, b = path[:-1], path[1:]
-    ab = b - a
-    t = np.einsum("nmk,mk->nm", points[:, None, :] - a[None], ab) / np.maximum((ab**2).sum(1), 1e-12)
-    closest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]
-    return np.linalg.norm(points[:, None, :] - closest, axis=2).min(axis=1)
-
-
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    fmt: str | None = None, progress: Callable | None = None,
                    rate_hz: float | None = None) -> RepeatSummary:
@@ -299,7 +288,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         t_ns, T_teach = np.array(t_ns, np.int64), np.array(T_teach)
         write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
         T_priv = repeat.chain.T_priv
-        errors = path_errors(T_teach[:, :3, 3], T_priv[:, :3, 3])
+        errors = distance_to_polyline(T_teach[:, :3, 3], T_priv[:, :3, 3])
         plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)

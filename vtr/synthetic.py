@@ -38,7 +38,7 @@ import numpy as np
 
 from .camera import StereoCamera
 from .errors import ConfigError
-from .geometry import inv_T, make_T
+from .geometry import distance_to_polyline, inv_T, make_T
 from .io.kitti import KittiWriter, write_kitti_poses
 
 # --------------------------------------------------------------------------------------------
@@ -470,16 +470,6 @@ def _compile(scene: Scene) -> _CompiledScene:
 # --------------------------------------------------------------------------------------------
 
 
-def _distance_to_polyline(p: np.ndarray, poly: np.ndarray) -> float:
-    """Distance (m) from point p (2,) to a polyline (M, 2)."""
-    if len(poly) == 1:
-        return float(np.linalg.norm(p - poly[0]))
-    a, b = poly[:-1], poly[1:]
-    ab = b - a
-    w = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0, 1)
-    return float(np.min(np.linalg.norm(a + w[:, None] * ab - p, axis=1)))
-
-
 def make_scene(
     seed: int = 0,
     *,
@@ -517,7 +507,7 @@ def make_scene(
     placed: list[tuple[float, float, float]] = []  # (x, y, bounding radius)
 
     def free(x: float, y: float, r: float) -> bool:
-        if path is not None and _distance_to_polyline(np.array([x, y]), path) < clear_radius_m + r:
+        if path is not None and distance_to_polyline(np.array([x, y]), path)[0] < clear_radius_m + r:
             return False
         return all(math.hypot(x - px, y - py) >= r + pr + min_gap_m for px, py, pr in placed)
 
