@@ -21,10 +21,10 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vtr.config import Config  # noqa: E402
-from vtr.evaluation import localization_errors, path_length  # noqa: E402
+from vtr.evaluation import path_length  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
 from vtr.map import Map  # noqa: E402
-from vtr.pipeline import teach_command  # noqa: E402
+from vtr.pipeline import chain_errors, teach_command  # noqa: E402
 from vtr.repeat import Repeat  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -45,11 +45,8 @@ def run_repeat(map_path: Path, frames: str, config: Config) -> dict:
                 locs.append(step.localization)
                 t_loc.append(rp.last_localization_seconds)
         seconds = time.perf_counter() - t0
-        gt = src.ground_truth()
         ok = [loc for loc in locs if loc.success]
-        trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in ok], np.int64)
-        err = localization_errors(np.array([loc.T_leaf_trunk for loc in ok]), np.array([loc.t_ns for loc in ok]),
-                                  trunk_t, gt.t_ns, gt.T_world_cam)
+        err = chain_errors(ok, m, src.ground_truth())
     stages = {k: 1000 * v / len(idx) for k, v in rp.timer.seconds.items()}
     stages["other"] = 1000 * seconds / len(idx) - sum(stages.values())
     return {"frames": len(idx), "fps": len(idx) / seconds, "stages": stages, "vertices": len(locs),

@@ -310,6 +310,12 @@ def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationEr
     teach = m.reference_run()
     if gt is None or not locs or teach is None or str(source.path) != m.run(teach).source:
         return None
+    return chain_errors(locs, m, gt)
+
+
+def chain_errors(locs, m, gt) -> LocalizationErrors:
+    """Errors of localizations ``T_leaf_trunk`` (trunks are vertices of map ``m``) against ground truth
+    ``gt`` that covers both the leaf and the trunk times."""
     trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
     return localization_errors(np.array([loc.T_leaf_trunk for loc in locs]), np.array([loc.t_ns for loc in locs]),
                                trunk_t, gt.t_ns, gt.T_world_cam)
