@@ -145,6 +145,17 @@ def _interp_state(T1, v1, T2, v2, dt, tau):
     return T1 @ E_xi, Jr @ dxi
 
 
+def _central_difference(perturbed, n_cols: int) -> np.ndarray:
+    """12 x n_cols Jacobian by central differences; ``perturbed(j, d)`` is the 12-vector state change
+    when block ``j // 6`` is perturbed by the 6-vector ``d`` (non-zero in component ``j % 6``)."""
+    num = np.zeros((12, n_cols))
+    for j in range(n_cols):
+        d = np.zeros(6)
+        d[j % 6] = FD_STEP
+        num[:, j] = (perturbed(j, d) - perturbed(j, -d)) / (2 * FD_STEP)
+    return num
+
+
 def _state_diff(Ta, va, Tb, vb):
     """(Tb, vb) minus (Ta, va) in right-perturbation coordinates."""
     return np.r_[log_se3(np.linalg.inv(Ta) @ Tb), vb - va]
@@ -160,21 +171,12 @@ def test_interpolation_jacobian_numerical(frac):
     E_xi, Jr = sm_mod._exp(xi)
     A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr)
     T0, w0 = _interp_state(T1, v1, T2, v2, dt, tau)
-    num = np.zeros((12, 24))
-    for j in range(24):
-        cols = []
-        for sgn in (1.0, -1.0):
-            d = np.zeros(6)
-            d[j % 6] = sgn * FD_STEP
-            a = [T1, v1, T2, v2]
-            if j // 6 in (0, 2):
-                a[j // 6] = a[j // 6] @ exp_se3(d)
-            else:
-                a[j // 6] = a[j // 6] + d
-            T, w = _interp_state(*a, dt, tau)
-            cols.append(_state_diff(T0, w0, T, w))
-        num[:, j] = (cols[0] - cols[1]) / (2 * FD_STEP)
-    np.testing.assert_allclose(A, num, atol=JACOBIAN_ATOL)
+    def perturbed(j, d):
+        a = [T1, v1, T2, v2]
+        a[j // 6] = a[j // 6] @ exp_se3(d) if j // 6 in (0, 2) else a[j // 6] + d
+        return _state_diff(T0, w0, *_interp_state(*a, dt, tau))
+
+    np.testing.assert_allclose(A, _central_difference(perturbed, 24), atol=JACOBIAN_ATOL)
 
 
 @pytest.mark.parametrize("dt", [0.05, 0.5, 2.0])
@@ -183,16 +185,11 @@ def test_extrapolation_jacobian_numerical(dt):
     T, v = exp_se3(rng.normal(size=6)), rng.normal(size=6)
     F = extrapolation_jacobian(dt, v)
     T0 = T @ exp_se3(dt * v)
-    num = np.zeros((12, 12))
-    for j in range(12):
-        cols = []
-        for sgn in (1.0, -1.0):
-            d = np.zeros(6)
-            d[j % 6] = sgn * FD_STEP
-            Tp, vp = (T @ exp_se3(d), v) if j < 6 else (T, v + d)
-            cols.append(_state_diff(T0, v, Tp @ exp_se3(dt * vp), vp))
-        num[:, j] = (cols[0] - cols[1]) / (2 * FD_STEP)
-    np.testing.assert_allclose(F, num, atol=JACOBIAN_ATOL)
+    def perturbed(j, d):
+        Tp, vp = (T @ exp_se3(d), v) if j < 6 else (T, v + d)
+        return _state_diff(T0, v, Tp @ exp_se3(dt * vp), vp)
+
+    np.testing.assert_allclose(F, _central_difference(perturbed, 12), atol=JACOBIAN_ATOL)
 
 
 def test_jr_derivatives_numerical():
