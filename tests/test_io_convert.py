@@ -11,9 +11,9 @@ from click.testing import CliRunner
 from vtr.cli import main
 from vtr.errors import DataError
 from vtr.io import KittiSource, open_source
-from vtr.io.base import StereoImages
 from vtr.io.convert import convert
 from vtr.io.rosbag import BagTopics, write_bag
+from vtr.types import StereoImages
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"
 KITTI = DATA / "kitti06_clip"

@@ -20,9 +20,8 @@ import pytest
 from vtr.camera import StereoCamera
 from vtr.config import MapConfig
 from vtr.errors import MapError, VtrError
-from vtr.features import Features
 from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, split_vertex_id, vertex_id
-from vtr.stereo import StereoFrame
+from vtr.types import Features, StereoFrame
 
 CAMERA = StereoCamera(fx=718.856, fy=718.856, cx=607.19, cy=185.22, baseline=0.537, width=1226, height=370,
                       T_vehicle_sensor=np.array([[0, 0, 1, 0.2], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1.0]]))
@@ -599,7 +598,7 @@ def test_ply_export_reopens_in_open3d(tmp_path):
 
 
 def test_add_keyframe_writes_vertex_and_edge_together(tmp_path):
-    from vtr.odometry import Keyframe
+    from vtr.types import Keyframe
 
     rng = np.random.default_rng(4)
     path = tmp_path / "kf.vtrmap"

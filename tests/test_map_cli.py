@@ -13,9 +13,8 @@ from click.testing import CliRunner
 
 from vtr.camera import StereoCamera
 from vtr.cli import main
-from vtr.features import Features
 from vtr.map import MAP_FORMAT_VERSION, Map, vertex_id
-from vtr.stereo import StereoFrame
+from vtr.types import Features, StereoFrame
 
 CAMERA = StereoCamera(fx=700.0, fy=700.0, cx=600.0, cy=180.0, baseline=0.5, width=1226, height=370)
 N_FEATURES = 30

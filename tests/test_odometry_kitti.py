@@ -6,8 +6,8 @@ import pytest
 from vtr.config import Config
 from vtr.evaluation import drift_metrics
 from vtr.io import open_source
-from vtr.odometry import FrameKind
 from vtr.pipeline import run_odometry
+from vtr.types import FrameKind
 
 # ORB-SLAM3 stereo on this clip: 0.69-0.73 % and 0.0126-0.0138 deg/m; naive PnP VO: 2.5 %, 0.022 deg/m.
 T_ERR_BOUND_PCT = 1.0

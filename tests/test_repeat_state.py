@@ -24,9 +24,9 @@ from vtr.geometry import inv_T, make_T
 from vtr.io.trajectory import read_tum
 from vtr.localization import Localization
 from vtr.map import Map
-from vtr.odometry import FrameKind, Keyframe, OdometryResult
 from vtr.pipeline import repeat_command, teach_command
 from vtr.repeat import RepeatStep
+from vtr.types import FrameKind, Keyframe, OdometryResult
 
 RATE_HZ = 50.0
 MAX_VERTEX_OFFSET_M = 0.08          # smoothed position at a localized vertex vs the chain's pose

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 import vtr.smoothing as sm_mod
 from vtr.config import SmoothingConfig
+from vtr.conventions import NS_PER_S as NS
 from vtr.errors import EstimationError
 from vtr.geometry import exp_se3, log_se3
 from vtr.smoothing import (
@@ -30,7 +31,6 @@ from vtr.smoothing import (
     wnoa_Q,
 )
 
-NS = 1_000_000_000
 FD_STEP = 1e-6
 JACOBIAN_ATOL = 1e-6
 

@@ -15,10 +15,11 @@ from vtr.config import Config
 from vtr.evaluation import localization_errors
 from vtr.geometry import inv_T
 from vtr.io import open_source
-from vtr.io.base import FrameSource, StereoImages
+from vtr.io.base import FrameSource
 from vtr.map import Map
 from vtr.pipeline import repeat_command, teach_command
 from vtr.repeat import Repeat, Teach
+from vtr.types import StereoImages
 
 SUCCESS_RATE = 0.95
 MAX_MEDIAN_ERROR_M = 0.05

@@ -30,9 +30,9 @@ from tqdm import tqdm  # noqa: E402
 
 from vtr import synthetic as syn  # noqa: E402
 from vtr.config import Config  # noqa: E402
-from vtr.io.base import StereoImages  # noqa: E402
 from vtr.map import Map  # noqa: E402
 from vtr.repeat import Repeat, Teach  # noqa: E402
+from vtr.types import StereoImages  # noqa: E402
 
 cv2.setNumThreads(1)
 FRAME_INTERVAL_NS = 100_000_000   # 10 Hz

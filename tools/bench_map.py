@@ -86,7 +86,7 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
         for i in range(n_vertices):
             frame = synthetic_frame(rng, n_features, i)
             T = route_pose(i, spacing)
-            # a vtr.odometry.Keyframe (duck-typed): vertex and temporal edge in one transaction
+            # a vtr.types.Keyframe (duck-typed): vertex and temporal edge in one transaction
             kf = SimpleNamespace(id=i, frame=frame, T_world_kf=T, T_prev_kf=np.linalg.inv(prev_T) @ T,
                                  edge_covariance=cov, edge_inliers=100)
             t0 = time.perf_counter()

@@ -31,10 +31,10 @@ from scipy.spatial.transform import Rotation
 
 from vtr.config import SmoothingConfig
 from vtr.control import ReferencePath, controller_state, gravity_aligned_T_o_t, trunk_in_world
+from vtr.conventions import NS_PER_S
 from vtr.geometry import exp_se3, inv_T, make_T
 from vtr.smoothing import TrajectorySmoother
 
-NS_PER_S = 1_000_000_000
 G = 9.81                                  # m/s²
 # Route and run
 ALTITUDE_M = 10.0

@@ -61,9 +61,10 @@ import numpy as np
 
 from .config import Config
 from .control import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
+from .conventions import NS_PER_S
 from .errors import ConfigError, DataError, EstimationError
 from .geometry import inv_T
-from .smoothing import NS_PER_S, TrajectorySmoother, adjoint
+from .smoothing import TrajectorySmoother, adjoint
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],

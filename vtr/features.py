@@ -7,7 +7,6 @@ Pixel coordinates are level-0 (full resolution) left-image pixels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from operator import attrgetter
 
 import cv2
@@ -15,22 +14,7 @@ import numpy as np
 
 from .config import FeatureConfig
 from .kernels import matching as km
-
-
-@dataclass(frozen=True)
-class Features:
-    """Keypoints of one image: ``uv`` (N, 2) px, ``octave`` (N,), ``response`` (N,), ``descriptors`` (N, 32)."""
-
-    uv: np.ndarray
-    octave: np.ndarray
-    response: np.ndarray
-    descriptors: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.uv)
-
-    def subset(self, idx: np.ndarray) -> Features:
-        return Features(self.uv[idx], self.octave[idx], self.response[idx], self.descriptors[idx])
+from .types import Features
 
 
 def bucket(uv: np.ndarray, response: np.ndarray, size: tuple[int, int], rows: int, cols: int,

@@ -30,7 +30,7 @@ from .estimation import ransac_pnp, refine_two_view
 from .features import match_all
 from .geometry import inv_T, log_se3
 from .odometry import MIN_DEPTH_M, match_to_landmarks
-from .stereo import StereoFrame
+from .types import StereoFrame
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 
@@ -26,80 +25,12 @@ from .config import Config, OdometryConfig
 from .estimation import bundle_adjust, ransac_pnp
 from .features import match_within_radius
 from .geometry import exp_se3, inv_T, log_se3, rotation_angle
-from .io.base import StereoImages
-from .stereo import StereoFrame, StereoProcessor
+from .stereo import StereoProcessor
 from .timing import StageTimer
+from .types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 
 MIN_DEPTH_M = 0.1  # landmarks closer than this in front of the camera are not predicted
 MIN_FRAME_INTERVAL_S = 1e-3  # frames closer in time are judged as if this far apart
-
-
-class FrameKind(StrEnum):
-    """What odometry did with a frame (VT&R3's vertex-test results)."""
-
-    CREATE_VERTEX = "CREATE_VERTEX"        # the frame became a new keyframe
-    CREATE_CANDIDATE = "CREATE_CANDIDATE"  # tracked; not far enough for a new keyframe
-    DO_NOTHING = "DO_NOTHING"              # tracked; the vehicle did not move measurably
-    FAILURE = "FAILURE"                    # not tracked; pose carried by the motion prior
-
-
-@dataclass(frozen=True)
-class Keyframe:
-    """A vertex of the teach path: its stereo frame, pose and the edge from the previous keyframe.
-
-    ``T_prev_kf`` maps this keyframe's camera coordinates into the previous keyframe's camera;
-    ``edge_covariance`` is its 6x6 covariance ([rot, trans], GTSAM tangent order).
-    """
-
-    id: int
-    frame: StereoFrame
-    T_world_kf: np.ndarray
-    T_prev_kf: np.ndarray
-    edge_covariance: np.ndarray
-    edge_inliers: int
-
-    @property
-    def t_ns(self) -> int:
-        return self.frame.t_ns
-
-
-@dataclass(frozen=True)
-class OdometryResult:
-    """Outcome of one frame. ``T_keyframe_frame`` maps the frame into the keyframe it was matched to."""
-
-    t_ns: int
-    index: int
-    kind: FrameKind
-    matches: int
-    inliers: int
-    keyframe_id: int
-    T_keyframe_frame: np.ndarray
-    T_world_frame: np.ndarray
-    covariance: np.ndarray
-    new_keyframe: Keyframe | None = None
-    finalized: tuple[Keyframe, ...] = ()
-
-    @property
-    def vertex_id(self) -> int:
-        """The keyframe this frame belongs to: its own new vertex, else the reference keyframe."""
-        return self.new_keyframe.id if self.new_keyframe is not None else self.keyframe_id
-
-    def record(self) -> FrameRecord:
-        """The few numbers a run log keeps per frame (no images, features or landmarks)."""
-        return FrameRecord(self.t_ns, self.kind, self.matches, self.inliers, self.vertex_id,
-                           self.new_keyframe is not None)
-
-
-@dataclass(frozen=True)
-class FrameRecord:
-    """What a long run keeps of each frame: its result, match counts and the vertex it belongs to."""
-
-    t_ns: int
-    kind: FrameKind
-    matches: int
-    inliers: int
-    vertex_id: int
-    new_vertex: bool
 
 
 @dataclass

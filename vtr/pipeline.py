@@ -21,8 +21,9 @@ from .io import open_source, parse_frame_range
 from .io.base import FrameSource
 from .io.trajectory import write_tum
 from .localization import Localization
-from .odometry import FrameKind, FrameRecord, StereoOdometry
+from .odometry import StereoOdometry
 from .runlog import RunLog
+from .types import FrameKind, FrameRecord
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 

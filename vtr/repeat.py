@@ -17,13 +17,11 @@ import numpy as np
 from .camera import StereoCamera
 from .config import Config
 from .errors import MapError
-from .features import Features
 from .geometry import inv_T
-from .io.base import StereoImages
 from .localization import Localization, LocalizationChain, Localizer, landmark_record
 from .map import Map, VertexRecord
-from .odometry import Keyframe, OdometryResult, StereoOdometry
-from .stereo import StereoFrame
+from .odometry import StereoOdometry
+from .types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
 
 
 def frame_of_vertex(v: VertexRecord) -> StereoFrame:

@@ -4,43 +4,17 @@ disparity, triangulation into 3-D landmarks (left rectified camera frame) with c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from .camera import StereoCamera
 from .config import FeatureConfig, StereoConfig
-from .features import FeatureExtractor, Features, descriptor_words
-from .io.base import StereoImages
+from .features import FeatureExtractor, descriptor_words
 from .kernels import matching as km
 from .kernels import stereo as ks
 from .timing import StageTimer
+from .types import Features, StereoFrame, StereoImages
 
 MAX_OCTAVE_GAP = 1   # left/right features more pyramid levels apart are not the same corner
-
-
-@dataclass(frozen=True)
-class StereoFrame:
-    """Features of the left image with their stereo measurements.
-
-    ``u_right`` (N,) is the matched right-image column (NaN when unmatched); ``points`` (N, 3) the
-    triangulated landmark in the left camera frame (NaN rows when unmatched), metres.
-    """
-
-    t_ns: int
-    index: int
-    features: Features
-    u_right: np.ndarray
-    points: np.ndarray
-
-    @property
-    def has_depth(self) -> np.ndarray:
-        return np.isfinite(self.u_right)
-
-    @property
-    def stereo_measurements(self) -> np.ndarray:
-        """(N, 3) measurements u_l, v, u_r (u_r NaN when unmatched)."""
-        return np.column_stack([self.features.uv, self.u_right])
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: np.ndarray,

@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from .camera import StereoCamera
+from .conventions import NS_PER_S
 from .errors import ConfigError
 from .geometry import distance_to_polyline, inv_T, make_T
 from .io.kitti import KittiWriter, write_kitti_poses
@@ -99,8 +100,6 @@ _STREAM_TEXTURE = 1
 _STREAM_LAYOUT = 2
 _STREAM_SURFACES = 3
 _STREAM_NOISE = 4
-
-_NS_PER_S = 1_000_000_000
 
 __all__ = [
     "Backdrop", "Box", "Ground", "Scene", "StereoRender", "TextureAtlas", "Tree", "T_left_right",
@@ -753,7 +752,7 @@ def route_times(T_world_cam: np.ndarray, speed_mps: float, start_ns: int = 0) ->
         raise ConfigError(f"speed_mps must be positive, got {speed_mps}")
     p = np.asarray(T_world_cam)[:, :3, 3]
     d = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
-    t = start_ns + np.round(d / speed_mps * _NS_PER_S).astype(np.int64)
+    t = start_ns + np.round(d / speed_mps * NS_PER_S).astype(np.int64)
     if np.any(np.diff(t) <= 0):
         raise ConfigError("consecutive poses coincide: timestamps would not increase")
     return t

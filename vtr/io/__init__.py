@@ -6,7 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DataError
-from .base import FrameSource, GroundTruth, StereoImages, parse_frame_range
+from .base import FrameSource, GroundTruth, parse_frame_range
 from .cloud import CloudRun, is_cloud_run, refuse_cloud_stereo
 from .euroc import EurocSource, StereoPairsSource, euroc_root, is_stereo_pairs
 from .kitti import KittiSource, KittiWriter, is_kitti
@@ -42,5 +42,5 @@ def open_source(path: str | Path, format: str | None = None) -> FrameSource:
 
 __all__ = [
     "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
-    "RosbagSource", "RosbagWriter", "StereoImages", "StereoPairsSource", "open_source", "parse_frame_range",
+    "RosbagSource", "RosbagWriter", "StereoPairsSource", "open_source", "parse_frame_range",
 ]

@@ -16,16 +16,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import DataError
-
-
-@dataclass(frozen=True)
-class StereoImages:
-    """One rectified stereo pair: ``t_ns`` is the left image's time, ``index`` its position in the source."""
-
-    t_ns: int
-    index: int
-    left: np.ndarray
-    right: np.ndarray
+from ..types import StereoImages
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,10 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from ..camera import RawCamera, StereoRectifier
+from ..conventions import NS_PER_S
 from ..errors import CalibrationError, DataError
-from .base import FrameSource, GroundTruth, StereoImages
+from ..types import StereoImages
+from .base import FrameSource, GroundTruth
 
 PAIR_TOLERANCE_NS = 1_000_000  # left/right stamps of one hardware-synchronised pair differ by < 1 ms
 
@@ -162,7 +164,7 @@ class StereoPairsSource(FrameSource):
         return self._n
 
     def timestamps(self) -> np.ndarray:
-        return np.arange(self._n, dtype=np.int64) * 1_000_000_000
+        return np.arange(self._n, dtype=np.int64) * NS_PER_S
 
     def _load(self, index: int) -> StereoImages:
         raw = []
@@ -174,4 +176,4 @@ class StereoPairsSource(FrameSource):
 
     def ground_truth(self) -> GroundTruth | None:
         """Left rectified camera poses from ``groundtruth.csv`` (body poses, time in seconds)."""
-        return body_ground_truth(self.path / "groundtruth.csv", 1_000_000_000, self.camera.T_vehicle_sensor)
+        return body_ground_truth(self.path / "groundtruth.csv", NS_PER_S, self.camera.T_vehicle_sensor)

@@ -11,7 +11,8 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import CalibrationError, DataError
-from .base import FrameSource, GroundTruth, StereoImages
+from ..types import StereoImages
+from .base import FrameSource, GroundTruth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
 

@@ -48,8 +48,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import StereoCamera
+from ..conventions import NS_PER_S
 from ..errors import CalibrationError, DataError
-from .base import FrameSource, StereoImages
+from ..types import StereoImages
+from .base import FrameSource
 
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 COMPRESSED_MSGTYPE = "sensor_msgs/msg/CompressedImage"
@@ -74,7 +76,6 @@ ROS2_BAG_VERSION = 8
 BAG_KINDS = ("rosbag1", "rosbag2", "mcap")
 ROS1_SUFFIX = ".bag"
 ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")
-NS_PER_S = 1_000_000_000
 
 _GREY_FROM = {
     "bgr8": (3, cv2.COLOR_BGR2GRAY), "rgb8": (3, cv2.COLOR_RGB2GRAY),

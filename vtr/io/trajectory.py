@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..conventions import NS_PER_S
 from ..errors import DataError
 from ..geometry import T_to_tum, tum_to_T
 from .kitti import read_kitti_poses, write_kitti_poses
@@ -21,7 +22,7 @@ def write_tum(path: str | Path, t_ns: np.ndarray, T: np.ndarray) -> None:
     with open(path, "w") as f:
         f.write("# t x y z qx qy qz qw\n")
         for t, r in zip(np.asarray(t_ns, np.int64), rows, strict=True):
-            f.write(f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} " + " ".join(f"{v:.9f}" for v in r) + "\n")
+            f.write(f"{t // NS_PER_S}.{t % NS_PER_S:09d} " + " ".join(f"{v:.9f}" for v in r) + "\n")
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -37,7 +38,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise DataError(f"{path}:{lineno}: expected 8 columns (t x y z qx qy qz qw), got {len(parts)}")
         try:
             sec, _, frac = parts[0].partition(".")
-            t_ns.append(int(sec) * 1_000_000_000 + int((frac + "000000000")[:9]))
+            t_ns.append(int(sec) * NS_PER_S + int((frac + "000000000")[:9]))
             rows.append([float(v) for v in parts[1:]])
         except ValueError as err:
             raise DataError(f"{path}:{lineno}: not numbers: {s!r}") from err

@@ -4,7 +4,7 @@ Typical use (teach, then a repeat localized against it)::
 
     with Map.create("route.vtrmap", camera) as m:
         run = m.begin_run("teach", source="datasets/kitti06_clip")
-        for kf in keyframes:                      # vtr.odometry.Keyframe
+        for kf in keyframes:                      # vtr.types.Keyframe
             m.add_keyframe(run, kf)               # vertex + temporal edge, one transaction
     with Map.open("route.vtrmap", "a") as m:
         m.check_camera(camera)

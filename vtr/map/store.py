@@ -63,8 +63,7 @@ from .schema import SCHEMA
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
-    from ..odometry import Keyframe
-    from ..stereo import StereoFrame
+    from ..types import Keyframe, StereoFrame
 
 MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
