@@ -5,7 +5,7 @@ from hypothesis import strategies as st
 
 from vtr.camera import StereoCamera
 from vtr.errors import CalibrationError
-from vtr.estimation import stereo_jacobian
+from vtr.vo.estimation import stereo_jacobian
 
 CAM = StereoCamera(fx=707.0912, fy=707.0912, cx=601.8873, cy=183.1104, baseline=0.537, width=1226, height=370)
 

@@ -9,7 +9,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from vtr.config import SmoothingConfig
-from vtr.control import (
+from vtr.errors import EstimationError
+from vtr.geometry import exp_se3, inv_T, log_se3, make_T
+from vtr.state.controller import (
     ControllerState,
     ReferencePath,
     controller_state,
@@ -17,9 +19,7 @@ from vtr.control import (
     trunk_in_world,
     yaw_of,
 )
-from vtr.errors import EstimationError
-from vtr.geometry import exp_se3, inv_T, log_se3, make_T
-from vtr.smoothing import TrajectorySmoother, TrajectoryState
+from vtr.state.smoothing import TrajectorySmoother, TrajectoryState
 
 FD_T = 1e-5       # s, time step of finite differences along a trajectory
 FD_X = 1e-6       # perturbation step for Jacobians

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from vtr.camera import StereoCamera
-from vtr.estimation import ransac_pnp, refine_two_view
 from vtr.geometry import exp_se3, log_se3
+from vtr.vo.estimation import ransac_pnp, refine_two_view
 
 CAM = StereoCamera(fx=700.0, fy=700.0, cx=600.0, cy=185.0, baseline=0.54, width=1226, height=370)
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vtr import synthetic as syn
+from vtr.app.evaluation import drift_metrics
+from vtr.app.pipeline import run_odometry
 from vtr.config import Config
-from vtr.evaluation import drift_metrics
 from vtr.io import open_source
-from vtr.pipeline import run_odometry
-from vtr.stereo import StereoProcessor
+from vtr.sim import synthetic as syn
+from vtr.vo.stereo import StereoProcessor
 
 FAR_BASELINES = 40.0
 SCALE_ERROR_BOUND = 0.01

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vtr.config import FeatureConfig
-from vtr.features import FeatureExtractor, bucket
+from vtr.vo.features import FeatureExtractor, bucket
 
 
 @settings(max_examples=80, deadline=None)

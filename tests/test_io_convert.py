@@ -1,4 +1,4 @@
-"""``vtr convert`` and vtr.io.convert: lossless folder -> bag -> folder round trips, summary, errors."""
+"""``vtr convert`` and vtr.app.convert: lossless folder -> bag -> folder round trips, summary, errors."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from vtr.app.convert import convert
 from vtr.cli import main
 from vtr.errors import DataError
 from vtr.io import KittiSource, open_source
-from vtr.io.convert import convert
-from vtr.io.rosbag import BagTopics, write_bag
+from vtr.io.rosbag_writer import BagTopics, write_bag
 from vtr.types import StereoImages
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from vtr.errors import CalibrationError, DataError
-from vtr.io import EurocSource, KittiSource, KittiWriter, open_source, parse_frame_range
+from vtr.io import EurocSource, KittiSource, open_source, parse_frame_range
+from vtr.io.kitti_writer import KittiWriter
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"
 KITTI = DATA / "kitti06_clip"

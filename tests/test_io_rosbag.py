@@ -14,14 +14,12 @@ from vtr.camera import StereoCamera
 from vtr.errors import CalibrationError, DataError
 from vtr.io import EurocSource, open_source
 from vtr.io.rosbag import (
-    BagTopics,
     CameraInfoData,
     RosbagSource,
-    RosbagWriter,
     _pick_image_topic,
     decode_image,
-    write_bag,
 )
+from vtr.io.rosbag_writer import BagTopics, RosbagWriter, write_bag
 
 DATA = Path(__file__).resolve().parents[1] / "datasets"
 KITTI = DATA / "kitti06_clip"

@@ -7,9 +7,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtr.features import match_all, match_within_radius
-from vtr.kernels import matching as km
-from vtr.stereo import refine_disparity
+from vtr.vo.features import match_all, match_within_radius
+from vtr.vo.kernels import matching as km
+from vtr.vo.stereo import refine_disparity
 
 
 def _hamming(a: np.ndarray, b: np.ndarray) -> int:
@@ -91,7 +91,7 @@ def test_row_band_match_follows_the_documented_rule(seed, n_l, n_r):
 
 
 def km_words(d: np.ndarray) -> np.ndarray:
-    from vtr.features import descriptor_words
+    from vtr.vo.features import descriptor_words
 
     return descriptor_words(d)
 

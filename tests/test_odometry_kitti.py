@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
+from vtr.app.evaluation import drift_metrics
+from vtr.app.pipeline import run_odometry
 from vtr.config import Config
-from vtr.evaluation import drift_metrics
 from vtr.io import open_source
-from vtr.pipeline import run_odometry
 from vtr.types import FrameKind
 
 # ORB-SLAM3 stereo on this clip: 0.69-0.73 % and 0.0126-0.0138 deg/m; naive PnP VO: 2.5 %, 0.022 deg/m.
@@ -46,7 +46,7 @@ def test_translation_drift_within_bound(kitti_run):
 
 def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_run):
     """Teach and repeat run odometry with keep_history=False: same keyframes, no per-frame memory."""
-    from vtr.odometry import StereoOdometry
+    from vtr.vo.odometry import StereoOdometry
 
     with open_source(kitti_clip) as src:
         vo = StereoOdometry(src.camera, Config(), keep_history=False)

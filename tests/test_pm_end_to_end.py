@@ -68,8 +68,8 @@ def test_synthetic_repeats_fit_falls_with_parallax(tmp_path):
 # --------------------------------------------------------------------------- constraint --map
 @pytest.fixture(scope="module")
 def kitti_map(tmp_path_factory, kitti_clip):
+    from vtr.app.pipeline import teach_command
     from vtr.config import Config
-    from vtr.pipeline import teach_command
 
     path = tmp_path_factory.mktemp("pm_map") / "route.vtrmap"
     teach_command(kitti_clip, path, KITTI_TEACH, Config())

@@ -41,7 +41,7 @@ from pysteam.trajectory.const_vel import Interface  # noqa: E402
 
 from vtr.config import SmoothingConfig  # noqa: E402
 from vtr.geometry import exp_se3, log_se3  # noqa: E402
-from vtr.smoothing import TrajectorySmoother  # noqa: E402
+from vtr.state.smoothing import TrajectorySmoother  # noqa: E402
 
 N_KNOTS = 20
 PERIOD_NS = 100_000_000            # 10 Hz keyframes

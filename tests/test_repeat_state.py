@@ -10,22 +10,22 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from vtr.app.pipeline import repeat_command, teach_command
 from vtr.cli import main
 from vtr.config import Config
-from vtr.controller_log import (
+from vtr.errors import ConfigError
+from vtr.geometry import inv_T, make_T
+from vtr.io.trajectory import read_tum
+from vtr.map import Map
+from vtr.navigation.localization import Localization
+from vtr.navigation.repeat import RepeatStep
+from vtr.navigation.repeat_state import (
     STATE_CSV_HEADER,
     VEHICLE_FROM_LEVEL_CAMERA,
     ControllerLog,
     output_times,
     read_state_csv,
 )
-from vtr.errors import ConfigError
-from vtr.geometry import inv_T, make_T
-from vtr.io.trajectory import read_tum
-from vtr.localization import Localization
-from vtr.map import Map
-from vtr.pipeline import repeat_command, teach_command
-from vtr.repeat import RepeatStep
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
 RATE_HZ = 50.0

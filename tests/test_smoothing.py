@@ -13,12 +13,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-import vtr.smoothing as sm_mod
+import vtr.state.smoothing as sm_mod
 from vtr.config import SmoothingConfig
 from vtr.conventions import NS_PER_S as NS
 from vtr.errors import EstimationError
 from vtr.geometry import exp_se3, log_se3
-from vtr.smoothing import (
+from vtr.state.smoothing import (
     TrajectorySmoother,
     TrajectoryState,
     _hermite_matrix,

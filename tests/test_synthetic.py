@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from vtr import synthetic as syn
 from vtr.geometry import check_se3, inv_T, transform_points
 from vtr.io.kitti import KittiSource
+from vtr.sim import synthetic as syn
 
 SEED = 7
 #: Small atlas for tests that do not look at features (fast to generate).

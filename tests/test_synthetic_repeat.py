@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vtr import synthetic as syn
 from vtr.config import Config
 from vtr.geometry import inv_T
 from vtr.io import open_source
 from vtr.map import Map, split_vertex_id
-from vtr.repeat import Repeat, Teach
+from vtr.navigation.repeat import Repeat
+from vtr.navigation.teach import Teach
+from vtr.sim import synthetic as syn
 
 LENGTH_M = 16.0
 RAMP_M = 5.0

@@ -11,14 +11,15 @@ import sys
 import numpy as np
 import pytest
 
+from vtr.app.evaluation import localization_errors
+from vtr.app.pipeline import repeat_command, teach_command
 from vtr.config import Config
-from vtr.evaluation import localization_errors
 from vtr.geometry import inv_T
 from vtr.io import open_source
 from vtr.io.base import FrameSource
 from vtr.map import Map
-from vtr.pipeline import repeat_command, teach_command
-from vtr.repeat import Repeat, Teach
+from vtr.navigation.repeat import Repeat
+from vtr.navigation.teach import Teach
 from vtr.types import StereoImages
 
 SUCCESS_RATE = 0.95
@@ -78,8 +79,8 @@ def test_map_reopens_in_new_process_and_teach_run_is_untouched(kitti_clip, kitti
 @pytest.fixture(scope="module")
 def euroc_localized(euroc_pairs):
     """Each revisit pair (taught, revisit) localized without a prior: frames, estimate, stated truth."""
-    from vtr.localization import Localizer
-    from vtr.stereo import StereoProcessor
+    from vtr.navigation.localization import Localizer
+    from vtr.vo.stereo import StereoProcessor
 
     cfg = Config()
     out = {}
@@ -122,7 +123,7 @@ def test_euroc_pair_0_1_within_5cm_1deg(euroc_localized):
 def test_euroc_pairs_estimate_fits_the_images_better_than_stated_truth(euroc_localized, pair):
     """Taught landmarks projected into the revisit with a pose must land on matching features: ours
     puts hundreds within 3 px; the stated ground truth (a VIO project's body poses) only a few."""
-    from vtr.odometry import match_to_landmarks
+    from vtr.vo.matching import match_to_landmarks
 
     taught, revisit, T, _, _, stated, camera = euroc_localized[pair]
     max_distance = Config().localization.max_descriptor_distance
@@ -154,7 +155,7 @@ class _ForeignSegment(FrameSource):
 
 
 def test_localization_failure_is_reported_and_recovers(kitti_clip, kitti_map, tmp_path):
-    from vtr import synthetic as syn
+    from vtr.sim import synthetic as syn
 
     scene = syn.aerial_scene(5)
     cam = syn.kitti_like_camera()

@@ -48,7 +48,7 @@ def peak_rss_mb() -> float:
 
 def write(path: Path, kind: str, n: int, width: int, height: int) -> float:
     from vtr.camera import StereoCamera
-    from vtr.io.rosbag import RosbagWriter
+    from vtr.io.rosbag_writer import RosbagWriter
 
     cam = StereoCamera(fx=350.0, fy=350.0, cx=width / 2, cy=height / 2, baseline=0.12, width=width, height=height)
     rng = np.random.default_rng(0)

@@ -28,10 +28,11 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from vtr import synthetic as syn  # noqa: E402
 from vtr.config import Config  # noqa: E402
 from vtr.map import Map  # noqa: E402
-from vtr.repeat import Repeat, Teach  # noqa: E402
+from vtr.navigation.repeat import Repeat  # noqa: E402
+from vtr.navigation.teach import Teach  # noqa: E402
+from vtr.sim import synthetic as syn  # noqa: E402
 from vtr.types import StereoImages  # noqa: E402
 
 cv2.setNumThreads(1)

@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
-from vtr.odometry import StereoOdometry  # noqa: E402
+from vtr.vo.odometry import StereoOdometry  # noqa: E402
 
 cv2.setNumThreads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,7 +32,7 @@ STAGES = ("load", "features", "stereo", "matching", "estimation", "window_ba")
 
 
 def synthetic_sequence() -> Path:
-    from vtr import synthetic as syn
+    from vtr.sim import synthetic as syn
 
     if not (SYNTHETIC / "times_ns.txt").is_file():
         T = syn.aerial_route(60.0, 1.0)

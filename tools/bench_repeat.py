@@ -20,12 +20,12 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from vtr.app.evaluation import path_length  # noqa: E402
+from vtr.app.pipeline import chain_errors, teach_command  # noqa: E402
 from vtr.config import Config  # noqa: E402
-from vtr.evaluation import path_length  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
 from vtr.map import Map  # noqa: E402
-from vtr.pipeline import chain_errors, teach_command  # noqa: E402
-from vtr.repeat import Repeat  # noqa: E402
+from vtr.navigation.repeat import Repeat  # noqa: E402
 
 cv2.setNumThreads(1)
 CLIP = Path(__file__).resolve().parents[1] / "datasets" / "kitti06_clip"

@@ -1,6 +1,6 @@
 """Benchmark of the WNOA trajectory smoother: update cost per keyframe over a long run, query latency.
 
-Feeds a synthetic noisy trajectory at 15 Hz keyframes into :class:`vtr.smoothing.TrajectorySmoother`
+Feeds a synthetic noisy trajectory at 15 Hz keyframes into :class:`vtr.state.smoothing.TrajectorySmoother`
 (default config: 5 s lag, so ~75 knots in the window) and reports:
 
 * the time of ``add_pose`` around keyframe 100, 1000 and 10 000 (median and mean over a block of
@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from vtr.config import SmoothingConfig  # noqa: E402
 from vtr.geometry import exp_se3  # noqa: E402
-from vtr.smoothing import TrajectorySmoother  # noqa: E402
+from vtr.state.smoothing import TrajectorySmoother  # noqa: E402
 
 KEYFRAME_PERIOD_NS = 66_666_667          # 15 Hz
 CONTROL_PERIOD_NS = 20_000_000           # 50 Hz

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from vtr import synthetic as syn
+from vtr.sim import synthetic as syn
 
 DEFAULT_OUT = Path("/tmp/vtr_synthetic")
 SEED = 0

@@ -1,7 +1,7 @@
 """Baseline PD path follower (thesis §6.3.4, eqs. 6.3-6.6) driven by the controller-facing API.
 
 Pure kinematics, no images: a multirotor repeats an L-shaped taught route at 10 m height. "Vision"
-is simulated as noisy poses ``T_world_vehicle`` at 15 Hz fed to :class:`vtr.smoothing.TrajectorySmoother`;
+is simulated as noisy poses ``T_world_vehicle`` at 15 Hz fed to :class:`vtr.state.smoothing.TrajectorySmoother`;
 the controller runs at 50 Hz and each tick
 
 1. queries the smoother now (``state_at``: extrapolation from the last keyframe),
@@ -30,10 +30,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vtr.config import SmoothingConfig
-from vtr.control import ReferencePath, controller_state, gravity_aligned_T_o_t, trunk_in_world
 from vtr.conventions import NS_PER_S
 from vtr.geometry import exp_se3, inv_T, make_T
-from vtr.smoothing import TrajectorySmoother
+from vtr.state.controller import ReferencePath, controller_state, gravity_aligned_T_o_t, trunk_in_world
+from vtr.state.smoothing import TrajectorySmoother
 
 G = 9.81                                  # m/s²
 # Route and run

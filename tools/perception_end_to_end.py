@@ -92,8 +92,8 @@ def kitti_runs(out: Path, source: Path, reuse: bool) -> tuple[list[Path], list[d
         rows = [json.loads((out / n / "run.json").read_text()).get("summary", {}) for n in names
                 if (out / n / "run.json").exists()]
         return files, rows
+    from vtr.app.pipeline import repeat_command, teach_command
     from vtr.config import Config
-    from vtr.pipeline import repeat_command, teach_command
 
     out.mkdir(parents=True, exist_ok=True)
     map_path = out / "route.vtrmap"

@@ -17,13 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from vtr import synthetic as syn
+from vtr.app.pipeline import write_landmarks_csv
 from vtr.config import Config
 from vtr.geometry import inv_T
 from vtr.io import open_source
 from vtr.map import Map, split_vertex_id
-from vtr.pipeline import write_landmarks_csv
-from vtr.repeat import Repeat, Teach
+from vtr.navigation.repeat import Repeat
+from vtr.navigation.teach import Teach
+from vtr.sim import synthetic as syn
 
 SPEED_MPS = 4.0          # flight speed used for timestamps
 REPEAT_PHASE_M = 0.5     # repeat frames sit half a spacing along from the taught ones

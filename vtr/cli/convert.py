@@ -31,8 +31,8 @@ def convert_cmd(source: Path, out: Path, to: str | None, fmt: str | None, frames
     """Convert SOURCE to OUT losslessly (PNG / mono8 images, exact ns stamps, stereo calibration)."""
     from tqdm import tqdm
 
+    from ..app.convert import convert
     from ..io import open_source, parse_frame_range
-    from ..io.convert import convert
     from ..io.rosbag import RosbagSource, is_rosbag
 
     bag_opts = dict(left_topic=left_topic, right_topic=right_topic, left_info_topic=left_info_topic,

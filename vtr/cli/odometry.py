@@ -34,7 +34,7 @@ def _find_datasets() -> Path:
 @format_option
 def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None, fmt: str | None) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
-    from ..pipeline import odometry_command
+    from ..app.pipeline import odometry_command
 
     summary = odometry_command(source, out, frames, load_config(config_path), fmt, progress_bar())
     for line in summary.lines():
@@ -61,8 +61,8 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str) -> None:
 @click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
 def demo_cmd(out: Path) -> None:
     """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report."""
+    from ..app.pipeline import odometry_command, repeat_command, teach_command
     from ..config import Config
-    from ..pipeline import odometry_command, repeat_command, teach_command
 
     clip = _find_datasets() / DEMO_CLIP
     config = Config()

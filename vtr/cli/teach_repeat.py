@@ -24,7 +24,7 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, config_path: Path | None,
               fmt: str | None) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP."""
-    from ..pipeline import teach_command
+    from ..app.pipeline import teach_command
 
     summary = teach_command(source, map_path, frames, load_config(config_path), out, fmt, progress_bar())
     for line in summary.lines():
@@ -43,7 +43,7 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
                config_path: Path | None, fmt: str | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map."""
-    from ..pipeline import repeat_command
+    from ..app.pipeline import repeat_command
 
     summary = repeat_command(source, map_path, out, frames, load_config(config_path), fmt, progress_bar(),
                              rate_hz=rate_hz)

@@ -1,4 +1,4 @@
-"""Frame sources (one interface for every logged format) and trajectory writers."""
+"""Frame sources (one interface for every logged format); the writers are `kitti_writer` and `rosbag_writer`."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from ..errors import DataError
 from .base import FrameSource, GroundTruth, parse_frame_range
 from .cloud import CloudRun, is_cloud_run, refuse_cloud_stereo
 from .euroc import EurocSource, StereoPairsSource, euroc_root, is_stereo_pairs
-from .kitti import KittiSource, KittiWriter, is_kitti
-from .rosbag import RosbagSource, RosbagWriter, is_rosbag
+from .kitti import KittiSource, is_kitti
+from .rosbag import RosbagSource, is_rosbag
 
 # format name -> (detector on a path, opener); later formats register here
 FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]] = {
@@ -41,6 +41,6 @@ def open_source(path: str | Path, format: str | None = None) -> FrameSource:
 
 
 __all__ = [
-    "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource", "KittiWriter",
-    "RosbagSource", "RosbagWriter", "StereoPairsSource", "open_source", "parse_frame_range",
+    "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource",
+    "RosbagSource", "StereoPairsSource", "open_source", "parse_frame_range",
 ]

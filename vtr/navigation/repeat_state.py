@@ -1,7 +1,7 @@
 """Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
 queried at a fixed rate in the gravity-aligned trunk frame o (DESIGN.md §4; thesis §6.3.4).
 
-**Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.repeat.RepeatStep` at a time). The
+**Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
 smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
 per repeat *vertex* (keyframe), not per frame:
 
@@ -20,7 +20,7 @@ with odometry, and feeding it as an absolute pose would count the same localizat
 as an independent measurement would count the same landmark errors twice; (3) DESIGN.md §4 puts the
 smoother's states at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
 between them (and extrapolates after the last one) at the output rate. Both covariances use the left
-perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.estimation), which is the right perturbation of the
+perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.vo.estimation), which is the right perturbation of the
 inverse pose the smoother uses, so they are passed unchanged.
 
 Before the first successful localization nothing ties the repeat to the teach frame: those vertices wait.
@@ -35,7 +35,7 @@ the identity (KITTI), the camera is taken as a level, forward-looking vehicle: v
 centre with x = camera z, y = -camera x, z = -camera y (:data:`VEHICLE_FROM_LEVEL_CAMERA`). The vehicle at
 the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
 there: ``C_g_world = C_vehicle_sensor``; for a level first camera, up is ``-y`` of that camera. Each trunk's
-``T_o_t`` then comes from :func:`vtr.control.gravity_aligned_T_o_t` on ``C_g_trunk``. (A source whose
+``T_o_t`` then comes from :func:`vtr.state.controller.gravity_aligned_T_o_t` on ``C_g_trunk``. (A source whose
 ``T_vehicle_sensor`` is not FLU, e.g. EuRoC's IMU body frame, breaks that assumption: its o is tilted.)
 
 **Output.** ``state.csv`` is written after the run from the smoother's knots (each as final when it left
@@ -59,12 +59,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .control import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
-from .conventions import NS_PER_S
-from .errors import ConfigError, DataError, EstimationError
-from .geometry import inv_T
-from .smoothing import TrajectorySmoother, adjoint
+from ..config import Config
+from ..conventions import NS_PER_S
+from ..errors import ConfigError, DataError, EstimationError
+from ..geometry import inv_T
+from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
+from ..state.smoothing import TrajectorySmoother, adjoint
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
@@ -158,7 +158,7 @@ class _Vertex:
 
 
 class ControllerLog:
-    """Feeds a :class:`~vtr.smoothing.TrajectorySmoother` from repeat steps; controller states at any time.
+    """Feeds a :class:`~vtr.state.smoothing.TrajectorySmoother` from repeat steps; controller states at any time.
 
     Args:
         config: ``smoothing`` (Qc, lag), ``localization`` (path window) and ``odometry.failure_variance``
@@ -195,7 +195,7 @@ class ControllerLog:
     # -- feeding ------------------------------------------------------------------------------------
 
     def add(self, step) -> None:
-        """Take one :class:`~vtr.repeat.RepeatStep`; a new vertex becomes a smoother knot (or waits for
+        """Take one :class:`~vtr.navigation.repeat.RepeatStep`; a new vertex becomes a smoother knot (or waits for
         the first successful localization)."""
         t0 = time.perf_counter()
         r = step.odometry

@@ -13,17 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .errors import DataError
+from ..config import Config
+from ..errors import DataError
+from ..geometry import distance_to_polyline, inv_T
+from ..io import open_source, parse_frame_range
+from ..io.base import FrameSource
+from ..io.trajectory import write_tum
+from ..navigation.localization import Localization
+from ..types import FrameKind, FrameRecord
+from ..vo.odometry import StereoOdometry
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
-from .geometry import distance_to_polyline, inv_T
-from .io import open_source, parse_frame_range
-from .io.base import FrameSource
-from .io.trajectory import write_tum
-from .localization import Localization
-from .odometry import StereoOdometry
 from .runlog import RunLog
-from .types import FrameKind, FrameRecord
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
@@ -132,8 +132,8 @@ class TeachSummary:
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
                   fmt: str | None = None, progress: Callable | None = None) -> TeachSummary:
     """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path)."""
-    from .map import Map
-    from .repeat import Teach
+    from ..map import Map
+    from ..navigation.teach import Teach
 
     with open_source(source_path, fmt) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
@@ -214,7 +214,7 @@ class LocalizationWriter:
         self._csv.writerow(LOCALIZATION_CSV_HEADER)
 
     def write(self, loc: Localization) -> None:
-        from .geometry import T_to_tum
+        from ..geometry import T_to_tum
 
         pose = T_to_tum(loc.T_leaf_trunk)
         var = np.diag(loc.covariance)
@@ -253,9 +253,9 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                    rate_hz: float | None = None) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv."""
-    from .controller_log import ControllerLog, check_rate, write_state_csv
-    from .map import Map
-    from .repeat import Repeat
+    from ..map import Map
+    from ..navigation.repeat import Repeat
+    from ..navigation.repeat_state import ControllerLog, check_rate, write_state_csv
     from .report import plot_repeat
 
     rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)

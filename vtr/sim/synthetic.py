@@ -36,11 +36,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import StereoCamera
-from .conventions import NS_PER_S
-from .errors import ConfigError
-from .geometry import distance_to_polyline, inv_T, make_T
-from .io.kitti import KittiWriter, write_kitti_poses
+from ..camera import StereoCamera
+from ..conventions import NS_PER_S
+from ..errors import ConfigError
+from ..geometry import distance_to_polyline, inv_T, make_T
+from ..io.kitti import write_kitti_poses
+from ..io.kitti_writer import KittiWriter
 
 # --------------------------------------------------------------------------------------------
 # Named constants
@@ -1216,7 +1217,7 @@ def write_sequence(
     writer.close(inv_T(T[0]) @ T)
     write_kitti_poses(out / "poses_world.txt", T)
     meta = {
-        "generator": "vtr.synthetic",
+        "generator": "vtr.sim.synthetic",
         "frames": "poses.txt: T_cam0_cam (left rectified camera, KITTI convention); "
                   "poses_world.txt: T_world_cam (world ENU, z up, ground at z=0)",
         "T_world_cam0": T[0].tolist(),

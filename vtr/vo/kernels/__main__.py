@@ -1,4 +1,4 @@
-"""``python -m vtr.kernels``: compile every kernel once (fills numba's on-disk cache) and say how long it took."""
+"""``python -m vtr.vo.kernels``: compile every kernel once (fills numba's on-disk cache) and say how long it took."""
 
 from __future__ import annotations
 

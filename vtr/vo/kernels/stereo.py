@@ -1,4 +1,4 @@
-"""Kernel of the subpixel disparity refinement (``vtr.stereo.refine_disparity``)."""
+"""Kernel of the subpixel disparity refinement (``vtr.vo.stereo.refine_disparity``)."""
 
 from __future__ import annotations
 

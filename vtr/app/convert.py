@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .base import FrameSource
-from .kitti import KittiWriter
-from .rosbag import ROS1_SUFFIX, RosbagWriter
+from ..io.base import FrameSource
+from ..io.kitti_writer import KittiWriter
+from ..io.rosbag import ROS1_SUFFIX
+from ..io.rosbag_writer import RosbagWriter
 
 TARGETS = ("kitti", "rosbag1", "rosbag2", "mcap")
 PARTIAL_SUFFIX = ".partial"

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import StereoCamera
-from .config import FeatureConfig, StereoConfig
+from ..camera import StereoCamera
+from ..config import FeatureConfig, StereoConfig
+from ..timing import StageTimer
+from ..types import Features, StereoFrame, StereoImages
 from .features import FeatureExtractor, descriptor_words
 from .kernels import matching as km
 from .kernels import stereo as ks
-from .timing import StageTimer
-from .types import Features, StereoFrame, StereoImages
 
 MAX_OCTAVE_GAP = 1   # left/right features more pyramid levels apart are not the same corner
 

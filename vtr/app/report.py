@@ -42,7 +42,7 @@ def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns:
     """Repeat report: inliers along the path (failures marked), path-tracking error over time, and the
     taught and repeated paths in plan view (teach run's first camera frame: x right, z forward).
 
-    ``state`` (optional, e.g. a :class:`vtr.controller_log.StateTable`: ``t_ns``, ``lateral``, ``vertical``)
+    ``state`` (optional, e.g. a :class:`vtr.navigation.repeat_state.StateTable`: ``t_ns``, ``lateral``, ``vertical``)
     adds the smoothed signed lateral and vertical errors to the path-tracking panel."""
     plt = _pyplot()
     fig = plt.figure(figsize=(12, 7))

@@ -2,7 +2,7 @@
 
 Frames (``T_a_b`` maps b coordinates into a; all SI units):
 
-* ``world``: the fixed frame of the smoother's measurements (:class:`vtr.smoothing.TrajectorySmoother`).
+* ``world``: the fixed frame of the smoother's measurements (:class:`vtr.state.smoothing.TrajectorySmoother`).
 * ``t`` (trunk): vehicle frame of the privileged (taught) vertex closest to the vehicle; FLU (x forward,
   y left, z up on a level vehicle).
 * ``a``: the vehicle frame now (FLU); the smoother may track another rigidly attached frame (the
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import EstimationError
-from .geometry import check_se3, inv_T, skew
+from ..errors import EstimationError
+from ..geometry import check_se3, inv_T, skew
 from .smoothing import TrajectoryState, adjoint
 
 GRAVITY_UP = np.array([0.0, 0.0, 1.0])    # z axis of o and of any gravity-aligned frame g

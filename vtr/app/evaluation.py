@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .geometry import inv_T, rotation_angle
+from ..geometry import inv_T, rotation_angle
 
 SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
 

@@ -24,13 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import StereoCamera
-from .config import LocalizationConfig, OdometryConfig
-from .estimation import ransac_pnp, refine_two_view
-from .features import match_all
-from .geometry import inv_T, log_se3
-from .odometry import MIN_DEPTH_M, match_to_landmarks
-from .types import StereoFrame
+from ..camera import StereoCamera
+from ..config import LocalizationConfig, OdometryConfig
+from ..geometry import inv_T, log_se3
+from ..types import StereoFrame
+from ..vo.estimation import ransac_pnp, refine_two_view
+from ..vo.features import match_all
+from ..vo.matching import MIN_DEPTH_M, match_to_landmarks
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,5 @@
-"""Teach and repeat on top of odometry, the map and the localization chain.
+"""Repeat on top of odometry, the map and the localization chain.
 
-* ``Teach``: odometry over a run, each keyframe written to the map (as its pose becomes final in
-  the odometry window) with a temporal edge to the previous one: the privileged path.
 * ``Repeat``: a program feeds frames one by one; odometry runs on the new run (stored in the same
   map as a repeat run), and every new keyframe (leaf) is localized against the taught path
   through the ``LocalizationChain``. ``latest`` is the latest localization.
@@ -14,69 +12,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import StereoCamera
-from .config import Config
-from .errors import MapError
-from .geometry import inv_T
+from ..config import Config
+from ..geometry import inv_T
+from ..map import Map, VertexRecord
+from ..types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..vo.odometry import StereoOdometry
 from .localization import Localization, LocalizationChain, Localizer, landmark_record
-from .map import Map, VertexRecord
-from .odometry import StereoOdometry
-from .types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
+from .teach import usable_covariance
 
 
 def frame_of_vertex(v: VertexRecord) -> StereoFrame:
     """The stereo frame a map vertex stores (features, stereo measurements, landmarks)."""
     feats = Features(v.uv, v.octave, np.zeros(len(v.uv)), v.descriptors)
     return StereoFrame(v.t_ns, v.frame_index, feats, v.u_right, v.points)
-
-
-class Teach:
-    """Builds the privileged path of a map from a stereo run."""
-
-    def __init__(self, map_: Map, camera: StereoCamera, config: Config, source: str = ""):
-        self.map = map_
-        self.camera = camera
-        self.odometry = StereoOdometry(camera, config, keep_history=False)
-        self.run = map_.begin_run("teach", source=source, privileged=True)
-        self._previous: tuple[int, Keyframe] | None = None
-        self.vertices = 0
-
-    def process(self, images: StereoImages) -> OdometryResult:
-        result = self.odometry.process(images)
-        for kf in result.finalized:
-            self._write(kf)
-        return result
-
-    def finish(self) -> int:
-        """Write the keyframes still in the odometry window; returns the number of vertices."""
-        for kf in self.odometry.flush():
-            self._write(kf)
-        if self.vertices == 0:
-            raise MapError("teach produced no keyframe: the map has no taught path")
-        return self.vertices
-
-    def _write(self, kf: Keyframe) -> None:
-        edge = None
-        if self._previous is not None:
-            prev = self._previous[1]
-            edge = (inv_T(prev.T_world_kf) @ kf.T_world_kf, _usable_covariance(kf.edge_covariance), kf.edge_inliers)
-        v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
-        self._previous = (v.id, kf)
-        self.vertices += 1
-
-
-def _usable_covariance(C: np.ndarray) -> np.ndarray:
-    """A symmetric positive definite covariance (a tiny floor where odometry's is degenerate)."""
-    C = 0.5 * (C + C.T)
-    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
-        C = np.where(np.isfinite(C), C, 0.0) + np.eye(6) * COVARIANCE_FLOOR
-        C = 0.5 * (C + C.T)
-        w, V = np.linalg.eigh(C)
-        C = (V * np.maximum(w, COVARIANCE_FLOOR)) @ V.T
-    return C
-
-
-COVARIANCE_FLOOR = 1e-12
 
 
 @dataclass(frozen=True)
@@ -120,7 +68,7 @@ class Repeat:
             kf = result.new_keyframe
             edge = None
             if self._leaf is not None:
-                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, _usable_covariance(result.covariance), result.inliers)
+                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, usable_covariance(result.covariance), result.inliers)
             with self.timer("map_write"):
                 v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor,
                                         edge)
@@ -153,7 +101,7 @@ class Repeat:
             trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
         success = T is not None
         if success:
-            self.map.add_edge(leaf_id, trunk_vertex.id, T, _usable_covariance(cov), "spatial", int(inlier.sum()))
+            self.map.add_edge(leaf_id, trunk_vertex.id, T, usable_covariance(cov), "spatial", int(inlier.sum()))
         c.update(leaf_id, kf.T_world_kf, trunk, T)
         T_used = T if success else T_prior
         record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)

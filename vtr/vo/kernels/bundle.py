@@ -1,4 +1,4 @@
-"""Kernels of the stereo bundle adjustment in ``vtr.estimation.bundle_adjust``.
+"""Kernels of the stereo bundle adjustment in ``vtr.vo.estimation.bundle_adjust``.
 
 Observation m sees landmark ``obs_point[m]`` from camera ``obs_pose[m]``; poses are ``T_cam_world``
 split into rotations R (K, 3, 3) and translations t (K, 3); residual rows are (u_l, v, u_r) in

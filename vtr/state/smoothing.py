@@ -37,10 +37,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
-from .config import SmoothingConfig
-from .conventions import NS_PER_S
-from .errors import ConfigError, EstimationError
-from .geometry import check_se3, inv_T, skew
+from ..config import SmoothingConfig
+from ..conventions import NS_PER_S
+from ..errors import ConfigError, EstimationError
+from ..geometry import check_se3, inv_T, skew
 
 POSE_DIM = 6                     # pose tangent dimension [rot, trans]
 STATE_DIM = 12                   # [pose tangent, body twist]

@@ -11,7 +11,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from .config import Config
+from ..config import Config
 
 KEY_PACKAGES = ("vtr", "numpy", "scipy", "opencv-python-headless", "gtsam", "open3d", "rosbags")
 

@@ -1,4 +1,4 @@
-"""Kernels of binary-descriptor matching (``vtr.features``, ``vtr.stereo``).
+"""Kernels of binary-descriptor matching (``vtr.vo.features``, ``vtr.vo.stereo``).
 
 Descriptors are 256-bit ORB strings viewed as four uint64 words (N, 4). A query keeps its closest
 candidate when it is within ``max_distance``, passes the ratio test against its second-closest

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import StereoCamera
-from .geometry import exp_se3
+from ..camera import StereoCamera
+from ..geometry import exp_se3
 from .kernels import bundle as kb
 
 
@@ -122,7 +122,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     row (0 for a missing right match, small for the disparity of a far landmark). Landmarks are
     eliminated by the Schur complement (3x3 blocks), so the solve is over the free poses only;
     ``fix_points`` refines poses alone. Poses are perturbed on the left, ``T <- Exp(xi) T`` with
-    ``xi = [omega, v]``. The per-observation work runs in compiled kernels (``vtr.kernels.bundle``).
+    ``xi = [omega, v]``. The per-observation work runs in compiled kernels (``vtr.vo.kernels.bundle``).
     """
     T = T_cam_world.copy()
     X = np.ascontiguousarray(points, dtype=np.float64).copy()

@@ -12,9 +12,9 @@ from operator import attrgetter
 import cv2
 import numpy as np
 
-from .config import FeatureConfig
+from ..config import FeatureConfig
+from ..types import Features
 from .kernels import matching as km
-from .types import Features
 
 
 def bucket(uv: np.ndarray, response: np.ndarray, size: tuple[int, int], rows: int, cols: int,

@@ -1,0 +1,1 @@
+"""Synthetic stereo worlds with exact ground truth (``synthetic``)."""
