@@ -751,7 +751,7 @@ class TrajectorySmoother:
 
 
 # ----------------------------------------------------------------------------------------------
-# Jacobians of the query maps (checked against numerical differences in tests/test_smoothing.py)
+# Jacobians of the query maps (checked against numerical differences in tests/state/test_smoothing.py)
 
 
 def extrapolation_jacobian(

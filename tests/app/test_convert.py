@@ -15,7 +15,7 @@ from vtr.io import KittiSource, open_source
 from vtr.io.rosbag_writer import BagTopics, write_bag
 from vtr.types import StereoImages
 
-DATA = Path(__file__).resolve().parents[1] / "datasets"
+DATA = Path(__file__).resolve().parents[2] / "datasets"
 KITTI = DATA / "kitti06_clip"
 EUROC = DATA / "euroc_v101_micro"
 FRAMES = "10:16:2"  # three KITTI frames

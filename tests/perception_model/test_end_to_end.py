@@ -24,7 +24,7 @@ from perception_model.cli import main
 from perception_model.map_landmarks import camera_rotation_from_yaw, yaw_pitch_of_axis
 from perception_model.model import PerceptionModel
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
+TOOLS = Path(__file__).resolve().parents[2] / "tools"
 LENGTH_M = 12.0
 RAMP_M = 3.0
 OFFSETS = [(0.0, 0.0), (4.0, 2.0)]  # (lateral left, vertical up), metres

@@ -13,7 +13,7 @@ from vtr.errors import CalibrationError, DataError
 from vtr.io import EurocSource, KittiSource, open_source, parse_frame_range
 from vtr.io.kitti_writer import KittiWriter
 
-DATA = Path(__file__).resolve().parents[1] / "datasets"
+DATA = Path(__file__).resolve().parents[2] / "datasets"
 KITTI = DATA / "kitti06_clip"
 EUROC = DATA / "euroc_v101_micro"
 KITTI_SIZE = (1226, 370)

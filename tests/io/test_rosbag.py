@@ -21,7 +21,7 @@ from vtr.io.rosbag import (
 )
 from vtr.io.rosbag_writer import BagTopics, RosbagWriter, write_bag
 
-DATA = Path(__file__).resolve().parents[1] / "datasets"
+DATA = Path(__file__).resolve().parents[2] / "datasets"
 KITTI = DATA / "kitti06_clip"
 EUROC = DATA / "euroc_v101_micro"
 N_KITTI = 4  # a few KITTI frames per bag keep the suite fast
