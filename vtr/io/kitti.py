@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
+from ..conventions import NS_PER_S
 from ..errors import CalibrationError, DataError
 from ..types import StereoImages
 from .base import FrameSource, GroundTruth
@@ -95,7 +96,7 @@ class KittiSource(FrameSource):
             raise DataError(f"{times}: malformed ({err})") from err
         if len(t) != n:
             raise DataError(f"{times}: {len(t)} times for {n} images")
-        t_ns = np.round(t * 1e9).astype(np.int64)
+        t_ns = np.round(t * NS_PER_S).astype(np.int64)
         if np.any(np.diff(t_ns) <= 0):
             raise DataError(f"{times}: timestamps are not strictly increasing")
         return t_ns

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
+from ..conventions import NS_PER_S
 from .kitti import write_kitti_poses
 
 
@@ -40,7 +41,7 @@ class KittiWriter:
 
     def close(self, T_world_cam: np.ndarray | None = None) -> None:
         """Write times.txt (and poses.txt when given) once all frames are in."""
-        np.savetxt(self.path / "times.txt", np.asarray(self._times) / 1e9, fmt="%.9f")
+        np.savetxt(self.path / "times.txt", np.asarray(self._times) / NS_PER_S, fmt="%.9f")
         np.savetxt(self.path / "times_ns.txt", np.asarray(self._times, np.int64), fmt="%d")
         if T_world_cam is not None:
             write_kitti_poses(self.path / "poses.txt", T_world_cam)
