@@ -15,6 +15,12 @@ def kitti_clip() -> Path:
 
 
 @pytest.fixture(scope="session")
+def kitti_ramp_clip() -> Path:
+    """Open ramp, most of the scene far away (the hard case for scale)."""
+    return DATASETS / "kitti00_ramp_clip"
+
+
+@pytest.fixture(scope="session")
 def euroc_micro() -> Path:
     return DATASETS / "euroc_v101_micro"
 

@@ -65,8 +65,20 @@ class OdometryConfig:
     min_inliers: int = 15                 # fewer: FAILURE
     refine_iterations: int = 10           # Gauss-Newton iterations of the two-view stereo bundle adjustment
     huber_px: float = 1.5                 # robust kernel width in the refinement
-    far_point_baselines: float = 40.0     # points beyond this many baselines constrain rotation only
-    far_disparity_weight: float = 0.01    # weight of a far point's disparity row (1 = full, 0 = ignored)
+    # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
+    # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
+    # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
+    # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
+    far_point_baselines: float = 15.0
+    # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
+    # near landmarks, non-zero so that it stays determined when none is near (a camera high above the ground)
+    far_disparity_weight: float = 1e-4
+    # when fewer observations than this are near, the nearest ones (largest disparities) count as near instead
+    min_near_observations: int = 60
+    # a far landmark whose rays across the window span at least this angle starts the windowed bundle
+    # adjustment where they meet (its depth from parallax, not from one small disparity); on kitti00_ramp_clip
+    # 0.5 deg gave t_err 0.9-1.6 % over four feature variants, 1 deg 1.1-2.3 %, none 1.4-2.0 %
+    far_min_parallax_deg: float = 0.5
     keyframe_translation_m: float = 0.3   # new vertex when translation exceeds this
     keyframe_rotation_deg: float = 3.0    # ... or rotation exceeds this
     keyframe_min_inliers: int = 50        # ... or inliers fall below this
@@ -75,7 +87,9 @@ class OdometryConfig:
     max_speed_mps: float = 40.0
     max_rotation_rate_dps: float = 200.0
     window_keyframes: int = 5             # keyframes in the local map matched and refined together
-    window_max_landmarks: int = 400       # landmarks in the windowed bundle adjustment (longest tracks first)
+    # landmarks in the windowed bundle adjustment (near ones first, then the longest tracks); on kitti00_ramp_clip
+    # 800 gave t_err 1.4-2.0 % over four feature variants against 1.9-5.0 % for 400
+    window_max_landmarks: int = 800
     window_iterations: int = 4            # Levenberg-Marquardt iterations of the windowed bundle adjustment
     still_translation_m: float = 1e-3     # a step below this (and still_rotation_deg) is DO_NOTHING
     still_rotation_deg: float = 0.01
@@ -100,7 +114,10 @@ class LocalizationConfig:
     trunk_window_back: int = 10           # trunk search window along the privileged path
     trunk_window_forward: int = 20
     rotation_weight: float = 7.0          # trunk search metric ||rho|| + w ||phi||
-    neighbour_vertices: int = 3           # taught vertices around the trunk whose landmarks are matched
+    # taught vertices on each side of the trunk whose (window-refined) landmarks the leaf is matched against;
+    # teach even / repeat odd on kitti00_ramp_clip, T_leaf_trunk median over four feature variants:
+    # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
+    neighbour_vertices: int = 1
 
 
 @dataclass

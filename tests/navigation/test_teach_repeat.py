@@ -25,6 +25,10 @@ from vtr.types import StereoImages
 SUCCESS_RATE = 0.95
 MAX_MEDIAN_ERROR_M = 0.05
 MAX_MEDIAN_ERROR_DEG = 0.5
+KITTI06_MAX_MEDIAN_ERROR_M = 0.020      # teach even / repeat odd on kitti06_clip (was 14.4 mm)
+# teach even / repeat odd on kitti00_ramp_clip: 76 mm before the far-structure estimator; about 10-25 mm of
+# any estimate can be the clip's own 1-2 % scale against its ground truth over ~1 m (tools/scale_check.py)
+RAMP_MAX_MEDIAN_ERROR_M = 0.040
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +43,21 @@ def _copy(path, tmp_path):
     dst = tmp_path / "route.vtrmap"
     dst.write_bytes(path.read_bytes())
     return dst
+
+
+def test_kitti06_teach_even_repeat_odd_within_20mm(kitti_clip, kitti_map, tmp_path):
+    summary = repeat_command(kitti_clip, _copy(kitti_map, tmp_path), tmp_path / "r", "1::2", Config())
+    assert summary.localized == summary.vertices
+    assert summary.errors is not None and summary.errors.median_translation_m <= KITTI06_MAX_MEDIAN_ERROR_M
+
+
+def test_far_structure_ramp_teach_even_repeat_odd(kitti_ramp_clip, tmp_path):
+    """Every keyframe localized, T_leaf_trunk within 40 mm (median) of the ground truth."""
+    path = tmp_path / "ramp.vtrmap"
+    teach_command(kitti_ramp_clip, path, "0::2", Config())
+    summary = repeat_command(kitti_ramp_clip, path, tmp_path / "r", "1::2", Config())
+    assert summary.vertices == 13 and summary.localized == summary.vertices
+    assert summary.errors is not None and summary.errors.median_translation_m <= RAMP_MAX_MEDIAN_ERROR_M
 
 
 @pytest.mark.parametrize("frames", ["1::2", "1::3"])
@@ -79,7 +98,7 @@ def test_map_reopens_in_new_process_and_teach_run_is_untouched(kitti_clip, kitti
 @pytest.fixture(scope="module")
 def euroc_localized(euroc_pairs):
     """Each revisit pair (taught, revisit) localized without a prior: frames, estimate, stated truth."""
-    from vtr.navigation.localization import Localizer
+    from vtr.navigation.localization import Localizer, TaughtSubmap
     from vtr.vo.stereo import StereoProcessor
 
     cfg = Config()
@@ -90,7 +109,8 @@ def euroc_localized(euroc_pairs):
         loc = Localizer(src.camera, cfg.localization, cfg.odometry, cfg.stereo.pixel_sigma)
         for taught, revisit in ((0, 1), (2, 3)):
             f_taught, f_revisit = sp.process(src[taught]), sp.process(src[revisit])
-            T, _, _, _, inlier = loc.localize(f_revisit, f_taught, None, trusted_prior=False)
+            est = loc.localize(f_revisit, TaughtSubmap.of_frame(f_taught, src.camera), None, trusted_prior=False)
+            T, inlier = est.T_leaf_trunk, est.inlier
             e = None if T is None else localization_errors(T[None], gt.t_ns[[revisit]], gt.t_ns[[taught]], gt.t_ns,
                                                            gt.T_world_cam)
             stated = inv_T(gt.T_world_cam[revisit]) @ gt.T_world_cam[taught]
@@ -110,13 +130,8 @@ def test_euroc_pair_2_3_within_5cm_1deg(euroc_localized):
     assert e.translation_m[0] <= 0.05 and e.rotation_deg[0] <= 1.0
 
 
-@pytest.mark.xfail(strict=True, reason="measured 5.5 cm, 2.24 deg on pair 0->1 against the stated ground truth, "
-                   "which does not fit the images: under it 0 taught landmarks land within 3 px of a matching "
-                   "revisit feature, under our pose 687 (test_euroc_pairs_estimate_fits_the_images_better_than_"
-                   "stated_truth); an essential-matrix estimate agrees with ours to 0.86 deg")
-def test_euroc_pair_0_1_within_5cm_1deg(euroc_localized):
-    e = euroc_localized[(0, 1)][4]
-    assert e.translation_m[0] <= 0.05 and e.rotation_deg[0] <= 1.0
+# Pair 0->1 has no pose bound: its stated pose does not fit the images (datasets/euroc_revisit_pairs/SOURCE.md);
+# it is judged by the image-consistency check below instead.
 
 
 @pytest.mark.parametrize("pair", [(0, 1), (2, 3)])

@@ -10,9 +10,15 @@ from vtr.io import open_source
 from vtr.types import FrameKind
 
 # ORB-SLAM3 stereo on this clip: 0.69-0.73 % and 0.0126-0.0138 deg/m; naive PnP VO: 2.5 %, 0.022 deg/m.
-T_ERR_BOUND_PCT = 1.0
+# 0.75 %: no regression from 0.68 % before the far-structure estimator (now 0.58 %)
+T_ERR_BOUND_PCT = 0.75
 R_ERR_BOUND_DEG_PER_M = 0.015
 NAIVE_T_ERR_PCT = 2.5
+# kitti00_ramp_clip (far structure): ORB-SLAM3 stereo 5.97 %, naive PnP 8.8 %; vtr before the far-structure
+# estimator 10.6 % and path x1.108. Near points alone put this clip's motion about 1-2 % above its ground truth
+# (tools/scale_check.py), so the path length may exceed it by that much.
+RAMP_T_ERR_BOUND_PCT = 4.0
+RAMP_PATH_LENGTH_RANGE = (1.00, 1.04)
 
 
 @pytest.fixture(scope="module")
@@ -60,3 +66,25 @@ def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_ru
     poses = kitti_run[1]
     assert len(finalized) == len(poses)                    # every KITTI frame is a keyframe
     assert np.allclose(np.array([kf.T_world_kf for kf in finalized]), poses, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def ramp_run(kitti_ramp_clip):
+    with open_source(kitti_ramp_clip) as src:
+        results, poses, _ = run_odometry(src, list(range(len(src))), Config())
+        gt = src.ground_truth().T_world_cam
+    return results, drift_metrics(poses, gt)
+
+
+def test_far_structure_ramp_every_frame_tracked(ramp_run):
+    results, _ = ramp_run
+    assert len(results) == 26 and all(r.kind != FrameKind.FAILURE for r in results)
+
+
+def test_far_structure_ramp_translation_drift_within_bound(ramp_run):
+    assert ramp_run[1].t_err_pct <= RAMP_T_ERR_BOUND_PCT
+
+
+def test_far_structure_ramp_path_length(ramp_run):
+    lo, hi = RAMP_PATH_LENGTH_RANGE
+    assert lo <= ramp_run[1].length_ratio <= hi

@@ -28,9 +28,9 @@ from ..camera import StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T, log_se3
 from ..types import StereoFrame
-from ..vo.estimation import ransac_pnp, refine_two_view
+from ..vo.estimation import bundle_adjust, ransac_pnp, stereo_row_weights
 from ..vo.features import match_all
-from ..vo.matching import MIN_DEPTH_M, match_to_landmarks
+from ..vo.matching import MIN_DEPTH_M, match_landmarks
 
 
 @dataclass(frozen=True)
@@ -141,8 +141,84 @@ class LocalizationChain:
         self.distance_since_success = 0.0
 
 
+#: a stored landmark whose depth differs from its own triangulation by more than this disparity was refined
+REFINED_DISPARITY_TOLERANCE_PX = 1e-6
+
+
+@dataclass(frozen=True)
+class TaughtSubmap:
+    """The landmarks a leaf is localized against: the trunk's and those of its taught neighbours.
+
+    VT&R3 localizes against a window of taught vertices rather than one stereo frame, so a leaf's
+    pose does not inherit one stereo pair's depth errors. Vertex ``s`` (of ``vertex_ids``) sits at
+    ``T_vertex_trunk[s]`` along the privileged path; ``trunk_slot`` is the trunk's slot. Per landmark
+    (arrays of equal length): its position in the trunk camera frame (as the teach's windowed bundle
+    adjustment left it), descriptor, the slot of the vertex that observed it, that vertex's stereo
+    measurement (u_l, v, u_r) and the feature index in that vertex.
+    """
+
+    vertex_ids: np.ndarray
+    T_vertex_trunk: np.ndarray
+    trunk_slot: int
+    points_trunk: np.ndarray
+    descriptors: np.ndarray
+    slot: np.ndarray
+    z: np.ndarray
+    feature: np.ndarray
+    depth_m: np.ndarray
+    refined: np.ndarray
+
+    @classmethod
+    def build(cls, frames: list[StereoFrame], vertex_ids: np.ndarray, T_vertex_trunk: np.ndarray, trunk_slot: int,
+              camera: StereoCamera) -> TaughtSubmap:
+        """From the vertices' stereo frames (landmarks with depth) and their poses relative to the trunk.
+
+        A vertex stores each landmark where odometry's windowed bundle adjustment left it, or, when the
+        window did not refine it, its own triangulation (depth exactly fb / disparity): ``refined`` tells
+        them apart and ``depth_m`` is the stored depth in the observing vertex.
+        """
+        feats = [np.flatnonzero(f.has_depth) for f in frames]
+        T_trunk_vertex = inv_T(np.asarray(T_vertex_trunk))
+        points = np.concatenate([f.points[i] @ T[:3, :3].T + T[:3, 3]
+                                 for f, i, T in zip(frames, feats, T_trunk_vertex, strict=True)])
+        z = np.concatenate([f.stereo_measurements[i] for f, i in zip(frames, feats, strict=True)])
+        depth = np.concatenate([f.points[i, 2] for f, i in zip(frames, feats, strict=True)])
+        refined = np.abs(z[:, 0] - z[:, 2] - camera.fb / depth) > REFINED_DISPARITY_TOLERANCE_PX
+        return cls(np.asarray(vertex_ids), np.asarray(T_vertex_trunk), trunk_slot, points,
+                   np.concatenate([f.features.descriptors[i] for f, i in zip(frames, feats, strict=True)]),
+                   np.concatenate([np.full(len(i), s) for s, i in enumerate(feats)]), z, np.concatenate(feats),
+                   depth, refined)
+
+    @classmethod
+    def of_frame(cls, frame: StereoFrame, camera: StereoCamera, vertex_id: int = 0) -> TaughtSubmap:
+        """A submap of one stereo frame (a single taught view)."""
+        return cls.build([frame], np.array([vertex_id]), np.eye(4)[None], 0, camera)
+
+    def trunk_features(self, landmarks: np.ndarray) -> np.ndarray:
+        """Feature indices in the trunk vertex of those of ``landmarks`` that the trunk observed."""
+        landmarks = np.asarray(landmarks, int)
+        return self.feature[landmarks[self.slot[landmarks] == self.trunk_slot]]
+
+
+@dataclass(frozen=True)
+class LocalizationEstimate:
+    """What the localizer found: ``T_leaf_trunk`` (None on failure) with its 6x6 covariance, the number of
+    candidate matches, the matched submap landmarks and which of them are inliers."""
+
+    T_leaf_trunk: np.ndarray | None
+    covariance: np.ndarray
+    matches: int
+    matched: np.ndarray
+    inlier: np.ndarray
+
+    @classmethod
+    def failed(cls, matched: np.ndarray, inlier: np.ndarray | None = None) -> LocalizationEstimate:
+        return cls(None, np.full((6, 6), np.nan), len(matched), matched,
+                   np.zeros(len(matched), bool) if inlier is None else inlier)
+
+
 class Localizer:
-    """Matches a leaf's features to a trunk's landmarks and estimates ``T_leaf_trunk``."""
+    """Matches a leaf's features to a taught submap's landmarks and estimates ``T_leaf_trunk``."""
 
     def __init__(self, camera: StereoCamera, config: LocalizationConfig, odometry: OdometryConfig,
                  pixel_sigma: float):
@@ -151,56 +227,80 @@ class Localizer:
         self.odometry = odometry
         self.pixel_sigma = pixel_sigma
 
-    def localize(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None,
-                 seed: int = 0, trusted_prior: bool = True,
-                 consecutive_failures: int = 0) -> tuple[np.ndarray | None, np.ndarray, int, np.ndarray, np.ndarray]:
+    def localize(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
+                 seed: int = 0, trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:
         """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
 
         Without a trusted prior (before the first success) a localization needs
         ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong. The search
         radius around the prior's prediction grows with the failures since the last success, as the
         prior (odometry since then) grows less certain.
-        Returns (T_leaf_trunk or None, covariance, matches, matched trunk indices, inlier mask).
         """
         c = self.config
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
         radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
-        ti, lj = self._match(leaf, trunk, T_prior, radius)
-        if len(ti) < c.min_matches:
-            return None, np.full((6, 6), np.nan), len(ti), ti, np.zeros(len(ti), bool)
-        rs = ransac_pnp(trunk.points[ti], leaf.features.uv[lj], self.camera, c.ransac_iterations,
+        li, lj = self._match(leaf, submap, T_prior, radius)
+        if len(li) < c.min_matches:
+            return LocalizationEstimate.failed(li)
+        rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
                         c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
-        inlier = np.zeros(len(ti), bool)
         if rs is None or len(rs.inliers) < min_inliers:
-            return None, np.full((6, 6), np.nan), len(ti), ti, inlier
+            return LocalizationEstimate.failed(li)
         sel = rs.inliers
-        depth = trunk.points[ti[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
+        depth = submap.points_trunk[li[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         sel = sel[depth > MIN_DEPTH_M]
-        rf = refine_two_view(rs.T_q_r, trunk.points[ti[sel]], trunk.stereo_measurements[ti[sel]],
-                             leaf.stereo_measurements[lj[sel]], self.camera, self.pixel_sigma,
-                             self.odometry.huber_px, self.odometry.refine_iterations, c.ransac_threshold_px)
-        inlier[sel[rf.inlier]] = True
-        if inlier.sum() < max(min_inliers, c.min_inlier_ratio * len(ti)):
-            return None, np.full((6, 6), np.nan), len(ti), ti, inlier
-        return rf.T_q_r, rf.covariance, len(ti), ti, inlier
+        T, cov, ok = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
+        inlier = np.zeros(len(li), bool)
+        inlier[sel[ok]] = True
+        if inlier.sum() < max(min_inliers, c.min_inlier_ratio * len(li)):
+            return LocalizationEstimate.failed(li, inlier)
+        return LocalizationEstimate(T, cov, len(li), li, inlier)
 
-    def _match(self, leaf: StereoFrame, trunk: StereoFrame, T_prior: np.ndarray | None, radius: float):
+    def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
+                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stereo bundle adjustment of ``T_leaf_trunk`` with the matched landmarks free, each observed by its
+        taught vertex (held where the taught path puts it) and by the leaf. Returns (T_leaf_trunk,
+        covariance, inlier mask).
+
+        The taught disparity of a landmark the teach window refined is the one its refined depth implies,
+        at full weight: the depth the teach established from several views, not from one stereo pair. The
+        other rows are weighted by :func:`stereo_row_weights` (a far landmark's own disparity barely counts).
+        """
+        o = self.odometry
+        n, V = len(landmarks), len(submap.vertex_ids)
+        near_depth_m = o.far_point_baselines * self.camera.baseline
+        z_taught = submap.z[landmarks].copy()
+        w_taught = stereo_row_weights(z_taught, self.camera, near_depth_m, o.far_disparity_weight, o.min_near_observations)
+        refined = submap.refined[landmarks]
+        z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
+        w_taught[refined, 2] = 1.0
+        z = np.concatenate([z_taught, z_leaf])
+        w_leaf = stereo_row_weights(z_leaf, self.camera, near_depth_m, o.far_disparity_weight, o.min_near_observations)
+        w = np.concatenate([w_taught, w_leaf])
+        res = bundle_adjust(np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
+                            np.r_[np.ones(V, bool), False], submap.points_trunk[landmarks],
+                            np.r_[submap.slot[landmarks], np.full(n, V)], np.r_[np.arange(n), np.arange(n)],
+                            np.nan_to_num(z), w, self.camera, self.pixel_sigma, o.huber_px, o.refine_iterations)
+        inlier = np.maximum(res.error_sq[:n], res.error_sq[n:]) <= self.config.ransac_threshold_px**2
+        return res.T_cam_world[V], res.pose_covariance[V], inlier
+
+    def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
+               radius: float) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
         if T_prior is not None:
-            ti, lj = match_to_landmarks(trunk, leaf, T_prior, self.camera, radius, c.max_descriptor_distance,
-                                        self.odometry.ratio_test)
-            if len(ti) >= c.min_matches:
-                return ti, lj
-        # unguided: every trunk landmark against every leaf feature, ratio test
-        ti_all = np.flatnonzero(trunk.has_depth)
-        qi, tj = match_all(trunk.features.descriptors[ti_all], leaf.features.descriptors, c.max_descriptor_distance,
-                           ratio=self.odometry.ratio_test)
-        return ti_all[qi], tj
+            li, lj = match_landmarks(submap.points_trunk, submap.descriptors, leaf, T_prior, self.camera, radius,
+                                     c.max_descriptor_distance, self.odometry.ratio_test)
+            if len(li) >= c.min_matches:
+                return li, lj
+        # unguided: every taught landmark against every leaf feature, ratio test
+        return match_all(submap.descriptors, leaf.features.descriptors, c.max_descriptor_distance,
+                         ratio=self.odometry.ratio_test)
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
                     inlier: np.ndarray) -> LandmarkRecord:
-    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5).
+    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5); ``matched``/``inlier`` are the
+    feature indices of the trunk's matched / inlier landmarks.
 
     Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
     for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera
@@ -219,6 +319,6 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
     p_ao = T_trunk_leaf[:3, 3]
     z = T_trunk_leaf[:3, 2]
     is_matched = np.isin(idx, matched)
-    is_inlier = np.isin(idx, matched[inlier]) if len(inlier) else np.zeros(len(idx), bool)
+    is_inlier = np.isin(idx, inlier)
     return LandmarkRecord(idx, is_matched, is_inlier, parallax_angle(p_is, p_ao), view_angle(p_is, p_ao, z),
                           np.linalg.norm(P_leaf, axis=1))

@@ -17,7 +17,7 @@ from ..geometry import inv_T
 from ..map import Map, VertexRecord
 from ..types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
-from .localization import Localization, LocalizationChain, Localizer, landmark_record
+from .localization import Localization, LocalizationChain, Localizer, TaughtSubmap, landmark_record
 from .teach import usable_covariance
 
 
@@ -58,6 +58,7 @@ class Repeat:
         self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
         self._leaf: tuple[int, np.ndarray] | None = None   # (map id, T_world_leaf) of the previous vertex
         self._attempts = 0
+        self._frames: dict[int, StereoFrame] = {}   # taught frames of the latest submap (kept while it slides)
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
@@ -93,19 +94,30 @@ class Repeat:
         c = self.chain
         twig, branch = c.twig_id, (int(c.ids[c.branch]) if c.localized else -1)
         trunk, T_prior = c.prior(kf.T_world_kf)
-        trunk_vertex = self.map.vertex(int(c.ids[trunk]))
-        trunk_frame = frame_of_vertex(trunk_vertex)
+        submap = self._submap(trunk)
         self._attempts += 1
-        T, cov, n_matches, matched, inlier = self.localizer.localize(
-            kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
-            trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
-        success = T is not None
+        est = self.localizer.localize(kf.frame, submap, T_prior, seed=self.config.odometry.seed + self._attempts,
+                                      trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
+        trunk_id = int(c.ids[trunk])
+        success = est.T_leaf_trunk is not None
+        n_inliers = int(est.inlier.sum()) if success else 0
         if success:
-            self.map.add_edge(leaf_id, trunk_vertex.id, T, usable_covariance(cov), "spatial", int(inlier.sum()))
-        c.update(leaf_id, kf.T_world_kf, trunk, T)
-        T_used = T if success else T_prior
-        record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)
-        return Localization(kf.t_ns, leaf_id, trunk_vertex.id, twig, branch, success, n_matches,
-                            int(inlier.sum()) if success else 0, T_used,
-                            cov if success else np.full((6, 6), np.nan), c.consecutive_failures,
-                            c.distance_since_success, record)
+            self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, usable_covariance(est.covariance), "spatial",
+                              n_inliers)
+        c.update(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk)
+        T_used = est.T_leaf_trunk if success else T_prior
+        trunk_frame = self._frames[trunk_id]
+        record = landmark_record(trunk_frame, T_used, self.camera, submap.trunk_features(est.matched),
+                                 submap.trunk_features(est.matched[est.inlier]))
+        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, success, est.matches, n_inliers, T_used,
+                            est.covariance, c.consecutive_failures, c.distance_since_success, record)
+
+    def _submap(self, trunk: int) -> TaughtSubmap:
+        """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap."""
+        c, n = self.chain, self.config.localization.neighbour_vertices
+        slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(c.ids)))
+        ids = [int(i) for i in c.ids[slots]]
+        self._frames = {i: self._frames.get(i) or frame_of_vertex(self.map.vertex(i)) for i in ids}
+        T_vertex_trunk = inv_T(c.T_priv[slots]) @ c.T_priv[trunk]
+        return TaughtSubmap.build([self._frames[i] for i in ids], c.ids[slots], T_vertex_trunk,
+                                  int(np.flatnonzero(slots == trunk)[0]), self.camera)

@@ -26,6 +26,7 @@ turn, straight). :func:`write_sequence` writes a KITTI-layout folder.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -1093,13 +1094,16 @@ def render(
     noise_seed: int = 0,
     supersample: int = 1,
     return_depth: bool = False,
+    blur_sigma_px: float = 0.0,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Render one greyscale uint8 image (H, W) of ``scene`` seen by a pinhole camera with the
     intrinsics of ``camera`` (its left rectified camera) placed at ``T_world_view`` (view -> world, ENU).
 
     ``noise_sigma`` adds Gaussian noise (grey levels) drawn from ``noise_seed``; ``supersample`` k > 1
-    casts k x k rays per pixel and area-averages (anti-aliased silhouettes, k^2 slower). With
-    ``return_depth`` also returns the view-frame depth z (m, float32, ``inf`` for sky) at pixel centres.
+    casts k x k rays per pixel and area-averages (anti-aliased silhouettes, k^2 slower);
+    ``blur_sigma_px`` > 0 convolves with a Gaussian point-spread function (the lens and sensor of a real
+    camera) before the noise is added. With ``return_depth`` also returns the view-frame depth z (m,
+    float32, ``inf`` for sky) at pixel centres.
     """
     k = int(supersample)
     if k < 1:
@@ -1111,6 +1115,8 @@ def render(
     img = img.reshape(fr.H, fr.W)
     if k > 1:
         img = cv2.resize(img, camera.size, interpolation=cv2.INTER_AREA)
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
     if noise_sigma > 0:
         rng = np.random.default_rng([int(scene.seed), _STREAM_NOISE, int(noise_seed)])
         img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
@@ -1140,15 +1146,21 @@ def render_stereo(
     noise_seed: int = 0,
     supersample: int = 1,
     return_depth: bool = False,
+    blur_sigma_px: float = 0.0,
+    right_cx_offset_px: float = 0.0,
 ) -> StereoRender:
     """Render the left and right rectified images of ``camera`` with its left camera at ``T_world_cam``
     (left rectified camera -> world ENU). Each image is ray-cast from its own camera centre.
-    Noise (if any) is independent in the two images, drawn from ``noise_seed``."""
+    Noise (if any) is independent in the two images, drawn from ``noise_seed``; ``blur_sigma_px`` as
+    in :func:`render`. ``right_cx_offset_px`` renders the right image with its principal point that far
+    right of the calibration's: a rectification error that makes every measured disparity smaller by
+    that much than the calibration implies (real pairs show it, see docs/far_structure.md)."""
     T_world_right = np.asarray(T_world_cam, float) @ T_left_right(camera)
+    right_camera = dataclasses.replace(camera, cx=camera.cx + right_cx_offset_px)
     out = []
-    for j, T in enumerate((T_world_cam, T_world_right)):
-        res = render(scene, camera, T, noise_sigma=noise_sigma, noise_seed=2 * int(noise_seed) + j,
-                     supersample=supersample, return_depth=return_depth)
+    for j, (T, cam) in enumerate(((T_world_cam, camera), (T_world_right, right_camera))):
+        res = render(scene, cam, T, noise_sigma=noise_sigma, noise_seed=2 * int(noise_seed) + j,
+                     supersample=supersample, return_depth=return_depth, blur_sigma_px=blur_sigma_px)
         out.append(res if return_depth else (res, None))
     return StereoRender(out[0][0], out[1][0], out[0][1], out[1][1])
 
@@ -1183,6 +1195,8 @@ def write_sequence(
     supersample: int = 1,
     write_depth: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    blur_sigma_px: float = 0.0,
+    right_cx_offset_px: float = 0.0,
 ) -> Path:
     """Render and write a KITTI-layout stereo folder: ``image_0/`` (left), ``image_1/`` (right),
     ``calib.txt``, ``times.txt``, ``times_ns.txt``, ``poses.txt`` (T_cam0_cam, KITTI convention:
@@ -1192,6 +1206,8 @@ def write_sequence(
 
     ``T_world_cam`` (N, 4, 4) are left rectified camera -> world (ENU) poses; ``t_ns`` (N,) int64 ns.
     Frame i uses image noise seed ``noise_seed * 1_000_003 + i``. ``progress(i, N)`` is called per frame.
+    ``blur_sigma_px`` and ``right_cx_offset_px`` as in :func:`render_stereo`; ``calib.txt`` states the
+    nominal camera either way (an offset is an error the calibration does not know of).
     """
     out = Path(out_dir)
     T = np.asarray(T_world_cam, float)
@@ -1208,7 +1224,8 @@ def write_sequence(
     for i in range(len(T)):
         res = render_stereo(scene, camera, T[i], noise_sigma=noise_sigma,
                             noise_seed=noise_seed * 1_000_003 + i,
-                            supersample=supersample, return_depth=write_depth)
+                            supersample=supersample, return_depth=write_depth, blur_sigma_px=blur_sigma_px,
+                            right_cx_offset_px=right_cx_offset_px)
         writer.add(int(t_ns[i]), res.left, res.right)
         if write_depth and res.depth_left is not None:
             np.save(out / "depth_0" / f"{i:06d}.npy", res.depth_left)
@@ -1231,6 +1248,8 @@ def write_sequence(
         "noise_sigma": noise_sigma,
         "noise_seed": noise_seed,
         "supersample": supersample,
+        "blur_sigma_px": blur_sigma_px,
+        "right_cx_offset_px": right_cx_offset_px,
     }
     (out / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
     return out

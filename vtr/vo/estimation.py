@@ -13,6 +13,7 @@ Poses: ``T_q_r`` maps reference-camera coordinates into the query camera (both l
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -49,6 +50,65 @@ def ransac_pnp(points_r: np.ndarray, uv_q: np.ndarray, camera: StereoCamera, ite
     return RansacResult(T, inl.ravel())
 
 
+def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float, far_disparity_weight: float,
+                       min_near: int = 0) -> np.ndarray:
+    """Weights of the measurement rows (u_l, v, u_r) of stereo observations ``z`` (M, 3).
+
+    The image position (u_l, v) always counts. The disparity row counts fully only for a near
+    landmark (depth within ``near_depth_m``, i.e. disparity >= fb / near_depth_m); for a far one it
+    keeps ``far_disparity_weight`` (0 where the right match is missing). A far landmark then fixes
+    rotation and, seen from several poses, its own depth by parallax, while the scale comes from
+    near landmarks: a disparity error of a fraction of a pixel, systematic over the image (a
+    rectification error, see docs/far_structure.md), is a few percent of depth for a near landmark
+    and tens of percent for a far one. When fewer than ``min_near`` observations are near (a camera
+    high above the ground sees nothing near), the ``min_near`` largest disparities count fully:
+    the scale then comes from the nearest structure there is.
+    """
+    w = np.ones((len(z), 3))
+    disparity = z[:, 0] - z[:, 2]
+    measured = np.isfinite(disparity)
+    w[~measured, 2] = 0.0
+    threshold = camera.fb / near_depth_m
+    if min_near > 0 and np.count_nonzero(disparity[measured] >= threshold) < min_near:
+        d = np.sort(disparity[measured])
+        threshold = min(threshold, d[-min_near]) if len(d) >= min_near else -np.inf
+    far = measured & (disparity < threshold)
+    w[far, 2] = far_disparity_weight
+    return w
+
+
+def triangulate_bearings(T_cam_world: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray, uv: np.ndarray,
+                         camera: StereoCamera, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Multi-view triangulation of landmarks from their left-image bearings alone (no disparity).
+
+    The point nearest, in the least-squares sense, to every ray that observed it (``obs_pose``,
+    ``obs_point`` index the pose and landmark of each observation, ``uv`` its left pixel). Returns
+    the points (n_points, 3) in world and the largest angle (rad) between two of each point's rays
+    (its parallax; 0 for a point seen once, NaN points where the rays are parallel).
+    """
+    R = T_cam_world[:, :3, :3]
+    centres = -np.einsum("kji,kj->ki", R, T_cam_world[:, :3, 3])
+    rays = np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))])
+    d = np.einsum("mji,mj->mi", R[obs_pose], rays)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    P = np.eye(3) - d[:, :, None] * d[:, None, :]              # projector orthogonal to each ray
+    A = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(A, obs_point, P)
+    np.add.at(b, obs_point, np.einsum("mij,mj->mi", P, centres[obs_pose]))
+    points = np.full((n_points, 3), np.nan)
+    ok = np.abs(np.linalg.det(A)) > 1e-12
+    points[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
+    # parallax: angle between the two most different rays, from the extreme directions about the mean
+    mean = np.zeros((n_points, 3))
+    np.add.at(mean, obs_point, d)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    cos_to_mean = np.einsum("mi,mi->m", d, mean[obs_point])
+    widest = np.ones(n_points)
+    np.minimum.at(widest, obs_point, cos_to_mean)
+    return points, 2 * np.arccos(np.clip(widest, -1.0, 1.0))
+
+
 def stereo_jacobian(p: np.ndarray, camera: StereoCamera) -> np.ndarray:
     """d(u_l, v, u_r)/d(point) at points p (N, 3) in the camera frame -> (N, 3, 3)."""
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
@@ -76,15 +136,17 @@ class RefineResult:
 
 def refine_two_view(T_q_r: np.ndarray, points_r: np.ndarray, z_r: np.ndarray, z_q: np.ndarray,
                     camera: StereoCamera, sigma_px: float, huber_px: float, iterations: int,
-                    outlier_px: float) -> RefineResult:
+                    outlier_px: float, near_depth_m: float = math.inf,
+                    far_disparity_weight: float = 1.0) -> RefineResult:
     """Two-view stereo bundle adjustment of T_q_r and the landmarks (reference view held fixed).
 
     ``z_r``/``z_q`` (N, 3): stereo measurements (u_l, v, u_r) of each landmark in the reference and
-    query views, u_r NaN where a view has no right match (only u_l, v count there).
+    query views, u_r NaN where a view has no right match (only u_l, v count there). Disparity rows
+    are weighted by :func:`stereo_row_weights` (by default every disparity counts fully).
     """
     n = len(points_r)
     z = np.concatenate([z_r, z_q])
-    rows = np.isfinite(z).astype(float)
+    rows = stereo_row_weights(z, camera, near_depth_m, far_disparity_weight)
     res = bundle_adjust(np.stack([np.eye(4), T_q_r]), np.array([True, False]), points_r,
                         np.r_[np.zeros(n, int), np.ones(n, int)], np.r_[np.arange(n), np.arange(n)],
                         np.nan_to_num(z), rows, camera, sigma_px, huber_px, iterations)

@@ -15,6 +15,7 @@ camera frame of the run (world = camera 0), as KITTI ground truth is.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass
 
@@ -25,7 +26,7 @@ from ..config import Config, OdometryConfig
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from .estimation import bundle_adjust, ransac_pnp
+from .estimation import bundle_adjust, ransac_pnp, stereo_row_weights, triangulate_bearings
 from .matching import MIN_DEPTH_M, match_landmarks
 from .stereo import StereoProcessor
 
@@ -52,11 +53,13 @@ class LocalMap:
         self.keyframes: deque[_WindowKeyframe] = deque()
         self.positions = np.zeros((0, 3))
         self.descriptors = np.zeros((0, 32), np.uint8)
+        self.refined = np.zeros(0, bool)      # position set by a windowed bundle adjustment (else triangulated)
 
     def add_landmarks(self, points_world: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
         ids = np.arange(len(self.positions), len(self.positions) + len(points_world))
         self.positions = np.concatenate([self.positions, points_world])
         self.descriptors = np.concatenate([self.descriptors, descriptors])
+        self.refined = np.concatenate([self.refined, np.zeros(len(points_world), bool)])
         return ids
 
     def active(self) -> np.ndarray:
@@ -72,6 +75,7 @@ class LocalMap:
         remap = -np.ones(len(self.positions), int)
         remap[keep] = np.arange(len(keep))
         self.positions, self.descriptors = self.positions[keep], self.descriptors[keep]
+        self.refined = self.refined[keep]
         for kf in self.keyframes:
             ok = kf.landmark_ids >= 0
             kf.landmark_ids[ok] = remap[kf.landmark_ids[ok]]
@@ -210,7 +214,18 @@ class StereoOdometry:
         T_world_kf = self._keyframe_poses[kf.id]
         prev = self._previous_final
         T_prev_kf = inv_T(prev.T_world_kf) @ T_world_kf if prev is not None else np.eye(4)
-        return Keyframe(kf.id, kf.frame, T_world_kf, T_prev_kf, kf.edge_covariance, kf.edge_inliers)
+        return Keyframe(kf.id, self._refined_frame(kf), T_world_kf, T_prev_kf, kf.edge_covariance, kf.edge_inliers)
+
+    def _refined_frame(self, kf: _WindowKeyframe) -> StereoFrame:
+        """The keyframe's stereo frame with its landmarks where the windowed bundle adjustment put them
+        (a far landmark's depth then rests on the parallax of the window, not on one small disparity)."""
+        f = np.flatnonzero((kf.landmark_ids >= 0) & kf.frame.has_depth)
+        f = f[self.map.refined[kf.landmark_ids[f]]]
+        if len(f) == 0:
+            return kf.frame
+        points = kf.frame.points.copy()
+        points[f] = self.map.positions[kf.landmark_ids[f]] @ kf.T_cam_world[:3, :3].T + kf.T_cam_world[:3, 3]
+        return dataclasses.replace(kf.frame, points=points)
 
     def _finalize(self, kf: _WindowKeyframe) -> Keyframe:
         """A keyframe leaving the window: its pose is final; the edge joins it to the previous final one."""
@@ -220,64 +235,81 @@ class StereoOdometry:
             del self._keyframe_poses[kf.id]
         return out
 
-    def _observations(self):
-        """Observations of landmarks seen by >= 2 window keyframes: (pose slot, landmark, z, row weights)."""
+    def _window_observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every landmark observation in the window: (pose slot, landmark id, feature index, z (M, 3))."""
         kfs = list(self.map.keyframes)
-        slots, lms, feats = [], [], []
-        for s, kf in enumerate(kfs):
-            f = np.flatnonzero(kf.landmark_ids >= 0)
-            slots.append(np.full(len(f), s))
-            lms.append(kf.landmark_ids[f])
-            feats.append(f)
-        slot, lm = np.concatenate(slots), np.concatenate(lms)
-        seen = np.bincount(lm, minlength=len(self.map.positions))
-        tracked = np.flatnonzero(seen >= 2)
-        cap = self.config.odometry.window_max_landmarks
-        if len(tracked) > cap:
-            # the longest tracks constrain the window best; ties broken by id (deterministic)
-            tracked = tracked[np.lexsort((tracked, -seen[tracked]))[:cap]]
-        selected = np.zeros(len(seen), bool)
-        selected[tracked] = True
-        keep = selected[lm]
+        feats = [np.flatnonzero(kf.landmark_ids >= 0) for kf in kfs]
+        slot = np.concatenate([np.full(len(f), s) for s, f in enumerate(feats)])
+        lm = np.concatenate([kf.landmark_ids[f] for kf, f in zip(kfs, feats, strict=True)])
         z = np.concatenate([kf.frame.stereo_measurements[f] for kf, f in zip(kfs, feats, strict=True)])
-        return slot[keep], lm[keep], z[keep], np.concatenate(feats)[keep]
+        return slot, lm, np.concatenate(feats), z
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
-        """Weights of (u_l, v, u_r): no right match -> 0; far (small disparity) -> token weight."""
-        w = np.ones((len(z), 3))
-        disparity = z[:, 0] - z[:, 2]
-        w[~np.isfinite(disparity), 2] = 0.0
-        far = np.isfinite(disparity) & (disparity < self.camera.fb / self.far_depth_m)
-        w[far, 2] = self.config.odometry.far_disparity_weight
-        return w
+        """Weights of (u_l, v, u_r): see :func:`stereo_row_weights` (far landmarks: rotation and parallax)."""
+        o = self.config.odometry
+        return stereo_row_weights(z, self.camera, self.far_depth_m, o.far_disparity_weight, o.min_near_observations)
 
     def _bundle_adjust(self) -> None:
-        """Windowed bundle adjustment: oldest keyframe fixed, the others and their landmarks free."""
+        """Windowed bundle adjustment: oldest keyframe fixed, the others and their landmarks free.
+
+        Landmarks seen by >= 2 window keyframes take part. A far one (no near observation) first moves
+        to where the parallax of the window puts it, so the adjustment starts from the depth the
+        images support rather than from one small disparity. At most ``window_max_landmarks`` are
+        adjusted: first those with a near observation (they carry the scale), then the longest tracks.
+        """
         cfg = self.config.odometry
         kfs = list(self.map.keyframes)
         if len(kfs) < 2:
             return
-        slot, lm, z, feat = self._observations()
+        slot, lm, feat, z = self._window_observations()
+        seen = np.bincount(lm, minlength=len(self.map.positions))
+        keep = seen[lm] >= 2
+        slot, lm, feat, z = slot[keep], lm[keep], feat[keep], z[keep]
         if len(lm) == 0:
             return
-        uniq, lm_local = np.unique(lm, return_inverse=True)
+        weights = self._row_weights(z)
         T = np.stack([kf.T_cam_world for kf in kfs])
+        uniq, lm_local = np.unique(lm, return_inverse=True)
+        near = np.zeros(len(uniq), bool)
+        np.logical_or.at(near, lm_local, weights[:, 2] == 1.0)
+        if len(uniq) > cfg.window_max_landmarks:
+            # ties broken by id (deterministic)
+            order = np.lexsort((uniq, -seen[uniq], ~near))[:cfg.window_max_landmarks]
+            selected = np.zeros(len(uniq), bool)
+            selected[order] = True
+            keep = selected[lm_local]
+            slot, lm, feat, z, weights = slot[keep], lm[keep], feat[keep], z[keep], weights[keep]
+            near = near[selected]
+            uniq, lm_local = np.unique(lm, return_inverse=True)
+        self._place_far_by_parallax(T, slot, lm_local, z, uniq, near)
         fixed = np.zeros(len(kfs), bool)
         fixed[0] = True
         try:
-            res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z),
-                                self._row_weights(z), self.camera, self.config.stereo.pixel_sigma,
-                                cfg.huber_px, cfg.window_iterations)
+            res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z), weights,
+                                self.camera, self.config.stereo.pixel_sigma, cfg.huber_px, cfg.window_iterations)
         except ValueError:
             return
         for s, kf in enumerate(kfs):
             kf.T_cam_world = res.T_cam_world[s]
             self._keyframe_poses[kf.id] = inv_T(kf.T_cam_world)
         self.map.positions[uniq] = res.points
+        self.map.refined[uniq] = True
         # observations that no longer fit are detached from their landmark
         bad = res.error_sq > cfg.ransac_threshold_px**2
         for s in np.unique(slot[bad]):
             kfs[s].landmark_ids[feat[bad & (slot == s)]] = -1
+
+    def _place_far_by_parallax(self, T_cam_world: np.ndarray, slot: np.ndarray, lm_local: np.ndarray, z: np.ndarray,
+                               uniq: np.ndarray, near: np.ndarray) -> None:
+        """Far landmarks ``uniq[~near]`` whose window rays span at least ``far_min_parallax_deg`` start at the
+        point their left-image rays meet (when in front of every camera that saw them)."""
+        tri, parallax = triangulate_bearings(T_cam_world, slot, lm_local, z[:, :2], self.camera, len(uniq))
+        depth = np.einsum("mj,mj->m", T_cam_world[slot, 2, :3], np.nan_to_num(tri[lm_local])) + T_cam_world[slot, 2, 3]
+        in_front = np.ones(len(uniq), bool)
+        np.logical_and.at(in_front, lm_local, depth > MIN_DEPTH_M)
+        use = ~near & in_front & np.isfinite(tri).all(1) \
+            & (parallax >= np.radians(self.config.odometry.far_min_parallax_deg))
+        self.map.positions[uniq[use]] = tri[use]
 
     def _plausible(self, T_cw: np.ndarray, dt: float) -> bool:
         """Speed and rotation rate of the step since the last frame within the configured bounds."""
@@ -323,12 +355,33 @@ class StereoOdometry:
         lm_in, feat_in = lm[rs.inliers], feat[rs.inliers]
         depth = self.map.positions[lm_in] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         lm_in, feat_in = lm_in[depth > MIN_DEPTH_M], feat_in[depth > MIN_DEPTH_M]
-        z = frame.stereo_measurements[feat_in]
-        n = len(lm_in)
-        res = bundle_adjust(rs.T_q_r[None], np.array([False]), self.map.positions[lm_in], np.zeros(n, int),
-                            np.arange(n), np.nan_to_num(z), self._row_weights(z), self.camera,
-                            self.config.stereo.pixel_sigma, cfg.huber_px, cfg.refine_iterations, fix_points=True)
-        ok = res.error_sq <= cfg.ransac_threshold_px**2
+        res, ok = self._refine_pose(rs.T_q_r, lm_in, frame.stereo_measurements[feat_in])
         if ok.sum() < cfg.min_inliers:
             return None
-        return res.T_cam_world[0], res.pose_covariance[0], lm_in[ok], feat_in[ok], len(lm)
+        return res.T_cam_world[-1], res.pose_covariance[-1], lm_in[ok], feat_in[ok], len(lm)
+
+    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
+        """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
+
+        The landmarks are not held fixed at their current estimate: they stay free, constrained by
+        their observations in the window keyframes (poses held), so a far landmark's uncertain depth
+        moves with the evidence instead of dragging the translation. Returns the bundle result (the
+        new frame is the last pose) and the per-landmark inlier mask.
+        """
+        cfg = self.config.odometry
+        kfs = list(self.map.keyframes)
+        n = len(lm)
+        slot, lm_obs, _, z_obs = self._window_observations()
+        local = -np.ones(len(self.map.positions), int)
+        local[lm] = np.arange(n)
+        keep = local[lm_obs] >= 0
+        K = len(kfs)
+        obs_pose = np.r_[slot[keep], np.full(n, K)]
+        obs_point = np.r_[local[lm_obs[keep]], np.arange(n)]
+        z_all = np.concatenate([z_obs[keep], z])
+        T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
+        fixed = np.r_[np.ones(K, bool), False]
+        res = bundle_adjust(T, fixed, self.map.positions[lm], obs_pose, obs_point, np.nan_to_num(z_all),
+                            self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma, cfg.huber_px,
+                            cfg.refine_iterations)
+        return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2
