@@ -76,3 +76,34 @@ def test_refinement_with_mono_observations():
 @pytest.mark.parametrize("n", [0, 3])
 def test_ransac_needs_four_points(n):
     assert ransac_pnp(np.zeros((n, 3)), np.zeros((n, 2)), CAM, 10, 1.0, 0.99, 0) is None
+
+
+def test_triangulate_bearings_recovers_points_from_rays_alone():
+    from vtr.vo.estimation import triangulate_bearings
+
+    rng = np.random.default_rng(5)
+    X = _scene(rng, 50)
+    T = np.stack([exp_se3(np.r_[rng.normal(0, 0.02, 3), rng.normal(0, 0.5, 3)]) for _ in range(4)])
+    pose = np.repeat(np.arange(4), len(X))
+    point = np.tile(np.arange(len(X)), 4)
+    Y = np.einsum("mij,mj->mi", T[pose, :3, :3], X[point]) + T[pose, :3, 3]
+    ok = Y[:, 2] > 0.5
+    uv = CAM.project(Y[ok])[:, :2]
+    P, parallax = triangulate_bearings(T, pose[ok], point[ok], uv, CAM, len(X))
+    seen = np.bincount(point[ok], minlength=len(X)) >= 2
+    np.testing.assert_allclose(P[seen], X[seen], rtol=1e-6, atol=1e-6)
+    assert np.all(parallax[seen] > 0) and np.all(parallax[~seen] == 0)
+
+
+def test_stereo_row_weights_split_near_and_far():
+    from vtr.vo.estimation import stereo_row_weights
+
+    near_depth = 15 * CAM.baseline
+    d = np.array([CAM.fb / near_depth + 1, CAM.fb / near_depth - 1, 2.0, np.nan])
+    z = np.column_stack([np.full(4, 600.0), np.full(4, 100.0), 600.0 - d])
+    w = stereo_row_weights(z, CAM, near_depth, 1e-4)
+    np.testing.assert_array_equal(w[:, :2], 1.0)
+    np.testing.assert_array_equal(w[:, 2], [1.0, 1e-4, 1e-4, 0.0])
+    # fewer near observations than asked for: the nearest ones count fully instead
+    w = stereo_row_weights(z, CAM, near_depth, 1e-4, min_near=2)
+    np.testing.assert_array_equal(w[:, 2], [1.0, 1.0, 1e-4, 0.0])

@@ -268,21 +268,24 @@ class Localizer:
         """
         o = self.odometry
         n, V = len(landmarks), len(submap.vertex_ids)
-        near_depth_m = o.far_point_baselines * self.camera.baseline
         z_taught = submap.z[landmarks].copy()
-        w_taught = stereo_row_weights(z_taught, self.camera, near_depth_m, o.far_disparity_weight, o.min_near_observations)
+        w_taught = self._row_weights(z_taught)
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
         w_taught[refined, 2] = 1.0
         z = np.concatenate([z_taught, z_leaf])
-        w_leaf = stereo_row_weights(z_leaf, self.camera, near_depth_m, o.far_disparity_weight, o.min_near_observations)
-        w = np.concatenate([w_taught, w_leaf])
+        w = np.concatenate([w_taught, self._row_weights(z_leaf)])
         res = bundle_adjust(np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
                             np.r_[np.ones(V, bool), False], submap.points_trunk[landmarks],
                             np.r_[submap.slot[landmarks], np.full(n, V)], np.r_[np.arange(n), np.arange(n)],
                             np.nan_to_num(z), w, self.camera, self.pixel_sigma, o.huber_px, o.refine_iterations)
         inlier = np.maximum(res.error_sq[:n], res.error_sq[n:]) <= self.config.ransac_threshold_px**2
         return res.T_cam_world[V], res.pose_covariance[V], inlier
+
+    def _row_weights(self, z: np.ndarray) -> np.ndarray:
+        o = self.odometry
+        return stereo_row_weights(z, self.camera, o.far_point_baselines * self.camera.baseline, o.far_disparity_weight,
+                                  o.min_near_observations)
 
     def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                radius: float) -> tuple[np.ndarray, np.ndarray]:
