@@ -113,7 +113,8 @@ def walk(path: Path) -> dict:
     base = rss_kb()["VmRSS"]
     with Map.open(path, "r") as m:
         t0 = time.perf_counter()
-        ids, T = m.privileged_poses()
+        taught = m.taught_path()
+        ids, T = taught.ids, taught.T_world_vertex
         t_poses = time.perf_counter() - t0
         m.nearest_vertices(T[0, :3, 3], 1)  # warm-up: imports scipy, builds the k-d tree
         m.vertex(int(ids[0]))
@@ -138,7 +139,7 @@ def walk(path: Path) -> dict:
         rss["end"] = rss_kb()
     n = len(ids)
     return {
-        "walk_steps": n, "privileged_poses_s": t_poses,
+        "walk_steps": n, "taught_path_s": t_poses,
         "walk_ms_per_step": 1e3 * t_total / n, "nearest_ms": 1e3 * t_nearest / n, "window_read_ms": 1e3 * t_window / n,
         "walk_rss_kb_at_open": base, "walk_rss_kb_warm": warm,
         "walk_rss_kb_after_500": rss.get("after_500", {}).get("VmRSS"),
@@ -182,7 +183,7 @@ def main() -> None:
           f"{res['bytes_per_km'] / 1e6:.1f} MB/km")
     print(f"write RSS: {_mb(res['write_rss_kb_after_500'])} MB after 500 vertices, "
           f"{res['write_rss_kb_end'] / 1e3:.1f} MB after {res['vertices']}")
-    print(f"walk:  privileged poses in {1e3 * res['privileged_poses_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
+    print(f"walk:  taught path in {1e3 * res['taught_path_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
           f"(nearest {res['nearest_ms']:.3f} ms, window -{WINDOW_BACK}..+{WINDOW_FORWARD} read "
           f"{res['window_read_ms']:.2f} ms)")
     print(f"walk RSS: {res['walk_rss_kb_at_open'] / 1e3:.1f} MB at open, "

@@ -71,8 +71,7 @@ def run(out: Path, lateral: list[float], vertical: list[float], length: float, s
             teach_world = np.loadtxt(teach_dir / "poses_world.txt").reshape(-1, 3, 4)
             T_w_teach = np.tile(np.eye(4), (len(teach_world), 1, 1))
             T_w_teach[:, :3, :] = teach_world
-            t_teach = m.privileged_poses()
-            teach_times = np.array([m.vertex(int(i)).t_ns for i in t_teach[0]])
+            taught = m.taught_path()
             src_times = np.loadtxt(teach_dir / "times_ns.txt", dtype=np.int64)
             rp = Repeat(m, cfg, str(rep_dir))
             locs = []
@@ -88,7 +87,7 @@ def run(out: Path, lateral: list[float], vertical: list[float], length: float, s
         for loc in locs:
             if not loc.success:
                 continue
-            k = int(np.searchsorted(src_times, teach_times[list(t_teach[0]).index(loc.trunk_id)]))
+            k = int(np.searchsorted(src_times, taught.t_ns[taught.index(loc.trunk_id)]))
             T_w_leaf = T_w_teach[k] @ inv_T(loc.T_leaf_trunk)
             est.append(lateral_offsets(T_w_teach, T_w_leaf[None], 0.0)[0])
         ok = [loc for loc in locs if loc.success]

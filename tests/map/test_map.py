@@ -321,7 +321,7 @@ def test_empty_map_opens_and_has_no_taught_path(tmp_path):
     with Map.open(path, "a") as m:
         m.begin_run("repeat")  # a repeat alone is no taught path either
         with pytest.raises(MapError, match="map has no taught run"):
-            m.privileged_poses()
+            m.taught_path()
 
 
 def test_camera_mismatch(tmp_path):
@@ -496,8 +496,12 @@ def test_window_nearest_and_poses_without_features(tmp_path):
         m._conn.set_authorizer(authorizer)
         path_ids = m.privileged_path()
         assert path_ids.tolist() == [vertex_id(0, i) for i in range(n)]
-        ids, T = m.privileged_poses()
-        assert np.allclose(T[:, 0, 3], xs)
+        taught = m.taught_path()
+        ids, T = taught.ids, taught.T_world_vertex
+        assert np.allclose(T[:, 0, 3], xs) and taught.t_ns.tolist() == list(range(n))
+        assert taught.index(vertex_id(0, 7)) == 7 and taught.window(2, 10, 3) == (0, 6)
+        assert taught.segment(3, 5).ids.tolist() == [vertex_id(0, 3), vertex_id(0, 4)]
+        assert np.allclose(taught.arc_length_m()[-1], np.sum(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)))
         assert m.window(vertex_id(0, 20), 10, 20) == [vertex_id(0, i) for i in range(10, 40)]
         assert m.window(vertex_id(0, 2), 10, 3) == [vertex_id(0, i) for i in range(0, 6)]
         assert m.window(vertex_id(0, 38), 1, 20) == [vertex_id(0, i) for i in range(37, 40)]

@@ -88,7 +88,8 @@ def test_constraint_on_a_taught_map(kitti_map, tmp_path):
     from vtr.map import Map
 
     with Map.open(kitti_map) as m:
-        ids, T = m.privileged_poses()
+        taught = m.taught_path()
+    ids, T = taught.ids, taught.T_world_vertex
     # half a metre right of and 0.3 m ahead of every taught vertex (map frame: x right, y down, z forward)
     pos = T[:, :3, 3] + np.array([0.5, 0.0, 0.3])
     positions = tmp_path / "pos.csv"

@@ -16,6 +16,7 @@ See :mod:`vtr.map.store` for durability and immutability rules, :mod:`vtr.map.sc
 layout.
 """
 
+from .path import TaughtPath
 from .records import EdgeRecord, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from .store import MAP_FORMAT_VERSION, VERTEX_CACHE_SIZE, Map
 
@@ -25,6 +26,7 @@ __all__ = [
     "EdgeRecord",
     "Map",
     "RunInfo",
+    "TaughtPath",
     "VertexRecord",
     "split_vertex_id",
     "vertex_id",

@@ -38,6 +38,7 @@ from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, VtrError
 from ..geometry import inv_T
+from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
     INDEX_MASK,
@@ -61,8 +62,6 @@ from .records import (
 from .schema import SCHEMA
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
-
     from ..types import Keyframe, StereoFrame
 
 MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
@@ -128,8 +127,7 @@ class Map:
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
         self._cache_size = _check_int(cache_size, "cache_size", 1)
         self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
-        self._path_cache: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._tree_cache: tuple[int, cKDTree] | None = None
+        self._path_cache: tuple[int, TaughtPath] | None = None
         self._open_run: int | None = None
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
@@ -598,64 +596,57 @@ class Map:
 
     # ------------------------------------------------------------ the privileged path
 
-    def _privileged(self) -> tuple[np.ndarray, np.ndarray]:
+    def _privileged(self) -> TaughtPath:
         with self._lock:
             cached = self._path_cache
             if cached is not None and cached[0] == self._generation:
-                return cached[1], cached[2]
+                return cached[1]
             with self._db() as conn:
                 rows = conn.execute(
-                    "SELECT v.id, v.T_world_vertex FROM vertices v JOIN runs r ON r.id = v.run "
+                    "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
                     "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
             ids, T = self._pose_arrays(rows)
-            ids.flags.writeable = False
-            T.flags.writeable = False
-            self._path_cache = (self._generation, ids, T)
-            return ids, T
+            path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
+            self._path_cache = (self._generation, path)
+            return path
 
-    def privileged_path(self) -> np.ndarray:
-        """(N,) int64 ids of the privileged (teach) vertices in path order (run, then index).
+    def taught_path(self) -> TaughtPath:
+        """The privileged (teach) vertices in path order (run, then index), from the pose index only.
 
         Raises ``MapError`` "map has no taught run" when there is no privileged vertex.
         """
-        ids, _T = self._privileged()
-        if len(ids) == 0:
+        path = self._privileged()
+        if len(path) == 0:
             raise MapError(f"{self.path}: map has no taught run (no privileged vertices)")
-        return ids
+        return path
 
-    def privileged_poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (N,), T_world_vertex (N, 4, 4))`` along the privileged path (each in its run's world frame)."""
-        ids = self.privileged_path()
-        return ids, self._privileged()[1]
+    def privileged_path(self) -> np.ndarray:
+        """(N,) int64 ids of the privileged (teach) vertices in path order (see :meth:`taught_path`)."""
+        return self.taught_path().ids
 
     def window(self, center_id: int, back: int, forward: int) -> list[int]:
         """Ids along the privileged path from ``back`` vertices before ``center_id`` to ``forward`` after
         (clipped at the ends of the path), in path order."""
         back = _check_int(back, "back", 0)
         forward = _check_int(forward, "forward", 0)
-        path = self.privileged_path()
-        i = int(np.searchsorted(path, int(center_id)))
-        if i >= len(path) or path[i] != int(center_id):
-            run, index = split_vertex_id(center_id)
-            raise MapError(f"{self.path}: vertex {center_id} (run {run}, index {index}) is not on the privileged path")
-        return [int(v) for v in path[max(0, i - back): i + forward + 1]]
+        path = self.taught_path()
+        try:
+            i = path.index(int(center_id))
+        except MapError as err:
+            raise MapError(f"{self.path}: {err}") from None
+        lo, hi = path.window(i, back, forward)
+        return [int(v) for v in path.ids[lo:hi]]
 
     def nearest_vertices(self, position_world: np.ndarray, k: int = 1) -> np.ndarray:
         """(min(k, N),) int64 ids of the privileged vertices nearest to ``position_world`` (3,), metres,
         nearest first. Positions are camera centres in their run's world frame (the teach frame)."""
         k = _check_int(k, "k", 1)
-        p = np.asarray(position_world, dtype=float).reshape(-1)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise MapError(f"nearest_vertices: position must be 3 finite numbers, got {position_world!r}")
-        ids = self.privileged_path()
-        with self._lock:
-            if self._tree_cache is None or self._tree_cache[0] != self._generation:
-                from scipy.spatial import cKDTree
-
-                self._tree_cache = (self._generation, cKDTree(self._privileged()[1][:, :3, 3]))
-            tree = self._tree_cache[1]
-        _d, idx = tree.query(p, k=min(k, len(ids)))
-        return ids[np.atleast_1d(idx)].astype(np.int64)
+        path = self.taught_path()
+        try:
+            idx = path.nearest(position_world, k)
+        except MapError as err:
+            raise MapError(f"nearest_vertices: {err}") from None
+        return path.ids[idx]
 
     # ------------------------------------------------------------ export
 

@@ -48,8 +48,7 @@ class Repeat:
         self.map = map_
         self.camera = map_.camera
         self.config = config
-        ids, T = map_.privileged_poses()
-        self.chain = LocalizationChain(ids, T, config.localization, start_index)
+        self.chain = LocalizationChain(map_.taught_path(), config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
@@ -85,15 +84,13 @@ class Repeat:
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""
-        c = self.chain
-        T_teach_branch = c.T_priv[c.branch]
-        return T_teach_branch @ inv_T(c.T_twig_branch) @ inv_T(c.T_world_twig) @ T_world_frame
+        return self.chain.T_teach(T_world_frame)
 
     def _localize(self, leaf_id: int, kf: Keyframe) -> Localization:
         c = self.chain
-        twig, branch = c.twig_id, (int(c.ids[c.branch]) if c.localized else -1)
+        twig, branch = c.twig_id, c.branch_id
         trunk, T_prior = c.prior(kf.T_world_kf)
-        trunk_vertex = self.map.vertex(int(c.ids[trunk]))
+        trunk_vertex = self.map.vertex(int(c.path.ids[trunk]))
         trunk_frame = frame_of_vertex(trunk_vertex)
         self._attempts += 1
         T, cov, n_matches, matched, inlier = self.localizer.localize(

@@ -9,7 +9,8 @@ per repeat *vertex* (keyframe), not per frame:
   (repeat world), with the odometry covariance of the leaf (the same measurement and covariance as the
   map's temporal edge);
 * at a successfully localized vertex, an absolute pose in the teach world,
-  ``T_teach_leaf = T_priv[trunk] @ inv(T_leaf_trunk)`` (= ``RepeatStep.T_teach_frame`` there), with the
+  ``T_teach_leaf = T_teach_trunk @ inv(T_leaf_trunk)`` (``LocalizationChain.T_teach_localized``; =
+  ``RepeatStep.T_teach_frame`` there), with the
   localization covariance. Privileged poses are taken as exact (the repeat is expressed relative to the
   taught path, as the chain does).
 
@@ -65,6 +66,7 @@ from ..errors import ConfigError, DataError, EstimationError
 from ..geometry import inv_T
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
+from .localization import LocalizationChain
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
@@ -163,25 +165,22 @@ class ControllerLog:
     Args:
         config: ``smoothing`` (Qc, lag), ``localization`` (path window) and ``odometry.failure_variance``
             (used for an odometry covariance that is unusable) are read.
-        privileged_ids: (N,) map ids of the taught vertices, in path order.
-        T_world_privileged: (N, 4, 4) their camera poses in the teach world.
+        chain: the repeat's localization chain: its taught path (ids, camera poses in the teach world), its
+            trunk-search window and its teach-frame pose of a localized leaf are used; nothing else.
         T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
     """
 
-    def __init__(self, config: Config, privileged_ids: np.ndarray, T_world_privileged: np.ndarray,
-                 T_vehicle_sensor: np.ndarray):
+    def __init__(self, config: Config, chain: LocalizationChain, T_vehicle_sensor: np.ndarray):
         self.config = config
+        self.chain = chain
+        self.path = chain.path
         self.smoother = TrajectorySmoother(config.smoothing)
-        self.ids = np.asarray(privileged_ids, np.int64)
-        self._index = {int(v): i for i, v in enumerate(self.ids)}
-        self.T_priv = np.asarray(T_world_privileged, float)
         self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
         self.C_g_world = self.T_vehicle_sensor[:3, :3]
-        T_veh = self.T_priv @ self.T_sensor_vehicle                  # taught vehicle poses in the teach world
-        self._T_world_trunk = T_veh
-        step = np.linalg.norm(np.diff(T_veh[:, :3, 3], axis=0), axis=1)
-        self._arc = np.concatenate([[0.0], np.cumsum(step)])
+        # taught vehicle poses in the teach world
+        self._T_world_trunk = self.path.T_world_vertex @ self.T_sensor_vehicle
+        self._arc = self.path.arc_length_m(self.T_sensor_vehicle)
         self._trunk_cache: dict[int, tuple[np.ndarray, ReferencePath | None, float]] = {}
         self._pending: list[_Vertex] = []
         self._anchored = False
@@ -215,12 +214,12 @@ class ControllerLog:
             if loc is not None and loc.success:
                 loc_cov = _measurement_covariance(loc.covariance)
                 if loc_cov is not None:
-                    T_teach_leaf = self.T_priv[self._index[int(loc.trunk_id)]] @ inv_T(loc.T_leaf_trunk)
+                    T_teach_leaf = self.chain.T_teach_localized(loc.trunk_id, loc.T_leaf_trunk)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
             trunk = loc.trunk_id if loc is not None else None
-            self.vertex_trunk.append(self._index[int(trunk)] if trunk is not None else
+            self.vertex_trunk.append(self.path.index(trunk) if trunk is not None else
                                      (self.vertex_trunk[-1] if self.vertex_trunk else 0))
             if self._anchored:
                 self._feed(v)
@@ -287,8 +286,8 @@ class ControllerLog:
         """``T_o_t``, the reference path in o around trunk k, and the arc length at the path's first point."""
         if k not in self._trunk_cache:
             T_wt, T_o_t = self.trunk_frame(k)
-            loc = self.config.localization
-            lo, hi = max(0, k - loc.trunk_window_back), min(len(self.ids), k + loc.trunk_window_forward + 1)
+            loc = self.chain.config
+            lo, hi = self.path.window(k, loc.trunk_window_back, loc.trunk_window_forward)
             try:
                 path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
             except EstimationError:       # fewer than two distinct taught vertices
@@ -329,7 +328,7 @@ class ControllerLog:
                 e: PathError = path.error(P[sel])
                 lat[sel], ver[sel], along[sel] = e.lateral, e.vertical, e.along_track + offset
         self.seconds += time.perf_counter() - t0
-        return StateTable(t_ns, P, Vel, A, yaw, self.ids[trunks], lat, ver, along)
+        return StateTable(t_ns, P, Vel, A, yaw, self.path.ids[trunks], lat, ver, along)
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""
