@@ -146,7 +146,7 @@ def trunk_landmarks(vtr_map: Any, vertex_id: int) -> Trunk:
     """Landmarks (finite triangulated points) of vertex ``vertex_id`` of an open ``vtr.map.Map``, map frame."""
     rec = vtr_map.vertex(int(vertex_id))
     T = np.asarray(rec.T_world_vertex, dtype=np.float64)
-    pts = np.asarray(rec.points, dtype=np.float64)[rec.landmark_mask]
+    pts = np.asarray(rec.frame.points, dtype=np.float64)[rec.landmark_mask]
     return Trunk(int(vertex_id), T, pts @ T[:3, :3].T + T[:3, 3])
 
 

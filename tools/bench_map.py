@@ -73,6 +73,7 @@ def route_pose(i: int, spacing: float) -> np.ndarray:
 def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
     from vtr.camera import StereoCamera
     from vtr.map import Map
+    from vtr.types import Keyframe
 
     camera = StereoCamera(fx=FX, fy=FX, cx=IMAGE_W / 2, cy=IMAGE_H / 2, baseline=BASELINE,
                           width=IMAGE_W, height=IMAGE_H)
@@ -82,17 +83,13 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
     rss_early = None
     with Map.create(path, camera) as m:
         run = m.begin_run("teach", source="bench_map synthetic route")
-        prev_T = np.eye(4)
         for i in range(n_vertices):
             frame = synthetic_frame(rng, n_features, i)
             T = route_pose(i, spacing)
-            # a vtr.types.Keyframe (duck-typed): vertex and temporal edge in one transaction
-            kf = SimpleNamespace(id=i, frame=frame, T_world_kf=T, T_prev_kf=np.linalg.inv(prev_T) @ T,
-                                 edge_covariance=cov, edge_inliers=100)
+            kf = Keyframe(i, frame, T, cov, 100)     # vertex and temporal edge in one transaction
             t0 = time.perf_counter()
             m.add_keyframe(run, kf)
             t_write += time.perf_counter() - t0
-            prev_T = T
             if i + 1 == RSS_EARLY_STEP:
                 rss_early = rss_kb()["VmRSS"]
         rss_end = rss_kb()["VmRSS"]
@@ -129,7 +126,7 @@ def walk(path: Path) -> dict:
             t1 = time.perf_counter()
             for vid in m.window(trunk, WINDOW_BACK, WINDOW_FORWARD):
                 v = m.vertex(vid)
-                reads += len(v.uv)
+                reads += v.n_features
             t2 = time.perf_counter()
             t_nearest += t1 - t0
             t_window += t2 - t1

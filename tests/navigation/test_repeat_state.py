@@ -171,14 +171,14 @@ OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])   # repeat world in the teach world:
 def _synthetic_steps(n: int, failed: set[int]):
     """Repeat steps on a straight taught path (vertices every metre along the camera z axis)."""
     T_priv = np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)])
-    steps, prev = [], None
+    steps = []
     for j in range(n):
         t = j * DT_NS
         T_w = make_T(np.eye(3), [0.0, 0.0, SPEED * t * 1e-9])
         T_teach = OFFSET @ T_w
         trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
-        kf = Keyframe(j, None, T_w, np.eye(4) if prev is None else inv_T(prev) @ T_w, cov, 100)
+        kf = Keyframe(j, None, T_w, cov, 100)
         odo = OdometryResult(t, j, FrameKind.CREATE_VERTEX, 100, 100, max(j - 1, 0), np.eye(4), T_w,
                              cov if j else np.zeros((6, 6)), kf)
         ok = j not in failed
@@ -187,7 +187,6 @@ def _synthetic_steps(n: int, failed: set[int]):
                            np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan), 0, 0.0)
         T_chain = T_teach if not failed.issuperset(range(j + 1)) else T_w     # the chain's assumption until then
         steps.append(RepeatStep(odo, loc, 1000 + j, T_chain))
-        prev = T_w
     return np.arange(n), T_priv, steps
 
 

@@ -13,18 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..geometry import inv_T
-from ..map import Map, VertexRecord
-from ..types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..geometry import usable_covariance
+from ..map import Map
+from ..types import Keyframe, OdometryResult, StereoImages
 from ..vo.odometry import StereoOdometry
 from .localization import Localization, LocalizationChain, Localizer, landmark_record
-from .teach import usable_covariance
-
-
-def frame_of_vertex(v: VertexRecord) -> StereoFrame:
-    """The stereo frame a map vertex stores (features, stereo measurements, landmarks)."""
-    feats = Features(v.uv, v.octave, np.zeros(len(v.uv)), v.descriptors)
-    return StereoFrame(v.t_ns, v.frame_index, feats, v.u_right, v.points)
 
 
 @dataclass(frozen=True)
@@ -55,23 +48,20 @@ class Repeat:
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
         self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
-        self._leaf: tuple[int, np.ndarray] | None = None   # (map id, T_world_leaf) of the previous vertex
+        self._leaf: int | None = None            # map id of the newest repeat vertex
         self._attempts = 0
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
         result = self.odometry.process(images)
         loc = None
-        vid = self._leaf[0] if self._leaf else -1
+        vid = self._leaf if self._leaf is not None else -1
         if result.new_keyframe is not None:
             kf = result.new_keyframe
-            edge = None
-            if self._leaf is not None:
-                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, usable_covariance(result.covariance), result.inliers)
             with self.timer("map_write"):
-                v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor,
-                                        edge)
-            self._leaf = (v.id, kf.T_world_kf)
+                v = self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor,
+                                          unknown_variance=self.config.odometry.failure_variance)
+            self._leaf = v.id
             vid = v.id
             t0 = time.perf_counter()
             with self.timer("localization"):
@@ -91,14 +81,16 @@ class Repeat:
         twig, branch = c.twig_id, c.branch_id
         trunk, T_prior = c.prior(kf.T_world_kf)
         trunk_vertex = self.map.vertex(int(c.path.ids[trunk]))
-        trunk_frame = frame_of_vertex(trunk_vertex)
+        trunk_frame = trunk_vertex.frame
         self._attempts += 1
         T, cov, n_matches, matched, inlier = self.localizer.localize(
             kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
             trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
         success = T is not None
         if success:
-            self.map.add_edge(leaf_id, trunk_vertex.id, T, usable_covariance(cov), "spatial", int(inlier.sum()))
+            self.map.add_edge(leaf_id, trunk_vertex.id, T,
+                              usable_covariance(cov, self.config.odometry.failure_variance), "spatial",
+                              int(inlier.sum()))
         c.update(leaf_id, kf.T_world_kf, trunk, T)
         T_used = T if success else T_prior
         record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)

@@ -63,7 +63,7 @@ import numpy as np
 from ..config import Config
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, DataError, EstimationError
-from ..geometry import inv_T
+from ..geometry import inv_T, usable_covariance
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
 from .localization import LocalizationChain
@@ -78,9 +78,6 @@ VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
 # information spans more than ~1e7 (odometry rotation variances are ~1e-8 rad^2) indeterminate.
 UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
 UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
-# Covariances are floored at this fraction of their largest eigenvalue (the smoother refuses condition
-# numbers above 1e14).
-MIN_EIGENVALUE_RATIO = 1e-12
 
 STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "trunk_id",
                     "lateral_m", "vertical_m", "along_track_m")
@@ -112,19 +109,6 @@ def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
     """``T_vehicle_sensor`` with the identity read as a level, forward-looking camera (see module doc)."""
     T = np.asarray(T_vehicle_sensor, float)
     return VEHICLE_FROM_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
-
-
-def _measurement_covariance(C: np.ndarray) -> np.ndarray | None:
-    """A symmetric covariance the smoother accepts (eigenvalues floored), or None if C is unusable."""
-    C = np.asarray(C, float)
-    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
-        return None
-    C = 0.5 * (C + C.T)
-    w, V = np.linalg.eigh(C)
-    if w[-1] <= 0:
-        return None
-    C = (V * np.maximum(w, w[-1] * MIN_EIGENVALUE_RATIO)) @ V.T
-    return 0.5 * (C + C.T)
 
 
 @dataclass(frozen=True)
@@ -206,13 +190,11 @@ class ControllerLog:
             rel_cov = None
             previous = self._pending[-1] if self._pending else self._last
             if previous is not None:
-                rel_cov = _measurement_covariance(r.covariance)
-                if rel_cov is None:
-                    rel_cov = np.eye(6) * self.config.odometry.failure_variance
+                rel_cov = usable_covariance(r.covariance, self.config.odometry.failure_variance)
                 rel_cov = rel_cov + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
             if loc is not None and loc.success:
-                loc_cov = _measurement_covariance(loc.covariance)
+                loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
                     T_teach_leaf = self.chain.T_teach_localized(loc.trunk_id, loc.T_leaf_trunk)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
@@ -253,7 +235,7 @@ class ControllerLog:
             T_s_first = inv_T(s.T_world_leaf) @ first.T_world_leaf
             A = adjoint(inv_T(T_s_first))
             first.T_teach_leaf = s.T_teach_leaf @ T_s_first
-            first.localization_covariance = _measurement_covariance(A @ s.localization_covariance @ A.T)
+            first.localization_covariance = usable_covariance(A @ s.localization_covariance @ A.T)
             s.T_teach_leaf = s.localization_covariance = None
         self._flush()
 

@@ -40,9 +40,8 @@ from gtsam.symbol_shorthand import V, X
 from ..config import SmoothingConfig
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
-from ..geometry import check_se3, inv_T, skew
+from ..geometry import POSE_DIM, check_covariance, check_se3, inv_T, skew
 
-POSE_DIM = 6                     # pose tangent dimension [rot, trans]
 STATE_DIM = 12                   # [pose tangent, body twist]
 
 # Weak prior on the first knot's twist: only there so a single keyframe is a determined problem.
@@ -61,8 +60,6 @@ ITERATIONS_PER_KEYFRAME = 1
 COVARIANCE_REFRESH_KNOTS = 2
 
 # Input validation.
-SYMMETRY_TOLERANCE = 1e-9        # relative asymmetry allowed in covariances
-MAX_COVARIANCE_CONDITION = 1e14  # larger condition numbers are treated as singular
 
 # Central-difference step for the derivative of Jr(xi) w with respect to xi (only in covariances
 # and the acceleration estimate): truncation error O(step²), round-off O(1e-16 / step) ≈ 1e-10.
@@ -306,24 +303,6 @@ def _check_time(t_ns: object, what: str = "t_ns") -> int:
 
 
 
-def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
-    cov = np.asarray(cov, dtype=float)
-    if cov.shape != (POSE_DIM, POSE_DIM):
-        raise EstimationError(f"{what}: expected a 6x6 covariance, got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise EstimationError(f"{what}: contains NaN or infinity")
-    scale = float(np.max(np.abs(cov)))
-    if scale == 0.0 or not np.allclose(cov, cov.T, rtol=0.0, atol=SYMMETRY_TOLERANCE * scale):
-        raise EstimationError(f"{what}: not a symmetric non-zero matrix")
-    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
-    if eig[0] <= 0.0 or eig[-1] / eig[0] > MAX_COVARIANCE_CONDITION:
-        raise EstimationError(
-            f"{what}: not positive definite (eigenvalues {eig[0]:.3g} … {eig[-1]:.3g}); "
-            "a measurement covariance must be invertible"
-        )
-    return 0.5 * (cov + cov.T)
-
-
 # ----------------------------------------------------------------------------------------------
 # Cache of knot states (numpy, growable, whole history)
 
@@ -518,10 +497,10 @@ class TrajectorySmoother:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:
             T_world_sensor = check_se3(T_world_sensor, "T_world_sensor")
-            covariance = _check_covariance(covariance, "covariance")
+            covariance = check_covariance(covariance, "covariance", definite=True)
         if T_prev_cur is not None:
             T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
-            relative_covariance = _check_covariance(relative_covariance, "relative_covariance")
+            relative_covariance = check_covariance(relative_covariance, "relative_covariance", definite=True)
         # -- all input valid: nothing below may leave a half-applied state except a solver failure.
         self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance)
 
