@@ -24,14 +24,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import StereoCamera
+from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T, log_se3
 from ..map import TaughtPath
 from ..types import StereoFrame
 from ..vo.estimation import ransac_pnp, refine_two_view
 from ..vo.features import match_all
-from ..vo.matching import MIN_DEPTH_M, match_to_landmarks
+from ..vo.matching import match_to_landmarks
 
 
 @dataclass(frozen=True)
@@ -225,9 +225,7 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
 
     idx = np.flatnonzero(trunk.has_depth)
     P_leaf = trunk.points[idx] @ T_leaf_trunk[:3, :3].T + T_leaf_trunk[:3, 3]
-    uv = camera.project(P_leaf)
-    in_view = (P_leaf[:, 2] > MIN_DEPTH_M) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) \
-        & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    in_view = camera.in_view(P_leaf)
     idx, P_leaf = idx[in_view], P_leaf[in_view]
     T_trunk_leaf = inv_T(T_leaf_trunk)
     p_is = trunk.points[idx]
