@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 
 
 def _frozen(a: np.ndarray, dtype: type) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
+    out: np.ndarray = np.array(a, dtype=dtype, copy=True)
     out.flags.writeable = False
     return out
 

@@ -567,7 +567,8 @@ class Map:
         if kind is not None and kind not in EDGE_KINDS:
             raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
         sql = "SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges"
-        where, args = [], []
+        where: list[str] = []
+        args: list[int | str] = []
         if run is not None:
             lo, hi = _run_range(_check_int(run, "run", 0))
             where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")

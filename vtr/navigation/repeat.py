@@ -87,12 +87,12 @@ class Repeat:
             kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
             trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
         success = T is not None
-        if success:
+        if T is not None:
             self.map.add_edge(leaf_id, trunk_vertex.id, T,
                               usable_covariance(cov, self.config.odometry.failure_variance), "spatial",
                               int(inlier.sum()))
         c.update(leaf_id, kf.T_world_kf, trunk, T)
-        T_used = T if success else T_prior
+        T_used = T if T is not None else T_prior
         record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)
         return Localization(kf.t_ns, leaf_id, trunk_vertex.id, twig, branch, success, n_matches,
                             int(inlier.sum()) if success else 0, T_used,

@@ -314,7 +314,7 @@ class ControllerLog:
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""
-        if self.first_t_ns is None:
+        if self.first_t_ns is None or self.last_t_ns is None:
             raise DataError("no repeat frame was processed: no state to report")
         return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
 

@@ -32,6 +32,7 @@ GTSAM's right (body-frame) one, ``T = T_hat Exp(delta)``, as for every ``Pose3``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, cast, overload
 
 import gtsam
 import numpy as np
@@ -227,6 +228,14 @@ def _hermite_matrix(tau: float, dt: float) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------
 # Public value types
+
+
+@overload
+def _frozen(a: np.ndarray) -> np.ndarray: ...
+
+
+@overload
+def _frozen(a: None) -> None: ...
 
 
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:
@@ -497,10 +506,11 @@ class TrajectorySmoother:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:
             T_world_sensor = check_se3(T_world_sensor, "T_world_sensor")
-            covariance = check_covariance(covariance, "covariance", definite=True)
+            covariance = check_covariance(cast(np.ndarray, covariance), "covariance", definite=True)
         if T_prev_cur is not None:
             T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
-            relative_covariance = check_covariance(relative_covariance, "relative_covariance", definite=True)
+            relative_covariance = check_covariance(cast(np.ndarray, relative_covariance), "relative_covariance",
+                                                   definite=True)
         # -- all input valid: nothing below may leave a half-applied state except a solver failure.
         self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance)
 
@@ -560,7 +570,7 @@ class TrajectorySmoother:
         c = self._cache
         k = c.n
         first = k == 0
-        t0_ns = t_ns if first else self._t0_ns
+        t0_ns = t_ns if first else cast(int, self._t0_ns)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         # Initial guess of the new knot.
@@ -574,7 +584,7 @@ class TrajectorySmoother:
             dt = (t_ns - int(c.times_ns[k - 1])) / NS_PER_S
             v_init = _log(inv_T(c.poses[k - 1]) @ T_init)[0] / dt
         t_s = (t_ns - t0_ns) / NS_PER_S
-        timestamps = {X(k): t_s, V(k): t_s}
+        timestamps: dict[Any, float] = {X(k): t_s, V(k): t_s}
         values.insert(X(k), gtsam.Pose3(T_init))
         values.insert(V(k), v_init)
         if T_ws is not None:

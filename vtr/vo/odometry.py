@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -277,7 +278,7 @@ class StereoOdometry:
     def _plausible(self, T_cw: np.ndarray, dt: float) -> bool:
         """Speed and rotation rate of the step since the last frame within the configured bounds."""
         cfg = self.config.odometry
-        step = T_cw @ inv_T(self._T_cw_last)
+        step = T_cw @ inv_T(cast(np.ndarray, self._T_cw_last))
         dt = max(dt, MIN_FRAME_INTERVAL_S)
         return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_speed_mps * dt
                     and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt)
