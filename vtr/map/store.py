@@ -1,4 +1,4 @@
-"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges.
+"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges (docs/map.md).
 
 Vertices are keyframes (time, features, descriptors, 3-D landmarks in the vertex camera frame,
 ``T_vehicle_sensor``); edges are relative transforms with covariance, ``temporal`` (odometry
@@ -60,7 +60,7 @@ from .schema import SCHEMA
 if TYPE_CHECKING:
     from ..types import Keyframe, StereoFrame
 
-MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
+MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2, vtr.map.codec)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)

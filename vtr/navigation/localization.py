@@ -1,4 +1,4 @@
-"""Localization of repeat keyframes against the taught (privileged) path.
+"""Localization of repeat keyframes against the taught (privileged) path (docs/localization.md).
 
 The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
 
@@ -39,7 +39,7 @@ class LandmarkRecord:
     """Taught landmarks of one localization that lay in the leaf's view (arrays of equal length).
 
     ``landmark_id`` is the feature index in the trunk vertex; ``matched``/``inlier`` say whether it
-    was matched / a localization inlier; angles in radians (DESIGN.md §5); ``range_m`` is the
+    was matched / a localization inlier; angles in radians (docs/perception_model.md); ``range_m`` is the
     distance from the leaf camera.
     """
 
@@ -215,7 +215,7 @@ class Localizer:
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
                     inlier: np.ndarray) -> LandmarkRecord:
-    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5).
+    """Angles of every trunk landmark inside the leaf's image (docs/perception_model.md).
 
     Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
     for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera

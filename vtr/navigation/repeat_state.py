@@ -1,5 +1,5 @@
 """Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
-queried at a fixed rate in the gravity-aligned trunk frame o (DESIGN.md §4; thesis §6.3.4).
+queried at a fixed rate in the gravity-aligned trunk frame o (docs/smoother.md; thesis §6.3.4).
 
 **Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
 smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
@@ -18,8 +18,8 @@ Why vertices and these two measurements: (1) localization, the only measurement 
 frame, exists only at vertices; the chain's ``T_teach_frame`` of the other frames is localization composed
 with odometry, and feeding it as an absolute pose would count the same localization again at every frame;
 (2) a non-keyframe frame's pose is measured against the same landmarks as the next keyframe's, so adding it
-as an independent measurement would count the same landmark errors twice; (3) DESIGN.md §4 puts the
-smoother's states at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
+as an independent measurement would count the same landmark errors twice; (3) the
+smoother's states sit at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
 between them (and extrapolates after the last one) at the output rate. Both covariances use the left
 perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.vo.estimation), which is the right perturbation of the
 inverse pose the smoother uses, so they are passed unchanged.
@@ -31,7 +31,7 @@ the waiting vertices are fed in order. A run that never localizes is fed with th
 started at the taught vertex ``start_index``) as the first knot's prior, which only fixes the gauge.
 
 **Gravity.** The teach world is the teach run's first camera frame (KITTI and the other sources: x right,
-y down, z forward). The vehicle frame is FLU (DESIGN.md §3), placed by ``T_vehicle_sensor``; when that is
+y down, z forward). The vehicle frame is FLU (docs/frames.md), placed by ``T_vehicle_sensor``; when that is
 the identity (KITTI), the camera is taken as a level, forward-looking vehicle: vehicle frame = camera
 centre with x = camera z, y = -camera x, z = -camera y (:data:`VEHICLE_FROM_LEVEL_CAMERA`). The vehicle at
 the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
