@@ -172,14 +172,14 @@ def fit_cmd(
     bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
     result = fit_observations(
         obs,
-        method=method,
+        method=method,  # type: ignore[arg-type]  # click.Choice checked it
         angle_unit=unit,
         holdout_fraction=holdout,
         seed=seed,
         bins=bins,
-        ci=ci,
+        ci=ci,  # type: ignore[arg-type]
         n_bootstrap=n_bootstrap,
-    )  # type: ignore[arg-type]
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     result.model.save(out, fit=result.to_dict(), data=obs.describe())
     click.echo(_fit_summary(result, obs.describe()))

@@ -285,7 +285,7 @@ def _intervals(
 
 def _safe_inverse(m: NDArray[np.float64], what: str) -> NDArray[np.float64]:
     try:
-        inv = np.linalg.inv(m)
+        inv: NDArray[Any] = np.linalg.inv(m)
     except np.linalg.LinAlgError:
         inv = np.full_like(m, np.nan)
     if not np.all(np.isfinite(inv)) or np.any(np.diag(inv) < 0):
@@ -359,14 +359,14 @@ def bin_observations(
         theta=sum_t[used] / count[used],
         count=count[used].astype(np.int64),
         inliers=inl[used],
-        alpha_edges=np.arange(na + 1) * spec.alpha_width,
-        theta_edges=np.arange(nt + 1) * spec.theta_width,
+        alpha_edges=np.arange(na + 1, dtype=np.float64) * spec.alpha_width,
+        theta_edges=np.arange(nt + 1, dtype=np.float64) * spec.theta_width,
         count_grid=count.reshape(na, nt).astype(np.int64),
         inlier_grid=inl.reshape(na, nt),
     )
 
 
-def weighted_r2(freq: NDArray[np.float64], pred: NDArray[np.float64], weight: NDArray[np.float64]) -> float:
+def weighted_r2(freq: NDArray[np.float64], pred: NDArray[np.float64], weight: NDArray[Any]) -> float:
     """``1 - sum w (f - p)^2 / sum w (f - mean_w f)^2`` (NaN if the frequencies are constant)."""
     mean = np.sum(weight * freq) / np.sum(weight)
     ss_tot = float(np.sum(weight * (freq - mean) ** 2))

@@ -1,7 +1,7 @@
 """Readers and writers for perception-model data files.
 
 ``landmarks.csv`` (one row per matched teach landmark per localization, written by the repeat
-pipeline; DESIGN.md §4): columns ``t_ns, leaf_id, trunk_id, landmark_id, inlier, parallax_deg,
+pipeline; docs/localization.md): columns ``t_ns, leaf_id, trunk_id, landmark_id, inlier, parallax_deg,
 view_deg, range_m`` (any order, extra columns ignored). ``inlier`` is 0/1 (or true/false);
 angles are degrees in the file and radians in memory; ``range_m`` is the landmark range in
 metres (may be empty/NaN; informational).

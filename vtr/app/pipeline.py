@@ -41,8 +41,8 @@ class OdometrySummary:
         return self.frames / self.seconds if self.seconds > 0 else float("nan")
 
     def to_dict(self) -> dict:
-        d = {"frames": self.frames, "keyframes": self.keyframes, "failures": self.failures,
-             "seconds": self.seconds, "fps": self.fps}
+        d: dict[str, object] = {"frames": self.frames, "keyframes": self.keyframes, "failures": self.failures,
+                                "seconds": self.seconds, "fps": self.fps}
         if self.drift is not None:
             d["drift"] = self.drift.to_dict()
         return d
@@ -265,7 +265,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "repeat", config, [source_path, map_path])
         repeat = Repeat(m, config, source=str(source_path))
-        clog = ControllerLog(config, repeat.chain.ids, repeat.chain.T_priv, m.camera.T_vehicle_sensor)
+        clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
         t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
         with open(out / "localization.csv", "w", newline="") as loc_file, \
@@ -286,11 +286,11 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
         write_state_csv(out / "state.csv", state)
-        t_ns, T_teach = np.array(t_ns, np.int64), np.array(T_teach)
-        write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
-        T_priv = repeat.chain.T_priv
-        errors = distance_to_polyline(T_teach[:, :3, 3], T_priv[:, :3, 3])
-        plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
+        t_frames, T_teach_frames = np.array(t_ns, np.int64), np.array(T_teach)
+        write_tum(out / "trajectory_tum.txt", t_frames, T_teach_frames)
+        taught = repeat.chain.path
+        errors = distance_to_polyline(T_teach_frames[:, :3, 3], taught.positions)
+        plot_repeat(out / "report.png", locs, taught, T_teach_frames, t_frames, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
         state_info = {"rate_hz": rate_hz, "rows": len(state),

@@ -1,4 +1,4 @@
-"""SQLite schema of the map file (format version 1).
+"""SQLite schema of the map file (format version 2, ``vtr.map.store.MAP_FORMAT_VERSION``; docs/map.md).
 
 Tables:
 
@@ -10,9 +10,9 @@ Tables:
   ``T_world_vertex`` and ``T_vehicle_sensor`` as 16 little-endian float64 (128-byte blobs,
   row-major), feature/landmark counts and the source frame index. Poses are read from here without
   touching feature data.
-- ``vertex_data(id, data)``: the keyframe arrays behind the magic ``VTRV\\x01``: zlib of the
-  feature count N (uint32) then the raw little-endian bytes of uv (N, 2) float64, octave (N,)
-  int32, descriptors (N, 32) uint8, u_right (N,) float64, points (N, 3) float64, in that order.
+- ``vertex_data(id, data)``: the keyframe's ``StereoFrame`` as written by the vertex codec
+  (:mod:`vtr.map.codec`, blob magic ``VTRV\\x02``: feature count, raw descriptors, then zlib of
+  uv, octave, u_right and points).
 - ``edges``: ``T_from_to`` (128-byte blob), ``covariance`` (6x6, 288-byte blob), kind, inliers.
 
 Triggers make vertices, vertex data and edges append-only, and refuse new vertices or temporal

@@ -1,4 +1,4 @@
-"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges.
+"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges (docs/map.md).
 
 Vertices are keyframes (time, features, descriptors, 3-D landmarks in the vertex camera frame,
 ``T_vehicle_sensor``); edges are relative transforms with covariance, ``temporal`` (odometry
@@ -37,7 +37,9 @@ from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, VtrError
-from ..geometry import inv_T
+from ..geometry import inv_T, usable_covariance
+from .codec import decode_frame, encode_frame
+from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
     INDEX_MASK,
@@ -49,11 +51,6 @@ from .records import (
     blob_matrix,
     check_covariance,
     check_transform,
-    count_landmarks,
-    decode_arrays,
-    encode_arrays,
-    frame_arrays,
-    make_vertex_record,
     matrix_blob,
     split_vertex_id,
     vertex_id,
@@ -61,11 +58,9 @@ from .records import (
 from .schema import SCHEMA
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
-
     from ..types import Keyframe, StereoFrame
 
-MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
+MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2, vtr.map.codec)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
@@ -128,8 +123,7 @@ class Map:
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
         self._cache_size = _check_int(cache_size, "cache_size", 1)
         self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
-        self._path_cache: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._tree_cache: tuple[int, cKDTree] | None = None
+        self._path_cache: tuple[int, TaughtPath] | None = None
         self._open_run: int | None = None
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
@@ -359,36 +353,40 @@ class Map:
         self._open_run = None
 
     def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                   T_vehicle_sensor: np.ndarray | None = None,
-                   edge_from_previous: tuple[np.ndarray, np.ndarray, int] | None = None) -> VertexRecord:
-        """Append a keyframe to the open run ``run`` in one transaction; returns the stored record.
+                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
+        """Append a stereo frame as the next vertex of the open run ``run`` (no edge); returns the stored record.
 
-        ``T_world_vertex`` (4x4) is the keyframe's left camera pose in the run's first camera frame;
-        ``T_vehicle_sensor`` defaults to the map camera's. The vertex index is the next in the run.
-        Arrays are stored with dtypes uv/u_right/points float64, octave int32, descriptors uint8
-        (lossless conversion only, else ``MapError``). ``edge_from_previous`` = (T_prev_vertex 4x4,
-        6x6 covariance, inliers) adds the temporal edge from the run's previous vertex in the same
-        transaction (ignored for the run's first vertex).
+        ``T_world_vertex`` (4x4) is the frame's left camera pose in the run's first camera frame;
+        ``T_vehicle_sensor`` defaults to the map camera's. The frame is stored through the vertex codec
+        (:mod:`vtr.map.codec`: lossless dtype conversion only, else ``MapError``). Odometry keyframes go
+        through :meth:`add_keyframe`, which adds their temporal edge in the same transaction.
         """
-        edge = None
-        if edge_from_previous is not None:
-            T, C, inliers = edge_from_previous
-            edge = (check_transform(T, "temporal edge T_from_to"), check_covariance(C, "temporal edge covariance"),
-                    _check_int(inliers, "temporal edge inliers", 0))
-        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge)
+        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
 
     def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True) -> VertexRecord:
+                     link_previous: bool = True, unknown_variance: float | None = None) -> VertexRecord:
         """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
 
-        The edge (``T_prev_kf``, ``edge_covariance``, ``edge_inliers``) is written in the same
-        transaction as the vertex when the run already has a vertex and ``link_previous`` is true
-        (pass false for the first keyframe of a new odometry session, e.g. after resuming a teach).
+        The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
+        keyframe's ``edge_covariance`` and ``edge_inliers``. With ``unknown_variance`` the covariance is
+        first made usable (:func:`vtr.geometry.usable_covariance`: an estimate without information becomes
+        ``unknown_variance * I``); without it, it must already be a valid covariance (else ``MapError``).
+        The edge is written when the run already has a vertex and ``link_previous`` is true (pass false
+        for the first keyframe of a new odometry session, e.g. after resuming a teach).
         """
-        edge = (keyframe.T_prev_kf, keyframe.edge_covariance, keyframe.edge_inliers) if link_previous else None
-        return self.add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor, edge)
+        edge = None
+        if link_previous:
+            C = keyframe.edge_covariance
+            if unknown_variance is not None:
+                C = usable_covariance(C, unknown_variance)
+            edge = (check_covariance(C, "temporal edge covariance"),
+                    _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
+        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
+                                edge)
 
-    def _add_vertex(self, run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge) -> VertexRecord:
+    def _add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
+                    T_vehicle_sensor: np.ndarray | None,
+                    edge: tuple[np.ndarray, int] | None) -> VertexRecord:
         self._check_writable()
         run = _check_int(run, "run", 0)
         self._check_open_run(run, "add_vertex")
@@ -396,9 +394,7 @@ class Map:
         T_wv = check_transform(T_world_vertex, "T_world_vertex")
         T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
                                "T_vehicle_sensor")
-        arrays = frame_arrays(frame)
-        frame_index = int(getattr(frame, "index", -1))
-        blob = encode_arrays(arrays, self._compress_level)
+        encoded = encode_frame(frame, t_ns, self._compress_level)
         lo, hi = _run_range(run)
         with self._tx() as conn:
             last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
@@ -407,19 +403,22 @@ class Map:
             conn.execute(
                 "INSERT INTO vertices(id, run, idx, t_ns, T_world_vertex, T_vehicle_sensor, n_features, "
                 "n_landmarks, frame_index) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), len(arrays["uv"]),
-                 count_landmarks(arrays["points"]), frame_index),
+                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), encoded.n_features,
+                 encoded.n_landmarks, encoded.frame.index),
             )
-            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, blob))
+            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
             if edge is not None and last is not None:
-                T, C, inliers = edge
+                C, inliers = edge
+                T_world_prev = blob_matrix(conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?",
+                                                        (int(last),)).fetchone()[0], (4, 4))
+                T = inv_T(T_world_prev) @ T_wv
                 conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
                              "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
                                                                     inliers))
         self._open_run_touched = True
         if self._open_run_privileged:
             self._generation += 1  # the privileged path grew: drop its caches
-        record = make_vertex_record(vid, t_ns, T_wv, T_vs, arrays, frame_index)
+        record = VertexRecord.of(vid, t_ns, T_wv, T_vs, encoded.frame)
         self._cache_put(record)
         return record
 
@@ -544,9 +543,8 @@ class Map:
 
     def _decode_vertex(self, vid: int, row) -> VertexRecord:
         t_ns, T_wv, T_vs, frame_index, data = row
-        arrays = decode_arrays(data, f"{self.path} vertex {vid}")
-        return make_vertex_record(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), arrays,
-                                  frame_index)
+        frame = decode_frame(data, t_ns, frame_index, f"{self.path} vertex {vid}")
+        return VertexRecord.of(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), frame)
 
     def _cache_put(self, record: VertexRecord) -> None:
         with self._lock:
@@ -569,7 +567,8 @@ class Map:
         if kind is not None and kind not in EDGE_KINDS:
             raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
         sql = "SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges"
-        where, args = [], []
+        where: list[str] = []
+        args: list[int | str] = []
         if run is not None:
             lo, hi = _run_range(_check_int(run, "run", 0))
             where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")
@@ -598,64 +597,57 @@ class Map:
 
     # ------------------------------------------------------------ the privileged path
 
-    def _privileged(self) -> tuple[np.ndarray, np.ndarray]:
+    def _privileged(self) -> TaughtPath:
         with self._lock:
             cached = self._path_cache
             if cached is not None and cached[0] == self._generation:
-                return cached[1], cached[2]
+                return cached[1]
             with self._db() as conn:
                 rows = conn.execute(
-                    "SELECT v.id, v.T_world_vertex FROM vertices v JOIN runs r ON r.id = v.run "
+                    "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
                     "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
             ids, T = self._pose_arrays(rows)
-            ids.flags.writeable = False
-            T.flags.writeable = False
-            self._path_cache = (self._generation, ids, T)
-            return ids, T
+            path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
+            self._path_cache = (self._generation, path)
+            return path
 
-    def privileged_path(self) -> np.ndarray:
-        """(N,) int64 ids of the privileged (teach) vertices in path order (run, then index).
+    def taught_path(self) -> TaughtPath:
+        """The privileged (teach) vertices in path order (run, then index), from the pose index only.
 
         Raises ``MapError`` "map has no taught run" when there is no privileged vertex.
         """
-        ids, _T = self._privileged()
-        if len(ids) == 0:
+        path = self._privileged()
+        if len(path) == 0:
             raise MapError(f"{self.path}: map has no taught run (no privileged vertices)")
-        return ids
+        return path
 
-    def privileged_poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (N,), T_world_vertex (N, 4, 4))`` along the privileged path (each in its run's world frame)."""
-        ids = self.privileged_path()
-        return ids, self._privileged()[1]
+    def privileged_path(self) -> np.ndarray:
+        """(N,) int64 ids of the privileged (teach) vertices in path order (see :meth:`taught_path`)."""
+        return self.taught_path().ids
 
     def window(self, center_id: int, back: int, forward: int) -> list[int]:
         """Ids along the privileged path from ``back`` vertices before ``center_id`` to ``forward`` after
         (clipped at the ends of the path), in path order."""
         back = _check_int(back, "back", 0)
         forward = _check_int(forward, "forward", 0)
-        path = self.privileged_path()
-        i = int(np.searchsorted(path, int(center_id)))
-        if i >= len(path) or path[i] != int(center_id):
-            run, index = split_vertex_id(center_id)
-            raise MapError(f"{self.path}: vertex {center_id} (run {run}, index {index}) is not on the privileged path")
-        return [int(v) for v in path[max(0, i - back): i + forward + 1]]
+        path = self.taught_path()
+        try:
+            i = path.index(int(center_id))
+        except MapError as err:
+            raise MapError(f"{self.path}: {err}") from None
+        lo, hi = path.window(i, back, forward)
+        return [int(v) for v in path.ids[lo:hi]]
 
     def nearest_vertices(self, position_world: np.ndarray, k: int = 1) -> np.ndarray:
         """(min(k, N),) int64 ids of the privileged vertices nearest to ``position_world`` (3,), metres,
         nearest first. Positions are camera centres in their run's world frame (the teach frame)."""
         k = _check_int(k, "k", 1)
-        p = np.asarray(position_world, dtype=float).reshape(-1)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise MapError(f"nearest_vertices: position must be 3 finite numbers, got {position_world!r}")
-        ids = self.privileged_path()
-        with self._lock:
-            if self._tree_cache is None or self._tree_cache[0] != self._generation:
-                from scipy.spatial import cKDTree
-
-                self._tree_cache = (self._generation, cKDTree(self._privileged()[1][:, :3, 3]))
-            tree = self._tree_cache[1]
-        _d, idx = tree.query(p, k=min(k, len(ids)))
-        return ids[np.atleast_1d(idx)].astype(np.int64)
+        path = self.taught_path()
+        try:
+            idx = path.nearest(position_world, k)
+        except MapError as err:
+            raise MapError(f"nearest_vertices: {err}") from None
+        return path.ids[idx]
 
     # ------------------------------------------------------------ export
 
@@ -720,7 +712,7 @@ class Map:
         for r in run_ids:
             ids, T_map_v, _aligned = self.poses_in_map_frame(r)
             for i, rec in enumerate(self.iter_vertices(r)):
-                p = rec.points[rec.landmark_mask]
+                p = rec.frame.points[rec.landmark_mask]
                 pts.append(p @ T_map_v[i, :3, :3].T + T_map_v[i, :3, 3])
                 owner.append(np.full(len(p), r, dtype=np.int64))
         if not pts:

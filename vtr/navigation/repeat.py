@@ -13,18 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..geometry import inv_T
-from ..map import Map, VertexRecord
-from ..types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..geometry import usable_covariance
+from ..map import Map
+from ..types import Keyframe, OdometryResult, StereoImages
 from ..vo.odometry import StereoOdometry
 from .localization import Localization, LocalizationChain, Localizer, landmark_record
-from .teach import usable_covariance
-
-
-def frame_of_vertex(v: VertexRecord) -> StereoFrame:
-    """The stereo frame a map vertex stores (features, stereo measurements, landmarks)."""
-    feats = Features(v.uv, v.octave, np.zeros(len(v.uv)), v.descriptors)
-    return StereoFrame(v.t_ns, v.frame_index, feats, v.u_right, v.points)
 
 
 @dataclass(frozen=True)
@@ -48,31 +41,27 @@ class Repeat:
         self.map = map_
         self.camera = map_.camera
         self.config = config
-        ids, T = map_.privileged_poses()
-        self.chain = LocalizationChain(ids, T, config.localization, start_index)
+        self.chain = LocalizationChain(map_.taught_path(), config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
         self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
-        self._leaf: tuple[int, np.ndarray] | None = None   # (map id, T_world_leaf) of the previous vertex
+        self._leaf: int | None = None            # map id of the newest repeat vertex
         self._attempts = 0
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
         result = self.odometry.process(images)
         loc = None
-        vid = self._leaf[0] if self._leaf else -1
+        vid = self._leaf if self._leaf is not None else -1
         if result.new_keyframe is not None:
             kf = result.new_keyframe
-            edge = None
-            if self._leaf is not None:
-                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, usable_covariance(result.covariance), result.inliers)
             with self.timer("map_write"):
-                v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor,
-                                        edge)
-            self._leaf = (v.id, kf.T_world_kf)
+                v = self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor,
+                                          unknown_variance=self.config.odometry.failure_variance)
+            self._leaf = v.id
             vid = v.id
             t0 = time.perf_counter()
             with self.timer("localization"):
@@ -85,25 +74,25 @@ class Repeat:
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""
-        c = self.chain
-        T_teach_branch = c.T_priv[c.branch]
-        return T_teach_branch @ inv_T(c.T_twig_branch) @ inv_T(c.T_world_twig) @ T_world_frame
+        return self.chain.T_teach(T_world_frame)
 
     def _localize(self, leaf_id: int, kf: Keyframe) -> Localization:
         c = self.chain
-        twig, branch = c.twig_id, (int(c.ids[c.branch]) if c.localized else -1)
+        twig, branch = c.twig_id, c.branch_id
         trunk, T_prior = c.prior(kf.T_world_kf)
-        trunk_vertex = self.map.vertex(int(c.ids[trunk]))
-        trunk_frame = frame_of_vertex(trunk_vertex)
+        trunk_vertex = self.map.vertex(int(c.path.ids[trunk]))
+        trunk_frame = trunk_vertex.frame
         self._attempts += 1
         T, cov, n_matches, matched, inlier = self.localizer.localize(
             kf.frame, trunk_frame, T_prior, seed=self.config.odometry.seed + self._attempts,
             trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
         success = T is not None
-        if success:
-            self.map.add_edge(leaf_id, trunk_vertex.id, T, usable_covariance(cov), "spatial", int(inlier.sum()))
+        if T is not None:
+            self.map.add_edge(leaf_id, trunk_vertex.id, T,
+                              usable_covariance(cov, self.config.odometry.failure_variance), "spatial",
+                              int(inlier.sum()))
         c.update(leaf_id, kf.T_world_kf, trunk, T)
-        T_used = T if success else T_prior
+        T_used = T if T is not None else T_prior
         record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)
         return Localization(kf.t_ns, leaf_id, trunk_vertex.id, twig, branch, success, n_matches,
                             int(inlier.sum()) if success else 0, T_used,

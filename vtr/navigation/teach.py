@@ -4,12 +4,9 @@ odometry window) with a temporal edge to the previous one: the privileged path.
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..camera import StereoCamera
 from ..config import Config
 from ..errors import MapError
-from ..geometry import inv_T
 from ..map import Map
 from ..types import Keyframe, OdometryResult, StereoImages
 from ..vo.odometry import StereoOdometry
@@ -23,7 +20,7 @@ class Teach:
         self.camera = camera
         self.odometry = StereoOdometry(camera, config, keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
-        self._previous: tuple[int, Keyframe] | None = None
+        self._unknown_variance = config.odometry.failure_variance
         self.vertices = 0
 
     def process(self, images: StereoImages) -> OdometryResult:
@@ -41,24 +38,5 @@ class Teach:
         return self.vertices
 
     def _write(self, kf: Keyframe) -> None:
-        edge = None
-        if self._previous is not None:
-            prev = self._previous[1]
-            edge = (inv_T(prev.T_world_kf) @ kf.T_world_kf, usable_covariance(kf.edge_covariance), kf.edge_inliers)
-        v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
-        self._previous = (v.id, kf)
+        self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor, unknown_variance=self._unknown_variance)
         self.vertices += 1
-
-
-def usable_covariance(C: np.ndarray) -> np.ndarray:
-    """A symmetric positive definite covariance (a tiny floor where odometry's is degenerate)."""
-    C = 0.5 * (C + C.T)
-    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
-        C = np.where(np.isfinite(C), C, 0.0) + np.eye(6) * COVARIANCE_FLOOR
-        C = 0.5 * (C + C.T)
-        w, V = np.linalg.eigh(C)
-        C = (V * np.maximum(w, COVARIANCE_FLOOR)) @ V.T
-    return C
-
-
-COVARIANCE_FLOOR = 1e-12
