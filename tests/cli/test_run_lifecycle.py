@@ -214,3 +214,31 @@ def test_one_vertex_route_is_refused_in_one_line(kitti_clip, tmp_path):
     assert r.exit_code == 1
     one_line_error(r.stderr, "the taught path has 1 vertex", "no segment")
     assert [x.kind for x in taught(path)[0]] == ["teach"]
+
+
+FILE_SIZE_LIMIT_BYTES = 600_000   # the map's log outgrows this within the clip: a full disk for SQLite
+
+
+def _full_disk() -> None:
+    """In the child: files cannot grow past FILE_SIZE_LIMIT_BYTES (writes fail as on a full disk)."""
+    import resource
+
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT_BYTES, FILE_SIZE_LIMIT_BYTES))
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="needs POSIX file size limits")
+def test_full_disk_mid_teach_is_one_line_and_never_finished(kitti_clip, reference, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    r = subprocess.run([sys.executable, "-m", "vtr", "teach", str(kitti_clip), "--map", str(path)],
+                       capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S, preexec_fn=_full_disk)
+    assert r.returncode == 1
+    one_line_error(r.stderr, str(path))
+    [run], t_ns = taught(path)   # the map opens with what was committed
+    assert not run.finished and run.state in ("aborted", "interrupted")   # aborted when the reason still fit
+    assert 0 < len(t_ns) < 51
+    with Map.open(path) as m:
+        last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame_index
+    np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
+    r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:4")
+    one_line_error(r.stderr, "not finished", "--allow-partial")

@@ -181,7 +181,10 @@ def test_second_writer_gets_one_clear_line(tmp_path):
 
 def test_closed_map_is_one_self_contained_file(tmp_path):
     path = tmp_path / "route.vtrmap"
+    umask = os.umask(0o022)
+    os.umask(umask)
     with Map.create(path, CAMERA) as m:
+        assert path.stat().st_mode & 0o777 == 0o666 & ~umask   # an ordinary file, not a private temporary
         add_vertices(m, m.begin_run("teach"), 4)
         assert os.path.exists(f"{path}-wal")   # written through the write-ahead log ...
     assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]   # ... folded back on close

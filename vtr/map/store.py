@@ -35,8 +35,8 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import sqlite3
-import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -241,11 +241,11 @@ class Map:
             "vtr_version": __version__,
             "compress_level": str(level),
         }
-        try:
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=CREATING_SUFFIX, dir=path.parent)
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}{CREATING_SUFFIX}")
+        try:  # a private name; the mode is the usual 0o666 less the umask (mkstemp would make it 0o600)
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
         except OSError as err:
             raise MapError(f"{path}: cannot create the map ({err})") from err
-        tmp = Path(tmp_name)
         conn: sqlite3.Connection | None = None
         lock: MapLock | None = None
         linked = False
