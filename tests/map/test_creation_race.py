@@ -63,3 +63,25 @@ def test_racing_creators_one_wins_map_survives(tmp_path, writers):
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(f"race{trial}.") or
                       p.name.startswith(f".race{trial}.")) == [path.name]
     assert len(outcomes) == (TRIALS if writers == 2 else TRIALS // 2)
+
+
+def test_file_system_without_hard_links_still_creates_exclusively(tmp_path, monkeypatch):
+    """Where os.link is not supported (FAT, some network shares) the map is created with O_EXCL and
+    the schema copied in: still exclusive, still one self-contained file."""
+
+    def no_links(src, dst):
+        raise PermissionError(1, "Operation not permitted", str(src))
+
+    monkeypatch.setattr(os, "link", no_links)
+    path = tmp_path / "route.vtrmap"
+    with Map.create(path, CAMERA) as m:
+        run = m.begin_run("teach")
+        frame = make_frame(np.random.default_rng(0), 10)
+        m.add_vertex(run, 0, pose(0.0), frame)
+        with pytest.raises(MapError, match="another process is writing this map"):
+            Map.open(path, "a")
+    with pytest.raises(MapError, match="already exists"):
+        Map.create(path, CAMERA)
+    assert [p.name for p in tmp_path.iterdir()] == ["route.vtrmap"]
+    with Map.open(path) as m:
+        assert [(r.state, r.n_vertices) for r in m.runs()] == [("finished", 1)]

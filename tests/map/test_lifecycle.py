@@ -17,8 +17,10 @@ import time
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from test_map import CAMERA, cov, make_frame, pose
 
+from vtr.cli import main
 from vtr.errors import MapError, Terminated
 from vtr.map import Map
 from vtr.map.records import REASON_MAX_CHARS
@@ -127,7 +129,7 @@ def _start_writer(path):
     return proc
 
 
-def test_live_writer_is_running_killed_writer_is_interrupted_and_never_finished(tmp_path):
+def test_live_writer_is_running_killed_writer_is_interrupted_and_never_finished(tmp_path, kitti_clip):
     path = tmp_path / "killed.vtrmap"
     proc = _start_writer(path)
     try:
@@ -136,6 +138,10 @@ def test_live_writer_is_running_killed_writer_is_interrupted_and_never_finished(
             assert (info.state, info.n_vertices) == ("running", 5)
         with pytest.raises(MapError, match=r"killed.vtrmap: another process is writing this map"):
             Map.open(path, "a")
+        # the same through the command: one line, nothing written
+        r = CliRunner().invoke(main, ["repeat", str(kitti_clip), "--map", str(path), "--out", str(tmp_path / "o")])
+        assert r.exit_code == 1 and r.stderr.count("\n") == 1
+        assert r.stderr.startswith(f"vtr: error: {path}: another process is writing this map")
     finally:
         proc.kill()
         proc.wait()

@@ -40,7 +40,7 @@ import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -281,7 +281,8 @@ class Map:
             if lock is not None:
                 lock.release()
             else:
-                os.close(fd)
+                with suppress(OSError):  # MapLock.writer closes it when it fails
+                    os.close(fd)
             if isinstance(err, sqlite3.Error):
                 raise MapError(f"{path}: cannot create map ({err})") from err
             if isinstance(err, OSError):
