@@ -306,3 +306,32 @@ def test_sigkill_writer_left_running_then_reader_sees_interrupted_in_new_process
                        timeout=SUBPROCESS_TIMEOUT_S)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "interrupted"
+
+
+JOURNAL_PROBE = ("import sqlite3, sys; c = sqlite3.connect(sys.argv[1], timeout=0); "
+                 "print(c.execute('PRAGMA journal_mode = DELETE').fetchone()[0])")
+
+
+def test_reader_in_the_same_process_keeps_the_writers_sqlite_locks(tmp_path):
+    """Closing any descriptor of a file drops all the process's POSIX locks on it, SQLite's shared
+    lock included, after which another process could take the map out of WAL mode under the
+    writer. Readers opened and closed beside a writer must not do that."""
+    path = tmp_path / "route.vtrmap"
+
+    def other_process_switches_journal() -> bool:
+        r = subprocess.run([sys.executable, "-c", JOURNAL_PROBE, str(path)], capture_output=True, text=True,
+                           timeout=SUBPROCESS_TIMEOUT_S)
+        assert r.returncode == 0 or "database is locked" in r.stderr, r.stderr
+        return r.returncode == 0
+
+    with Map.create(path, CAMERA) as m:
+        add_vertices(m, m.begin_run("teach"), 1)
+        assert not other_process_switches_journal()
+        for _ in range(2):
+            with Map.open(path) as reader:
+                reader.runs()
+            with pytest.raises(MapError, match="another process"):
+                Map.open(path, "a")
+        assert not other_process_switches_journal()
+        add_vertices(m, 0, 1, seed=1)
+    assert [s[:3] for s in states(path)] == [("teach", "finished", 2)]

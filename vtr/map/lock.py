@@ -6,16 +6,19 @@ on the file for as long as it is open; the kernel drops it when the process ends
 marked ``running`` while nobody holds the lock was left by a killed process (``interrupted``).
 
 ``flock`` locks are separate from the POSIX byte-range locks SQLite uses on the same file (Linux,
-BSD, macOS), so they do not disturb its locking. The descriptor is kept open for the lifetime of
-the ``Map`` and closed only after SQLite's connection: closing any descriptor of a file drops the
-POSIX locks a process holds on it, so probing must not open and close descriptors while SQLite
-holds locks. Where ``fcntl`` is missing (Windows) there is no lock and every running run is shown
-as running.
+BSD, macOS), so they do not disturb its locking. But closing *any* descriptor of a file drops
+every POSIX lock the process holds on it, SQLite's included (in WAL mode each connection keeps a
+shared lock on the file so that no other process folds or deletes the log under it). So the
+descriptor lives as long as the ``Map`` and is released after its SQLite connection closed; while
+another ``Map`` of this process still has the same file open, releasing only unlocks the ``flock``
+and the close waits until the last of them is released (as SQLite does with its own descriptors).
+Where ``fcntl`` is missing (Windows) there is no lock and every running run is shown as running.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 
 from ..errors import MapError
@@ -26,11 +29,38 @@ except ImportError:  # pragma: no cover - not POSIX
     fcntl = None  # type: ignore[assignment]
 
 
+_users: dict[tuple[int, int], int] = {}          # (device, inode) -> MapLocks of this process on it
+_deferred: dict[tuple[int, int], list[int]] = {}  # descriptors whose close waits for the last user
+_registry = threading.Lock()
+
+
+def _track(fd: int) -> tuple[int, int]:
+    st = os.fstat(fd)
+    key = (st.st_dev, st.st_ino)
+    with _registry:
+        _users[key] = _users.get(key, 0) + 1
+    return key
+
+
+def _close(fd: int, key: tuple[int, int]) -> None:
+    """Close ``fd`` now if no other MapLock of this process uses the file, else when the last one goes."""
+    with _registry:
+        _users[key] -= 1
+        if _users[key] > 0:
+            _deferred.setdefault(key, []).append(fd)
+            return
+        del _users[key]
+        fds = [*_deferred.pop(key, []), fd]
+    for f in fds:
+        os.close(f)
+
+
 class MapLock:
     """An open descriptor on a map file that holds (writer) or probes (reader) its lock."""
 
-    def __init__(self, fd: int, exclusive: bool) -> None:
+    def __init__(self, fd: int, exclusive: bool, key: tuple[int, int]) -> None:
         self._fd: int | None = fd
+        self._key = key
         self.exclusive = exclusive
 
     @classmethod
@@ -42,24 +72,32 @@ class MapLock:
                 fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
             except OSError as err:
                 raise MapError(f"{path}: cannot open the map ({err.strerror})") from err
+        key = _track(fd)
         if fcntl is not None:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                os.close(fd)
+                _close(fd, key)
                 raise MapError(f"{path}: another process is writing this map (one writer at a time; "
                                "wait for it to finish)") from None
             except OSError:
                 pass  # a file system without flock: no lock, as on Windows
-        return cls(fd, exclusive=True)
+        return cls(fd, exclusive=True, key=key)
 
     @classmethod
-    def reader(cls, path: Path) -> MapLock | None:
-        """A descriptor to probe the writer lock of ``path`` with (``None`` if the file cannot be opened)."""
+    def reader(cls, path: Path) -> MapLock:
+        """A descriptor to probe the writer lock of ``path`` with (``MapError`` if it cannot be opened)."""
         try:
-            return cls(os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0)), exclusive=False)
-        except OSError:
-            return None
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        except OSError as err:
+            raise MapError(f"{path}: cannot read map ({err.strerror})") from err
+        return cls(fd, exclusive=False, key=_track(fd))
+
+    def read_head(self, n: int) -> bytes:
+        """The first ``n`` bytes of the file, read through this descriptor (opening and closing another
+        one would drop the POSIX locks SQLite holds on the file in this process)."""
+        assert self._fd is not None
+        return os.pread(self._fd, n, 0)
 
     def writer_alive(self) -> bool:
         """Whether a session (this one when it is the writer) holds the writer lock right now."""
@@ -78,6 +116,12 @@ class MapLock:
 
     def release(self) -> None:
         """Close the descriptor (drops the lock). Call after SQLite's connection is closed. Idempotent."""
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+        if self._fd is None:
+            return
+        if self.exclusive and fcntl is not None:
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)   # the writer lock goes now, even if the close waits
+            except OSError:
+                pass
+        _close(self._fd, self._key)
+        self._fd = None

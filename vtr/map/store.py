@@ -330,16 +330,15 @@ class Map:
             raise MapError(f"no map at {path}")
         if path.is_dir():
             raise MapError(f"{path} is a directory, not a map file")
-        try:
-            with path.open("rb") as fh:
-                head = fh.read(len(SQLITE_MAGIC))
-        except OSError as err:
-            raise MapError(f"{path}: cannot read map ({err})") from err
-        if head != SQLITE_MAGIC:
-            raise MapError(f"{path} is not a vtr map (not an SQLite database)")
         conn = None
         lock = MapLock.writer(path) if mode == "a" else MapLock.reader(path)
         try:
+            try:
+                head = lock.read_head(len(SQLITE_MAGIC))
+            except OSError as err:
+                raise MapError(f"{path}: cannot read map ({err})") from err
+            if head != SQLITE_MAGIC:
+                raise MapError(f"{path} is not a vtr map (not an SQLite database)")
             conn = _connect(path, readonly=False) if mode == "a" else _connect_readonly(path)
             app_id = conn.execute("PRAGMA application_id").fetchone()[0]
             if app_id != APPLICATION_ID:
@@ -362,8 +361,7 @@ class Map:
         except BaseException as err:
             if conn is not None:
                 conn.close()
-            if lock is not None:
-                lock.release()
+            lock.release()
             if isinstance(err, MapError):
                 raise
             if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
