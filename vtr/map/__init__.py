@@ -12,8 +12,10 @@ Typical use (teach, then a repeat localized against it)::
         leaf = m.add_vertex(rep, t_ns, T_world_leaf, frame)
         m.add_edge(leaf.id, trunk_id, T_leaf_trunk, covariance, "spatial", inliers)
 
-See :mod:`vtr.map.store` for durability and immutability rules, :mod:`vtr.map.schema` for the file
-layout.
+Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C and SIGTERM too)
+records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
+See :mod:`vtr.map.store` for durability, lifecycle and immutability rules, :mod:`vtr.map.lock` for
+the single-writer lock, :mod:`vtr.map.schema` for the file layout.
 """
 
 from .records import EdgeRecord, RunInfo, VertexRecord, split_vertex_id, vertex_id
