@@ -27,3 +27,8 @@ class MapError(VtrError):
 
 class EstimationError(VtrError):
     """An estimator received invalid input (NaN pose, non-SE(3) matrix, non-PSD covariance...)."""
+
+
+class Terminated(BaseException):  # noqa: N818 - a signal, named like KeyboardInterrupt
+    """SIGTERM turned into an exception by the ``vtr`` command: an orderly exit, like ``KeyboardInterrupt``
+    (not an ``Exception``, so no ``except Exception`` swallows it); runs in progress end ``aborted``."""

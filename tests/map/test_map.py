@@ -136,7 +136,7 @@ def test_round_trip_is_byte_exact(tmp_path):
         assert m.format_version == MAP_FORMAT_VERSION
         assert m.camera.to_dict() == CAMERA.to_dict()
         [info] = m.runs()
-        assert info == RunInfo(0, "teach", True, "synthetic", info.created, len(frames), finished=True)
+        assert info == RunInfo(0, "teach", True, "synthetic", info.created, len(frames), state="finished")
         ids = m.vertex_ids(0)
         assert ids.dtype == np.int64 and ids.tolist() == [vertex_id(0, i) for i in range(len(frames))]
         for i, (vid, frame, T) in enumerate(zip(ids, frames, poses, strict=True)):
@@ -463,7 +463,7 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
         assert m.open_run == rep
         # ... nor by raw SQL on the file (triggers)
         for sql in ("UPDATE vertices SET t_ns = 0 WHERE run = 0", "DELETE FROM vertex_data WHERE id = 0",
-                    "UPDATE edges SET inliers = 0", "UPDATE runs SET finished = 0 WHERE id = 0",
+                    "UPDATE edges SET inliers = 0", "UPDATE runs SET state = 'running' WHERE id = 0",
                     "INSERT INTO vertices VALUES (7, 0, 7, 0, zeroblob(128), zeroblob(128), 0, 0, 0)"):
             with pytest.raises(sqlite3.IntegrityError):
                 m._conn.execute(sql)

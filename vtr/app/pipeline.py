@@ -131,7 +131,10 @@ class TeachSummary:
 
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
                   fmt: str | None = None, progress: Callable | None = None) -> TeachSummary:
-    """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path)."""
+    """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path).
+
+    The run ends finished, or aborted with the reason on any exception (the keyframes still in the
+    odometry window are written first); a teach that wrote no vertex leaves no map file."""
     from ..map import Map
     from ..navigation.teach import Teach
 
@@ -141,9 +144,13 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
-            for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
-                results.append(teach.process(images).record())
-            n_vertices = teach.finish()
+            try:
+                for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
+                    results.append(teach.process(images).record())
+                n_vertices = teach.finish()
+            except BaseException as err:  # error, Ctrl-C, SIGTERM, full disk: keep the window, say why
+                teach.abort(err)          # (a map left without any vertex is removed when it closes)
+                raise
             _, t_taught = m.timestamps(teach.run)
             _, T_taught = m.poses(teach.run)
         seconds = time.perf_counter() - t0
@@ -250,9 +257,12 @@ def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    fmt: str | None = None, progress: Callable | None = None,
-                   rate_hz: float | None = None) -> RepeatSummary:
+                   rate_hz: float | None = None, allow_partial: bool = False) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
-    the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv."""
+    the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
+
+    Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
+    finished once every frame is processed, or aborted with the reason on any exception."""
     from ..map import Map
     from ..navigation.repeat import Repeat
     from ..navigation.repeat_state import ControllerLog, check_rate, write_state_csv
@@ -264,7 +274,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         indices = parse_frame_range(frames, len(source), str(source_path))
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "repeat", config, [source_path, map_path])
-        repeat = Repeat(m, config, source=str(source_path))
+        _check_path_to_follow(m)
+        repeat = Repeat(m, config, source=str(source_path), allow_partial=allow_partial)
         clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
         t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
@@ -282,6 +293,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                     lm_csv.write(step.localization)
                     # keep the numbers, not the per-landmark record: memory stays flat on long routes
                     locs.append(dataclasses.replace(step.localization, landmarks=None))
+        m.finish_run()  # every frame is in the map: the run is complete whatever the reports do
         clog.finish()
         state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
@@ -302,6 +314,20 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                                 float(np.median(errors)), gt_errors, state_info)
         log.write(summary.to_dict())
     return summary
+
+
+def _check_path_to_follow(m) -> None:
+    """``MapError`` unless the taught path has a segment: path-tracking errors (and the controller's
+    reference path) are undefined on a single point."""
+    from ..errors import EstimationError, MapError
+    from ..state.controller import ReferencePath
+
+    taught = m.taught_path()
+    try:
+        ReferencePath(taught.positions)
+    except EstimationError:
+        raise MapError(f"{m.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two distinct "
+                       "positions to follow): teach a longer route") from None
 
 
 def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:

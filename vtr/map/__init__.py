@@ -14,8 +14,11 @@ Typical use (teach, then a repeat localized against it)::
         taught = m.taught_path()                  # TaughtPath: ids, T_world_vertex, t_ns
         frame = m.vertex(trunk_id).frame          # the trunk's StereoFrame
 
-See docs/map.md; :mod:`vtr.map.store` for durability and immutability rules, :mod:`vtr.map.schema`
-for the file layout, :mod:`vtr.map.codec` for the vertex codec.
+Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C and SIGTERM too)
+records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
+See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability rules,
+:mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.schema` for the file layout,
+:mod:`vtr.map.codec` for the vertex codec.
 """
 
 from .path import TaughtPath

@@ -26,6 +26,11 @@ MAX_RUN = (1 << 31) - 1              # ids stay positive signed int64 (SQLite IN
 
 EDGE_KINDS = ("temporal", "spatial")
 RUN_KINDS = ("teach", "repeat")
+# Lifecycle of a run. Stored: running -> finished | aborted (final). Reported also: interrupted,
+# a run still marked running whose writer is gone (killed), so it will never finish.
+RUN_RUNNING, RUN_FINISHED, RUN_ABORTED, RUN_INTERRUPTED = "running", "finished", "aborted", "interrupted"
+RUN_STATES = (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED, RUN_INTERRUPTED)
+REASON_MAX_CHARS = 500               # an abort reason is one line, cut to this length
 
 
 def vertex_id(run: int, index: int) -> int:
@@ -109,8 +114,11 @@ class EdgeRecord:
 class RunInfo:
     """One run (session) of the map: a teach (privileged by default) or a repeat.
 
-    ``created`` is an ISO-8601 UTC time; ``finished`` is true once the session that wrote the run
-    closed the map (a run cut short by a crash stays unfinished).
+    ``created`` is an ISO-8601 UTC time. ``state`` is one of ``RUN_STATES``: ``running`` (a live
+    session is writing it), ``finished`` (its session ended in order: the run is complete),
+    ``aborted`` (its session ended on an error, Ctrl-C or SIGTERM; ``reason`` says which) or
+    ``interrupted`` (still marked running but no process is writing the map: its writer was
+    killed). Only a finished teach run is a complete route.
     """
 
     id: int
@@ -119,7 +127,22 @@ class RunInfo:
     source: str
     created: str
     n_vertices: int
-    finished: bool = False
+    state: str = RUN_FINISHED
+    reason: str = ""
+
+    @property
+    def finished(self) -> bool:
+        return self.state == RUN_FINISHED
+
+    def describe(self) -> str:
+        """``state`` with its reason, e.g. ``aborted (KeyboardInterrupt: Ctrl-C)``."""
+        return f"{self.state} ({self.reason})" if self.reason else self.state
+
+
+def one_line_reason(text: str) -> str:
+    """An abort reason as stored: one line, at most ``REASON_MAX_CHARS`` characters, never empty."""
+    line = " ".join(str(text).split()) or "unknown reason"
+    return line if len(line) <= REASON_MAX_CHARS else line[: REASON_MAX_CHARS - 3] + "..."
 
 
 # ---------------------------------------------------------------- validation

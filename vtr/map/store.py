@@ -6,13 +6,25 @@ between consecutive vertices of a run) or ``spatial`` (localization of a repeat 
 taught one). Teach runs are *privileged*: their vertices form the path a repeat follows. Each
 run's poses ``T_world_vertex`` are expressed in that run's first camera frame.
 
-Durability: WAL journal, ``synchronous=FULL``, one transaction per vertex, so a process killed at
-any point leaves a map that opens with every vertex whose ``add_vertex`` returned (and survives
-power loss too). A map appends only to its *open run* (the latest one, while its session lasts);
-beginning a run or closing the session finishes the previous one, after which its vertices and
-temporal edges can never change (enforced by SQLite triggers as well as here). One writing process
-at a time; the per-session caches (vertex LRU, privileged path, k-d tree) do not see writes made
-by other processes after opening.
+Durability: WAL journal while writing, ``synchronous=FULL``, one transaction per vertex, so a
+process killed at any point leaves a map that opens with every vertex whose ``add_vertex``
+(or ``add_keyframe``) returned (and survives power loss too). Closing folds the write-ahead log back into the file and
+returns it to a rollback journal, so a closed map is one self-contained file (copy it alone; open
+it read-only from read-only media).
+
+Run lifecycle (true on disk): a run is ``running`` while its session writes it, then
+``finished`` (orderly end: ``finish_run``, ``close`` or leaving the ``with`` block normally) or
+``aborted`` with a reason (``abort_run``; leaving the ``with`` block on an exception, Ctrl-C or
+SIGTERM does it). A run still marked running when no process holds the map's writer lock was left
+by a killed process and reads as ``interrupted``. A map appends only to its *open run*; finished
+and aborted runs never change (SQLite triggers enforce it as well as this class).
+
+Creation is exclusive: the schema is written to a temporary file beside the target, which is then
+hard-linked to the final name (fails if the name exists), so of two processes creating one map
+exactly one wins and the other's cleanup never touches the winner's file. One writing process at
+a time (``MapLock``: a second writer gets "another process is writing this map"); the per-session
+caches (vertex LRU, privileged path, k-d tree) do not see writes made by other processes after
+opening.
 
 Memory stays bounded on long routes: :meth:`Map.vertex` keeps at most ``cache_size`` decoded
 vertices, and poses, the privileged path, windows and nearest-vertex queries come from the small
@@ -22,11 +34,13 @@ pose index without reading feature data.
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -36,14 +50,19 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, VtrError
+from ..errors import MapError, Terminated, VtrError
 from ..geometry import inv_T, usable_covariance
 from .codec import decode_frame, encode_frame
+from .lock import MapLock
 from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
     INDEX_MASK,
+    RUN_ABORTED,
+    RUN_FINISHED,
+    RUN_INTERRUPTED,
     RUN_KINDS,
+    RUN_RUNNING,
     RUN_SHIFT,
     EdgeRecord,
     RunInfo,
@@ -52,6 +71,7 @@ from .records import (
     check_covariance,
     check_transform,
     matrix_blob,
+    one_line_reason,
     split_vertex_id,
     vertex_id,
 )
@@ -60,13 +80,26 @@ from .schema import SCHEMA
 if TYPE_CHECKING:
     from ..types import Keyframe, StereoFrame
 
-MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2, vtr.map.codec)
+MAP_FORMAT_VERSION = 3                # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
 BUSY_TIMEOUT_MS = 10_000             # wait for another connection's write lock before failing
 SYNCHRONOUS = "FULL"                 # fsync the WAL at every commit: durable across power loss too
 MODES = ("r", "a")
+SIDE_FILES = ("-wal", "-shm", "-journal")  # SQLite's files beside a map
+CREATING_SUFFIX = ".creating"        # temporary name of a map being created (hard-linked when complete)
+INTERRUPTED_REASON = "interrupted: its writing process ended without closing the run (killed?)"
+
+
+def abort_reason(exc: BaseException) -> str:
+    """The one-line reason an exception gives an aborted run."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted by Ctrl-C (SIGINT)"
+    if isinstance(exc, Terminated):
+        return "terminated by SIGTERM"
+    text = str(exc)
+    return one_line_reason(f"{type(exc).__name__}: {text}" if text else type(exc).__name__)
 
 
 def _utc_now() -> str:
@@ -88,9 +121,11 @@ def _check_int(value, what: str, minimum: int | None = None) -> int:
     return value
 
 
-def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
+def _connect(path: Path, readonly: bool, immutable: bool = False) -> sqlite3.Connection:
+    """A connection; read-only ones through an ``mode=ro`` URI, or ``immutable=1`` (no locks, no
+    -shm: for a closed map on read-only media)."""
     if readonly:
-        target, uri = path.absolute().as_uri() + "?mode=ro", True
+        target, uri = path.absolute().as_uri() + ("?immutable=1" if immutable else "?mode=ro"), True
     else:
         target, uri = str(path), False
     conn = sqlite3.connect(target, uri=uri, isolation_level=None, check_same_thread=False,
@@ -104,6 +139,30 @@ def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
     return conn
 
 
+def _connect_readonly(path: Path) -> sqlite3.Connection:
+    """Read-only connection: ``mode=ro`` (sees a live writer's commits and a killed writer's log); when
+    that cannot open (a WAL-mode file on read-only media, no -shm), ``immutable=1`` provided no
+    write-ahead log with data lies beside the file."""
+    conn = _connect(path, readonly=True)
+    try:
+        conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
+        return conn
+    except sqlite3.OperationalError as err:
+        conn.close()
+        wal = Path(f"{path}-wal")
+        if wal.exists() and wal.stat().st_size > 0:
+            raise MapError(f"{path}: cannot open read-only ({err}) and {wal.name} holds data not yet in the map: "
+                           "open it once where it can be written (vtr map info on a writable copy of both files)"
+                           ) from err
+    return _connect(path, readonly=True, immutable=True)
+
+
+def _remove_map_files(path: Path) -> None:
+    """Unlink a map and its SQLite side files (only for a map this process created and holds)."""
+    for p in (path, *(Path(f"{path}{s}") for s in SIDE_FILES)):
+        p.unlink(missing_ok=True)
+
+
 class Map:
     """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
 
@@ -111,13 +170,16 @@ class Map:
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, mode: str, camera: StereoCamera,
-                 meta: dict[str, str], cache_size: int) -> None:
+                 meta: dict[str, str], cache_size: int, lock: MapLock | None = None,
+                 created: bool = False) -> None:
         self.path = path
         self.mode = mode
         self.camera = camera
         self.meta = dict(meta)
         self.format_version = int(meta["format_version"])
+        self.created = created          # this session created the file (it may remove it if left empty)
         self._conn: sqlite3.Connection | None = conn
+        self._file_lock = lock
         self._lock = threading.RLock()
         self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
@@ -127,9 +189,12 @@ class Map:
         self._open_run: int | None = None
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
+        self._aborted = False           # this session aborted a run
         if mode == "a":
-            row = conn.execute("SELECT id, finished, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
-            if row is not None and not row[1]:
+            # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
+            # the open run (writing to it resumes it) until a new run begins
+            row = conn.execute("SELECT id, state, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+            if row is not None and row[1] == RUN_RUNNING:
                 self._open_run, self._open_run_privileged = int(row[0]), bool(row[2])
 
     # ------------------------------------------------------------ opening
@@ -137,7 +202,13 @@ class Map:
     @classmethod
     def create(cls, path, camera: StereoCamera, config: MapConfig | None = None, *,
                cache_size: int = VERTEX_CACHE_SIZE) -> Map:
-        """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything."""
+        """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
+
+        Atomic and exclusive: the schema is written to a temporary file in the same folder and
+        hard-linked to ``path``, which fails when ``path`` exists; of several processes creating
+        one map exactly one succeeds, the others get "already exists" and remove only their own
+        temporary file. The new map is locked for writing before its name appears.
+        """
         path = Path(path)
         _check_int(cache_size, "cache_size", 1)
         config = config or MapConfig()
@@ -164,29 +235,87 @@ class Map:
             "vtr_version": __version__,
             "compress_level": str(level),
         }
-        conn = None
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}{CREATING_SUFFIX}")
+        try:  # a private name; the mode is the usual 0o666 less the umask (mkstemp would make it 0o600)
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except OSError as err:
+            raise MapError(f"{path}: cannot create the map ({err})") from err
+        conn: sqlite3.Connection | None = None
+        lock: MapLock | None = None
+        linked = False
         try:
-            conn = _connect(path, readonly=False)
+            lock = MapLock.writer(tmp, fd)
+            conn = _connect(tmp, readonly=False)
             conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
             conn.executescript("BEGIN IMMEDIATE;" + SCHEMA)
             conn.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", sorted(meta.items()))
             conn.execute("COMMIT")
-        except (sqlite3.Error, MapError) as err:
+            conn.close()
+            conn = None
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
+                               "first, or remove it and choose another path)") from None
+            except OSError:  # no hard links on this file system: exclusive create, then copy
+                lock = cls._create_by_copy(tmp, path, lock)
+            linked = True
+            tmp.unlink()
+            conn = _connect(path, readonly=False)
+            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
+            return cls(path, conn, "a", camera, meta, cache_size, lock=lock, created=True)
+        except BaseException as err:
             if conn is not None:
                 conn.close()
-            for p in (path, Path(f"{path}-wal"), Path(f"{path}-shm")):
-                p.unlink(missing_ok=True)
-            if isinstance(err, MapError):
-                raise
-            raise MapError(f"{path}: cannot create map ({err})") from err
-        return cls(path, conn, "a", camera, meta, cache_size)
+            if linked:
+                _remove_map_files(path)   # ours: created by this call and still locked by it
+            _remove_map_files(tmp)
+            if lock is not None:
+                lock.release()
+            else:
+                with suppress(OSError):  # MapLock.writer closes it when it fails
+                    os.close(fd)
+            if isinstance(err, sqlite3.Error):
+                raise MapError(f"{path}: cannot create map ({err})") from err
+            if isinstance(err, OSError):
+                raise MapError(f"{path}: cannot create map ({err})") from err
+            raise
+
+    @staticmethod
+    def _create_by_copy(tmp: Path, path: Path, tmp_lock: MapLock) -> MapLock:
+        """``path`` created exclusively (``O_EXCL``) with ``tmp``'s bytes; returns the lock on it."""
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
+                           "first, or remove it and choose another path)") from None
+        try:
+            lock = MapLock.writer(path, os.open(path, os.O_RDONLY))
+        except BaseException:
+            os.close(fd)
+            path.unlink(missing_ok=True)
+            raise
+        try:
+            os.write(fd, tmp.read_bytes())
+            os.fsync(fd)
+        except BaseException:
+            path.unlink(missing_ok=True)
+            lock.release()
+            raise
+        finally:
+            os.close(fd)
+        tmp_lock.release()
+        return lock
 
     @classmethod
     def open(cls, path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
-        """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs."""
+        """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs.
+
+        ``"a"`` takes the map's writer lock (``MapError`` "another process is writing this map" when
+        another session holds it). ``"r"`` works on read-only files and folders too.
+        """
         if mode not in MODES:
             raise MapError(f"map open mode must be one of {MODES}, got {mode!r}")
         _check_int(cache_size, "cache_size", 1)
@@ -195,16 +324,16 @@ class Map:
             raise MapError(f"no map at {path}")
         if path.is_dir():
             raise MapError(f"{path} is a directory, not a map file")
-        try:
-            with path.open("rb") as fh:
-                head = fh.read(len(SQLITE_MAGIC))
-        except OSError as err:
-            raise MapError(f"{path}: cannot read map ({err})") from err
-        if head != SQLITE_MAGIC:
-            raise MapError(f"{path} is not a vtr map (not an SQLite database)")
         conn = None
+        lock = MapLock.writer(path) if mode == "a" else MapLock.reader(path)
         try:
-            conn = _connect(path, readonly=mode == "r")
+            try:
+                head = lock.read_head(len(SQLITE_MAGIC))
+            except OSError as err:
+                raise MapError(f"{path}: cannot read map ({err})") from err
+            if head != SQLITE_MAGIC:
+                raise MapError(f"{path} is not a vtr map (not an SQLite database)")
+            conn = _connect(path, readonly=False) if mode == "a" else _connect_readonly(path)
             app_id = conn.execute("PRAGMA application_id").fetchone()[0]
             if app_id != APPLICATION_ID:
                 raise MapError(f"{path} is not a vtr map (SQLite database without the vtr application id)")
@@ -222,36 +351,80 @@ class Map:
                 jm = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
                 if str(jm).lower() != "wal":
                     raise MapError(f"{path}: cannot switch the map to WAL journal mode (got {jm})")
-            return cls(path, conn, mode, camera, meta, cache_size)
-        except MapError:
+            return cls(path, conn, mode, camera, meta, cache_size, lock=lock)
+        except BaseException as err:
             if conn is not None:
                 conn.close()
+            lock.release()
+            if isinstance(err, MapError):
+                raise
+            if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
+                raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
             raise
-        except (sqlite3.Error, ValueError, KeyError, VtrError) as err:
-            if conn is not None:
-                conn.close()
-            raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
 
     def close(self) -> None:
-        """Finish the run this session wrote (it becomes immutable) and close the file. Idempotent."""
+        """Finish the run this session wrote (it becomes immutable), fold the write-ahead log into the
+        file and close it. A map this session created whose only run it aborted with no vertex is
+        removed (a teach that wrote nothing leaves no file). Idempotent.
+
+        Raises ``MapError`` when the log cannot be folded back (disk full): the file is then still
+        valid together with its ``-wal`` beside it.
+        """
         with self._lock:
             if self._conn is None:
                 return
+            discard = False
             try:
-                if self.mode == "a" and self._open_run is not None and self._open_run_touched:
-                    with self._tx() as conn:
-                        conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
-                    self._open_run = None
+                if self.mode == "a":
+                    if self._open_run is not None and self._open_run_touched:
+                        self._set_state(self._open_run, RUN_FINISHED, "")
+                    discard = self.created and self._aborted and \
+                        self._conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
+                    if not discard:
+                        self._fold_wal()
             finally:
                 self._conn.close()
                 self._conn = None
                 self._cache.clear()
+                if discard:
+                    _remove_map_files(self.path)
+                if self._file_lock is not None:
+                    self._file_lock.release()
+
+    def _fold_wal(self) -> None:
+        """Checkpoint the write-ahead log into the file and return to a rollback journal, so the closed
+        map is one self-contained file that opens read-only anywhere."""
+        conn = self._conn
+        assert conn is not None
+        try:
+            busy = conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
+        except sqlite3.Error as err:
+            raise MapError(f"{self.path}: could not write the write-ahead log back into the map ({err}); its "
+                           f"latest data is in {self.path.name}-wal: keep that file beside it") from err
+        if busy:
+            return  # a reader is in the middle of a read: the last connection to close checkpoints
+        try:
+            conn.execute("PRAGMA busy_timeout = 0")
+            conn.execute("PRAGMA journal_mode = DELETE").fetchone()
+        except sqlite3.Error:
+            pass  # another connection has the map open: it stays in WAL mode, its log empty
 
     def __enter__(self) -> Map:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        """Normal exit finishes the open run; an exception (Ctrl-C, SIGTERM too) aborts it with its reason."""
+        if exc is not None and not self.closed and self.mode == "a" and self._open_run is not None \
+                and self._open_run_touched:
+            try:
+                self.abort_run(abort_reason(exc))
+            except MapError:
+                pass  # cannot write (disk full): the run stays running and reads as interrupted
+        try:
+            self.close()
+        except MapError:
+            if exc is None:
+                raise  # else the first error is the one to report
 
     def __repr__(self) -> str:
         state = "closed" if self._conn is None else f"mode={self.mode!r}"
@@ -326,31 +499,49 @@ class Map:
     def begin_run(self, kind: str, source: str = "", privileged: bool | None = None) -> int:
         """Start a new run (``"teach"`` or ``"repeat"``) and return its id; it becomes the open run.
 
-        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. Any
-        earlier run still open is finished first.
+        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. A run
+        this session was writing is finished first; a run left running by a killed process is
+        recorded as aborted (interrupted), never as finished.
         """
         self._check_writable()
         if kind not in RUN_KINDS:
             raise MapError(f"run kind must be one of {RUN_KINDS}, got {kind!r}")
         privileged = kind == "teach" if privileged is None else bool(privileged)
+        mine = self._open_run if self._open_run_touched else None
         with self._tx() as conn:
-            conn.execute("UPDATE runs SET finished = 1 WHERE finished = 0")
+            if mine is not None:
+                conn.execute("UPDATE runs SET state = ? WHERE id = ? AND state = ?", (RUN_FINISHED, mine, RUN_RUNNING))
+            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE state = ?",
+                         (RUN_ABORTED, INTERRUPTED_REASON, RUN_RUNNING))
             run = conn.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM runs").fetchone()[0]
             vertex_id(run, 0)  # checks the run id range
-            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, finished) VALUES (?, ?, ?, ?, ?, 0)",
-                         (run, kind, int(privileged), str(source), _utc_now()))
+            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) VALUES (?, ?, ?, ?, ?, ?)",
+                         (run, kind, int(privileged), str(source), _utc_now(), RUN_RUNNING))
         self._open_run, self._open_run_touched = int(run), True
         self._open_run_privileged = privileged
         return int(run)
 
     def finish_run(self) -> None:
-        """Finish the open run now (it becomes immutable); ``close`` does this too."""
+        """Finish the open run now: it is complete and becomes immutable (``close`` does this too)."""
+        self._end_open_run(RUN_FINISHED, "")
+
+    def abort_run(self, reason: str) -> None:
+        """End the open run as aborted with a one-line ``reason`` (it becomes immutable, and is not a
+        complete route: a repeat refuses a taught run that is not finished)."""
+        self._end_open_run(RUN_ABORTED, one_line_reason(reason))
+        self._aborted = True
+
+    def _end_open_run(self, state: str, reason: str) -> None:
         self._check_writable()
         if self._open_run is None:
             return
+        self._set_state(self._open_run, state, reason)
+
+    def _set_state(self, run: int, state: str, reason: str) -> None:
         with self._tx() as conn:
-            conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
+            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE id = ?", (state, reason, run))
         self._open_run = None
+        self._open_run_touched = False
 
     def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
                    T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
@@ -466,14 +657,23 @@ class Map:
     # ------------------------------------------------------------ reading
 
     def runs(self) -> list[RunInfo]:
-        """All runs in id order, with their vertex counts."""
+        """All runs in id order, with their vertex counts and lifecycle state (see ``RunInfo``)."""
         with self._db() as conn:
             rows = conn.execute(
-                "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.finished, "
+                "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.state, r.reason, "
                 "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
                 "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
         return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
-                        n_vertices=int(r[6]), finished=bool(r[5])) for r in rows]
+                        n_vertices=int(r[7]), state=self._seen_state(int(r[0]), r[5]), reason=r[6]) for r in rows]
+
+    def _seen_state(self, run: int, stored: str) -> str:
+        """A stored state as it stands: ``running`` only while a live session writes the run."""
+        if stored != RUN_RUNNING:
+            return stored
+        if self.mode == "a":  # we are the only writer
+            return RUN_RUNNING if run == self._open_run and self._open_run_touched else RUN_INTERRUPTED
+        alive = self._file_lock.writer_alive() if self._file_lock is not None else True
+        return RUN_RUNNING if alive else RUN_INTERRUPTED
 
     def run(self, run: int) -> RunInfo:
         """One run's info (``MapError`` if absent)."""
@@ -481,6 +681,18 @@ class Map:
             if info.id == run:
                 return info
         raise MapError(f"{self.path}: no run {run}")
+
+    def check_taught_route(self, allow_partial: bool = False) -> None:
+        """Raise ``MapError`` (one line) unless every taught (privileged) run is finished: an aborted,
+        interrupted or still running teach is a route that may be cut short. ``allow_partial``
+        accepts them anyway."""
+        if allow_partial:
+            return
+        for r in self.runs():
+            if r.privileged and not r.finished:
+                raise MapError(f"{self.path}: teach run {r.id} is {r.describe()}, not finished: its route may be "
+                               "incomplete; refusing to repeat it (--allow-partial / allow_partial=True to use "
+                               f"its {r.n_vertices} vertices anyway)")
 
     def has_vertex(self, vid: int) -> bool:
         if int(vid) in self._cache:

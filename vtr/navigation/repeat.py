@@ -37,10 +37,13 @@ class RepeatStep:
 class Repeat:
     """Repeat pipeline: feed frames with ``process``; ``latest`` holds the latest localization."""
 
-    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0):
+    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0,
+                 allow_partial: bool = False):
+        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``."""
         self.map = map_
         self.camera = map_.camera
         self.config = config
+        map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)

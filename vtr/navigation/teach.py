@@ -1,5 +1,9 @@
 """Teach: odometry over a run, each keyframe written to the map (as its pose becomes final in the
 odometry window) with a temporal edge to the previous one: the privileged path.
+
+Lifecycle: ``finish`` writes the keyframes still in the window and marks the run finished (a
+complete route); ``abort(exc)`` (on an error, Ctrl-C, SIGTERM, full disk) writes them too, as far
+as it can, and marks the run aborted with the reason, so a repeat does not take it for complete.
 """
 
 from __future__ import annotations
@@ -8,6 +12,7 @@ from ..camera import StereoCamera
 from ..config import Config
 from ..errors import MapError
 from ..map import Map
+from ..map.store import abort_reason
 from ..types import Keyframe, OdometryResult, StereoImages
 from ..vo.odometry import StereoOdometry
 
@@ -30,12 +35,31 @@ class Teach:
         return result
 
     def finish(self) -> int:
-        """Write the keyframes still in the odometry window; returns the number of vertices."""
-        for kf in self.odometry.flush():
-            self._write(kf)
+        """Write the keyframes still in the odometry window and finish the run; returns the number of
+        vertices. ``MapError`` (run left open for ``abort``) when the teach produced no keyframe."""
+        self._flush()
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
+        self.map.finish_run()
         return self.vertices
+
+    def abort(self, exc: BaseException) -> int:
+        """End the run as aborted because of ``exc``: the keyframes still in the odometry window are
+        written first (as far as the map can take them), then the reason. Never raises (``exc`` is
+        the error to report); returns the number of vertices written."""
+        try:
+            self._flush()
+        except Exception:  # noqa: BLE001, S110 - e.g. the disk is full: keep what was written
+            pass
+        try:
+            self.map.abort_run(abort_reason(exc))
+        except Exception:  # noqa: BLE001, S110 - cannot write at all: the run reads as interrupted
+            pass
+        return self.vertices
+
+    def _flush(self) -> None:
+        for kf in self.odometry.flush():
+            self._write(kf)
 
     def _write(self, kf: Keyframe) -> None:
         self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor, unknown_variance=self._unknown_variance)
