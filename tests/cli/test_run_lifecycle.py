@@ -22,7 +22,7 @@ from click.testing import CliRunner
 from vtr.app.pipeline import teach_command
 from vtr.cli import main
 from vtr.config import Config
-from vtr.errors import MapError
+from vtr.errors import MapError, Terminated
 from vtr.map import Map
 
 BAD_FRAME = 6                 # frame whose left image is corrupted in the damaged clip
@@ -174,6 +174,36 @@ def test_signal_mid_teach_writes_window_and_aborts(kitti_clip, reference, tmp_pa
         last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame.index
     np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]
+
+
+@pytest.mark.parametrize(("signal_exc", "code", "message", "reason"), [
+    (Terminated, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
+    (KeyboardInterrupt, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
+])
+def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_clip, tmp_path, monkeypatch,
+                                                                       signal_exc, code, message, reason):
+    """A signal handler that raises while a numba kernel returns surfaces as a SystemError caused by the
+    signal's exception (seen in the process test above): still an orderly Ctrl-C / SIGTERM exit."""
+    from vtr.navigation.teach import Teach
+
+    real, calls = Teach.process, []
+
+    def process(self, images):
+        calls.append(1)
+        if len(calls) == SIGNAL_AFTER_VERTICES + WINDOW:
+            try:
+                raise signal_exc()
+            except signal_exc as err:
+                raise SystemError("CPUDispatcher(<function schur>) returned a result with an exception set") from err
+        return real(self, images)
+
+    monkeypatch.setattr(Teach, "process", process)
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", kitti_clip, "--map", path)
+    assert r.exit_code == code, r.output
+    assert "Traceback" not in r.stderr and r.stderr.strip().splitlines()[-1] == message
+    [run], t_ns = taught(path)
+    assert (run.state, run.reason) == ("aborted", reason) and len(t_ns) > 0
 
 
 def test_sigkilled_teach_reads_interrupted_and_repeat_refuses(kitti_clip, tmp_path):

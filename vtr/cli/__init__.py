@@ -13,7 +13,7 @@ import sys
 import click
 
 from .. import __version__
-from ..errors import Terminated, VtrError
+from ..errors import Terminated, VtrError, interruption
 from .common import EXIT_SIGINT, EXIT_SIGTERM, error_line, sigterm_as_exception
 
 
@@ -37,12 +37,15 @@ class _Group(click.Group):
         except (VtrError, OSError) as err:
             click.echo(f"vtr: error: {error_line(err)}", err=True)
             sys.exit(1)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, Terminated, SystemError) as err:
+            signal_err = interruption(err)   # a SystemError out of a numba kernel may carry the signal
+            if signal_err is None:
+                raise
+            if isinstance(signal_err, Terminated):
+                click.echo("vtr: terminated (SIGTERM)", err=True)
+                sys.exit(EXIT_SIGTERM)
             click.echo("vtr: interrupted (Ctrl-C)", err=True)
             sys.exit(EXIT_SIGINT)
-        except Terminated:
-            click.echo("vtr: terminated (SIGTERM)", err=True)
-            sys.exit(EXIT_SIGTERM)
 
 
 @click.group(cls=_Group)

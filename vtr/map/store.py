@@ -50,7 +50,7 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, Terminated, VtrError
+from ..errors import MapError, Terminated, VtrError, interruption
 from ..geometry import inv_T, usable_covariance
 from .codec import decode_frame, encode_frame
 from .lock import MapLock
@@ -94,6 +94,7 @@ INTERRUPTED_REASON = "interrupted: its writing process ended without closing the
 
 def abort_reason(exc: BaseException) -> str:
     """The one-line reason an exception gives an aborted run."""
+    exc = interruption(exc) or exc
     if isinstance(exc, KeyboardInterrupt):
         return "interrupted by Ctrl-C (SIGINT)"
     if isinstance(exc, Terminated):
