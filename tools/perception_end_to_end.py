@@ -213,6 +213,7 @@ def _fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str
         "ci_method": res.ci_method,
         "n_train": res.n,
         "c": c,
+        "c1_at_bound": res.c1_at_bound,  # c1 = 1: the fit's probability bound is active
         "correlation": {k: float(v) for k, v in pairs.items()},
         "relative_std_err": rel_se,
         "at_bound": at_bound,
@@ -237,9 +238,9 @@ def _fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str
 def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any]:
     from perception_model.cli import plot_fit
     from perception_model.fit import BinSpec, fit_observations
-    from perception_model.io import read_landmarks_csvs
+    from perception_model.landmarks_file import FIT_FIELDS, read_landmarks_files
 
-    obs = read_landmarks_csvs(files)
+    obs = read_landmarks_files(files, FIT_FIELDS)
     a_deg, t_deg = np.degrees(obs.alpha), np.degrees(obs.theta)
     d = obs.describe()
     summary: dict[str, Any] = {
