@@ -72,7 +72,7 @@ MLE_MAXITER = 2000
 #: Lower bound on c1 during fits (the model requires c1 > 0).
 C1_FLOOR = 1e-9
 #: Upper bound on c1 during fits: p = c1 cos(c2 theta) exp(c3 alpha) is a probability, and its
-#: largest value (theta = alpha = 0, or alpha > 0 with c3 > 0 aside) is c1.
+#: value at alpha = theta = 0 is c1 (its largest value when c3 <= 0).
 C1_MAX = 1.0
 #: c1 within this relative distance of C1_MAX counts as at the bound (and is set to C1_MAX).
 C1_BOUND_RTOL = 1e-6

@@ -85,6 +85,8 @@ _MAX_ANGLE_DEG = 180.0
 #: Bytes of CSV the fast reader parses per block, and Parquet rows per batch (bounded memory).
 CSV_BLOCK_BYTES = 1 << 24
 PARQUET_BATCH_ROWS = 1 << 20
+#: The Parquet writer gathers small blocks (one localization each in ``vtr repeat``) into row groups of this size.
+PARQUET_ROW_GROUP_ROWS = 1 << 17
 PARQUET_SUFFIX = ".parquet"
 
 
@@ -247,6 +249,8 @@ class LandmarksWriter:
 
         self.path = Path(path)
         self.rows = 0
+        self._pending: list[Any] = []  # Parquet: batches not yet written as a row group
+        self._pending_rows = 0
         self._schema = pa.schema(
             [
                 (c.name, pa.int64() if c.kind == "int" else pa.int8() if c.kind == "bool" else pa.float64())
@@ -287,11 +291,27 @@ class LandmarksWriter:
                 values[c.name] = pa.nulls(n, pa.int8()) if x is None else np.asarray(x, dtype=np.int8)
             else:
                 values[c.name] = x
-        self._writer.write_batch(pa.record_batch(values, schema=self._schema))
+        batch = pa.record_batch(values, schema=self._schema)
         self.rows += n
+        if not _is_parquet(self.path):
+            self._writer.write_batch(batch)
+            return
+        self._pending.append(batch)
+        self._pending_rows += n
+        if self._pending_rows >= PARQUET_ROW_GROUP_ROWS:
+            self._flush()
+
+    def _flush(self) -> None:
+        import pyarrow as pa
+
+        if self._pending:
+            self._writer.write_table(pa.Table.from_batches(self._pending, schema=self._schema))
+            self._pending, self._pending_rows = [], 0
 
     def close(self) -> None:
         """Finish the file (an empty CSV still has its header)."""
+        if _is_parquet(self.path):
+            self._flush()
         self._writer.close()
         file = getattr(self, "_file", None)
         if file is not None and not file.closed:
@@ -409,6 +429,7 @@ def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Obs
         ),
     )
     parts: dict[str, list[NDArray[Any]]] = {name: [] for name in wanted}
+    pool = pa.default_memory_pool()
     n = 0
     for batch in reader:
         block: dict[str, NDArray[Any]] = {}
@@ -431,7 +452,11 @@ def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Obs
             if name in parts:
                 parts[name].append(x)
         n += batch.num_rows
-    return _finish(path, parts, n, fields)
+        del batch, block
+        pool.release_unused()  # hand parsed-block memory back at once: peak RSS stays near the data size
+    obs = _finish(path, parts, n, fields)
+    pool.release_unused()
+    return obs
 
 
 # ----------------------------------------------------------------- strict CSV reader (the messages)
@@ -575,9 +600,13 @@ def _read_parquet(path: Path, fields: tuple[str, ...]) -> Observations:
                 if name in parts:
                     parts[name].append(x)
             n += batch.num_rows
+            del batch, block
+            pa.default_memory_pool().release_unused()
     except (OSError, pa.ArrowException) as err:
         raise InputDataError(f"{path}: cannot read Parquet data ({' '.join(str(err).split())})") from None
-    return _finish(path, parts, n, fields)
+    obs = _finish(path, parts, n, fields)
+    pa.default_memory_pool().release_unused()
+    return obs
 
 
 # ----------------------------------------------------------------- front ends

@@ -50,7 +50,7 @@ def generate(path: Path, rows: int, seed: int) -> None:
     """Write ``rows`` synthetic landmark rows in chunks (memory bounded by one chunk)."""
     model = PerceptionModel(*TRUE_CONSTANTS_DEG, angle_unit="deg")
     rng = np.random.default_rng(seed)
-    tmp = path.with_suffix(path.suffix + ".part")
+    tmp = path.with_name(f"{path.stem}.part{path.suffix}")  # same suffix: the writer picks the format by it
     with LandmarksWriter(tmp) as w:
         for start in range(0, rows, GENERATE_CHUNK_ROWS):
             n = min(GENERATE_CHUNK_ROWS, rows - start)

@@ -90,7 +90,9 @@ def test_round_trip_csv_and_parquet(tmp_path, suffix):
         assert header == ",".join((*LANDMARK_COLUMNS, "matched"))
         _assert_same_observations(back, read_landmarks_csv_strict(path))
     else:
-        assert pq.ParquetFile(path).schema_arrow.field("parallax_deg").type == pa.float64()
+        pf = pq.ParquetFile(path)
+        assert pf.schema_arrow.field("parallax_deg").type == pa.float64()
+        assert pf.metadata.num_row_groups == 1  # small blocks are gathered into row groups
 
 
 def test_csv_and_parquet_files_together_and_unknown_matched(tmp_path):

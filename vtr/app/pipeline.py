@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from ..types import FrameKind, FrameRecord
 from ..vo.odometry import StereoOdometry
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
 from .runlog import RunLog
+
+if TYPE_CHECKING:
+    from perception_model.landmarks_file import LandmarksWriter
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
@@ -230,7 +234,7 @@ def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
             append_landmarks(w, loc)
 
 
-def append_landmarks(writer, loc: Localization) -> None:
+def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
     """Rows of one localization for ``landmarks.csv``: its landmark record when it succeeded."""
     if loc.success and loc.landmarks is not None:
         writer.write(loc.landmarks)
