@@ -1,7 +1,7 @@
 """The ``landmarks.csv`` format: one schema, one in-memory record, one writer, one reader.
 
 This module owns the file that ``vtr repeat`` writes and ``perception-model fit`` reads: one row
-per taught landmark in the leaf camera's view per localization (DESIGN.md §4). Columns (``SCHEMA``):
+per taught landmark in the leaf camera's view per localization. Columns (``SCHEMA``):
 
 =================  =======  ======================================================================
 column             type     meaning

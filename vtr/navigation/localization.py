@@ -187,7 +187,7 @@ class Localizer:
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
                     inlier: np.ndarray, *, t_ns: int, leaf_id: int, trunk_id: int) -> Observations:
-    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5), as ``landmarks.csv`` rows.
+    """Angles of every trunk landmark inside the leaf's image, as ``landmarks.csv`` rows.
 
     Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
     for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera
