@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import PerceptionModelError
 from .fit import BinSpec, bin_observations, fit_observations
-from .io import read_landmarks_csvs
+from .landmarks_file import FIT_FIELDS, read_landmarks_files
 
 HOLDOUT = 0.2
 ALPHA_BIN_DEG = 1.0
@@ -137,6 +137,7 @@ def fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str,
         "ci_method": res.ci_method,
         "n_train": res.n,
         "c": c,
+        "c1_at_bound": res.c1_at_bound,  # c1 = 1: the fit's probability bound is active
         "correlation": {k: float(v) for k, v in pairs.items()},
         "relative_std_err": rel_se,
         "at_bound": at_bound,
@@ -163,7 +164,7 @@ def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any
     save ``model_<method>.json`` and ``fit_<method>.png`` under ``out``; summary with the checks."""
     from .cli import plot_fit
 
-    obs = read_landmarks_csvs(files)
+    obs = read_landmarks_files(files, FIT_FIELDS)
     a_deg, t_deg = np.degrees(obs.alpha), np.degrees(obs.theta)
     d = obs.describe()
     summary: dict[str, Any] = {

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from ..types import FrameKind, FrameRecord
 from ..vo.odometry import StereoOdometry
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
 from .runlog import RunLog
+
+if TYPE_CHECKING:
+    from perception_model.landmarks_file import LandmarksWriter
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
@@ -172,8 +176,6 @@ LOCALIZATION_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id"
                            "x", "y", "z", "qx", "qy", "qz", "qw",
                            "var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z",
                            "consecutive_failures", "distance_since_success_m")
-LANDMARKS_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg",
-                        "range_m", "matched")
 
 
 @dataclass(frozen=True)
@@ -230,29 +232,19 @@ class LocalizationWriter:
                             loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
 
 
-class LandmarksWriter:
-    """Appends the ``landmarks.csv`` rows of a successful localization (input of ``perception-model fit``)."""
-
-    def __init__(self, file):
-        self._csv = csv.writer(file)
-        self._csv.writerow(LANDMARKS_CSV_HEADER)
-
-    def write(self, loc: Localization) -> None:
-        r = loc.landmarks
-        if r is None or not loc.success:
-            return
-        rows = zip(r.landmark_id, r.inlier, np.degrees(r.parallax_rad), np.degrees(r.view_rad), r.range_m, r.matched,
-                   strict=True)
-        self._csv.writerows([loc.t_ns, loc.leaf_id, loc.trunk_id, int(i), int(inl), f"{a:.5f}", f"{v:.5f}",
-                             f"{d:.4f}", int(mt)] for i, inl, a, v, d, mt in rows)
-
-
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
-    """``landmarks.csv`` of a list of localizations."""
-    with open(path, "w", newline="") as f:
-        w = LandmarksWriter(f)
+    """``landmarks.csv`` (``perception_model``'s format and writer) of the successful localizations."""
+    from perception_model.landmarks_file import LandmarksWriter
+
+    with LandmarksWriter(path) as w:
         for loc in locs:
-            w.write(loc)
+            append_landmarks(w, loc)
+
+
+def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
+    """Rows of one localization for ``landmarks.csv``: its landmark record when it succeeded."""
+    if loc.success and loc.landmarks is not None:
+        writer.write(loc.landmarks)
 
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
@@ -263,6 +255,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
 
     Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
     finished once every frame is processed, or aborted with the reason on any exception."""
+    from perception_model.landmarks_file import LandmarksWriter
+
     from ..map import Map
     from ..navigation.repeat import Repeat
     from ..navigation.repeat_state import ControllerLog, check_rate, write_state_csv
@@ -280,8 +274,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
         with open(out / "localization.csv", "w", newline="") as loc_file, \
-                open(out / "landmarks.csv", "w", newline="") as lm_file:
-            loc_csv, lm_csv = LocalizationWriter(loc_file), LandmarksWriter(lm_file)
+                LandmarksWriter(out / "landmarks.csv") as lm_csv:
+            loc_csv = LocalizationWriter(loc_file)
             for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
                 step = repeat.process(images)
                 t_loc += repeat.last_localization_seconds
@@ -290,7 +284,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                 T_teach.append(step.T_teach_frame)
                 if step.localization is not None:
                     loc_csv.write(step.localization)
-                    lm_csv.write(step.localization)
+                    append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
                     # keep the numbers, not the per-landmark record: memory stays flat on long routes
                     locs.append(dataclasses.replace(step.localization, landmarks=None))
         m.finish_run()  # every frame is in the map: the run is complete whatever the reports do

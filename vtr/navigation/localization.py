@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception_model.landmarks_file import Observations
+
 from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T, log_se3
@@ -35,29 +37,14 @@ from ..vo.matching import match_to_landmarks
 
 
 @dataclass(frozen=True)
-class LandmarkRecord:
-    """Taught landmarks of one localization that lay in the leaf's view (arrays of equal length).
-
-    ``landmark_id`` is the feature index in the trunk vertex; ``matched``/``inlier`` say whether it
-    was matched / a localization inlier; angles in radians (docs/perception_model.md); ``range_m`` is the
-    distance from the leaf camera.
-    """
-
-    landmark_id: np.ndarray
-    matched: np.ndarray
-    inlier: np.ndarray
-    parallax_rad: np.ndarray
-    view_rad: np.ndarray
-    range_m: np.ndarray
-
-
-@dataclass(frozen=True)
 class Localization:
     """One localization attempt of leaf ``leaf_id`` against trunk ``trunk_id``.
 
     ``T_leaf_trunk`` maps trunk-camera coordinates into the leaf camera (the prior on failure) and
     ``covariance`` is its 6x6 covariance ([rot, trans]). ``twig_id``/``branch_id`` are the chain's
-    twig and branch *before* this attempt (-1 before the first success).
+    twig and branch *before* this attempt (-1 before the first success). ``landmarks`` holds the
+    taught landmarks in the leaf's view as the ``landmarks.csv`` record (``perception_model``'s
+    ``Observations``: one row per landmark, angles in radians), written as is by ``vtr repeat``.
     """
 
     t_ns: int
@@ -72,7 +59,7 @@ class Localization:
     covariance: np.ndarray
     consecutive_failures: int
     distance_since_success_m: float
-    landmarks: LandmarkRecord | None = None
+    landmarks: Observations | None = None
 
 
 def pose_distance(T: np.ndarray, rotation_weight: float) -> float:
@@ -214,12 +201,14 @@ class Localizer:
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
-                    inlier: np.ndarray) -> LandmarkRecord:
-    """Angles of every trunk landmark inside the leaf's image (docs/perception_model.md).
+                    inlier: np.ndarray, *, t_ns: int, leaf_id: int, trunk_id: int) -> Observations:
+    """Angles of every trunk landmark inside the leaf's image, as ``landmarks.csv`` rows.
 
     Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
     for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera
-    centre in the trunk frame, ``z`` = leaf optical axis in the trunk frame.
+    centre in the trunk frame, ``z`` = leaf optical axis in the trunk frame. ``landmark_id`` is the
+    feature index in the trunk vertex; ``matched``/``inlier`` say whether it was matched / a
+    localization inlier; ``range_m`` is the distance from the leaf camera.
     """
     from perception_model.angles import parallax_angle, view_angle
 
@@ -233,5 +222,8 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
     z = T_trunk_leaf[:3, 2]
     is_matched = np.isin(idx, matched)
     is_inlier = np.isin(idx, matched[inlier]) if len(inlier) else np.zeros(len(idx), bool)
-    return LandmarkRecord(idx, is_matched, is_inlier, parallax_angle(p_is, p_ao), view_angle(p_is, p_ao, z),
-                          np.linalg.norm(P_leaf, axis=1))
+    n = len(idx)
+    return Observations(alpha=parallax_angle(p_is, p_ao), theta=view_angle(p_is, p_ao, z), inlier=is_inlier,
+                        t_ns=np.full(n, t_ns, np.int64), leaf_id=np.full(n, leaf_id, np.int64),
+                        trunk_id=np.full(n, trunk_id, np.int64), landmark_id=idx.astype(np.int64),
+                        range_m=np.linalg.norm(P_leaf, axis=1), matched=is_matched)

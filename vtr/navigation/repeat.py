@@ -96,7 +96,8 @@ class Repeat:
                               int(inlier.sum()))
         c.update(leaf_id, kf.T_world_kf, trunk, T)
         T_used = T if T is not None else T_prior
-        record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier)
+        record = landmark_record(trunk_frame, T_used, self.camera, matched, inlier, t_ns=kf.t_ns, leaf_id=leaf_id,
+                                 trunk_id=trunk_vertex.id)
         return Localization(kf.t_ns, leaf_id, trunk_vertex.id, twig, branch, success, n_matches,
                             int(inlier.sum()) if success else 0, T_used,
                             cov if success else np.full((6, 6), np.nan), c.consecutive_failures,
