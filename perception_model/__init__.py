@@ -5,7 +5,8 @@
 - ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation;
 - ``constraint``: the chance constraint ``mu - c_bar sigma >= L_min`` with analytic gradients over
   an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
-- ``io``: ``landmarks.csv`` and position readers;  ``synthetic``: synthetic labels and scenes;
+- ``landmarks_file``: the ``landmarks.csv``/``.parquet`` format (schema, ``Observations``, writer,
+  columnar reader); ``io``: landmark/camera position readers; ``synthetic``: synthetic data;
 - ``cli``: the ``perception-model`` command.
 
 The package does not depend on ``vtr``; its errors derive from ``PerceptionModelError``.
@@ -34,9 +35,11 @@ _LAZY = {
     "fit_binned": "fit",
     "fit_mle": "fit",
     "fit_observations": "fit",
-    "Observations": "io",
-    "read_landmarks_csv": "io",
-    "read_landmarks_csvs": "io",
+    "LandmarksWriter": "landmarks_file",
+    "Observations": "landmarks_file",
+    "read_landmarks": "landmarks_file",
+    "read_landmarks_files": "landmarks_file",
+    "write_landmarks": "landmarks_file",
     "PerceptionModel": "model",
 }
 
@@ -57,6 +60,7 @@ def __dir__() -> list[str]:
 __all__ = [
     "ConstraintEvaluation",
     "FitResult",
+    "LandmarksWriter",
     "Linearization",
     "Observations",
     "PerceptionConstraint",
@@ -71,7 +75,8 @@ __all__ = [
     "optical_axis",
     "parallax_angle",
     "poisson_binomial_tail",
-    "read_landmarks_csv",
-    "read_landmarks_csvs",
+    "read_landmarks",
+    "read_landmarks_files",
     "view_angle",
+    "write_landmarks",
 ]

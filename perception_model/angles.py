@@ -1,6 +1,6 @@
 """Parallax and view angles of trunk landmarks (thesis §7.3.1, eqs. 7.3-7.4), in radians.
 
-Frame and notation (DESIGN.md §5): every vector is expressed in the gravity-aligned frame ``o``
+Frame and notation (docs/perception_model.md): every vector is expressed in the gravity-aligned frame ``o``
 whose origin is the trunk (taught) camera ``s``.
 
 - ``p_is``: vector from the taught camera ``s`` to landmark ``i`` (metres), shape ``(..., 3)``;

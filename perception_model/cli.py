@@ -1,7 +1,7 @@
 """The ``perception-model`` command: fit, evaluate and apply the perception model.
 
-    perception-model fit LANDMARKS.csv... --out model.json [--method binned|mle] [--plot FIG.png]
-    perception-model evaluate model.json LANDMARKS.csv...
+    perception-model fit LANDMARKS.csv|.parquet... --out model.json [--method binned|mle] [--plot FIG.png]
+    perception-model evaluate model.json LANDMARKS.csv|.parquet...
     perception-model constraint model.json --landmarks L.csv --positions P.csv
     perception-model constraint model.json --map route.vtrmap --positions P.csv [--out FILE.csv | --out -]
 
@@ -164,25 +164,26 @@ def fit_cmd(
     ci: str,
     n_bootstrap: int,
 ) -> None:
-    """Fit the model to landmarks.csv files and write model.json."""
+    """Fit the model to landmarks files (.csv or .parquet) and write model.json."""
     from .fit import BinSpec, fit_observations
-    from .io import read_landmarks_csvs
+    from .landmarks_file import FIT_FIELDS, read_landmarks_files
 
-    obs = read_landmarks_csvs(landmarks)
+    obs = read_landmarks_files(landmarks, FIT_FIELDS)
     bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
     result = fit_observations(
         obs,
-        method=method,
+        method=method,  # type: ignore[arg-type]  # click.Choice checked it
         angle_unit=unit,
         holdout_fraction=holdout,
         seed=seed,
         bins=bins,
-        ci=ci,
+        ci=ci,  # type: ignore[arg-type]
         n_bootstrap=n_bootstrap,
-    )  # type: ignore[arg-type]
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
-    result.model.save(out, fit=result.to_dict(), data=obs.describe())
-    click.echo(_fit_summary(result, obs.describe()))
+    data = obs.describe()
+    result.model.save(out, fit=result.to_dict(), data=data)
+    click.echo(_fit_summary(result, data))
     click.echo(f"wrote {out}")
     if plot is not None:
         plot_fit(result, plot)
@@ -204,6 +205,10 @@ def _fit_summary(result: Any, data: dict[str, Any]) -> str:
         lines.append(
             f"  {c.name} = {c.estimate:+.5g}   {pct}% CI [{c.low:+.5g}, {c.high:+.5g}]  "
             f"(s.e. {c.std_err:.2g}, {result.ci_method})"
+        )
+    if result.c1_at_bound:
+        lines.append(
+            "  c1 is at its bound 1 (the model is a probability): unconstrained, the data would push it above 1"
         )
     if unit == "deg":
         lines.append("  thesis: c = ({:.3f}, {:.3f}, {:.3f})".format(*THESIS_CONSTANTS_DEG))
@@ -299,13 +304,13 @@ def evaluate_cmd(
     calibration_bins: int,
     json_out: Path | None,
 ) -> None:
-    """Report log-loss, calibration and R^2 of a model on (held-out) landmarks.csv files."""
+    """Report log-loss, calibration and R^2 of a model on (held-out) landmarks files (.csv or .parquet)."""
     from .fit import BinSpec, evaluate
-    from .io import read_landmarks_csvs
+    from .landmarks_file import FIT_FIELDS, read_landmarks_files
     from .model import PerceptionModel
 
     model = PerceptionModel.load(model_path)
-    obs = read_landmarks_csvs(landmarks)
+    obs = read_landmarks_files(landmarks, FIT_FIELDS)
     bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
     ev = evaluate(
         model,

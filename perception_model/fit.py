@@ -18,9 +18,12 @@ Both return a ``FitResult`` with the model, intervals, R^2, log-loss and counts,
 ``fit_observations`` splits by localization (so landmarks of one keyframe never straddle the
 split) and runs either estimator.
 
-Sign convention: ``cos`` is even, so only ``|c2|`` is identifiable; fits constrain ``c2 >= 0``
-and ``c1 > 0``. Bad input (empty, NaN angles, all labels equal, too few bins) raises
-``FitError`` naming the data source.
+Sign convention: ``cos`` is even, so only ``|c2|`` is identifiable; fits constrain ``c2 >= 0``.
+The model is a probability, so both fits constrain ``0 < c1 <= 1`` (bounded ``least_squares`` /
+L-BFGS-B). When the data would push ``c1`` above 1 the fit stops at ``c1 = 1`` and says so:
+``FitResult.c1_at_bound`` (also ``c1_at_bound`` in the model file's ``fit`` section); the c1
+interval is then cut at 1. Bad input (empty, NaN angles, all labels equal, too few bins) raises
+``FitError`` naming the data source; the data are checked once per fit.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import optimize, special
 
 from .errors import FitError, PerceptionModelError, PerceptionModelWarning
-from .io import Observations
+from .landmarks_file import Observations
 from .model import (
     DEFAULT_ALPHA_MAX_RAD,
     DEFAULT_THETA_MAX_RAD,
@@ -68,6 +71,13 @@ MLE_GTOL = 1e-10
 MLE_MAXITER = 2000
 #: Lower bound on c1 during fits (the model requires c1 > 0).
 C1_FLOOR = 1e-9
+#: Upper bound on c1 during fits: p = c1 cos(c2 theta) exp(c3 alpha) is a probability, and its
+#: value at alpha = theta = 0 is c1 (its largest value when c3 <= 0).
+C1_MAX = 1.0
+#: c1 within this relative distance of C1_MAX counts as at the bound (and is set to C1_MAX).
+C1_BOUND_RTOL = 1e-6
+#: Observations per chunk when evaluating the likelihood (bounds the temporaries on large data).
+MLE_CHUNK = 1 << 20
 #: An MLE counts as converged when the remaining Fisher-scoring step is below this many standard errors.
 MLE_STEP_TOL = 1e-3
 
@@ -191,6 +201,7 @@ class FitResult:
     message: str
     holdout: Evaluation | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    c1_at_bound: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary for the model file's ``fit`` section."""
@@ -211,6 +222,8 @@ class FitResult:
             "n_bins": self.n_bins,
             "converged": self.converged,
             "message": self.message,
+            "c1_max": C1_MAX,
+            "c1_at_bound": self.c1_at_bound,
             "holdout": None if self.holdout is None else self.holdout.to_dict(),
         }
         out.update(self.extra)
@@ -237,15 +250,28 @@ def _check_data(
     if (a < 0).any() or (t < 0).any():
         raise FitError(f"{source}: negative angles (parallax/view angles are in [0, pi])")
     yf = y.astype(np.float64)
-    if not np.isin(yf, (0.0, 1.0)).all():
+    if y.dtype != np.bool_ and not np.isin(yf, (0.0, 1.0)).all():
         raise FitError(f"{source}: inlier labels must be 0/1")
     if need_both:
-        k = int(yf.sum())
-        if k == 0:
-            raise FitError(f"{source}: all {a.size} observations are outliers (inlier = 0); nothing to fit")
-        if k == a.size:
-            raise FitError(f"{source}: all {a.size} observations are inliers (inlier = 1); nothing to fit")
+        _check_both_labels(yf, source)
     return a, t, yf
+
+
+def _check_both_labels(y: NDArray[np.float64], source: str) -> None:
+    k = int(y.sum())
+    if k == 0:
+        raise FitError(f"{source}: all {y.size} observations are outliers (inlier = 0); nothing to fit")
+    if k == y.size:
+        raise FitError(f"{source}: all {y.size} observations are inliers (inlier = 1); nothing to fit")
+
+
+def _snap_c1(c: NDArray[np.float64], active: bool = False) -> tuple[NDArray[np.float64], bool]:
+    """``(c, at_bound)``: c1 set to ``C1_MAX`` when the optimizer left it at (or reports it on) the bound."""
+    at_bound = bool(active or c[0] >= C1_MAX * (1.0 - C1_BOUND_RTOL))
+    if at_bound:
+        c = c.copy()
+        c[0] = C1_MAX
+    return c, at_bound
 
 
 def _unit_constants(c: NDArray[np.float64]) -> tuple[float, float, float]:
@@ -275,17 +301,20 @@ def _prob_and_jac(
 def _intervals(
     est: NDArray[np.float64], cov: NDArray[np.float64], confidence: float
 ) -> tuple[ConstantInterval, ...]:
+    """Wald intervals; c1's upper end is cut at ``C1_MAX`` (the constraint of the fit)."""
     z = float(special.ndtri(0.5 + 0.5 * confidence))
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if np.all(np.isfinite(cov)) else np.full(3, np.nan)
+    high = est + z * se
+    high[0] = min(high[0], C1_MAX)
     return tuple(
-        ConstantInterval(name, float(e), float(e - z * s), float(e + z * s), float(s))
-        for name, e, s in zip(CONSTANT_NAMES, est, se, strict=True)
+        ConstantInterval(name, float(e), float(e - z * s), float(h), float(s))
+        for name, e, s, h in zip(CONSTANT_NAMES, est, se, high, strict=True)
     )
 
 
 def _safe_inverse(m: NDArray[np.float64], what: str) -> NDArray[np.float64]:
     try:
-        inv = np.linalg.inv(m)
+        inv: NDArray[Any] = np.linalg.inv(m)
     except np.linalg.LinAlgError:
         inv = np.full_like(m, np.nan)
     if not np.all(np.isfinite(inv)) or np.any(np.diag(inv) < 0):
@@ -359,14 +388,14 @@ def bin_observations(
         theta=sum_t[used] / count[used],
         count=count[used].astype(np.int64),
         inliers=inl[used],
-        alpha_edges=np.arange(na + 1) * spec.alpha_width,
-        theta_edges=np.arange(nt + 1) * spec.theta_width,
+        alpha_edges=np.arange(na + 1, dtype=np.float64) * spec.alpha_width,
+        theta_edges=np.arange(nt + 1, dtype=np.float64) * spec.theta_width,
         count_grid=count.reshape(na, nt).astype(np.int64),
         inlier_grid=inl.reshape(na, nt),
     )
 
 
-def weighted_r2(freq: NDArray[np.float64], pred: NDArray[np.float64], weight: NDArray[np.float64]) -> float:
+def weighted_r2(freq: NDArray[np.float64], pred: NDArray[np.float64], weight: NDArray[Any]) -> float:
     """``1 - sum w (f - p)^2 / sum w (f - mean_w f)^2`` (NaN if the frequencies are constant)."""
     mean = np.sum(weight * freq) / np.sum(weight)
     ss_tot = float(np.sum(weight * (freq - mean) ** 2))
@@ -416,6 +445,19 @@ def evaluate(
 ) -> Evaluation:
     """Log-loss, Brier score, binned R^2 and calibration of ``model`` on observations (radians)."""
     a, t, y = _check_data(alpha, theta, inlier, source, need_both=False)
+    return _evaluate(model, a, t, y, bins=bins, calibration_bins=calibration_bins)
+
+
+def _evaluate(
+    model: PerceptionModel,
+    a: NDArray[np.float64],
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    *,
+    bins: BinSpec | None,
+    calibration_bins: int,
+) -> Evaluation:
+    """``evaluate`` on checked data."""
     p = model.probability(a, t)
     binned = bin_observations(a, t, y, bins)
     r2 = math.nan
@@ -446,12 +488,13 @@ def _lsq_binned(binned: BinnedFrequencies, k: float, x0: NDArray[np.float64]) ->
         return w[:, None] * _prob_and_jac(c, a_u, t_u, 0.0, 1.0)[1]
 
     lower = np.array([C1_FLOOR, 0.0, -np.inf])
-    start = np.clip(x0, lower + 1e-12, None)
+    upper = np.array([C1_MAX, np.inf, np.inf])
+    start = np.clip(x0, lower + 1e-12, upper)
     return optimize.least_squares(
         resid,
         start,
         jac=jac,
-        bounds=(lower, np.full(3, np.inf)),
+        bounds=(lower, upper),
         method="trf",
         x_scale="jac",
         ftol=LSQ_TOL,
@@ -481,6 +524,27 @@ def fit_binned(
     ``ci="bootstrap"`` resamples observations ``n_bootstrap`` times (percentile intervals).
     """
     a, t, y = _check_data(alpha, theta, inlier, source)
+    return _fit_binned(
+        a, t, y, angle_unit=angle_unit, bins=bins, ci=ci, n_bootstrap=n_bootstrap, confidence=confidence,
+        seed=seed, initial=initial, source=source,
+    )  # fmt: skip
+
+
+def _fit_binned(
+    a: NDArray[np.float64],
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    *,
+    angle_unit: str,
+    bins: BinSpec | None,
+    ci: CiMethod,
+    n_bootstrap: int,
+    confidence: float,
+    seed: int,
+    initial: ArrayLike | None,
+    source: str,
+) -> FitResult:
+    """``fit_binned`` on checked data (``_check_data``)."""
     if angle_unit not in UNIT_SCALE:
         raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
     spec = bins or BinSpec()
@@ -493,7 +557,7 @@ def fit_binned(
         )
     x0 = initial_constants(angle_unit) if initial is None else np.asarray(initial, dtype=np.float64)
     res = _lsq_binned(binned, k, x0)
-    c = res.x
+    c, c1_at_bound = _snap_c1(res.x, bool(res.active_mask[0] == 1))
     p_bins, jac = _prob_and_jac(c, binned.alpha * k, binned.theta * k, 0.0, 1.0)
     n_b = binned.count.astype(np.float64)
     e_b = binned.frequency - p_bins
@@ -530,6 +594,7 @@ def fit_binned(
                 "unit": angle_unit,
             }
         },
+        c1_at_bound=c1_at_bound,
     )
 
 
@@ -553,7 +618,7 @@ def _bootstrap(
         b = bin_observations(a[idx], t[idx], y[idx], spec)
         if b.count.size < MIN_FIT_BINS:
             continue
-        draws.append(_lsq_binned(b, k, c).x)
+        draws.append(_snap_c1(_lsq_binned(b, k, c).x)[0])
     if len(draws) < 2:
         raise FitError("bootstrap failed: too few resamples had enough bins")
     d = np.array(draws)
@@ -572,23 +637,35 @@ def _bootstrap(
 def neg_log_likelihood(
     c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64], y: NDArray[np.float64]
 ) -> tuple[float, NDArray[np.float64]]:
-    """Mean negative Bernoulli log-likelihood and its analytic gradient w.r.t. c (angles in model unit)."""
+    """Mean negative Bernoulli log-likelihood and its analytic gradient w.r.t. c (angles in model unit).
+
+    Evaluated in chunks of ``MLE_CHUNK`` observations, so the temporaries stay small on large data.
+    """
     cc = np.asarray(c, dtype=np.float64)
-    p, jac = _prob_and_jac(cc, a_u, t_u, PROB_EPS, 1.0 - PROB_EPS)
     n = y.size
-    value = -float(np.sum(y * np.log(p) + (1.0 - y) * np.log1p(-p))) / n
-    dl_dp = y / p - (1.0 - y) / (1.0 - p)
-    grad = -(dl_dp @ jac) / n
-    return value, grad
+    total = 0.0
+    grad = np.zeros(3)
+    for s in range(0, n, MLE_CHUNK):
+        sl = slice(s, s + MLE_CHUNK)
+        yy = y[sl]
+        p, jac = _prob_and_jac(cc, a_u[sl], t_u[sl], PROB_EPS, 1.0 - PROB_EPS)
+        total += float(np.sum(yy * np.log(p) + (1.0 - yy) * np.log1p(-p)))
+        dl_dp = yy / p - (1.0 - yy) / (1.0 - p)
+        grad -= dl_dp @ jac
+    return -total / n, grad / n
 
 
 def fisher_information(
     c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64]
 ) -> NDArray[np.float64]:
     """Expected Fisher information ``sum J J^T / (p (1 - p))`` of n Bernoulli observations (model unit)."""
-    p, jac = _prob_and_jac(np.asarray(c, dtype=np.float64), a_u, t_u, PROB_EPS, 1.0 - PROB_EPS)
-    w = 1.0 / (p * (1.0 - p))
-    return (jac * w[:, None]).T @ jac
+    cc = np.asarray(c, dtype=np.float64)
+    info = np.zeros((3, 3))
+    for s in range(0, a_u.size, MLE_CHUNK):
+        p, jac = _prob_and_jac(cc, a_u[s : s + MLE_CHUNK], t_u[s : s + MLE_CHUNK], PROB_EPS, 1.0 - PROB_EPS)
+        w = 1.0 / (p * (1.0 - p))
+        info += (jac * w[:, None]).T @ jac
+    return info
 
 
 def fit_mle(
@@ -608,6 +685,21 @@ def fit_mle(
     constants). Angles in radians; constants returned for ``angle_unit``.
     """
     a, t, y = _check_data(alpha, theta, inlier, source)
+    return _fit_mle(a, t, y, angle_unit=angle_unit, bins=bins, confidence=confidence, initial=initial, source=source)
+
+
+def _fit_mle(
+    a: NDArray[np.float64],
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    *,
+    angle_unit: str,
+    bins: BinSpec | None,
+    confidence: float,
+    initial: ArrayLike | None,
+    source: str,
+) -> FitResult:
+    """``fit_mle`` on checked data (``_check_data``)."""
     if angle_unit not in UNIT_SCALE:
         raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
     k = UNIT_SCALE[angle_unit]
@@ -616,7 +708,10 @@ def fit_mle(
         try:
             with warnings.catch_warnings():  # only a starting point: its warnings do not concern the MLE
                 warnings.simplefilter("ignore", PerceptionModelWarning)
-                x0 = fit_binned(a, t, y, angle_unit=angle_unit, bins=spec, source=source).model.constants
+                x0 = _fit_binned(
+                    a, t, y, angle_unit=angle_unit, bins=spec, ci="sandwich", n_bootstrap=DEFAULT_BOOTSTRAP,
+                    confidence=confidence, seed=0, initial=None, source=source,
+                ).model.constants  # fmt: skip
         except FitError:
             x0 = initial_constants(angle_unit)
     else:
@@ -628,7 +723,9 @@ def fit_mle(
         v, g = neg_log_likelihood(x * scale, a_u, t_u, y)
         return v, g * scale
 
-    bounds = [(C1_FLOOR / scale[0], None), (0.0, None), (None, None)]
+    bounds = [(C1_FLOOR / scale[0], C1_MAX / scale[0]), (0.0, None), (None, None)]
+    x0 = np.asarray(x0, dtype=np.float64).copy()
+    x0[0] = min(max(x0[0], C1_FLOOR), C1_MAX)
     res = optimize.minimize(
         fun,
         x0 / scale,
@@ -637,15 +734,19 @@ def fit_mle(
         bounds=bounds,
         options={"ftol": MLE_FTOL, "gtol": MLE_GTOL, "maxiter": MLE_MAXITER},
     )
-    c = res.x * scale
+    c, c1_at_bound = _snap_c1(res.x * scale)
     _, grad = neg_log_likelihood(c, a_u, t_u, y)
     info = fisher_information(c, a_u, t_u)
     cov = _safe_inverse(info, "the Fisher information")
     # converged: the optimizer's verdict, or the remaining Fisher-scoring step is negligible next to
-    # the standard errors (L-BFGS-B may stop on its function tolerance when already at the optimum)
-    with np.errstate(invalid="ignore"):
-        step = cov @ (grad * a.size)
-        near_optimum = bool(np.all(np.abs(step) <= MLE_STEP_TOL * np.sqrt(np.diag(cov))))
+    # the standard errors (L-BFGS-B may stop on its function tolerance when already at the optimum);
+    # with c1 held at its bound only (c2, c3) are free
+    free = slice(1, 3) if c1_at_bound else slice(0, 3)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerceptionModelWarning)
+        cov_free = _safe_inverse(info[free, free], "the Fisher information") if c1_at_bound else cov
+        step = cov_free @ (grad[free] * a.size)
+        near_optimum = bool(np.all(np.abs(step) <= MLE_STEP_TOL * np.sqrt(np.diag(cov_free))))
     converged = bool(res.success) or near_optimum
     model = _make_model(c, angle_unit, a, t, source, converged, str(res.message))
     binned = bin_observations(a, t, y, spec)
@@ -668,6 +769,7 @@ def fit_mle(
         converged=converged,
         message=str(res.message),
         extra={"neg_log_likelihood_mean": float(res.fun), "iterations": int(res.nit)},
+        c1_at_bound=c1_at_bound,
     )
 
 
@@ -701,48 +803,36 @@ def fit_observations(
     confidence: float = DEFAULT_CONFIDENCE,
     calibration_bins: int = DEFAULT_CALIBRATION_BINS,
 ) -> FitResult:
-    """Fit on a random ``1 - holdout_fraction`` of the localizations, evaluate on the rest."""
+    """Fit on a random ``1 - holdout_fraction`` of the localizations, evaluate on the rest.
+
+    The data are checked once (here, on the whole set: clearer messages); the training part is
+    only checked for holding both labels.
+    """
     source = obs.source_names
-    _check_data(obs.alpha, obs.theta, obs.inlier, source)  # whole data first: clearer messages
-    held = holdout_split(obs.frame_groups(), holdout_fraction, seed)
-    train = obs.take(~held)
-    if method == "binned":
-        result = fit_binned(
-            train.alpha,
-            train.theta,
-            train.inlier,
-            angle_unit=angle_unit,
-            bins=bins,
-            ci=ci,
-            n_bootstrap=n_bootstrap,
-            confidence=confidence,
-            seed=seed,
-            source=source,
-        )
-    elif method == "mle":
-        result = fit_mle(
-            train.alpha,
-            train.theta,
-            train.inlier,
-            angle_unit=angle_unit,
-            bins=bins,
-            confidence=confidence,
-            source=source,
-        )
-    else:
+    a, t, y = _check_data(obs.alpha, obs.theta, obs.inlier, source)
+    if method not in ("binned", "mle"):
         raise FitError(f"unknown method {method!r} (use 'binned' or 'mle')")
+    held = holdout_split(obs.frame_groups(), holdout_fraction, seed)
+    if held.any():
+        train = ~held
+        a_fit, t_fit, y_fit = a[train], t[train], y[train]
+        _check_both_labels(y_fit, source)
+    else:
+        a_fit, t_fit, y_fit = a, t, y
+    if method == "binned":
+        result = _fit_binned(
+            a_fit, t_fit, y_fit, angle_unit=angle_unit, bins=bins, ci=ci, n_bootstrap=n_bootstrap,
+            confidence=confidence, seed=seed, initial=None, source=source,
+        )  # fmt: skip
+    else:
+        result = _fit_mle(
+            a_fit, t_fit, y_fit, angle_unit=angle_unit, bins=bins, confidence=confidence, initial=None,
+            source=source,
+        )  # fmt: skip
+    del a_fit, t_fit, y_fit
     holdout = None
     if held.any():
-        test = obs.take(held)
-        holdout = evaluate(
-            result.model,
-            test.alpha,
-            test.theta,
-            test.inlier,
-            bins=bins,
-            calibration_bins=calibration_bins,
-            source=f"{source} (held out)",
-        )
+        holdout = _evaluate(result.model, a[held], t[held], y[held], bins=bins, calibration_bins=calibration_bins)
     extra = dict(result.extra, holdout_fraction=holdout_fraction, seed=seed)
     return FitResult(**{**vars(result), "holdout": holdout, "extra": extra})
 

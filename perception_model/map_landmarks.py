@@ -146,7 +146,7 @@ def trunk_landmarks(vtr_map: Any, vertex_id: int) -> Trunk:
     """Landmarks (finite triangulated points) of vertex ``vertex_id`` of an open ``vtr.map.Map``, map frame."""
     rec = vtr_map.vertex(int(vertex_id))
     T = np.asarray(rec.T_world_vertex, dtype=np.float64)
-    pts = np.asarray(rec.points, dtype=np.float64)[rec.landmark_mask]
+    pts = np.asarray(rec.frame.points, dtype=np.float64)[rec.landmark_mask]
     return Trunk(int(vertex_id), T, pts @ T[:3, :3].T + T[:3, 3])
 
 
@@ -209,7 +209,7 @@ def evaluate_on_map(
     for t, trunk in trunks.items():
         sel = np.flatnonzero(trunk_ids == t)
         if trunk.points_map.shape[0] == 0:
-            for i in sel:
+            for i in sel.tolist():
                 p_rows[i] = np.zeros(0)
             continue
         try:
@@ -217,7 +217,7 @@ def evaluate_on_map(
             ev = con.evaluate(pos[sel] - trunk.centre, axes=R[sel, :, 2], gradient=False)
         except GeometryError as err:
             raise InputDataError(f"trunk {t}: {err}") from None
-        for k, i in enumerate(sel):
+        for k, i in enumerate(sel.tolist()):
             p = ev.p[k]
             if in_view:
                 p = p[_in_view(trunk.points_map, pos[i], R[i], camera)]

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from .angles import THESIS_PITCH_DOWN_RAD, optical_axis
 from .fit import simulate_labels
-from .io import Observations, SourceSpan
+from .landmarks_file import Observations, SourceSpan
 from .model import DEFAULT_ALPHA_MAX_RAD, DEFAULT_THETA_MAX_RAD, PerceptionModel
 
 #: Default scene: camera altitude above the ground plane and height of raised structure (m).

@@ -55,3 +55,15 @@ def test_dict_round_trip_and_match():
     other = StereoCamera.from_dict(CAM.to_dict())
     assert other.matches(CAM)
     assert not other.matches(StereoCamera.from_dict({**CAM.to_dict(), "baseline": 0.12}))
+
+
+@given(st.floats(-2000, 3000), st.floats(-1000, 1400), st.floats(-5.0, 60.0), st.floats(0.0, 50.0))
+def test_in_view_is_depth_and_image_bounds(u, v, z, margin):
+    """A point is in view when it is beyond MIN_DEPTH_M and its pixel lies in the image grown by the margin."""
+    from vtr.camera import MIN_DEPTH_M
+
+    p = np.array([[(u - CAM.cx) * z / CAM.fx, (v - CAM.cy) * z / CAM.fy, z]])
+    expected = z > MIN_DEPTH_M and -margin <= CAM.project(p)[0, 0] < CAM.width + margin \
+        and -margin <= CAM.project(p)[0, 1] < CAM.height + margin
+    assert CAM.in_view(p, margin).tolist() == [bool(expected)]
+    assert CAM.in_view(np.zeros((0, 3))).shape == (0,)

@@ -52,3 +52,44 @@ def test_check_se3_rejects_bad_matrices():
     reflect = np.diag([1.0, 1.0, -1.0, 1.0])
     with pytest.raises(EstimationError, match="det"):
         check_se3(reflect, "pose")
+
+
+@given(arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)), st.floats(-12.0, 0.0))
+def test_usable_covariance_is_the_one_repair_rule(A, log_scale):
+    """Symmetric, eigenvalues floored at MIN_EIGENVALUE_RATIO of the largest, unchanged where already fine."""
+    from vtr.geometry import MIN_EIGENVALUE_RATIO, check_covariance, usable_covariance
+
+    C = 10.0**log_scale * (A @ A.T)
+    out = usable_covariance(C)
+    w = np.linalg.eigvalsh(0.5 * (C + C.T))
+    if w[-1] <= 0:
+        assert out is None and np.array_equal(usable_covariance(C, 100.0), np.eye(6) * 100.0)
+        return
+    assert out is not None and np.array_equal(out, out.T)
+    w_out = np.linalg.eigvalsh(out)
+    assert w_out[0] >= (MIN_EIGENVALUE_RATIO - 64 * np.finfo(float).eps) * w_out[-1]   # floor, to rounding
+    if w[0] > 1e-6 * w[-1]:        # well-conditioned input passes through (to rounding)
+        np.testing.assert_allclose(out, C, rtol=1e-9, atol=1e-12 * w[-1])
+    check_covariance(out, definite=True)       # the smoother accepts every repaired covariance
+
+
+def test_covariance_validation_and_unknown_estimates():
+    from vtr.errors import MapError
+    from vtr.geometry import check_covariance, usable_covariance
+
+    nan = np.eye(6)
+    nan[2, 2] = np.nan
+    assert usable_covariance(nan) is None
+    assert np.array_equal(usable_covariance(nan, 100.0), np.eye(6) * 100.0)
+    assert usable_covariance(np.eye(3)) is None
+    with pytest.raises(MapError, match="positive semi-definite"):
+        check_covariance(-np.eye(6), "edge", MapError)
+    check_covariance(np.zeros((6, 6)), "edge", MapError)           # semi-definite: accepted by the map
+    with pytest.raises(EstimationError, match="non-zero"):
+        check_covariance(np.zeros((6, 6)), definite=True)          # not by the smoother
+    with pytest.raises(EstimationError, match="positive definite"):
+        check_covariance(np.diag([1.0, 1, 1, 1, 1, 1e-16]), definite=True)
+    asym = np.eye(6)
+    asym[0, 1] = 1e-3
+    with pytest.raises(EstimationError, match="symmetric"):
+        check_covariance(asym)

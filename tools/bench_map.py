@@ -73,6 +73,7 @@ def route_pose(i: int, spacing: float) -> np.ndarray:
 def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
     from vtr.camera import StereoCamera
     from vtr.map import Map
+    from vtr.types import Keyframe
 
     camera = StereoCamera(fx=FX, fy=FX, cx=IMAGE_W / 2, cy=IMAGE_H / 2, baseline=BASELINE,
                           width=IMAGE_W, height=IMAGE_H)
@@ -82,17 +83,13 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
     rss_early = None
     with Map.create(path, camera) as m:
         run = m.begin_run("teach", source="bench_map synthetic route")
-        prev_T = np.eye(4)
         for i in range(n_vertices):
             frame = synthetic_frame(rng, n_features, i)
             T = route_pose(i, spacing)
-            # a vtr.types.Keyframe (duck-typed): vertex and temporal edge in one transaction
-            kf = SimpleNamespace(id=i, frame=frame, T_world_kf=T, T_prev_kf=np.linalg.inv(prev_T) @ T,
-                                 edge_covariance=cov, edge_inliers=100)
+            kf = Keyframe(i, frame, T, cov, 100)     # vertex and temporal edge in one transaction
             t0 = time.perf_counter()
             m.add_keyframe(run, kf)
             t_write += time.perf_counter() - t0
-            prev_T = T
             if i + 1 == RSS_EARLY_STEP:
                 rss_early = rss_kb()["VmRSS"]
         rss_end = rss_kb()["VmRSS"]
@@ -113,7 +110,8 @@ def walk(path: Path) -> dict:
     base = rss_kb()["VmRSS"]
     with Map.open(path, "r") as m:
         t0 = time.perf_counter()
-        ids, T = m.privileged_poses()
+        taught = m.taught_path()
+        ids, T = taught.ids, taught.T_world_vertex
         t_poses = time.perf_counter() - t0
         m.nearest_vertices(T[0, :3, 3], 1)  # warm-up: imports scipy, builds the k-d tree
         m.vertex(int(ids[0]))
@@ -128,7 +126,7 @@ def walk(path: Path) -> dict:
             t1 = time.perf_counter()
             for vid in m.window(trunk, WINDOW_BACK, WINDOW_FORWARD):
                 v = m.vertex(vid)
-                reads += len(v.uv)
+                reads += v.n_features
             t2 = time.perf_counter()
             t_nearest += t1 - t0
             t_window += t2 - t1
@@ -138,7 +136,7 @@ def walk(path: Path) -> dict:
         rss["end"] = rss_kb()
     n = len(ids)
     return {
-        "walk_steps": n, "privileged_poses_s": t_poses,
+        "walk_steps": n, "taught_path_s": t_poses,
         "walk_ms_per_step": 1e3 * t_total / n, "nearest_ms": 1e3 * t_nearest / n, "window_read_ms": 1e3 * t_window / n,
         "walk_rss_kb_at_open": base, "walk_rss_kb_warm": warm,
         "walk_rss_kb_after_500": rss.get("after_500", {}).get("VmRSS"),
@@ -182,7 +180,7 @@ def main() -> None:
           f"{res['bytes_per_km'] / 1e6:.1f} MB/km")
     print(f"write RSS: {_mb(res['write_rss_kb_after_500'])} MB after 500 vertices, "
           f"{res['write_rss_kb_end'] / 1e3:.1f} MB after {res['vertices']}")
-    print(f"walk:  privileged poses in {1e3 * res['privileged_poses_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
+    print(f"walk:  taught path in {1e3 * res['taught_path_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
           f"(nearest {res['nearest_ms']:.3f} ms, window -{WINDOW_BACK}..+{WINDOW_FORWARD} read "
           f"{res['window_read_ms']:.2f} ms)")
     print(f"walk RSS: {res['walk_rss_kb_at_open'] / 1e3:.1f} MB at open, "

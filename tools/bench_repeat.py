@@ -64,7 +64,7 @@ def main() -> None:
         taught = Path(tmp) / "route.vtrmap"
         teach = teach_command(CLIP, taught, "0::2", config)
         with Map.open(taught) as m:
-            ids, T = m.privileged_poses()
+            T = m.taught_path().T_world_vertex
             size = m.bytes_on_disk()
         km = path_length(T) / 1000.0
         print(f"map: {teach.vertices} keyframes over {1000 * km:.1f} m, {size / teach.vertices / 1024:.1f} KiB per "

@@ -13,6 +13,8 @@ import numpy as np
 
 from .errors import CalibrationError
 
+MIN_DEPTH_M = 0.1  # points closer than this in front of the camera are not in view (not predicted)
+
 
 @dataclass(frozen=True)
 class StereoCamera:
@@ -65,6 +67,18 @@ class StereoCamera:
         u = self.fx * p[:, 0] / z + self.cx
         v = self.fy * p[:, 1] / z + self.cy
         return np.stack([u, v, u - self.fb / z], axis=1)
+
+    def in_view(self, p: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        """(N,) bool: points (N, 3) in the left camera frame that lie more than ``MIN_DEPTH_M`` in front of
+        the camera and project inside the image grown by ``margin_px`` on every side
+        (``-margin <= u < width + margin``, likewise v)."""
+        p = np.asarray(p, float)
+        ok = p[:, 2] > MIN_DEPTH_M
+        uv = self.project(p[ok])
+        inside = (uv[:, 0] >= -margin_px) & (uv[:, 0] < self.width + margin_px) \
+            & (uv[:, 1] >= -margin_px) & (uv[:, 1] < self.height + margin_px)
+        ok[np.flatnonzero(ok)[~inside]] = False
+        return ok
 
     def triangulate(self, u: np.ndarray, v: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """Back-project left pixels with disparities (px) to points (N, 3) in the left camera frame."""

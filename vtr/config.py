@@ -1,6 +1,6 @@
 """One typed configuration for the whole pipeline, with every default documented here.
 
-Defaults follow the open-source VT&R3 stack (DESIGN.md §4); benchmarks decide changes. A config
+Defaults follow the open-source VT&R3 stack (docs/README.md); benchmarks decide changes. A config
 loads from YAML (or TOML) holding any subset of the sections below; unknown keys are errors.
 Dump the resolved defaults with ``vtr config``.
 """

@@ -27,3 +27,27 @@ class MapError(VtrError):
 
 class EstimationError(VtrError):
     """An estimator received invalid input (NaN pose, non-SE(3) matrix, non-PSD covariance...)."""
+
+
+class Terminated(BaseException):  # noqa: N818 - a signal, named like KeyboardInterrupt
+    """SIGTERM turned into an exception by the ``vtr`` command: an orderly exit, like ``KeyboardInterrupt``
+    (not an ``Exception``, so no ``except Exception`` swallows it); runs in progress end ``aborted``."""
+
+
+def interruption(exc: BaseException) -> KeyboardInterrupt | Terminated | None:
+    """The ``KeyboardInterrupt`` or ``Terminated`` that ``exc`` is, or that directly caused it, else None.
+
+    A signal handler that raises while compiled code (a numba kernel) is returning surfaces as a
+    ``SystemError`` ("returned a result with an exception set") whose ``__cause__`` chain holds the
+    signal's exception; Ctrl-C and SIGTERM must still end a run in order, not as a crash.
+    """
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt | Terminated):
+            return e
+        if not isinstance(e, SystemError):
+            return None
+        seen.add(id(e))
+        e = e.__cause__
+    return None

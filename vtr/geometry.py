@@ -3,9 +3,15 @@
 Thin wrappers over GTSAM's Lie-group maps (``Pose3.Expmap``/``Logmap``) and SciPy's rotations,
 so the rest of the package stays in plain float64 arrays. Tangent vectors follow GTSAM's
 ordering ``xi = [omega, v]`` (rotation first, radians; translation second, metres).
+
+Pose covariances (6x6, same tangent order) have one owner here: :func:`check_covariance` (the
+validation the map and the smoother apply) and :func:`usable_covariance` (the one repair rule for
+estimates that are degenerate or unknown). See ``docs/frames.md``.
 """
 
 from __future__ import annotations
+
+from typing import overload
 
 import gtsam
 import numpy as np
@@ -14,6 +20,11 @@ from scipy.spatial.transform import Rotation
 from .errors import EstimationError, VtrError
 
 SE3_TOLERANCE = 1e-6   # max deviation of R R^T from I and of the last row from [0 0 0 1]
+COVARIANCE_SYMMETRY_RTOL = 1e-9    # |C - C^T| allowed, relative to max |C|
+COVARIANCE_PSD_RTOL = 1e-9         # negative eigenvalue allowed (semi-definite check), relative to the largest
+MAX_COVARIANCE_CONDITION = 1e14    # larger condition numbers are treated as singular (definite check)
+MIN_EIGENVALUE_RATIO = 1e-12       # usable_covariance floors eigenvalues at this fraction of the largest
+POSE_DIM = 6                       # pose tangent dimension [rot, trans]
 _I3 = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
@@ -120,3 +131,64 @@ def check_se3(T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE
     if np.abs(R @ R.T - _I3).max() > tol or det < 0:
         raise error(f"{what}: rotation block is not orthonormal with det +1")
     return T
+
+
+def check_covariance(C: np.ndarray, what: str = "covariance", error: type[VtrError] = EstimationError,
+                     definite: bool = False) -> np.ndarray:
+    """Validate a 6x6 pose covariance; return its symmetric part as float64 or raise ``error`` naming ``what``.
+
+    Checks shape, finiteness and symmetry (to ``COVARIANCE_SYMMETRY_RTOL`` of its largest entry); then
+    positive semi-definiteness (to ``COVARIANCE_PSD_RTOL``), or with ``definite`` a non-zero matrix that is
+    positive definite with condition number at most ``MAX_COVARIANCE_CONDITION`` (an invertible
+    measurement covariance).
+    """
+    try:
+        C = np.array(C, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise error(f"{what}: not a numeric 6x6 matrix ({err})") from err
+    if C.shape != (POSE_DIM, POSE_DIM):
+        raise error(f"{what}: expected a 6x6 matrix, got shape {C.shape}")
+    if not np.all(np.isfinite(C)):
+        raise error(f"{what}: contains NaN or infinity")
+    scale = float(np.max(np.abs(C)))
+    if definite and scale == 0.0:
+        raise error(f"{what}: not a symmetric non-zero matrix")
+    if np.max(np.abs(C - C.T)) > COVARIANCE_SYMMETRY_RTOL * max(scale, 1e-300):
+        raise error(f"{what}: not symmetric")
+    C = 0.5 * (C + C.T)
+    eig = np.linalg.eigvalsh(C)
+    if definite:
+        if eig[0] <= 0.0 or eig[-1] / eig[0] > MAX_COVARIANCE_CONDITION:
+            raise error(f"{what}: not positive definite (eigenvalues {eig[0]:.3g} … {eig[-1]:.3g}); "
+                        "a measurement covariance must be invertible")
+    elif eig[0] < -COVARIANCE_PSD_RTOL * max(float(eig[-1]), 0.0):
+        raise error(f"{what}: not positive semi-definite (smallest eigenvalue {eig[0]:.3g})")
+    return C
+
+
+@overload
+def usable_covariance(C: np.ndarray, unknown_variance: None = None) -> np.ndarray | None: ...
+
+
+@overload
+def usable_covariance(C: np.ndarray, unknown_variance: float) -> np.ndarray: ...
+
+
+def usable_covariance(C: np.ndarray, unknown_variance: float | None = None) -> np.ndarray | None:
+    """The nearest covariance every consumer accepts: symmetric, eigenvalues floored at
+    ``MIN_EIGENVALUE_RATIO`` times the largest (so it is invertible with a bounded condition number).
+
+    An estimate that carries no information (not a finite 6x6 matrix, e.g. NaN from a singular
+    solve, or without a positive eigenvalue) gives ``unknown_variance * I`` when ``unknown_variance``
+    is given (the variance of an edge nothing measured), else ``None``.
+    """
+    C = np.asarray(C, float)
+    unknown = None if unknown_variance is None else np.eye(POSE_DIM) * float(unknown_variance)
+    if C.shape != (POSE_DIM, POSE_DIM) or not np.all(np.isfinite(C)):
+        return unknown
+    C = 0.5 * (C + C.T)
+    w, V = np.linalg.eigh(C)
+    if w[-1] <= 0:
+        return unknown
+    C = (V * np.maximum(w, w[-1] * MIN_EIGENVALUE_RATIO)) @ V.T
+    return 0.5 * (C + C.T)

@@ -74,16 +74,17 @@ class FrameKind(StrEnum):
 
 @dataclass(frozen=True)
 class Keyframe:
-    """A vertex of the teach path: its stereo frame, pose and the edge from the previous keyframe.
+    """A keyframe from odometry: its stereo frame, camera pose in the run's world and what odometry measured.
 
-    ``T_prev_kf`` maps this keyframe's camera coordinates into the previous keyframe's camera;
-    ``edge_covariance`` is its 6x6 covariance ([rot, trans], GTSAM tangent order).
+    ``edge_covariance`` (6x6, [rot, trans], GTSAM tangent order) and ``edge_inliers`` describe the
+    odometry estimate of this keyframe's pose; the map's temporal edge from the run's previous vertex
+    (:meth:`vtr.map.Map.add_keyframe`, the one way a keyframe reaches the map) takes them, with the
+    relative transform from the two stored poses.
     """
 
     id: int
     frame: StereoFrame
     T_world_kf: np.ndarray
-    T_prev_kf: np.ndarray
     edge_covariance: np.ndarray
     edge_inliers: int
 

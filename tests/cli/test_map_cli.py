@@ -74,8 +74,8 @@ def test_map_info(route_map):
     assert "size on disk:" in out and f"({route_map.stat().st_size} bytes)" in out
     assert "camera: 1226x370 fx=700.00" in out
     rows = [line.split() for line in out.splitlines() if line.startswith("  ") and "source" not in line]
-    assert rows == [["0", "teach", "yes", "yes", "5", "datasets/kitti06_clip"],
-                    ["1", "repeat", "no", "yes", "3", "odd", "frames"]]
+    assert rows == [["0", "teach", "yes", "finished", "5", "datasets/kitti06_clip"],
+                    ["1", "repeat", "no", "finished", "3", "odd", "frames"]]
     j = json.loads(invoke("map", "info", route_map, "--json").output)
     assert (j["vertices"], j["edges"], j["landmarks"], j["format_version"]) == (8, 7, 160, MAP_FORMAT_VERSION)
     assert [r["kind"] for r in j["run_list"]] == ["teach", "repeat"] and j["camera"]["fx"] == 700.0

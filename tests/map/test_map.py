@@ -88,8 +88,9 @@ def frame_of(frame: StereoFrame) -> dict[str, np.ndarray]:
 
 def digest(rec: VertexRecord) -> str:
     h = hashlib.sha256()
+    stored = frame_of(rec.frame)
     for name in ARRAYS:
-        a = getattr(rec, name)
+        a = stored[name]
         h.update(f"{name}{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())
     h.update(rec.T_world_vertex.tobytes())
@@ -135,20 +136,22 @@ def test_round_trip_is_byte_exact(tmp_path):
         assert m.format_version == MAP_FORMAT_VERSION
         assert m.camera.to_dict() == CAMERA.to_dict()
         [info] = m.runs()
-        assert info == RunInfo(0, "teach", True, "synthetic", info.created, len(frames), finished=True)
+        assert info == RunInfo(0, "teach", True, "synthetic", info.created, len(frames), state="finished")
         ids = m.vertex_ids(0)
         assert ids.dtype == np.int64 and ids.tolist() == [vertex_id(0, i) for i in range(len(frames))]
         for i, (vid, frame, T) in enumerate(zip(ids, frames, poses, strict=True)):
             rec = m.vertex(int(vid))
-            assert (rec.id, rec.run, rec.index, rec.t_ns, rec.frame_index) == (vid, 0, i, frame.t_ns, frame.index)
+            assert (rec.id, rec.run, rec.index, rec.t_ns, rec.frame.index) == (vid, 0, i, frame.t_ns, frame.index)
             assert rec.T_world_vertex.tobytes() == T.tobytes()
             assert np.array_equal(rec.T_vehicle_sensor, CAMERA.T_vehicle_sensor)
+            stored = frame_of(rec.frame)
+            assert rec.frame.t_ns == rec.t_ns and not rec.frame.features.response.any()  # responses not stored
             for name, src in frame_of(frame).items():
-                got = getattr(rec, name)
+                got = stored[name]
                 assert got.dtype == src.dtype and got.shape == src.shape, name
                 assert got.tobytes() == src.tobytes(), name
             assert np.array_equal(rec.landmark_mask, np.isfinite(frame.points).all(axis=1))
-            assert not rec.points.flags.writeable  # shared through the cache: read-only
+            assert not rec.frame.points.flags.writeable  # shared through the cache: read-only
         ids_p, T_p = m.poses(0)
         assert np.array_equal(ids_p, ids) and T_p.tobytes() == np.stack(poses).tobytes()
         edges = m.edges()
@@ -230,7 +233,7 @@ def test_sigkill_mid_teach_keeps_every_committed_vertex(tmp_path):
         assert set(printed) <= set(stored.tolist())
         assert stored.tolist() == list(range(len(stored)))  # no gap: vertices are atomic
         for vid in stored:
-            assert m.vertex(int(vid)).points.shape == (200, 3)
+            assert m.vertex(int(vid)).frame.points.shape == (200, 3)
         assert len(m.edges(run=0)) in (len(stored) - 1, len(stored) - 2)
         [info] = m.runs()
         assert info.kind == "teach" and not info.finished
@@ -321,7 +324,7 @@ def test_empty_map_opens_and_has_no_taught_path(tmp_path):
     with Map.open(path, "a") as m:
         m.begin_run("repeat")  # a repeat alone is no taught path either
         with pytest.raises(MapError, match="map has no taught run"):
-            m.privileged_poses()
+            m.taught_path()
 
 
 def test_camera_mismatch(tmp_path):
@@ -425,7 +428,7 @@ def test_bad_edges_and_vertices_write_nothing(tmp_path):
         f = make_frame(rng, 4)
         f64 = StereoFrame(5, 5, Features(f.features.uv, f.features.octave.astype(np.int64), f.features.response,
                                          f.features.descriptors), f.u_right, f.points)
-        assert m.add_vertex(run, 3, pose(3.0), f64).octave.dtype == np.int32
+        assert m.add_vertex(run, 3, pose(3.0), f64).frame.features.octave.dtype == np.int32
     with Map.open(path) as m:
         assert m.stats()["vertices"] == 4 and m.stats()["edges"] == 1
 
@@ -460,7 +463,7 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
         assert m.open_run == rep
         # ... nor by raw SQL on the file (triggers)
         for sql in ("UPDATE vertices SET t_ns = 0 WHERE run = 0", "DELETE FROM vertex_data WHERE id = 0",
-                    "UPDATE edges SET inliers = 0", "UPDATE runs SET finished = 0 WHERE id = 0",
+                    "UPDATE edges SET inliers = 0", "UPDATE runs SET state = 'running' WHERE id = 0",
                     "INSERT INTO vertices VALUES (7, 0, 7, 0, zeroblob(128), zeroblob(128), 0, 0, 0)"):
             with pytest.raises(sqlite3.IntegrityError):
                 m._conn.execute(sql)
@@ -496,8 +499,12 @@ def test_window_nearest_and_poses_without_features(tmp_path):
         m._conn.set_authorizer(authorizer)
         path_ids = m.privileged_path()
         assert path_ids.tolist() == [vertex_id(0, i) for i in range(n)]
-        ids, T = m.privileged_poses()
-        assert np.allclose(T[:, 0, 3], xs)
+        taught = m.taught_path()
+        ids, T = taught.ids, taught.T_world_vertex
+        assert np.allclose(T[:, 0, 3], xs) and taught.t_ns.tolist() == list(range(n))
+        assert taught.index(vertex_id(0, 7)) == 7 and taught.window(2, 10, 3) == (0, 6)
+        assert taught.segment(3, 5).ids.tolist() == [vertex_id(0, 3), vertex_id(0, 4)]
+        assert np.allclose(taught.arc_length_m()[-1], np.sum(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)))
         assert m.window(vertex_id(0, 20), 10, 20) == [vertex_id(0, i) for i in range(10, 40)]
         assert m.window(vertex_id(0, 2), 10, 3) == [vertex_id(0, i) for i in range(0, 6)]
         assert m.window(vertex_id(0, 38), 1, 20) == [vertex_id(0, i) for i in range(37, 40)]
@@ -604,21 +611,26 @@ def test_add_keyframe_writes_vertex_and_edge_together(tmp_path):
     path = tmp_path / "kf.vtrmap"
     with Map.create(path, CAMERA) as m:
         run = m.begin_run("teach")
-        T_prev = np.eye(4)
         for i in range(3):
             T = pose(0.4 * i, 0.02 * i)
-            kf = Keyframe(i, make_frame(rng, 10, index=3 * i), T, inv(T_prev) @ T, cov(), 60 + i)
+            kf = Keyframe(i, make_frame(rng, 10, index=3 * i), T, cov(), 60 + i)
             v = m.add_keyframe(run, kf)
-            assert (v.index, v.frame_index, v.t_ns) == (i, 3 * i, kf.frame.t_ns)
-            T_prev = T
-        bad = Keyframe(3, make_frame(rng, 10, index=9), pose(1.2), pose(0.4), -cov(), 5)
+            assert (v.index, v.frame.index, v.t_ns, v.frame.t_ns) == (i, 3 * i, kf.frame.t_ns, kf.frame.t_ns)
+        bad = Keyframe(3, make_frame(rng, 10, index=9), pose(1.2), -cov(), 5)
         with pytest.raises(MapError, match="positive semi-definite"):
             m.add_keyframe(run, bad)  # neither the vertex nor its edge is written
         assert len(m.vertex_ids(run)) == 3
-        resumed = Keyframe(0, make_frame(rng, 10, index=12), pose(1.6), np.eye(4), np.zeros((6, 6)), 0)
+        resumed = Keyframe(0, make_frame(rng, 10, index=12), pose(1.6), np.zeros((6, 6)), 0)
         assert m.add_keyframe(run, resumed, link_previous=False).index == 3
+        unknown = Keyframe(4, make_frame(rng, 10, index=15), pose(2.0), np.full((6, 6), np.nan), 0)
+        with pytest.raises(MapError, match="NaN"):
+            m.add_keyframe(run, unknown)
+        assert m.add_keyframe(run, unknown, unknown_variance=100.0).index == 4   # not estimated: stored as unknown
     with Map.open(path) as m:
         edges = m.edges(run=0)
         assert [(e.from_id, e.to_id, e.kind, e.inliers) for e in edges] == [(0, 1, "temporal", 61),
-                                                                              (1, 2, "temporal", 62)]
-        assert np.allclose(m.vertex(1).T_world_vertex @ edges[1].T_from_to, m.vertex(2).T_world_vertex)
+                                                                              (1, 2, "temporal", 62),
+                                                                              (3, 4, "temporal", 0)]
+        for e in edges:   # the edge is the relative pose of the two stored vertices
+            assert np.allclose(m.vertex(e.from_id).T_world_vertex @ e.T_from_to, m.vertex(e.to_id).T_world_vertex)
+        assert np.array_equal(edges[2].covariance, np.eye(6) * 100.0)

@@ -16,8 +16,8 @@ from vtr.config import Config
 from vtr.errors import ConfigError
 from vtr.geometry import inv_T, make_T
 from vtr.io.trajectory import read_tum
-from vtr.map import Map
-from vtr.navigation.localization import Localization
+from vtr.map import Map, TaughtPath
+from vtr.navigation.localization import Localization, LocalizationChain
 from vtr.navigation.repeat import RepeatStep
 from vtr.navigation.repeat_state import (
     STATE_CSV_HEADER,
@@ -60,7 +60,7 @@ def test_state_csv_layout(kitti_run):
     for a in (s.position, s.velocity, s.acceleration, s.yaw, s.lateral, s.vertical, s.along_track):
         assert np.all(np.isfinite(a))
     with Map.open(d / "route.vtrmap") as m:
-        ids, _ = m.privileged_poses()
+        ids = m.taught_path().ids
     assert set(s.trunk_id) <= set(ids.tolist())
     assert np.all(np.diff(s.along_track) > 0)        # the car drives forward along the taught path
     state = json.loads((out / "run.json").read_text())["summary"]["state"]
@@ -77,8 +77,9 @@ def test_state_matches_localized_poses(kitti_run):
     t_frames, T_teach = read_tum(out / "trajectory_tum.txt")
     loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
     with Map.open(d / "route.vtrmap") as m:
-        ids, T_priv = m.privileged_poses()
-        clog = ControllerLog(Config(), ids, T_priv, m.camera.T_vehicle_sensor)
+        taught = m.taught_path()
+        clog = ControllerLog(Config(), LocalizationChain(taught, Config().localization), m.camera.T_vehicle_sensor)
+    ids = taught.ids
     index = {int(v): i for i, v in enumerate(ids)}
     offsets = []
     for t, trunk, ok in zip(loc["t_ns"], loc["trunk_id"], loc["success"], strict=True):
@@ -141,13 +142,18 @@ def test_output_times():
         output_times(0, 10, float("inf"))
 
 
+def _chain(ids: np.ndarray, T_priv: np.ndarray) -> LocalizationChain:
+    """A chain on a taught path of these ids and poses (times one second apart)."""
+    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config().localization)
+
+
 def test_level_camera_frame_o():
     """Identity T_vehicle_sensor: o has z up = -y of the first camera, x along the trunk camera's z."""
     yaw = np.radians(30.0)
     c, s = np.cos(yaw), np.sin(yaw)
     R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
     T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
-    clog = ControllerLog(Config(), np.array([0, 1]), T_priv, np.eye(4))
+    clog = ControllerLog(Config(), _chain(np.array([0, 1]), T_priv), np.eye(4))
     for k in range(2):
         T_wt, T_o_t = clog.trunk_frame(k)
         C_world_o = T_wt[:3, :3] @ T_o_t[:3, :3].T
@@ -165,14 +171,14 @@ OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])   # repeat world in the teach world:
 def _synthetic_steps(n: int, failed: set[int]):
     """Repeat steps on a straight taught path (vertices every metre along the camera z axis)."""
     T_priv = np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)])
-    steps, prev = [], None
+    steps = []
     for j in range(n):
         t = j * DT_NS
         T_w = make_T(np.eye(3), [0.0, 0.0, SPEED * t * 1e-9])
         T_teach = OFFSET @ T_w
         trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
-        kf = Keyframe(j, None, T_w, np.eye(4) if prev is None else inv_T(prev) @ T_w, cov, 100)
+        kf = Keyframe(j, None, T_w, cov, 100)
         odo = OdometryResult(t, j, FrameKind.CREATE_VERTEX, 100, 100, max(j - 1, 0), np.eye(4), T_w,
                              cov if j else np.zeros((6, 6)), kf)
         ok = j not in failed
@@ -181,7 +187,6 @@ def _synthetic_steps(n: int, failed: set[int]):
                            np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan), 0, 0.0)
         T_chain = T_teach if not failed.issuperset(range(j + 1)) else T_w     # the chain's assumption until then
         steps.append(RepeatStep(odo, loc, 1000 + j, T_chain))
-        prev = T_w
     return np.arange(n), T_priv, steps
 
 
@@ -189,7 +194,7 @@ def _synthetic_steps(n: int, failed: set[int]):
 def test_anchored_at_first_localization(T_vehicle_sensor):
     """The first three localizations fail: the vertices wait and are placed by the first success."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})
-    clog = ControllerLog(Config(), ids, T_priv, T_vehicle_sensor)
+    clog = ControllerLog(Config(), _chain(ids, T_priv), T_vehicle_sensor)
     for step in steps:
         clog.add(step)
     clog.finish()
@@ -205,7 +210,7 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
 
 def test_never_localized_uses_chain_assumption():
     ids, T_priv, steps = _synthetic_steps(10, failed=set(range(10)))
-    clog = ControllerLog(Config(), ids, T_priv, np.eye(4))
+    clog = ControllerLog(Config(), _chain(ids, T_priv), np.eye(4))
     for step in steps:
         clog.add(step)
     clog.finish()

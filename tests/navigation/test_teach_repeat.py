@@ -71,10 +71,39 @@ def test_kitti_repeat_localizes_against_ground_truth(kitti_clip, kitti_map, tmp_
     header = (out / "landmarks.csv").read_text().splitlines()[0].split(",")
     assert header[:8] == ["t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg",
                           "range_m"]
+    _check_landmarks_file_and_fit(out, tmp_path)
     loc_rows = (out / "localization.csv").read_text().splitlines()
     assert len(loc_rows) == summary.vertices + 1
     assert (out / "report.png").stat().st_size > 10_000
     assert (out / "trajectory_tum.txt").is_file() and (out / "run.json").is_file()
+
+
+def _check_landmarks_file_and_fit(out, tmp_path):
+    """landmarks.csv of a real repeat, read back by perception_model's reader, is fitted by the CLI."""
+    import csv
+    import json
+
+    from click.testing import CliRunner
+
+    from perception_model.cli import main as pm_main
+    from perception_model.landmarks_file import read_landmarks
+
+    obs = read_landmarks(out / "landmarks.csv")
+    with open(out / "localization.csv", newline="") as fh:
+        ok = [r for r in csv.DictReader(fh) if r["success"] == "1"]
+    assert {(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"])) for r in ok} == set(
+        zip(obs.t_ns.tolist(), obs.leaf_id.tolist(), obs.trunk_id.tolist(), strict=True))
+    assert obs.matched is not None and not (obs.inlier & ~obs.matched).any()
+    for r in ok:  # the inliers of a localization that lie in the leaf's view
+        assert 0 < obs.inlier[obs.t_ns == int(r["t_ns"])].sum() <= int(r["inliers"])
+    assert (obs.alpha >= 0).all() and (obs.theta < np.pi / 2).all() and (obs.range_m > 0).all()
+    model = tmp_path / "model.json"
+    res = CliRunner().invoke(pm_main, ["fit", str(out / "landmarks.csv"), "--out", str(model), "--holdout", "0",
+                                       "--min-bin-count", "3"])
+    assert res.exit_code == 0, res.output
+    fitted = json.loads(model.read_text())
+    assert 0 < fitted["c1"] <= 1 and fitted["data"]["n_observations"] == len(obs)
+    assert fitted["data"]["n_localizations"] == len(ok)
 
 
 def test_map_reopens_in_new_process_and_teach_run_is_untouched(kitti_clip, kitti_map, tmp_path):

@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from perception_model.cli import main
-from perception_model.io import write_landmarks_csv
+from perception_model.landmarks_file import write_landmarks as write_landmarks_csv
 from perception_model.model import PerceptionModel
 from perception_model.synthetic import ground_scene, simulate_observations
 

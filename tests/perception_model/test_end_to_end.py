@@ -1,7 +1,7 @@
 """The perception model end to end on imagery.
 
-- A short synthetic aerial teach repeated at lateral and vertical offsets writes landmarks.csv;
-  both fits (through tools/perception_end_to_end.py's analysis) find the inlier probability
+- A short synthetic aerial teach repeated at lateral and vertical offsets (``vtr.app.offsets``) writes
+  landmarks.csv; both fits (``perception_model.analysis.analyse``) find the inlier probability
   falling with parallax (c3 < 0, its interval below 0) with finite R^2 and log-loss.
 - ``perception-model constraint --map`` on a small KITTI teach map: one row per position, mu > 0,
   sigma >= 0, trunks are the nearest taught vertices; the yaw convention; one-line errors.
@@ -10,46 +10,33 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import io
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from perception_model.analysis import analyse, table
 from perception_model.cli import main
 from perception_model.map_landmarks import camera_rotation_from_yaw, yaw_pitch_of_axis
 from perception_model.model import PerceptionModel
 
-TOOLS = Path(__file__).resolve().parents[2] / "tools"
 LENGTH_M = 12.0
 RAMP_M = 3.0
 OFFSETS = [(0.0, 0.0), (4.0, 2.0)]  # (lateral left, vertical up), metres
 KITTI_TEACH = "0:12:2"
 
 
-def _load_tool(name: str):
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_synthetic_repeats_fit_falls_with_parallax(tmp_path):
-    offsets = _load_tool("synthetic_offsets")
-    e2e = _load_tool("perception_end_to_end")
-    rows = offsets.run(tmp_path, [], [], LENGTH_M, ramp_m=RAMP_M, offsets=OFFSETS)
+    from vtr.app.offsets import repeat_name, run_offset_repeats
+
+    rows = run_offset_repeats(tmp_path, [], [], LENGTH_M, ramp_m=RAMP_M, offsets=OFFSETS)
     assert [(r["lateral_m"], r["vertical_m"]) for r in rows] == OFFSETS
     assert all(r["localized"] > 0 for r in rows), rows
-    files = [tmp_path / offsets.repeat_name(dy, dz) / "landmarks.csv" for dy, dz in OFFSETS]
-    summary = e2e.analyse("synthetic", files, tmp_path, seed=0)
-    print(e2e.table([summary]))
+    files = [tmp_path / repeat_name(dy, dz) / "landmarks.csv" for dy, dz in OFFSETS]
+    summary = analyse("synthetic", files, tmp_path, seed=0)
+    print(table([summary]))
     assert summary["alpha_deg_percentiles"]["95"] > 5.0  # the offsets give real parallax
     for method in ("binned", "mle"):
         fit = summary["fits"][method]
@@ -61,8 +48,8 @@ def test_synthetic_repeats_fit_falls_with_parallax(tmp_path):
             assert math.isfinite(fit[key]), (method, key, fit[key])
         assert (tmp_path / f"fit_{method}.png").stat().st_size > 10_000
         assert PerceptionModel.load(tmp_path / f"model_{method}.json").constants[2] == pytest.approx(c3["estimate"])
-    table = e2e.table([summary])
-    assert "synthetic binned" in table and "synthetic mle" in table
+    report = table([summary])
+    assert "synthetic binned" in report and "synthetic mle" in report
 
 
 # --------------------------------------------------------------------------- constraint --map
@@ -88,7 +75,8 @@ def test_constraint_on_a_taught_map(kitti_map, tmp_path):
     from vtr.map import Map
 
     with Map.open(kitti_map) as m:
-        ids, T = m.privileged_poses()
+        taught = m.taught_path()
+    ids, T = taught.ids, taught.T_world_vertex
     # half a metre right of and 0.3 m ahead of every taught vertex (map frame: x right, y down, z forward)
     pos = T[:, :3, 3] + np.array([0.5, 0.0, 0.3])
     positions = tmp_path / "pos.csv"

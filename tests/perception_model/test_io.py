@@ -8,15 +8,14 @@ import numpy as np
 import pytest
 
 from perception_model.errors import InputDataError
-from perception_model.io import (
+from perception_model.io import read_points, read_positions
+from perception_model.landmarks_file import (
     LANDMARK_COLUMNS,
     Observations,
-    read_landmarks_csv,
-    read_landmarks_csvs,
-    read_points,
-    read_positions,
-    write_landmarks_csv,
 )
+from perception_model.landmarks_file import read_landmarks as read_landmarks_csv
+from perception_model.landmarks_file import read_landmarks_files as read_landmarks_csvs
+from perception_model.landmarks_file import write_landmarks as write_landmarks_csv
 from perception_model.model import PerceptionModel
 from perception_model.synthetic import simulate_observations
 

@@ -21,6 +21,7 @@ from ..conventions import NS_PER_S
 from ..errors import DataError
 from ..io.base import FrameSource
 from ..io.kitti_writer import KittiWriter
+from ..io.outputs import check_new_output
 from ..io.rosbag import ROS1_SUFFIX
 from ..io.rosbag_writer import RosbagWriter
 
@@ -84,8 +85,7 @@ def convert(source: FrameSource, out: str | Path, to: str | None = None, indices
         raise DataError(f"unknown target {to!r} (one of {', '.join(TARGETS)})")
     if to == "rosbag1" and out.suffix != ROS1_SUFFIX:
         raise DataError(f"{out}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
-    if out.exists() and not (to == "kitti" and out.is_dir() and not any(out.iterdir())):
-        raise DataError(f"{out}: already exists (not overwriting)")
+    check_new_output(out, can_force=False, empty_folder_ok=to == "kitti")
     if not out.parent.exists():
         raise DataError(f"{out.parent}: no such folder")
     idx = list(range(len(source))) if indices is None else [int(i) for i in indices]

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from ..types import FrameKind, FrameRecord
 from ..vo.odometry import StereoOdometry
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
 from .runlog import RunLog
+
+if TYPE_CHECKING:
+    from perception_model.landmarks_file import LandmarksWriter
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
@@ -41,8 +45,8 @@ class OdometrySummary:
         return self.frames / self.seconds if self.seconds > 0 else float("nan")
 
     def to_dict(self) -> dict:
-        d = {"frames": self.frames, "keyframes": self.keyframes, "failures": self.failures,
-             "seconds": self.seconds, "fps": self.fps}
+        d: dict[str, object] = {"frames": self.frames, "keyframes": self.keyframes, "failures": self.failures,
+                                "seconds": self.seconds, "fps": self.fps}
         if self.drift is not None:
             d["drift"] = self.drift.to_dict()
         return d
@@ -131,7 +135,10 @@ class TeachSummary:
 
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
                   fmt: str | None = None, progress: Callable | None = None) -> TeachSummary:
-    """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path)."""
+    """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path).
+
+    The run ends finished, or aborted with the reason on any exception (the keyframes still in the
+    odometry window are written first); a teach that wrote no vertex leaves no map file."""
     from ..map import Map
     from ..navigation.teach import Teach
 
@@ -141,9 +148,13 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
-            for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
-                results.append(teach.process(images).record())
-            n_vertices = teach.finish()
+            try:
+                for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
+                    results.append(teach.process(images).record())
+                n_vertices = teach.finish()
+            except BaseException as err:  # error, Ctrl-C, SIGTERM, full disk: keep the window, say why
+                teach.abort(err)          # (a map left without any vertex is removed when it closes)
+                raise
             _, t_taught = m.timestamps(teach.run)
             _, T_taught = m.poses(teach.run)
         seconds = time.perf_counter() - t0
@@ -165,8 +176,6 @@ LOCALIZATION_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id"
                            "x", "y", "z", "qx", "qy", "qz", "qw",
                            "var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z",
                            "consecutive_failures", "distance_since_success_m")
-LANDMARKS_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg",
-                        "range_m", "matched")
 
 
 @dataclass(frozen=True)
@@ -223,36 +232,31 @@ class LocalizationWriter:
                             loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
 
 
-class LandmarksWriter:
-    """Appends the ``landmarks.csv`` rows of a successful localization (input of ``perception-model fit``)."""
-
-    def __init__(self, file):
-        self._csv = csv.writer(file)
-        self._csv.writerow(LANDMARKS_CSV_HEADER)
-
-    def write(self, loc: Localization) -> None:
-        r = loc.landmarks
-        if r is None or not loc.success:
-            return
-        rows = zip(r.landmark_id, r.inlier, np.degrees(r.parallax_rad), np.degrees(r.view_rad), r.range_m, r.matched,
-                   strict=True)
-        self._csv.writerows([loc.t_ns, loc.leaf_id, loc.trunk_id, int(i), int(inl), f"{a:.5f}", f"{v:.5f}",
-                             f"{d:.4f}", int(mt)] for i, inl, a, v, d, mt in rows)
-
-
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
-    """``landmarks.csv`` of a list of localizations."""
-    with open(path, "w", newline="") as f:
-        w = LandmarksWriter(f)
+    """``landmarks.csv`` (``perception_model``'s format and writer) of the successful localizations."""
+    from perception_model.landmarks_file import LandmarksWriter
+
+    with LandmarksWriter(path) as w:
         for loc in locs:
-            w.write(loc)
+            append_landmarks(w, loc)
+
+
+def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
+    """Rows of one localization for ``landmarks.csv``: its landmark record when it succeeded."""
+    if loc.success and loc.landmarks is not None:
+        writer.write(loc.landmarks)
 
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    fmt: str | None = None, progress: Callable | None = None,
-                   rate_hz: float | None = None) -> RepeatSummary:
+                   rate_hz: float | None = None, allow_partial: bool = False) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
-    the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv."""
+    the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
+
+    Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
+    finished once every frame is processed, or aborted with the reason on any exception."""
+    from perception_model.landmarks_file import LandmarksWriter
+
     from ..map import Map
     from ..navigation.repeat import Repeat
     from ..navigation.repeat_state import ControllerLog, check_rate, write_state_csv
@@ -264,13 +268,14 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         indices = parse_frame_range(frames, len(source), str(source_path))
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "repeat", config, [source_path, map_path])
-        repeat = Repeat(m, config, source=str(source_path))
-        clog = ControllerLog(config, repeat.chain.ids, repeat.chain.T_priv, m.camera.T_vehicle_sensor)
+        _check_path_to_follow(m)
+        repeat = Repeat(m, config, source=str(source_path), allow_partial=allow_partial)
+        clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
         t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
         with open(out / "localization.csv", "w", newline="") as loc_file, \
-                open(out / "landmarks.csv", "w", newline="") as lm_file:
-            loc_csv, lm_csv = LocalizationWriter(loc_file), LandmarksWriter(lm_file)
+                LandmarksWriter(out / "landmarks.csv") as lm_csv:
+            loc_csv = LocalizationWriter(loc_file)
             for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
                 step = repeat.process(images)
                 t_loc += repeat.last_localization_seconds
@@ -279,18 +284,19 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                 T_teach.append(step.T_teach_frame)
                 if step.localization is not None:
                     loc_csv.write(step.localization)
-                    lm_csv.write(step.localization)
+                    append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
                     # keep the numbers, not the per-landmark record: memory stays flat on long routes
                     locs.append(dataclasses.replace(step.localization, landmarks=None))
+        m.finish_run()  # every frame is in the map: the run is complete whatever the reports do
         clog.finish()
         state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
         write_state_csv(out / "state.csv", state)
-        t_ns, T_teach = np.array(t_ns, np.int64), np.array(T_teach)
-        write_tum(out / "trajectory_tum.txt", t_ns, T_teach)
-        T_priv = repeat.chain.T_priv
-        errors = distance_to_polyline(T_teach[:, :3, 3], T_priv[:, :3, 3])
-        plot_repeat(out / "report.png", locs, T_priv, T_teach, t_ns, errors, state)
+        t_frames, T_teach_frames = np.array(t_ns, np.int64), np.array(T_teach)
+        write_tum(out / "trajectory_tum.txt", t_frames, T_teach_frames)
+        taught = repeat.chain.path
+        errors = distance_to_polyline(T_teach_frames[:, :3, 3], taught.positions)
+        plot_repeat(out / "report.png", locs, taught, T_teach_frames, t_frames, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
         state_info = {"rate_hz": rate_hz, "rows": len(state),
@@ -302,6 +308,20 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                                 float(np.median(errors)), gt_errors, state_info)
         log.write(summary.to_dict())
     return summary
+
+
+def _check_path_to_follow(m) -> None:
+    """``MapError`` unless the taught path has a segment: path-tracking errors (and the controller's
+    reference path) are undefined on a single point."""
+    from ..errors import EstimationError, MapError
+    from ..state.controller import ReferencePath
+
+    taught = m.taught_path()
+    try:
+        ReferencePath(taught.positions)
+    except EstimationError:
+        raise MapError(f"{m.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two distinct "
+                       "positions to follow): teach a longer route") from None
 
 
 def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:

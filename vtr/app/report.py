@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..map import TaughtPath
 
 
 def _pyplot():
@@ -37,7 +41,7 @@ def plot_trajectory(path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = Non
     plt.close(fig)
 
 
-def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns: np.ndarray,
+def plot_repeat(path: Path, locs, taught: TaughtPath, T_teach: np.ndarray, t_ns: np.ndarray,
                 path_error_m: np.ndarray, state=None) -> None:
     """Repeat report: inliers along the path (failures marked), path-tracking error over time, and the
     taught and repeated paths in plan view (teach run's first camera frame: x right, z forward).
@@ -70,7 +74,7 @@ def plot_repeat(path: Path, locs, T_priv: np.ndarray, T_teach: np.ndarray, t_ns:
     ax2.set_ylabel("error to taught path [m]")
     ax2.set_xlabel("time [s]")
     ax2.grid(True, alpha=0.3)
-    ax3.plot(T_priv[:, 0, 3], T_priv[:, 2, 3], "o-", color="k", ms=3, label="taught (privileged) path")
+    ax3.plot(taught.positions[:, 0], taught.positions[:, 2], "o-", color="k", ms=3, label="taught (privileged) path")
     ax3.plot(T_teach[:, 0, 3], T_teach[:, 2, 3], ".-", color="C0", ms=2, label="repeat")
     ax3.set_xlabel("x [m]")
     ax3.set_ylabel("z [m]")

@@ -1,4 +1,4 @@
-"""``run.json`` and ``config.yaml`` beside every command's outputs (DESIGN.md §3)."""
+"""``run.json`` and ``config.yaml`` beside every command's outputs (docs/architecture.md)."""
 
 from __future__ import annotations
 

@@ -119,7 +119,7 @@ def disparity_samples(source: FrameSource, config: Config, steps: tuple[int, ...
 def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
     """Huber-weighted least squares of ``y = a x + b``: ((a, b), robust sigma)."""
     A = np.column_stack([x, np.ones(len(x))])
-    w = np.ones(len(x))
+    w: np.ndarray = np.ones(len(x))
     coef, sigma = np.zeros(2), float("nan")
     for _ in range(ROBUST_ITERATIONS):
         coef = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)[0]

@@ -1,6 +1,8 @@
 """The ``vtr`` command: a thin adapter over the library.
 
-Known errors (``VtrError``, missing files) become one line on stderr and exit code 1.
+Known errors (``VtrError``, missing files, full disk and other ``OSError``) become one line on stderr
+and exit code 1; Ctrl-C and SIGTERM end the command in order (runs in progress are recorded as
+aborted) with exit codes 130 and 143.
 Subcommands live in sibling modules and register on ``main``.
 """
 
@@ -11,7 +13,8 @@ import sys
 import click
 
 from .. import __version__
-from ..errors import VtrError
+from ..errors import Terminated, VtrError, interruption
+from .common import EXIT_SIGINT, EXIT_SIGTERM, error_line, sigterm_as_exception
 
 
 def _versions() -> str:
@@ -29,10 +32,20 @@ def _versions() -> str:
 class _Group(click.Group):
     def invoke(self, ctx: click.Context):
         try:
-            return super().invoke(ctx)
-        except (VtrError, FileNotFoundError) as err:
-            click.echo(f"vtr: error: {err}", err=True)
+            with sigterm_as_exception():
+                return super().invoke(ctx)
+        except (VtrError, OSError) as err:
+            click.echo(f"vtr: error: {error_line(err)}", err=True)
             sys.exit(1)
+        except (KeyboardInterrupt, Terminated, SystemError) as err:
+            signal_err = interruption(err)   # a SystemError out of a numba kernel may carry the signal
+            if signal_err is None:
+                raise
+            if isinstance(signal_err, Terminated):
+                click.echo("vtr: terminated (SIGTERM)", err=True)
+                sys.exit(EXIT_SIGTERM)
+            click.echo("vtr: interrupted (Ctrl-C)", err=True)
+            sys.exit(EXIT_SIGINT)
 
 
 @click.group(cls=_Group)

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from . import main
 from .common import format_option, frames_option, source_argument
+
+if TYPE_CHECKING:
+    from ..io import FrameSource
 
 
 @main.command("convert")
@@ -35,13 +39,13 @@ def convert_cmd(source: Path, out: Path, to: str | None, fmt: str | None, frames
     from ..io import open_source, parse_frame_range
     from ..io.rosbag import RosbagSource, is_rosbag
 
-    bag_opts = dict(left_topic=left_topic, right_topic=right_topic, left_info_topic=left_info_topic,
+    bag_opts: dict[str, Any] = dict(left_topic=left_topic, right_topic=right_topic, left_info_topic=left_info_topic,
                     right_info_topic=right_info_topic)
     use_bag = fmt == "rosbag" or (fmt is None and source.exists() and is_rosbag(source))
     if use_bag and (any(bag_opts.values()) or allow_unpaired):
         if not source.exists():
             raise FileNotFoundError(f"{source}: no such file or folder")
-        src = RosbagSource(source, allow_unpaired=allow_unpaired, **bag_opts)
+        src: FrameSource = RosbagSource(source, allow_unpaired=allow_unpaired, **bag_opts)
     else:
         if any(bag_opts.values()) or allow_unpaired:
             raise click.UsageError("topic options and --allow-unpaired apply to ROS bag sources only")

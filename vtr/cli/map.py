@@ -28,7 +28,8 @@ def map_group() -> None:
 @map_argument
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def map_info_cmd(map_path: Path, as_json: bool) -> None:
-    """Runs, vertex/edge/landmark counts, size on disk and format version of MAP."""
+    """Runs (with their state: running, finished, aborted and why, or interrupted when the writing
+    process was killed), vertex/edge/landmark counts, size on disk and format version of MAP."""
     from ..map import Map
 
     with Map.open(map_path, "r") as m:
@@ -40,8 +41,9 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         stats["created"] = created
         stats["camera"] = cam.to_dict()
         stats["run_list"] = [
-            {"id": r.id, "kind": r.kind, "privileged": r.privileged, "finished": r.finished,
-             "vertices": r.n_vertices, "source": r.source, "created": r.created} for r in runs
+            {"id": r.id, "kind": r.kind, "privileged": r.privileged, "state": r.state, "reason": r.reason,
+             "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created}
+            for r in runs
         ]
         click.echo(json.dumps(stats, indent=2))
         return
@@ -54,25 +56,35 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
                f"spatial {stats['spatial_edges']})  landmarks: {stats['landmarks']}  features: {stats['features']}")
     click.echo(f"runs: {stats['runs']}")
     if runs:
-        click.echo(f"  {'id':>4}  {'kind':<6}  {'privileged':<10}  {'finished':<8}  {'vertices':>8}  source")
+        click.echo(f"  {'id':>4}  {'kind':<6}  {'privileged':<10}  {'state':<11}  {'vertices':>8}  source")
         for r in runs:
             click.echo(f"  {r.id:>4}  {r.kind:<6}  {'yes' if r.privileged else 'no':<10}  "
-                       f"{'yes' if r.finished else 'no':<8}  {r.n_vertices:>8}  {r.source or '-'}")
+                       f"{r.state:<11}  {r.n_vertices:>8}  {r.source or '-'}")
+        for r in runs:
+            if r.reason:
+                click.echo(f"  run {r.id} {r.state}: {r.reason}")
+        partial = [r.id for r in runs if r.privileged and not r.finished]
+        if partial:
+            click.echo(f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
+                       "this map unless --allow-partial")
 
 
 @main.command("export-map")
 @map_argument
 @click.option("--ply", "ply_path", type=click.Path(path_type=Path), required=True,
               help="Output point cloud (.ply): landmarks of every run, coloured by run.")
-def export_map_cmd(map_path: Path, ply_path: Path) -> None:
+@click.option("--force", is_flag=True, help="Replace the .ply file if it exists.")
+def export_map_cmd(map_path: Path, ply_path: Path, force: bool) -> None:
     """Export the landmarks of MAP as a PLY point cloud in the first teach run's world frame.
 
     Repeat runs linked to the teach run by spatial edges are placed through them; an unlinked
     run stays in its own world frame (reported as "own frame").
     """
+    from ..io.outputs import check_new_output
     from ..map import Map
     from ..map.export import export_landmarks_ply
 
+    check_new_output(ply_path, force)
     with Map.open(map_path, "r") as m:
         summary = export_landmarks_ply(m, ply_path)
     total = sum(s.points for s in summary)

@@ -46,12 +46,15 @@ def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path 
 @click.argument("tum_file", type=click.Path(path_type=Path))
 @click.argument("out_file", type=click.Path(path_type=Path))
 @click.option("--to", "fmt", type=click.Choice(["tum", "kitti", "euroc"]), required=True)
-def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str) -> None:
+@click.option("--force", is_flag=True, help="Replace OUT_FILE if it exists.")
+def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool) -> None:
     """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
+    from ..io.outputs import check_new_output
     from ..io.trajectory import read_tum, write_trajectory
 
     if not tum_file.is_file():
         raise FileNotFoundError(f"{tum_file}: no such file")
+    check_new_output(out_file, force)
     t_ns, T = read_tum(tum_file)
     write_trajectory(out_file, t_ns, T, fmt)
     click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")

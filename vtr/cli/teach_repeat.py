@@ -23,7 +23,10 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 @format_option
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, config_path: Path | None,
               fmt: str | None) -> None:
-    """Teach a route: odometry over SOURCE, keyframes written to a new map MAP."""
+    """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
+
+    The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
+    the keyframes still in the odometry window are written; a teach that wrote nothing leaves no MAP."""
     from ..app.pipeline import teach_command
 
     summary = teach_command(source, map_path, frames, load_config(config_path), out, fmt, progress_bar())
@@ -38,15 +41,19 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @frames_option
 @click.option("--rate", "rate_hz", type=float, default=None, metavar="HZ",
               help="Rate of the smoothed controller state in state.csv (default: smoothing.rate_hz, 50).")
+@click.option("--allow-partial", is_flag=True,
+              help="Repeat even when the teach run is not finished (aborted or interrupted: route may be cut short).")
 @config_option
 @format_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
-               config_path: Path | None, fmt: str | None) -> None:
-    """Repeat a taught route: localize every new keyframe of SOURCE against the map."""
+               allow_partial: bool, config_path: Path | None, fmt: str | None) -> None:
+    """Repeat a taught route: localize every new keyframe of SOURCE against the map.
+
+    Refuses a map whose teach run did not finish unless --allow-partial."""
     from ..app.pipeline import repeat_command
 
     summary = repeat_command(source, map_path, out, frames, load_config(config_path), fmt, progress_bar(),
-                             rate_hz=rate_hz)
+                             rate_hz=rate_hz, allow_partial=allow_partial)
     for line in summary.lines():
         click.echo(line)
     click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")

@@ -277,7 +277,9 @@ def _read_rows(path: Path, ncols: int | None) -> tuple[np.ndarray, list[list[str
         text = path.read_text()
     except UnicodeDecodeError as err:
         raise DataError(f"{path}: not a text file ({err})") from err
-    t, vals, lines = [], [], []
+    t: list[int] = []
+    vals: list[list[str]] = []
+    lines: list[int] = []
     for lineno, line in enumerate(text.splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -367,7 +369,7 @@ class CloudImages(Sequence):
         if img.ndim == 3:  # colour runs (UTIAS Day/Winter): OpenCV's BGR luma, as for ROS bgr8 images
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
         if img.dtype == np.uint16:
-            img = (img >> MONO16_SHIFT).astype(np.uint8)
+            img = np.right_shift(img, MONO16_SHIFT).astype(np.uint8)
         return MonoImage(int(self.t_ns[index]), index, img)
 
 

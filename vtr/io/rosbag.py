@@ -41,6 +41,7 @@ from array import array
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -117,7 +118,8 @@ class CameraInfoData:
         P = np.hstack([camera.K, np.zeros((3, 1))])
         P_right = P.copy()
         P_right[0, 3] = -camera.fb
-        common = dict(width=camera.width, height=camera.height, K=camera.K, D=np.zeros(5), R=np.eye(3))
+        common: dict[str, Any] = dict(width=camera.width, height=camera.height, K=camera.K, D=np.zeros(5),
+                                      R=np.eye(3))
         return (CameraInfoData(P=P, frame_id=left_frame, **common),
                 CameraInfoData(P=P_right, frame_id=right_frame, **common))
 
@@ -215,14 +217,14 @@ def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
     return sec * NS_PER_S + nsec
 
 
-def _field(msg: object, *names: str):
+def _field(msg: Any, *names: str):
     for n in names:
         if hasattr(msg, n):
             return getattr(msg, n)
     raise AttributeError(names[0])
 
 
-def _info_from_msg(msg: object) -> CameraInfoData:
+def _info_from_msg(msg: Any) -> CameraInfoData:
     return CameraInfoData(
         width=int(msg.width), height=int(msg.height),
         K=np.asarray(_field(msg, "k", "K"), float).reshape(3, 3),
@@ -241,7 +243,7 @@ def _to_grey(img: np.ndarray, where: str, mono16_shift: int) -> np.ndarray:
     return img
 
 
-def decode_image(msg: object, msgtype: str, where: str, mono16_shift: int = MONO16_SHIFT) -> np.ndarray:
+def decode_image(msg: Any, msgtype: str, where: str, mono16_shift: int = MONO16_SHIFT) -> np.ndarray:
     """8-bit greyscale image (H, W) of an ``Image`` or ``CompressedImage`` message."""
     if msgtype == COMPRESSED_MSGTYPE:
         buf = np.asarray(msg.data, np.uint8)
@@ -319,7 +321,7 @@ def _pick_info_topic(topics: dict[str, str], image_topic: str, hints: Sequence[s
 @dataclass
 class _Side:
     topic: str
-    conn: object
+    conn: Any
     msgtype: str
     stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     logs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -355,7 +357,7 @@ class RosbagSource(FrameSource):
         rpath = bag_reader_path(self.path)
         self.ros2 = rpath.suffix != ROS1_SUFFIX
         default = get_typestore(Stores.ROS2_HUMBLE if self.ros2 else Stores.ROS1_NOETIC)
-        self._reader = None
+        self._reader: Any = None     # the open AnyReader
         try:
             reader = AnyReader([rpath], default_typestore=default)
             reader.open()
@@ -421,7 +423,7 @@ class RosbagSource(FrameSource):
         T_raw_rect[:3, :3] = self.left_info.R.T
         self.camera = stereo_camera_from_info(self.left_info, self.right_info, f"{where} [{lit}, {rit}]",
                                               T_root_left @ T_raw_rect)
-        self._maps = None
+        self._maps: Any = None
         if raw:
             self._maps = (_rectify_maps(self.left_info, f"{where} [{lit}]"),
                           _rectify_maps(self.right_info, f"{where} [{rit}]"))
@@ -525,8 +527,8 @@ class RosbagSource(FrameSource):
         left = self._decode(self._left, raw_left, index)
         right = self._decode(self._right, raw_right, index)
         if self._maps is not None:
-            left = cv2.remap(left, *self._maps[0], cv2.INTER_LINEAR)
-            right = cv2.remap(right, *self._maps[1], cv2.INTER_LINEAR)
+            left = cv2.remap(left, *self._maps[0], cv2.INTER_LINEAR)  # type: ignore[call-overload]
+            right = cv2.remap(right, *self._maps[1], cv2.INTER_LINEAR)  # type: ignore[call-overload]
         return StereoImages(int(self._t_ns[index]), index, left, right)
 
     def _read_one(self, side: _Side, log_ns: int, stamp_ns: int, index: int):
@@ -571,10 +573,10 @@ class RosbagSource(FrameSource):
         try:
             for c, _t, raw in self._reader.messages(connections=[*self._left.conn, *self._right.conn],
                                                     start=start, stop=stop):
-                i = want[c.topic].get(header_stamp_ns(raw, self.ros2))
-                if i is None:
+                k = want[c.topic].get(header_stamp_ns(raw, self.ros2))
+                if k is None:
                     continue
-                slot = pending.setdefault(i, [None, None])
+                slot = pending.setdefault(k, [None, None])
                 slot[0 if c.topic == self.left_topic else 1] = raw
                 while pos < len(sel) and sel[pos] in pending and None not in pending[sel[pos]]:
                     raw_l, raw_r = pending.pop(sel[pos])

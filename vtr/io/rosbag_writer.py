@@ -6,6 +6,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import cv2
 import numpy as np
@@ -80,15 +81,15 @@ class RosbagWriter:
 
             self.ts = get_typestore(Stores.ROS2_HUMBLE)
             plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
-            self._writer = Writer(self.path, version=ROS2_BAG_VERSION, storage_plugin=plugin)
-            self._serialize = self.ts.serialize_cdr
+            self._writer: Any = Writer(self.path, version=ROS2_BAG_VERSION, storage_plugin=plugin)  # type: ignore[arg-type]
+            self._serialize: Any = self.ts.serialize_cdr
         else:
-            from rosbags.rosbag1 import Writer
+            from rosbags.rosbag1 import Writer  # type: ignore[assignment]
 
             self.ts = get_typestore(Stores.ROS1_NOETIC)
             if TF_MSGTYPE not in self.ts.types:
                 self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_MSGTYPE))
-            self._writer = Writer(self.path)
+            self._writer = Writer(self.path)  # type: ignore[call-arg]
             self._serialize = self.ts.serialize_ros1
         self._writer.open()
         img_type = COMPRESSED_MSGTYPE if encoding in _COMPRESSED_FORMATS else IMAGE_MSGTYPE

@@ -9,13 +9,19 @@ Typical use (teach, then a repeat localized against it)::
     with Map.open("route.vtrmap", "a") as m:
         m.check_camera(camera)
         rep = m.begin_run("repeat")
-        leaf = m.add_vertex(rep, t_ns, T_world_leaf, frame)
+        leaf = m.add_keyframe(rep, keyframe)     # the leaf
         m.add_edge(leaf.id, trunk_id, T_leaf_trunk, covariance, "spatial", inliers)
+        taught = m.taught_path()                  # TaughtPath: ids, T_world_vertex, t_ns
+        frame = m.vertex(trunk_id).frame          # the trunk's StereoFrame
 
-See :mod:`vtr.map.store` for durability and immutability rules, :mod:`vtr.map.schema` for the file
-layout.
+Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C and SIGTERM too)
+records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
+See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability rules,
+:mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.schema` for the file layout,
+:mod:`vtr.map.codec` for the vertex codec.
 """
 
+from .path import TaughtPath
 from .records import EdgeRecord, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from .store import MAP_FORMAT_VERSION, VERTEX_CACHE_SIZE, Map
 
@@ -25,6 +31,7 @@ __all__ = [
     "EdgeRecord",
     "Map",
     "RunInfo",
+    "TaughtPath",
     "VertexRecord",
     "split_vertex_id",
     "vertex_id",

@@ -62,7 +62,8 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list
         colour = run_colour(order)
         pts.append(p)
         cols.append(np.broadcast_to(colour, p.shape))
-        summary.append(RunExport(r, infos[r].kind, len(p), aligned, tuple(float(c) for c in colour)))
+        rgb = (float(colour[0]), float(colour[1]), float(colour[2]))
+        summary.append(RunExport(r, infos[r].kind, len(p), aligned, rgb))
     points = np.concatenate(pts) if pts else np.empty((0, 3))
     if len(points) == 0:
         raise MapError(f"{map_.path}: the map has no landmarks to export")
@@ -73,6 +74,6 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list
     cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
     cloud.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(np.concatenate(cols), dtype=np.float64))
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False, print_progress=False):
+    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
         raise MapError(f"{path}: open3d could not write the point cloud")
     return summary

@@ -1,22 +1,25 @@
-"""SQLite schema of the map file (format version 1).
+"""SQLite schema of the map file (format version 3, ``vtr.map.store.MAP_FORMAT_VERSION``; docs/map.md).
 
 Tables:
 
 - ``meta(key, value)``: ``format_version``, ``camera`` (JSON of ``StereoCamera.to_dict``), ``created``
   (ISO-8601 UTC), ``vtr_version``, ``compress_level``.
-- ``runs``: one row per teach/repeat session; ``finished`` becomes 1 when the session closes (or
-  a later run begins), after which the run is append-closed.
+- ``runs``: one row per teach/repeat session with its lifecycle ``state``: ``running`` while its
+  session writes it, then once and for all ``finished`` (the session ended in order) or ``aborted``
+  (error, Ctrl-C, SIGTERM, full disk; ``reason`` says why). A run left ``running`` by a process
+  that was killed is shown as ``interrupted`` by the store (no live writer holds the map's lock).
 - ``vertices``: the pose index, one small row per keyframe: ``id = run << 32 | idx``, ``t_ns``,
   ``T_world_vertex`` and ``T_vehicle_sensor`` as 16 little-endian float64 (128-byte blobs,
   row-major), feature/landmark counts and the source frame index. Poses are read from here without
   touching feature data.
-- ``vertex_data(id, data)``: the keyframe arrays behind the magic ``VTRV\\x01``: zlib of the
-  feature count N (uint32) then the raw little-endian bytes of uv (N, 2) float64, octave (N,)
-  int32, descriptors (N, 32) uint8, u_right (N,) float64, points (N, 3) float64, in that order.
+- ``vertex_data(id, data)``: the keyframe's ``StereoFrame`` as written by the vertex codec
+  (:mod:`vtr.map.codec`, blob magic ``VTRV\\x02``: feature count, raw descriptors, then zlib of
+  uv, octave, u_right and points).
 - ``edges``: ``T_from_to`` (128-byte blob), ``covariance`` (6x6, 288-byte blob), kind, inliers.
 
-Triggers make vertices, vertex data and edges append-only, and refuse new vertices or temporal
-edges in a finished run, so a taught run cannot change once its session ended, whatever code
+Triggers make vertices, vertex data and edges append-only, let a run's state only leave
+``running`` (never come back or change again), and refuse new vertices or temporal edges in a
+run that is not running, so a taught run cannot change once its session ended, whatever code
 writes to the file.
 """
 
@@ -37,7 +40,9 @@ CREATE TABLE runs (
     privileged INTEGER NOT NULL CHECK (privileged IN (0, 1)),
     source TEXT NOT NULL,
     created TEXT NOT NULL,
-    finished INTEGER NOT NULL DEFAULT 0 CHECK (finished IN (0, 1))
+    state TEXT NOT NULL DEFAULT 'running' CHECK (state IN ('running', 'finished', 'aborted')),
+    reason TEXT NOT NULL DEFAULT '',
+    CHECK ((state = 'aborted') = (reason <> ''))
 );
 
 CREATE TABLE vertices (
@@ -85,21 +90,21 @@ CREATE TRIGGER edges_append_only_delete BEFORE DELETE ON edges
 BEGIN SELECT RAISE(ABORT, 'map edges are immutable'); END;
 
 CREATE TRIGGER runs_fixed BEFORE UPDATE OF id, kind, privileged, source, created ON runs
-BEGIN SELECT RAISE(ABORT, 'map runs are immutable (only finished may change)'); END;
-CREATE TRIGGER runs_stay_finished BEFORE UPDATE OF finished ON runs WHEN OLD.finished = 1
-BEGIN SELECT RAISE(ABORT, 'a finished run cannot be reopened'); END;
+BEGIN SELECT RAISE(ABORT, 'map runs are immutable (only their state may change)'); END;
+CREATE TRIGGER runs_state_final BEFORE UPDATE OF state, reason ON runs WHEN OLD.state <> 'running'
+BEGIN SELECT RAISE(ABORT, 'a finished or aborted run cannot be reopened'); END;
 CREATE TRIGGER runs_no_delete BEFORE DELETE ON runs
 BEGIN SELECT RAISE(ABORT, 'map runs are immutable'); END;
 
 CREATE TRIGGER vertices_only_in_open_run BEFORE INSERT ON vertices
-WHEN (SELECT finished FROM runs WHERE id = NEW.run) = 1
-BEGIN SELECT RAISE(ABORT, 'cannot add a vertex to a finished run'); END;
+WHEN (SELECT state FROM runs WHERE id = NEW.run) <> 'running'
+BEGIN SELECT RAISE(ABORT, 'cannot add a vertex to a finished or aborted run'); END;
 CREATE TRIGGER temporal_edges_only_in_open_run BEFORE INSERT ON edges
-WHEN NEW.kind = 'temporal' AND (SELECT finished FROM runs WHERE id = (NEW.from_id >> 32)) = 1
-BEGIN SELECT RAISE(ABORT, 'cannot add a temporal edge to a finished run'); END;
+WHEN NEW.kind = 'temporal' AND (SELECT state FROM runs WHERE id = (NEW.from_id >> 32)) <> 'running'
+BEGIN SELECT RAISE(ABORT, 'cannot add a temporal edge to a finished or aborted run'); END;
 CREATE TRIGGER spatial_edges_touch_open_run BEFORE INSERT ON edges
 WHEN NEW.kind = 'spatial'
-    AND (SELECT finished FROM runs WHERE id = (NEW.from_id >> 32)) = 1
-    AND (SELECT finished FROM runs WHERE id = (NEW.to_id >> 32)) = 1
+    AND (SELECT state FROM runs WHERE id = (NEW.from_id >> 32)) <> 'running'
+    AND (SELECT state FROM runs WHERE id = (NEW.to_id >> 32)) <> 'running'
 BEGIN SELECT RAISE(ABORT, 'a spatial edge must touch an open run'); END;
 """

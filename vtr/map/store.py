@@ -1,4 +1,4 @@
-"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges.
+"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges (docs/map.md).
 
 Vertices are keyframes (time, features, descriptors, 3-D landmarks in the vertex camera frame,
 ``T_vehicle_sensor``); edges are relative transforms with covariance, ``temporal`` (odometry
@@ -6,13 +6,25 @@ between consecutive vertices of a run) or ``spatial`` (localization of a repeat 
 taught one). Teach runs are *privileged*: their vertices form the path a repeat follows. Each
 run's poses ``T_world_vertex`` are expressed in that run's first camera frame.
 
-Durability: WAL journal, ``synchronous=FULL``, one transaction per vertex, so a process killed at
-any point leaves a map that opens with every vertex whose ``add_vertex`` returned (and survives
-power loss too). A map appends only to its *open run* (the latest one, while its session lasts);
-beginning a run or closing the session finishes the previous one, after which its vertices and
-temporal edges can never change (enforced by SQLite triggers as well as here). One writing process
-at a time; the per-session caches (vertex LRU, privileged path, k-d tree) do not see writes made
-by other processes after opening.
+Durability: WAL journal while writing, ``synchronous=FULL``, one transaction per vertex, so a
+process killed at any point leaves a map that opens with every vertex whose ``add_vertex``
+(or ``add_keyframe``) returned (and survives power loss too). Closing folds the write-ahead log back into the file and
+returns it to a rollback journal, so a closed map is one self-contained file (copy it alone; open
+it read-only from read-only media).
+
+Run lifecycle (true on disk): a run is ``running`` while its session writes it, then
+``finished`` (orderly end: ``finish_run``, ``close`` or leaving the ``with`` block normally) or
+``aborted`` with a reason (``abort_run``; leaving the ``with`` block on an exception, Ctrl-C or
+SIGTERM does it). A run still marked running when no process holds the map's writer lock was left
+by a killed process and reads as ``interrupted``. A map appends only to its *open run*; finished
+and aborted runs never change (SQLite triggers enforce it as well as this class).
+
+Creation is exclusive: the schema is written to a temporary file beside the target, which is then
+hard-linked to the final name (fails if the name exists), so of two processes creating one map
+exactly one wins and the other's cleanup never touches the winner's file. One writing process at
+a time (``MapLock``: a second writer gets "another process is writing this map"); the per-session
+caches (vertex LRU, privileged path, k-d tree) do not see writes made by other processes after
+opening.
 
 Memory stays bounded on long routes: :meth:`Map.vertex` keeps at most ``cache_size`` decoded
 vertices, and poses, the privileged path, windows and nearest-vertex queries come from the small
@@ -22,11 +34,13 @@ pose index without reading feature data.
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -36,12 +50,19 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, VtrError
-from ..geometry import inv_T
+from ..errors import MapError, Terminated, VtrError, interruption
+from ..geometry import inv_T, usable_covariance
+from .codec import decode_frame, encode_frame
+from .lock import MapLock
+from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
     INDEX_MASK,
+    RUN_ABORTED,
+    RUN_FINISHED,
+    RUN_INTERRUPTED,
     RUN_KINDS,
+    RUN_RUNNING,
     RUN_SHIFT,
     EdgeRecord,
     RunInfo,
@@ -49,29 +70,37 @@ from .records import (
     blob_matrix,
     check_covariance,
     check_transform,
-    count_landmarks,
-    decode_arrays,
-    encode_arrays,
-    frame_arrays,
-    make_vertex_record,
     matrix_blob,
+    one_line_reason,
     split_vertex_id,
     vertex_id,
 )
 from .schema import SCHEMA
 
 if TYPE_CHECKING:
-    from scipy.spatial import cKDTree
-
     from ..types import Keyframe, StereoFrame
 
-MAP_FORMAT_VERSION = 2                # 2: vertex descriptors stored uncompressed (vertex codec 2)
+MAP_FORMAT_VERSION = 3                # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
 APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
 BUSY_TIMEOUT_MS = 10_000             # wait for another connection's write lock before failing
 SYNCHRONOUS = "FULL"                 # fsync the WAL at every commit: durable across power loss too
 MODES = ("r", "a")
+SIDE_FILES = ("-wal", "-shm", "-journal")  # SQLite's files beside a map
+CREATING_SUFFIX = ".creating"        # temporary name of a map being created (hard-linked when complete)
+INTERRUPTED_REASON = "interrupted: its writing process ended without closing the run (killed?)"
+
+
+def abort_reason(exc: BaseException) -> str:
+    """The one-line reason an exception gives an aborted run."""
+    exc = interruption(exc) or exc
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted by Ctrl-C (SIGINT)"
+    if isinstance(exc, Terminated):
+        return "terminated by SIGTERM"
+    text = str(exc)
+    return one_line_reason(f"{type(exc).__name__}: {text}" if text else type(exc).__name__)
 
 
 def _utc_now() -> str:
@@ -93,9 +122,11 @@ def _check_int(value, what: str, minimum: int | None = None) -> int:
     return value
 
 
-def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
+def _connect(path: Path, readonly: bool, immutable: bool = False) -> sqlite3.Connection:
+    """A connection; read-only ones through an ``mode=ro`` URI, or ``immutable=1`` (no locks, no
+    -shm: for a closed map on read-only media)."""
     if readonly:
-        target, uri = path.absolute().as_uri() + "?mode=ro", True
+        target, uri = path.absolute().as_uri() + ("?immutable=1" if immutable else "?mode=ro"), True
     else:
         target, uri = str(path), False
     conn = sqlite3.connect(target, uri=uri, isolation_level=None, check_same_thread=False,
@@ -109,6 +140,30 @@ def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
     return conn
 
 
+def _connect_readonly(path: Path) -> sqlite3.Connection:
+    """Read-only connection: ``mode=ro`` (sees a live writer's commits and a killed writer's log); when
+    that cannot open (a WAL-mode file on read-only media, no -shm), ``immutable=1`` provided no
+    write-ahead log with data lies beside the file."""
+    conn = _connect(path, readonly=True)
+    try:
+        conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
+        return conn
+    except sqlite3.OperationalError as err:
+        conn.close()
+        wal = Path(f"{path}-wal")
+        if wal.exists() and wal.stat().st_size > 0:
+            raise MapError(f"{path}: cannot open read-only ({err}) and {wal.name} holds data not yet in the map: "
+                           "open it once where it can be written (vtr map info on a writable copy of both files)"
+                           ) from err
+    return _connect(path, readonly=True, immutable=True)
+
+
+def _remove_map_files(path: Path) -> None:
+    """Unlink a map and its SQLite side files (only for a map this process created and holds)."""
+    for p in (path, *(Path(f"{path}{s}") for s in SIDE_FILES)):
+        p.unlink(missing_ok=True)
+
+
 class Map:
     """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
 
@@ -116,26 +171,31 @@ class Map:
     """
 
     def __init__(self, path: Path, conn: sqlite3.Connection, mode: str, camera: StereoCamera,
-                 meta: dict[str, str], cache_size: int) -> None:
+                 meta: dict[str, str], cache_size: int, lock: MapLock | None = None,
+                 created: bool = False) -> None:
         self.path = path
         self.mode = mode
         self.camera = camera
         self.meta = dict(meta)
         self.format_version = int(meta["format_version"])
+        self.created = created          # this session created the file (it may remove it if left empty)
         self._conn: sqlite3.Connection | None = conn
+        self._file_lock = lock
         self._lock = threading.RLock()
         self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
         self._cache_size = _check_int(cache_size, "cache_size", 1)
         self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
-        self._path_cache: tuple[int, np.ndarray, np.ndarray] | None = None
-        self._tree_cache: tuple[int, cKDTree] | None = None
+        self._path_cache: tuple[int, TaughtPath] | None = None
         self._open_run: int | None = None
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
+        self._aborted = False           # this session aborted a run
         if mode == "a":
-            row = conn.execute("SELECT id, finished, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
-            if row is not None and not row[1]:
+            # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
+            # the open run (writing to it resumes it) until a new run begins
+            row = conn.execute("SELECT id, state, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+            if row is not None and row[1] == RUN_RUNNING:
                 self._open_run, self._open_run_privileged = int(row[0]), bool(row[2])
 
     # ------------------------------------------------------------ opening
@@ -143,7 +203,13 @@ class Map:
     @classmethod
     def create(cls, path, camera: StereoCamera, config: MapConfig | None = None, *,
                cache_size: int = VERTEX_CACHE_SIZE) -> Map:
-        """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything."""
+        """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
+
+        Atomic and exclusive: the schema is written to a temporary file in the same folder and
+        hard-linked to ``path``, which fails when ``path`` exists; of several processes creating
+        one map exactly one succeeds, the others get "already exists" and remove only their own
+        temporary file. The new map is locked for writing before its name appears.
+        """
         path = Path(path)
         _check_int(cache_size, "cache_size", 1)
         config = config or MapConfig()
@@ -170,29 +236,87 @@ class Map:
             "vtr_version": __version__,
             "compress_level": str(level),
         }
-        conn = None
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}{CREATING_SUFFIX}")
+        try:  # a private name; the mode is the usual 0o666 less the umask (mkstemp would make it 0o600)
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+        except OSError as err:
+            raise MapError(f"{path}: cannot create the map ({err})") from err
+        conn: sqlite3.Connection | None = None
+        lock: MapLock | None = None
+        linked = False
         try:
-            conn = _connect(path, readonly=False)
+            lock = MapLock.writer(tmp, fd)
+            conn = _connect(tmp, readonly=False)
             conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
             conn.executescript("BEGIN IMMEDIATE;" + SCHEMA)
             conn.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", sorted(meta.items()))
             conn.execute("COMMIT")
-        except (sqlite3.Error, MapError) as err:
+            conn.close()
+            conn = None
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
+                               "first, or remove it and choose another path)") from None
+            except OSError:  # no hard links on this file system: exclusive create, then copy
+                lock = cls._create_by_copy(tmp, path, lock)
+            linked = True
+            tmp.unlink()
+            conn = _connect(path, readonly=False)
+            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
+            return cls(path, conn, "a", camera, meta, cache_size, lock=lock, created=True)
+        except BaseException as err:
             if conn is not None:
                 conn.close()
-            for p in (path, Path(f"{path}-wal"), Path(f"{path}-shm")):
-                p.unlink(missing_ok=True)
-            if isinstance(err, MapError):
-                raise
-            raise MapError(f"{path}: cannot create map ({err})") from err
-        return cls(path, conn, "a", camera, meta, cache_size)
+            if linked:
+                _remove_map_files(path)   # ours: created by this call and still locked by it
+            _remove_map_files(tmp)
+            if lock is not None:
+                lock.release()
+            else:
+                with suppress(OSError):  # MapLock.writer closes it when it fails
+                    os.close(fd)
+            if isinstance(err, sqlite3.Error):
+                raise MapError(f"{path}: cannot create map ({err})") from err
+            if isinstance(err, OSError):
+                raise MapError(f"{path}: cannot create map ({err})") from err
+            raise
+
+    @staticmethod
+    def _create_by_copy(tmp: Path, path: Path, tmp_lock: MapLock) -> MapLock:
+        """``path`` created exclusively (``O_EXCL``) with ``tmp``'s bytes; returns the lock on it."""
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
+                           "first, or remove it and choose another path)") from None
+        try:
+            lock = MapLock.writer(path, os.open(path, os.O_RDONLY))
+        except BaseException:
+            os.close(fd)
+            path.unlink(missing_ok=True)
+            raise
+        try:
+            os.write(fd, tmp.read_bytes())
+            os.fsync(fd)
+        except BaseException:
+            path.unlink(missing_ok=True)
+            lock.release()
+            raise
+        finally:
+            os.close(fd)
+        tmp_lock.release()
+        return lock
 
     @classmethod
     def open(cls, path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
-        """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs."""
+        """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs.
+
+        ``"a"`` takes the map's writer lock (``MapError`` "another process is writing this map" when
+        another session holds it). ``"r"`` works on read-only files and folders too.
+        """
         if mode not in MODES:
             raise MapError(f"map open mode must be one of {MODES}, got {mode!r}")
         _check_int(cache_size, "cache_size", 1)
@@ -201,16 +325,16 @@ class Map:
             raise MapError(f"no map at {path}")
         if path.is_dir():
             raise MapError(f"{path} is a directory, not a map file")
-        try:
-            with path.open("rb") as fh:
-                head = fh.read(len(SQLITE_MAGIC))
-        except OSError as err:
-            raise MapError(f"{path}: cannot read map ({err})") from err
-        if head != SQLITE_MAGIC:
-            raise MapError(f"{path} is not a vtr map (not an SQLite database)")
         conn = None
+        lock = MapLock.writer(path) if mode == "a" else MapLock.reader(path)
         try:
-            conn = _connect(path, readonly=mode == "r")
+            try:
+                head = lock.read_head(len(SQLITE_MAGIC))
+            except OSError as err:
+                raise MapError(f"{path}: cannot read map ({err})") from err
+            if head != SQLITE_MAGIC:
+                raise MapError(f"{path} is not a vtr map (not an SQLite database)")
+            conn = _connect(path, readonly=False) if mode == "a" else _connect_readonly(path)
             app_id = conn.execute("PRAGMA application_id").fetchone()[0]
             if app_id != APPLICATION_ID:
                 raise MapError(f"{path} is not a vtr map (SQLite database without the vtr application id)")
@@ -228,36 +352,80 @@ class Map:
                 jm = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
                 if str(jm).lower() != "wal":
                     raise MapError(f"{path}: cannot switch the map to WAL journal mode (got {jm})")
-            return cls(path, conn, mode, camera, meta, cache_size)
-        except MapError:
+            return cls(path, conn, mode, camera, meta, cache_size, lock=lock)
+        except BaseException as err:
             if conn is not None:
                 conn.close()
+            lock.release()
+            if isinstance(err, MapError):
+                raise
+            if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
+                raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
             raise
-        except (sqlite3.Error, ValueError, KeyError, VtrError) as err:
-            if conn is not None:
-                conn.close()
-            raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
 
     def close(self) -> None:
-        """Finish the run this session wrote (it becomes immutable) and close the file. Idempotent."""
+        """Finish the run this session wrote (it becomes immutable), fold the write-ahead log into the
+        file and close it. A map this session created whose only run it aborted with no vertex is
+        removed (a teach that wrote nothing leaves no file). Idempotent.
+
+        Raises ``MapError`` when the log cannot be folded back (disk full): the file is then still
+        valid together with its ``-wal`` beside it.
+        """
         with self._lock:
             if self._conn is None:
                 return
+            discard = False
             try:
-                if self.mode == "a" and self._open_run is not None and self._open_run_touched:
-                    with self._tx() as conn:
-                        conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
-                    self._open_run = None
+                if self.mode == "a":
+                    if self._open_run is not None and self._open_run_touched:
+                        self._set_state(self._open_run, RUN_FINISHED, "")
+                    discard = self.created and self._aborted and \
+                        self._conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
+                    if not discard:
+                        self._fold_wal()
             finally:
                 self._conn.close()
                 self._conn = None
                 self._cache.clear()
+                if discard:
+                    _remove_map_files(self.path)
+                if self._file_lock is not None:
+                    self._file_lock.release()
+
+    def _fold_wal(self) -> None:
+        """Checkpoint the write-ahead log into the file and return to a rollback journal, so the closed
+        map is one self-contained file that opens read-only anywhere."""
+        conn = self._conn
+        assert conn is not None
+        try:
+            busy = conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
+        except sqlite3.Error as err:
+            raise MapError(f"{self.path}: could not write the write-ahead log back into the map ({err}); its "
+                           f"latest data is in {self.path.name}-wal: keep that file beside it") from err
+        if busy:
+            return  # a reader is in the middle of a read: the last connection to close checkpoints
+        try:
+            conn.execute("PRAGMA busy_timeout = 0")
+            conn.execute("PRAGMA journal_mode = DELETE").fetchone()
+        except sqlite3.Error:
+            pass  # another connection has the map open: it stays in WAL mode, its log empty
 
     def __enter__(self) -> Map:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        """Normal exit finishes the open run; an exception (Ctrl-C, SIGTERM too) aborts it with its reason."""
+        if exc is not None and not self.closed and self.mode == "a" and self._open_run is not None \
+                and self._open_run_touched:
+            try:
+                self.abort_run(abort_reason(exc))
+            except MapError:
+                pass  # cannot write (disk full): the run stays running and reads as interrupted
+        try:
+            self.close()
+        except MapError:
+            if exc is None:
+                raise  # else the first error is the one to report
 
     def __repr__(self) -> str:
         state = "closed" if self._conn is None else f"mode={self.mode!r}"
@@ -332,63 +500,85 @@ class Map:
     def begin_run(self, kind: str, source: str = "", privileged: bool | None = None) -> int:
         """Start a new run (``"teach"`` or ``"repeat"``) and return its id; it becomes the open run.
 
-        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. Any
-        earlier run still open is finished first.
+        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. A run
+        this session was writing is finished first; a run left running by a killed process is
+        recorded as aborted (interrupted), never as finished.
         """
         self._check_writable()
         if kind not in RUN_KINDS:
             raise MapError(f"run kind must be one of {RUN_KINDS}, got {kind!r}")
         privileged = kind == "teach" if privileged is None else bool(privileged)
+        mine = self._open_run if self._open_run_touched else None
         with self._tx() as conn:
-            conn.execute("UPDATE runs SET finished = 1 WHERE finished = 0")
+            if mine is not None:
+                conn.execute("UPDATE runs SET state = ? WHERE id = ? AND state = ?", (RUN_FINISHED, mine, RUN_RUNNING))
+            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE state = ?",
+                         (RUN_ABORTED, INTERRUPTED_REASON, RUN_RUNNING))
             run = conn.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM runs").fetchone()[0]
             vertex_id(run, 0)  # checks the run id range
-            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, finished) VALUES (?, ?, ?, ?, ?, 0)",
-                         (run, kind, int(privileged), str(source), _utc_now()))
+            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) VALUES (?, ?, ?, ?, ?, ?)",
+                         (run, kind, int(privileged), str(source), _utc_now(), RUN_RUNNING))
         self._open_run, self._open_run_touched = int(run), True
         self._open_run_privileged = privileged
         return int(run)
 
     def finish_run(self) -> None:
-        """Finish the open run now (it becomes immutable); ``close`` does this too."""
+        """Finish the open run now: it is complete and becomes immutable (``close`` does this too)."""
+        self._end_open_run(RUN_FINISHED, "")
+
+    def abort_run(self, reason: str) -> None:
+        """End the open run as aborted with a one-line ``reason`` (it becomes immutable, and is not a
+        complete route: a repeat refuses a taught run that is not finished)."""
+        self._end_open_run(RUN_ABORTED, one_line_reason(reason))
+        self._aborted = True
+
+    def _end_open_run(self, state: str, reason: str) -> None:
         self._check_writable()
         if self._open_run is None:
             return
+        self._set_state(self._open_run, state, reason)
+
+    def _set_state(self, run: int, state: str, reason: str) -> None:
         with self._tx() as conn:
-            conn.execute("UPDATE runs SET finished = 1 WHERE id = ?", (self._open_run,))
+            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE id = ?", (state, reason, run))
         self._open_run = None
+        self._open_run_touched = False
 
     def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                   T_vehicle_sensor: np.ndarray | None = None,
-                   edge_from_previous: tuple[np.ndarray, np.ndarray, int] | None = None) -> VertexRecord:
-        """Append a keyframe to the open run ``run`` in one transaction; returns the stored record.
+                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
+        """Append a stereo frame as the next vertex of the open run ``run`` (no edge); returns the stored record.
 
-        ``T_world_vertex`` (4x4) is the keyframe's left camera pose in the run's first camera frame;
-        ``T_vehicle_sensor`` defaults to the map camera's. The vertex index is the next in the run.
-        Arrays are stored with dtypes uv/u_right/points float64, octave int32, descriptors uint8
-        (lossless conversion only, else ``MapError``). ``edge_from_previous`` = (T_prev_vertex 4x4,
-        6x6 covariance, inliers) adds the temporal edge from the run's previous vertex in the same
-        transaction (ignored for the run's first vertex).
+        ``T_world_vertex`` (4x4) is the frame's left camera pose in the run's first camera frame;
+        ``T_vehicle_sensor`` defaults to the map camera's. The frame is stored through the vertex codec
+        (:mod:`vtr.map.codec`: lossless dtype conversion only, else ``MapError``). Odometry keyframes go
+        through :meth:`add_keyframe`, which adds their temporal edge in the same transaction.
         """
-        edge = None
-        if edge_from_previous is not None:
-            T, C, inliers = edge_from_previous
-            edge = (check_transform(T, "temporal edge T_from_to"), check_covariance(C, "temporal edge covariance"),
-                    _check_int(inliers, "temporal edge inliers", 0))
-        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge)
+        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
 
     def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True) -> VertexRecord:
+                     link_previous: bool = True, unknown_variance: float | None = None) -> VertexRecord:
         """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
 
-        The edge (``T_prev_kf``, ``edge_covariance``, ``edge_inliers``) is written in the same
-        transaction as the vertex when the run already has a vertex and ``link_previous`` is true
-        (pass false for the first keyframe of a new odometry session, e.g. after resuming a teach).
+        The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
+        keyframe's ``edge_covariance`` and ``edge_inliers``. With ``unknown_variance`` the covariance is
+        first made usable (:func:`vtr.geometry.usable_covariance`: an estimate without information becomes
+        ``unknown_variance * I``); without it, it must already be a valid covariance (else ``MapError``).
+        The edge is written when the run already has a vertex and ``link_previous`` is true (pass false
+        for the first keyframe of a new odometry session, e.g. after resuming a teach).
         """
-        edge = (keyframe.T_prev_kf, keyframe.edge_covariance, keyframe.edge_inliers) if link_previous else None
-        return self.add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor, edge)
+        edge = None
+        if link_previous:
+            C = keyframe.edge_covariance
+            if unknown_variance is not None:
+                C = usable_covariance(C, unknown_variance)
+            edge = (check_covariance(C, "temporal edge covariance"),
+                    _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
+        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
+                                edge)
 
-    def _add_vertex(self, run, t_ns, T_world_vertex, frame, T_vehicle_sensor, edge) -> VertexRecord:
+    def _add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
+                    T_vehicle_sensor: np.ndarray | None,
+                    edge: tuple[np.ndarray, int] | None) -> VertexRecord:
         self._check_writable()
         run = _check_int(run, "run", 0)
         self._check_open_run(run, "add_vertex")
@@ -396,9 +586,7 @@ class Map:
         T_wv = check_transform(T_world_vertex, "T_world_vertex")
         T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
                                "T_vehicle_sensor")
-        arrays = frame_arrays(frame)
-        frame_index = int(getattr(frame, "index", -1))
-        blob = encode_arrays(arrays, self._compress_level)
+        encoded = encode_frame(frame, t_ns, self._compress_level)
         lo, hi = _run_range(run)
         with self._tx() as conn:
             last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
@@ -407,19 +595,22 @@ class Map:
             conn.execute(
                 "INSERT INTO vertices(id, run, idx, t_ns, T_world_vertex, T_vehicle_sensor, n_features, "
                 "n_landmarks, frame_index) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), len(arrays["uv"]),
-                 count_landmarks(arrays["points"]), frame_index),
+                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), encoded.n_features,
+                 encoded.n_landmarks, encoded.frame.index),
             )
-            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, blob))
+            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
             if edge is not None and last is not None:
-                T, C, inliers = edge
+                C, inliers = edge
+                T_world_prev = blob_matrix(conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?",
+                                                        (int(last),)).fetchone()[0], (4, 4))
+                T = inv_T(T_world_prev) @ T_wv
                 conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
                              "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
                                                                     inliers))
         self._open_run_touched = True
         if self._open_run_privileged:
             self._generation += 1  # the privileged path grew: drop its caches
-        record = make_vertex_record(vid, t_ns, T_wv, T_vs, arrays, frame_index)
+        record = VertexRecord.of(vid, t_ns, T_wv, T_vs, encoded.frame)
         self._cache_put(record)
         return record
 
@@ -467,14 +658,23 @@ class Map:
     # ------------------------------------------------------------ reading
 
     def runs(self) -> list[RunInfo]:
-        """All runs in id order, with their vertex counts."""
+        """All runs in id order, with their vertex counts and lifecycle state (see ``RunInfo``)."""
         with self._db() as conn:
             rows = conn.execute(
-                "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.finished, "
+                "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.state, r.reason, "
                 "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
                 "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
         return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
-                        n_vertices=int(r[6]), finished=bool(r[5])) for r in rows]
+                        n_vertices=int(r[7]), state=self._seen_state(int(r[0]), r[5]), reason=r[6]) for r in rows]
+
+    def _seen_state(self, run: int, stored: str) -> str:
+        """A stored state as it stands: ``running`` only while a live session writes the run."""
+        if stored != RUN_RUNNING:
+            return stored
+        if self.mode == "a":  # we are the only writer
+            return RUN_RUNNING if run == self._open_run and self._open_run_touched else RUN_INTERRUPTED
+        alive = self._file_lock.writer_alive() if self._file_lock is not None else True
+        return RUN_RUNNING if alive else RUN_INTERRUPTED
 
     def run(self, run: int) -> RunInfo:
         """One run's info (``MapError`` if absent)."""
@@ -482,6 +682,18 @@ class Map:
             if info.id == run:
                 return info
         raise MapError(f"{self.path}: no run {run}")
+
+    def check_taught_route(self, allow_partial: bool = False) -> None:
+        """Raise ``MapError`` (one line) unless every taught (privileged) run is finished: an aborted,
+        interrupted or still running teach is a route that may be cut short. ``allow_partial``
+        accepts them anyway."""
+        if allow_partial:
+            return
+        for r in self.runs():
+            if r.privileged and not r.finished:
+                raise MapError(f"{self.path}: teach run {r.id} is {r.describe()}, not finished: its route may be "
+                               "incomplete; refusing to repeat it (--allow-partial / allow_partial=True to use "
+                               f"its {r.n_vertices} vertices anyway)")
 
     def has_vertex(self, vid: int) -> bool:
         if int(vid) in self._cache:
@@ -544,9 +756,8 @@ class Map:
 
     def _decode_vertex(self, vid: int, row) -> VertexRecord:
         t_ns, T_wv, T_vs, frame_index, data = row
-        arrays = decode_arrays(data, f"{self.path} vertex {vid}")
-        return make_vertex_record(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), arrays,
-                                  frame_index)
+        frame = decode_frame(data, t_ns, frame_index, f"{self.path} vertex {vid}")
+        return VertexRecord.of(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), frame)
 
     def _cache_put(self, record: VertexRecord) -> None:
         with self._lock:
@@ -569,7 +780,8 @@ class Map:
         if kind is not None and kind not in EDGE_KINDS:
             raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
         sql = "SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges"
-        where, args = [], []
+        where: list[str] = []
+        args: list[int | str] = []
         if run is not None:
             lo, hi = _run_range(_check_int(run, "run", 0))
             where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")
@@ -598,64 +810,57 @@ class Map:
 
     # ------------------------------------------------------------ the privileged path
 
-    def _privileged(self) -> tuple[np.ndarray, np.ndarray]:
+    def _privileged(self) -> TaughtPath:
         with self._lock:
             cached = self._path_cache
             if cached is not None and cached[0] == self._generation:
-                return cached[1], cached[2]
+                return cached[1]
             with self._db() as conn:
                 rows = conn.execute(
-                    "SELECT v.id, v.T_world_vertex FROM vertices v JOIN runs r ON r.id = v.run "
+                    "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
                     "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
             ids, T = self._pose_arrays(rows)
-            ids.flags.writeable = False
-            T.flags.writeable = False
-            self._path_cache = (self._generation, ids, T)
-            return ids, T
+            path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
+            self._path_cache = (self._generation, path)
+            return path
 
-    def privileged_path(self) -> np.ndarray:
-        """(N,) int64 ids of the privileged (teach) vertices in path order (run, then index).
+    def taught_path(self) -> TaughtPath:
+        """The privileged (teach) vertices in path order (run, then index), from the pose index only.
 
         Raises ``MapError`` "map has no taught run" when there is no privileged vertex.
         """
-        ids, _T = self._privileged()
-        if len(ids) == 0:
+        path = self._privileged()
+        if len(path) == 0:
             raise MapError(f"{self.path}: map has no taught run (no privileged vertices)")
-        return ids
+        return path
 
-    def privileged_poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (N,), T_world_vertex (N, 4, 4))`` along the privileged path (each in its run's world frame)."""
-        ids = self.privileged_path()
-        return ids, self._privileged()[1]
+    def privileged_path(self) -> np.ndarray:
+        """(N,) int64 ids of the privileged (teach) vertices in path order (see :meth:`taught_path`)."""
+        return self.taught_path().ids
 
     def window(self, center_id: int, back: int, forward: int) -> list[int]:
         """Ids along the privileged path from ``back`` vertices before ``center_id`` to ``forward`` after
         (clipped at the ends of the path), in path order."""
         back = _check_int(back, "back", 0)
         forward = _check_int(forward, "forward", 0)
-        path = self.privileged_path()
-        i = int(np.searchsorted(path, int(center_id)))
-        if i >= len(path) or path[i] != int(center_id):
-            run, index = split_vertex_id(center_id)
-            raise MapError(f"{self.path}: vertex {center_id} (run {run}, index {index}) is not on the privileged path")
-        return [int(v) for v in path[max(0, i - back): i + forward + 1]]
+        path = self.taught_path()
+        try:
+            i = path.index(int(center_id))
+        except MapError as err:
+            raise MapError(f"{self.path}: {err}") from None
+        lo, hi = path.window(i, back, forward)
+        return [int(v) for v in path.ids[lo:hi]]
 
     def nearest_vertices(self, position_world: np.ndarray, k: int = 1) -> np.ndarray:
         """(min(k, N),) int64 ids of the privileged vertices nearest to ``position_world`` (3,), metres,
         nearest first. Positions are camera centres in their run's world frame (the teach frame)."""
         k = _check_int(k, "k", 1)
-        p = np.asarray(position_world, dtype=float).reshape(-1)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise MapError(f"nearest_vertices: position must be 3 finite numbers, got {position_world!r}")
-        ids = self.privileged_path()
-        with self._lock:
-            if self._tree_cache is None or self._tree_cache[0] != self._generation:
-                from scipy.spatial import cKDTree
-
-                self._tree_cache = (self._generation, cKDTree(self._privileged()[1][:, :3, 3]))
-            tree = self._tree_cache[1]
-        _d, idx = tree.query(p, k=min(k, len(ids)))
-        return ids[np.atleast_1d(idx)].astype(np.int64)
+        path = self.taught_path()
+        try:
+            idx = path.nearest(position_world, k)
+        except MapError as err:
+            raise MapError(f"nearest_vertices: {err}") from None
+        return path.ids[idx]
 
     # ------------------------------------------------------------ export
 
@@ -720,7 +925,7 @@ class Map:
         for r in run_ids:
             ids, T_map_v, _aligned = self.poses_in_map_frame(r)
             for i, rec in enumerate(self.iter_vertices(r)):
-                p = rec.points[rec.landmark_mask]
+                p = rec.frame.points[rec.landmark_mask]
                 pts.append(p @ T_map_v[i, :3, :3].T + T_map_v[i, :3, 3])
                 owner.append(np.full(len(p), r, dtype=np.int64))
         if not pts:

@@ -1,4 +1,4 @@
-"""Localization of repeat keyframes against the taught (privileged) path.
+"""Localization of repeat keyframes against the taught (privileged) path (docs/localization.md).
 
 The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
 
@@ -24,30 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import StereoCamera
+from perception_model.landmarks_file import Observations
+
+from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T, log_se3
+from ..map import TaughtPath
 from ..types import StereoFrame
 from ..vo.estimation import bundle_adjust, ransac_pnp, stereo_row_weights
 from ..vo.features import match_all
-from ..vo.matching import MIN_DEPTH_M, match_landmarks
-
-
-@dataclass(frozen=True)
-class LandmarkRecord:
-    """Taught landmarks of one localization that lay in the leaf's view (arrays of equal length).
-
-    ``landmark_id`` is the feature index in the trunk vertex; ``matched``/``inlier`` say whether it
-    was matched / a localization inlier; angles in radians (DESIGN.md §5); ``range_m`` is the
-    distance from the leaf camera.
-    """
-
-    landmark_id: np.ndarray
-    matched: np.ndarray
-    inlier: np.ndarray
-    parallax_rad: np.ndarray
-    view_rad: np.ndarray
-    range_m: np.ndarray
+from ..vo.matching import match_landmarks
 
 
 @dataclass(frozen=True)
@@ -56,7 +42,9 @@ class Localization:
 
     ``T_leaf_trunk`` maps trunk-camera coordinates into the leaf camera (the prior on failure) and
     ``covariance`` is its 6x6 covariance ([rot, trans]). ``twig_id``/``branch_id`` are the chain's
-    twig and branch *before* this attempt (-1 before the first success).
+    twig and branch *before* this attempt (-1 before the first success). ``landmarks`` holds the
+    taught landmarks in the leaf's view as the ``landmarks.csv`` record (``perception_model``'s
+    ``Observations``: one row per landmark, angles in radians), written as is by ``vtr repeat``.
     """
 
     t_ns: int
@@ -71,7 +59,7 @@ class Localization:
     covariance: np.ndarray
     consecutive_failures: int
     distance_since_success_m: float
-    landmarks: LandmarkRecord | None = None
+    landmarks: Observations | None = None
 
 
 def pose_distance(T: np.ndarray, rotation_weight: float) -> float:
@@ -83,17 +71,15 @@ def pose_distance(T: np.ndarray, rotation_weight: float) -> float:
 class LocalizationChain:
     """Bookkeeping of trunk/branch/twig/leaf and the prior ``T_l_t`` (no image work here).
 
-    ``T_world_privileged`` (N, 4, 4) are the taught vertices' poses along the path (ids
-    ``privileged_ids``); the current path is described by the repeat odometry poses handed to
-    ``prior``.
+    The chain owns the taught ``path`` (:class:`~vtr.map.TaughtPath`); ``trunk`` and ``branch`` are
+    indices along it. The current path is described by the repeat odometry poses handed to ``prior``
+    and ``update``; :meth:`T_teach` places any repeat pose in the teach frame through the chain.
     """
 
-    def __init__(self, privileged_ids: np.ndarray, T_world_privileged: np.ndarray, config: LocalizationConfig,
-                 start_index: int = 0):
-        if len(privileged_ids) == 0:
+    def __init__(self, path: TaughtPath, config: LocalizationConfig, start_index: int = 0):
+        if len(path) == 0:
             raise ValueError("the privileged path is empty")
-        self.ids = np.asarray(privileged_ids)
-        self.T_priv = np.asarray(T_world_privileged)
+        self.path = path
         self.config = config
         self.trunk = start_index                 # index along the privileged path
         # Until the first success the chain assumes the repeat starts at the taught vertex
@@ -107,6 +93,22 @@ class LocalizationChain:
         self.distance_since_success = 0.0
         self._last_leaf_position: np.ndarray | None = None
 
+    @property
+    def branch_id(self) -> int:
+        """Map id of the branch (-1 before the first successful localization)."""
+        return int(self.path.ids[self.branch]) if self.localized else -1
+
+    def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
+        """A repeat camera pose (repeat run's world) in the teach frame, through twig and branch:
+        ``T_teach_branch @ T_branch_twig @ T_twig_world @ T_world_frame``."""
+        T_teach_branch = self.path.T_world_vertex[self.branch]
+        return T_teach_branch @ inv_T(self.T_twig_branch) @ inv_T(self.T_world_twig) @ T_world_frame
+
+    def T_teach_localized(self, trunk_id: int, T_leaf_trunk: np.ndarray) -> np.ndarray:
+        """The teach-frame pose of a leaf localized against taught vertex ``trunk_id``:
+        ``T_teach_trunk @ inv(T_leaf_trunk)`` (what :meth:`T_teach` gives at that leaf right after the success)."""
+        return self.path.T_world_vertex[self.path.index(trunk_id)] @ inv_T(T_leaf_trunk)
+
     def prior(self, T_world_leaf: np.ndarray) -> tuple[int, np.ndarray]:
         """Trunk index and prior ``T_leaf_trunk`` for a leaf at repeat-odometry pose ``T_world_leaf``.
 
@@ -117,10 +119,10 @@ class LocalizationChain:
         self._last_leaf_position = T_world_leaf[:3, 3].copy()
         T_l_b = inv_T(T_world_leaf) @ self.T_world_twig @ self.T_twig_branch
         c = self.config
-        lo = max(0, self.trunk - c.trunk_window_back)
-        hi = min(len(self.ids), self.trunk + c.trunk_window_forward + 1)
+        lo, hi = self.path.window(self.trunk, c.trunk_window_back, c.trunk_window_forward)
         candidates = np.arange(lo, hi)
-        T_l_v = T_l_b @ inv_T(self.T_priv[self.branch]) @ self.T_priv[candidates]
+        T_priv = self.path.T_world_vertex
+        T_l_v = T_l_b @ inv_T(T_priv[self.branch]) @ T_priv[candidates]
         cost = [pose_distance(T, c.rotation_weight) for T in T_l_v]
         best = int(np.argmin(cost))
         self.trunk = int(candidates[best])
@@ -301,21 +303,21 @@ class Localizer:
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
-                    inlier: np.ndarray) -> LandmarkRecord:
-    """Angles of every trunk landmark inside the leaf's image (DESIGN.md §5); ``matched``/``inlier`` are the
-    feature indices of the trunk's matched / inlier landmarks.
+                    inlier: np.ndarray, *, t_ns: int, leaf_id: int, trunk_id: int) -> Observations:
+    """Angles of every trunk landmark inside the leaf's image, as ``landmarks.csv`` rows; ``matched`` and
+    ``inlier`` are the feature indices of the trunk's matched / inlier landmarks.
 
     Angles do not depend on the frame they are computed in, so the trunk camera frame stands in
     for the gravity-aligned frame o: ``p_is`` = landmark in the trunk frame, ``p_ao`` = leaf camera
-    centre in the trunk frame, ``z`` = leaf optical axis in the trunk frame.
+    centre in the trunk frame, ``z`` = leaf optical axis in the trunk frame. ``landmark_id`` is the
+    feature index in the trunk vertex; ``matched``/``inlier`` say whether it was matched / a
+    localization inlier; ``range_m`` is the distance from the leaf camera.
     """
     from perception_model.angles import parallax_angle, view_angle
 
     idx = np.flatnonzero(trunk.has_depth)
     P_leaf = trunk.points[idx] @ T_leaf_trunk[:3, :3].T + T_leaf_trunk[:3, 3]
-    uv = camera.project(P_leaf)
-    in_view = (P_leaf[:, 2] > MIN_DEPTH_M) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) \
-        & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    in_view = camera.in_view(P_leaf)
     idx, P_leaf = idx[in_view], P_leaf[in_view]
     T_trunk_leaf = inv_T(T_leaf_trunk)
     p_is = trunk.points[idx]
@@ -323,5 +325,8 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
     z = T_trunk_leaf[:3, 2]
     is_matched = np.isin(idx, matched)
     is_inlier = np.isin(idx, inlier)
-    return LandmarkRecord(idx, is_matched, is_inlier, parallax_angle(p_is, p_ao), view_angle(p_is, p_ao, z),
-                          np.linalg.norm(P_leaf, axis=1))
+    n = len(idx)
+    return Observations(alpha=parallax_angle(p_is, p_ao), theta=view_angle(p_is, p_ao, z), inlier=is_inlier,
+                        t_ns=np.full(n, t_ns, np.int64), leaf_id=np.full(n, leaf_id, np.int64),
+                        trunk_id=np.full(n, trunk_id, np.int64), landmark_id=idx.astype(np.int64),
+                        range_m=np.linalg.norm(P_leaf, axis=1), matched=is_matched)

@@ -13,18 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..geometry import inv_T
-from ..map import Map, VertexRecord
-from ..types import Features, Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..geometry import inv_T, usable_covariance
+from ..map import Map
+from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 from .localization import Localization, LocalizationChain, Localizer, TaughtSubmap, landmark_record
-from .teach import usable_covariance
-
-
-def frame_of_vertex(v: VertexRecord) -> StereoFrame:
-    """The stereo frame a map vertex stores (features, stereo measurements, landmarks)."""
-    feats = Features(v.uv, v.octave, np.zeros(len(v.uv)), v.descriptors)
-    return StereoFrame(v.t_ns, v.frame_index, feats, v.u_right, v.points)
 
 
 @dataclass(frozen=True)
@@ -44,19 +37,21 @@ class RepeatStep:
 class Repeat:
     """Repeat pipeline: feed frames with ``process``; ``latest`` holds the latest localization."""
 
-    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0):
+    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0,
+                 allow_partial: bool = False):
+        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``."""
         self.map = map_
         self.camera = map_.camera
         self.config = config
-        ids, T = map_.privileged_poses()
-        self.chain = LocalizationChain(ids, T, config.localization, start_index)
+        map_.check_taught_route(allow_partial)
+        self.chain = LocalizationChain(map_.taught_path(), config.localization, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
         self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
-        self._leaf: tuple[int, np.ndarray] | None = None   # (map id, T_world_leaf) of the previous vertex
+        self._leaf: int | None = None            # map id of the newest repeat vertex
         self._attempts = 0
         self._frames: dict[int, StereoFrame] = {}   # taught frames of the latest submap (kept while it slides)
 
@@ -64,16 +59,13 @@ class Repeat:
         """Odometry on the frame; localize it when it becomes a new vertex."""
         result = self.odometry.process(images)
         loc = None
-        vid = self._leaf[0] if self._leaf else -1
+        vid = self._leaf if self._leaf is not None else -1
         if result.new_keyframe is not None:
             kf = result.new_keyframe
-            edge = None
-            if self._leaf is not None:
-                edge = (inv_T(self._leaf[1]) @ kf.T_world_kf, usable_covariance(result.covariance), result.inliers)
             with self.timer("map_write"):
-                v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor,
-                                        edge)
-            self._leaf = (v.id, kf.T_world_kf)
+                v = self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor,
+                                          unknown_variance=self.config.odometry.failure_variance)
+            self._leaf = v.id
             vid = v.id
             t0 = time.perf_counter()
             with self.timer("localization"):
@@ -86,38 +78,36 @@ class Repeat:
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""
-        c = self.chain
-        T_teach_branch = c.T_priv[c.branch]
-        return T_teach_branch @ inv_T(c.T_twig_branch) @ inv_T(c.T_world_twig) @ T_world_frame
+        return self.chain.T_teach(T_world_frame)
 
     def _localize(self, leaf_id: int, kf: Keyframe) -> Localization:
         c = self.chain
-        twig, branch = c.twig_id, (int(c.ids[c.branch]) if c.localized else -1)
+        twig, branch = c.twig_id, c.branch_id
         trunk, T_prior = c.prior(kf.T_world_kf)
         submap = self._submap(trunk)
         self._attempts += 1
         est = self.localizer.localize(kf.frame, submap, T_prior, seed=self.config.odometry.seed + self._attempts,
                                       trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
-        trunk_id = int(c.ids[trunk])
-        success = est.T_leaf_trunk is not None
-        n_inliers = int(est.inlier.sum()) if success else 0
-        if success:
-            self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, usable_covariance(est.covariance), "spatial",
-                              n_inliers)
-        c.update(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk)
-        T_used = est.T_leaf_trunk if success else T_prior
-        trunk_frame = self._frames[trunk_id]
-        record = landmark_record(trunk_frame, T_used, self.camera, submap.trunk_features(est.matched),
-                                 submap.trunk_features(est.matched[est.inlier]))
-        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, success, est.matches, n_inliers, T_used,
+        trunk_id = int(c.path.ids[trunk])
+        T = est.T_leaf_trunk
+        n_inliers = int(est.inlier.sum()) if T is not None else 0
+        if T is not None:
+            covariance = usable_covariance(est.covariance, self.config.odometry.failure_variance)
+            self.map.add_edge(leaf_id, trunk_id, T, covariance, "spatial", n_inliers)
+        c.update(leaf_id, kf.T_world_kf, trunk, T)
+        T_used = T if T is not None else T_prior
+        record = landmark_record(self._frames[trunk_id], T_used, self.camera, submap.trunk_features(est.matched),
+                                 submap.trunk_features(est.matched[est.inlier]), t_ns=kf.t_ns, leaf_id=leaf_id,
+                                 trunk_id=trunk_id)
+        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, T is not None, est.matches, n_inliers, T_used,
                             est.covariance, c.consecutive_failures, c.distance_since_success, record)
 
     def _submap(self, trunk: int) -> TaughtSubmap:
         """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap."""
-        c, n = self.chain, self.config.localization.neighbour_vertices
-        slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(c.ids)))
-        ids = [int(i) for i in c.ids[slots]]
-        self._frames = {i: self._frames.get(i) or frame_of_vertex(self.map.vertex(i)) for i in ids}
-        T_vertex_trunk = inv_T(c.T_priv[slots]) @ c.T_priv[trunk]
-        return TaughtSubmap.build([self._frames[i] for i in ids], c.ids[slots], T_vertex_trunk,
+        path, n = self.chain.path, self.config.localization.neighbour_vertices
+        slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(path.ids)))
+        ids = [int(i) for i in path.ids[slots]]
+        self._frames = {i: self._frames.get(i) or self.map.vertex(i).frame for i in ids}
+        T_vertex_trunk = inv_T(path.T_world_vertex[slots]) @ path.T_world_vertex[trunk]
+        return TaughtSubmap.build([self._frames[i] for i in ids], path.ids[slots], T_vertex_trunk,
                                   int(np.flatnonzero(slots == trunk)[0]), self.camera)

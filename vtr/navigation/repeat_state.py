@@ -1,5 +1,5 @@
 """Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
-queried at a fixed rate in the gravity-aligned trunk frame o (DESIGN.md §4; thesis §6.3.4).
+queried at a fixed rate in the gravity-aligned trunk frame o (docs/smoother.md; thesis §6.3.4).
 
 **Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
 smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
@@ -9,7 +9,8 @@ per repeat *vertex* (keyframe), not per frame:
   (repeat world), with the odometry covariance of the leaf (the same measurement and covariance as the
   map's temporal edge);
 * at a successfully localized vertex, an absolute pose in the teach world,
-  ``T_teach_leaf = T_priv[trunk] @ inv(T_leaf_trunk)`` (= ``RepeatStep.T_teach_frame`` there), with the
+  ``T_teach_leaf = T_teach_trunk @ inv(T_leaf_trunk)`` (``LocalizationChain.T_teach_localized``; =
+  ``RepeatStep.T_teach_frame`` there), with the
   localization covariance. Privileged poses are taken as exact (the repeat is expressed relative to the
   taught path, as the chain does).
 
@@ -17,8 +18,8 @@ Why vertices and these two measurements: (1) localization, the only measurement 
 frame, exists only at vertices; the chain's ``T_teach_frame`` of the other frames is localization composed
 with odometry, and feeding it as an absolute pose would count the same localization again at every frame;
 (2) a non-keyframe frame's pose is measured against the same landmarks as the next keyframe's, so adding it
-as an independent measurement would count the same landmark errors twice; (3) DESIGN.md §4 puts the
-smoother's states at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
+as an independent measurement would count the same landmark errors twice; (3) the
+smoother's states sit at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
 between them (and extrapolates after the last one) at the output rate. Both covariances use the left
 perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.vo.estimation), which is the right perturbation of the
 inverse pose the smoother uses, so they are passed unchanged.
@@ -30,7 +31,7 @@ the waiting vertices are fed in order. A run that never localizes is fed with th
 started at the taught vertex ``start_index``) as the first knot's prior, which only fixes the gauge.
 
 **Gravity.** The teach world is the teach run's first camera frame (KITTI and the other sources: x right,
-y down, z forward). The vehicle frame is FLU (DESIGN.md §3), placed by ``T_vehicle_sensor``; when that is
+y down, z forward). The vehicle frame is FLU (docs/frames.md), placed by ``T_vehicle_sensor``; when that is
 the identity (KITTI), the camera is taken as a level, forward-looking vehicle: vehicle frame = camera
 centre with x = camera z, y = -camera x, z = -camera y (:data:`VEHICLE_FROM_LEVEL_CAMERA`). The vehicle at
 the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
@@ -62,9 +63,10 @@ import numpy as np
 from ..config import Config
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, DataError, EstimationError
-from ..geometry import inv_T
+from ..geometry import inv_T, usable_covariance
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
+from .localization import LocalizationChain
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
@@ -76,9 +78,6 @@ VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
 # information spans more than ~1e7 (odometry rotation variances are ~1e-8 rad^2) indeterminate.
 UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
 UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
-# Covariances are floored at this fraction of their largest eigenvalue (the smoother refuses condition
-# numbers above 1e14).
-MIN_EIGENVALUE_RATIO = 1e-12
 
 STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "trunk_id",
                     "lateral_m", "vertical_m", "along_track_m")
@@ -110,19 +109,6 @@ def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
     """``T_vehicle_sensor`` with the identity read as a level, forward-looking camera (see module doc)."""
     T = np.asarray(T_vehicle_sensor, float)
     return VEHICLE_FROM_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
-
-
-def _measurement_covariance(C: np.ndarray) -> np.ndarray | None:
-    """A symmetric covariance the smoother accepts (eigenvalues floored), or None if C is unusable."""
-    C = np.asarray(C, float)
-    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
-        return None
-    C = 0.5 * (C + C.T)
-    w, V = np.linalg.eigh(C)
-    if w[-1] <= 0:
-        return None
-    C = (V * np.maximum(w, w[-1] * MIN_EIGENVALUE_RATIO)) @ V.T
-    return 0.5 * (C + C.T)
 
 
 @dataclass(frozen=True)
@@ -163,25 +149,22 @@ class ControllerLog:
     Args:
         config: ``smoothing`` (Qc, lag), ``localization`` (path window) and ``odometry.failure_variance``
             (used for an odometry covariance that is unusable) are read.
-        privileged_ids: (N,) map ids of the taught vertices, in path order.
-        T_world_privileged: (N, 4, 4) their camera poses in the teach world.
+        chain: the repeat's localization chain: its taught path (ids, camera poses in the teach world), its
+            trunk-search window and its teach-frame pose of a localized leaf are used; nothing else.
         T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
     """
 
-    def __init__(self, config: Config, privileged_ids: np.ndarray, T_world_privileged: np.ndarray,
-                 T_vehicle_sensor: np.ndarray):
+    def __init__(self, config: Config, chain: LocalizationChain, T_vehicle_sensor: np.ndarray):
         self.config = config
+        self.chain = chain
+        self.path = chain.path
         self.smoother = TrajectorySmoother(config.smoothing)
-        self.ids = np.asarray(privileged_ids, np.int64)
-        self._index = {int(v): i for i, v in enumerate(self.ids)}
-        self.T_priv = np.asarray(T_world_privileged, float)
         self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
         self.C_g_world = self.T_vehicle_sensor[:3, :3]
-        T_veh = self.T_priv @ self.T_sensor_vehicle                  # taught vehicle poses in the teach world
-        self._T_world_trunk = T_veh
-        step = np.linalg.norm(np.diff(T_veh[:, :3, 3], axis=0), axis=1)
-        self._arc = np.concatenate([[0.0], np.cumsum(step)])
+        # taught vehicle poses in the teach world
+        self._T_world_trunk = self.path.T_world_vertex @ self.T_sensor_vehicle
+        self._arc = self.path.arc_length_m(self.T_sensor_vehicle)
         self._trunk_cache: dict[int, tuple[np.ndarray, ReferencePath | None, float]] = {}
         self._pending: list[_Vertex] = []
         self._anchored = False
@@ -207,20 +190,18 @@ class ControllerLog:
             rel_cov = None
             previous = self._pending[-1] if self._pending else self._last
             if previous is not None:
-                rel_cov = _measurement_covariance(r.covariance)
-                if rel_cov is None:
-                    rel_cov = np.eye(6) * self.config.odometry.failure_variance
+                rel_cov = usable_covariance(r.covariance, self.config.odometry.failure_variance)
                 rel_cov = rel_cov + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
             if loc is not None and loc.success:
-                loc_cov = _measurement_covariance(loc.covariance)
+                loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
-                    T_teach_leaf = self.T_priv[self._index[int(loc.trunk_id)]] @ inv_T(loc.T_leaf_trunk)
+                    T_teach_leaf = self.chain.T_teach_localized(loc.trunk_id, loc.T_leaf_trunk)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
             trunk = loc.trunk_id if loc is not None else None
-            self.vertex_trunk.append(self._index[int(trunk)] if trunk is not None else
+            self.vertex_trunk.append(self.path.index(trunk) if trunk is not None else
                                      (self.vertex_trunk[-1] if self.vertex_trunk else 0))
             if self._anchored:
                 self._feed(v)
@@ -254,7 +235,7 @@ class ControllerLog:
             T_s_first = inv_T(s.T_world_leaf) @ first.T_world_leaf
             A = adjoint(inv_T(T_s_first))
             first.T_teach_leaf = s.T_teach_leaf @ T_s_first
-            first.localization_covariance = _measurement_covariance(A @ s.localization_covariance @ A.T)
+            first.localization_covariance = usable_covariance(A @ s.localization_covariance @ A.T)
             s.T_teach_leaf = s.localization_covariance = None
         self._flush()
 
@@ -287,8 +268,8 @@ class ControllerLog:
         """``T_o_t``, the reference path in o around trunk k, and the arc length at the path's first point."""
         if k not in self._trunk_cache:
             T_wt, T_o_t = self.trunk_frame(k)
-            loc = self.config.localization
-            lo, hi = max(0, k - loc.trunk_window_back), min(len(self.ids), k + loc.trunk_window_forward + 1)
+            loc = self.chain.config
+            lo, hi = self.path.window(k, loc.trunk_window_back, loc.trunk_window_forward)
             try:
                 path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
             except EstimationError:       # fewer than two distinct taught vertices
@@ -329,11 +310,11 @@ class ControllerLog:
                 e: PathError = path.error(P[sel])
                 lat[sel], ver[sel], along[sel] = e.lateral, e.vertical, e.along_track + offset
         self.seconds += time.perf_counter() - t0
-        return StateTable(t_ns, P, Vel, A, yaw, self.ids[trunks], lat, ver, along)
+        return StateTable(t_ns, P, Vel, A, yaw, self.path.ids[trunks], lat, ver, along)
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""
-        if self.first_t_ns is None:
+        if self.first_t_ns is None or self.last_t_ns is None:
             raise DataError("no repeat frame was processed: no state to report")
         return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
 

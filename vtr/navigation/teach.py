@@ -1,16 +1,18 @@
 """Teach: odometry over a run, each keyframe written to the map (as its pose becomes final in the
 odometry window) with a temporal edge to the previous one: the privileged path.
+
+Lifecycle: ``finish`` writes the keyframes still in the window and marks the run finished (a
+complete route); ``abort(exc)`` (on an error, Ctrl-C, SIGTERM, full disk) writes them too, as far
+as it can, and marks the run aborted with the reason, so a repeat does not take it for complete.
 """
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..camera import StereoCamera
 from ..config import Config
 from ..errors import MapError
-from ..geometry import inv_T
 from ..map import Map
+from ..map.store import abort_reason
 from ..types import Keyframe, OdometryResult, StereoImages
 from ..vo.odometry import StereoOdometry
 
@@ -23,7 +25,7 @@ class Teach:
         self.camera = camera
         self.odometry = StereoOdometry(camera, config, keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
-        self._previous: tuple[int, Keyframe] | None = None
+        self._unknown_variance = config.odometry.failure_variance
         self.vertices = 0
 
     def process(self, images: StereoImages) -> OdometryResult:
@@ -33,32 +35,32 @@ class Teach:
         return result
 
     def finish(self) -> int:
-        """Write the keyframes still in the odometry window; returns the number of vertices."""
-        for kf in self.odometry.flush():
-            self._write(kf)
+        """Write the keyframes still in the odometry window and finish the run; returns the number of
+        vertices. ``MapError`` (run left open for ``abort``) when the teach produced no keyframe."""
+        self._flush()
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
+        self.map.finish_run()
         return self.vertices
 
+    def abort(self, exc: BaseException) -> int:
+        """End the run as aborted because of ``exc``: the keyframes still in the odometry window are
+        written first (as far as the map can take them), then the reason. Never raises (``exc`` is
+        the error to report); returns the number of vertices written."""
+        try:
+            self._flush()
+        except Exception:  # noqa: BLE001, S110 - e.g. the disk is full: keep what was written
+            pass
+        try:
+            self.map.abort_run(abort_reason(exc))
+        except Exception:  # noqa: BLE001, S110 - cannot write at all: the run reads as interrupted
+            pass
+        return self.vertices
+
+    def _flush(self) -> None:
+        for kf in self.odometry.flush():
+            self._write(kf)
+
     def _write(self, kf: Keyframe) -> None:
-        edge = None
-        if self._previous is not None:
-            prev = self._previous[1]
-            edge = (inv_T(prev.T_world_kf) @ kf.T_world_kf, usable_covariance(kf.edge_covariance), kf.edge_inliers)
-        v = self.map.add_vertex(self.run, kf.t_ns, kf.T_world_kf, kf.frame, self.camera.T_vehicle_sensor, edge)
-        self._previous = (v.id, kf)
+        self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor, unknown_variance=self._unknown_variance)
         self.vertices += 1
-
-
-def usable_covariance(C: np.ndarray) -> np.ndarray:
-    """A symmetric positive definite covariance (a tiny floor where odometry's is degenerate)."""
-    C = 0.5 * (C + C.T)
-    if not np.all(np.isfinite(C)) or np.min(np.linalg.eigvalsh(C)) <= 0:
-        C = np.where(np.isfinite(C), C, 0.0) + np.eye(6) * COVARIANCE_FLOOR
-        C = 0.5 * (C + C.T)
-        w, V = np.linalg.eigh(C)
-        C = (V * np.maximum(w, COVARIANCE_FLOOR)) @ V.T
-    return C
-
-
-COVARIANCE_FLOOR = 1e-12

@@ -33,6 +33,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -309,9 +310,9 @@ def _draw_one(img: np.ndarray, kind: int, x: float, y: float, r: float, ang: flo
     elif kind == 2:
         ca, sa = math.cos(ang), math.sin(ang)
         hx, hy = r, r * asp
-        pts = [(x + ca * px - sa * py, y + sa * px + ca * py) for px, py in
-               ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))]
-        cv2.fillConvexPoly(img, np.round(pts).astype(np.int32), colour)
+        corners = [(x + ca * px - sa * py, y + sa * px + ca * py) for px, py in
+                   ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))]
+        cv2.fillConvexPoly(img, np.round(corners).astype(np.int32), colour)
     elif kind == 3:
         pts = np.stack([x + r * np.cos(vang), y + r * np.sin(vang)], axis=1)
         cv2.fillConvexPoly(img, np.round(pts).astype(np.int32), colour)
@@ -548,7 +549,7 @@ def make_scene(
             prof += rng.normal() / k * np.cos(k * phi + rng.uniform(0, 2 * np.pi))
         prof = (prof - prof.min()) / max(prof.max() - prof.min(), 1e-9)
         h_lo, h_hi = backdrop_height_m
-        backdrop = Backdrop(tuple(map(float, backdrop_centre_xy)), float(backdrop_radius_m),
+        backdrop = Backdrop((float(backdrop_centre_xy[0]), float(backdrop_centre_xy[1])), float(backdrop_radius_m),
                             tuple(float(v) for v in h_lo + (h_hi - h_lo) * prof))
     ground = Ground(half_extent_m=ground_half_extent_m, contrast=ground_contrast)
     return Scene(seed=int(seed), ground=ground, boxes=tuple(boxes), trees=tuple(trees), backdrop=backdrop,
@@ -762,7 +763,7 @@ def route_times(T_world_cam: np.ndarray, speed_mps: float, start_ns: int = 0) ->
 
 def T_left_right(camera: StereoCamera) -> np.ndarray:
     """Pose of the right rectified camera in the left one (``baseline`` m along +x)."""
-    return make_T(np.eye(3), [camera.baseline, 0.0, 0.0])
+    return make_T(np.eye(3), np.array([camera.baseline, 0.0, 0.0]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -1109,14 +1110,14 @@ def render(
     if k < 1:
         raise ConfigError(f"supersample must be >= 1, got {supersample}")
     fr = _cast(scene, camera, T_world_view, k)
-    img = (_texture(fr, scene.texture).reshape(-1) * fr.gain + fr.bias)
+    img: np.ndarray = (_texture(fr, scene.texture).reshape(-1) * fr.gain + fr.bias)
     sky = np.flatnonzero(~np.isfinite(fr.depth))
     img[sky] = _sky(fr, sky)
     img = img.reshape(fr.H, fr.W)
     if k > 1:
-        img = cv2.resize(img, camera.size, interpolation=cv2.INTER_AREA)
+        img = np.asarray(cv2.resize(img, camera.size, interpolation=cv2.INTER_AREA))
     if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+        img = np.asarray(cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT))
     if noise_sigma > 0:
         rng = np.random.default_rng([int(scene.seed), _STREAM_NOISE, int(noise_seed)])
         img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
@@ -1157,11 +1158,11 @@ def render_stereo(
     that much than the calibration implies (real pairs show it, see docs/far_structure.md)."""
     T_world_right = np.asarray(T_world_cam, float) @ T_left_right(camera)
     right_camera = dataclasses.replace(camera, cx=camera.cx + right_cx_offset_px)
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray | None]] = []
     for j, (T, cam) in enumerate(((T_world_cam, camera), (T_world_right, right_camera))):
         res = render(scene, cam, T, noise_sigma=noise_sigma, noise_seed=2 * int(noise_seed) + j,
                      supersample=supersample, return_depth=return_depth, blur_sigma_px=blur_sigma_px)
-        out.append(res if return_depth else (res, None))
+        out.append(cast(tuple[np.ndarray, np.ndarray], res) if return_depth else (cast(np.ndarray, res), None))
     return StereoRender(out[0][0], out[1][0], out[0][1], out[1][1])
 
 

@@ -32,6 +32,7 @@ GTSAM's right (body-frame) one, ``T = T_hat Exp(delta)``, as for every ``Pose3``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, cast, overload
 
 import gtsam
 import numpy as np
@@ -40,9 +41,8 @@ from gtsam.symbol_shorthand import V, X
 from ..config import SmoothingConfig
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
-from ..geometry import check_se3, inv_T, skew
+from ..geometry import POSE_DIM, check_covariance, check_se3, inv_T, skew
 
-POSE_DIM = 6                     # pose tangent dimension [rot, trans]
 STATE_DIM = 12                   # [pose tangent, body twist]
 
 # Weak prior on the first knot's twist: only there so a single keyframe is a determined problem.
@@ -61,8 +61,6 @@ ITERATIONS_PER_KEYFRAME = 1
 COVARIANCE_REFRESH_KNOTS = 2
 
 # Input validation.
-SYMMETRY_TOLERANCE = 1e-9        # relative asymmetry allowed in covariances
-MAX_COVARIANCE_CONDITION = 1e14  # larger condition numbers are treated as singular
 
 # Central-difference step for the derivative of Jr(xi) w with respect to xi (only in covariances
 # and the acceleration estimate): truncation error O(step²), round-off O(1e-16 / step) ≈ 1e-10.
@@ -232,6 +230,14 @@ def _hermite_matrix(tau: float, dt: float) -> np.ndarray:
 # Public value types
 
 
+@overload
+def _frozen(a: np.ndarray) -> np.ndarray: ...
+
+
+@overload
+def _frozen(a: None) -> None: ...
+
+
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:
     if a is None:
         return None
@@ -304,24 +310,6 @@ def _check_time(t_ns: object, what: str = "t_ns") -> int:
     return int(t_ns)
 
 
-
-
-def _check_covariance(cov: np.ndarray, what: str) -> np.ndarray:
-    cov = np.asarray(cov, dtype=float)
-    if cov.shape != (POSE_DIM, POSE_DIM):
-        raise EstimationError(f"{what}: expected a 6x6 covariance, got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise EstimationError(f"{what}: contains NaN or infinity")
-    scale = float(np.max(np.abs(cov)))
-    if scale == 0.0 or not np.allclose(cov, cov.T, rtol=0.0, atol=SYMMETRY_TOLERANCE * scale):
-        raise EstimationError(f"{what}: not a symmetric non-zero matrix")
-    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
-    if eig[0] <= 0.0 or eig[-1] / eig[0] > MAX_COVARIANCE_CONDITION:
-        raise EstimationError(
-            f"{what}: not positive definite (eigenvalues {eig[0]:.3g} … {eig[-1]:.3g}); "
-            "a measurement covariance must be invertible"
-        )
-    return 0.5 * (cov + cov.T)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -518,10 +506,11 @@ class TrajectorySmoother:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:
             T_world_sensor = check_se3(T_world_sensor, "T_world_sensor")
-            covariance = _check_covariance(covariance, "covariance")
+            covariance = check_covariance(cast(np.ndarray, covariance), "covariance", definite=True)
         if T_prev_cur is not None:
             T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
-            relative_covariance = _check_covariance(relative_covariance, "relative_covariance")
+            relative_covariance = check_covariance(cast(np.ndarray, relative_covariance), "relative_covariance",
+                                                   definite=True)
         # -- all input valid: nothing below may leave a half-applied state except a solver failure.
         self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance)
 
@@ -581,7 +570,7 @@ class TrajectorySmoother:
         c = self._cache
         k = c.n
         first = k == 0
-        t0_ns = t_ns if first else self._t0_ns
+        t0_ns = t_ns if first else cast(int, self._t0_ns)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         # Initial guess of the new knot.
@@ -595,7 +584,7 @@ class TrajectorySmoother:
             dt = (t_ns - int(c.times_ns[k - 1])) / NS_PER_S
             v_init = _log(inv_T(c.poses[k - 1]) @ T_init)[0] / dt
         t_s = (t_ns - t0_ns) / NS_PER_S
-        timestamps = {X(k): t_s, V(k): t_s}
+        timestamps: dict[Any, float] = {X(k): t_s, V(k): t_s}
         values.insert(X(k), gtsam.Pose3(T_init))
         values.insert(V(k), v_init)
         if T_ws is not None:

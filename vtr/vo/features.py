@@ -54,7 +54,7 @@ class FeatureExtractor:
     def __init__(self, config: FeatureConfig, image_size: tuple[int, int]):
         self.config = config
         self.image_size = image_size
-        self._orb = cv2.ORB_create(
+        self._orb = cv2.ORB_create(  # type: ignore[attr-defined]  # (missing from cv2's stubs)
             nfeatures=int(config.n_features * config.detect_factor),
             scaleFactor=config.scale_factor,
             nlevels=config.n_levels,
@@ -74,7 +74,7 @@ class FeatureExtractor:
         kps = self._orb.detect(image, None)
         if not kps:
             return _empty()
-        uv = cv2.KeyPoint_convert(kps).astype(np.float64)
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64)  # type: ignore[attr-defined]
         response = _keypoint_field(kps, "response", np.float64)
         c = self.config
         keep = bucket(uv, response, self.image_size, c.grid_rows, c.grid_cols, c.n_features)
@@ -85,7 +85,7 @@ class FeatureExtractor:
         if len(described) != len(kept):
             # ORB dropped keypoints (border): read back the ones it kept
             kept = described
-            uv = cv2.KeyPoint_convert(kept).astype(np.float64)
+            uv = cv2.KeyPoint_convert(kept).astype(np.float64)  # type: ignore[attr-defined]
             response = _keypoint_field(kept, "response", np.float64)
             keep = np.arange(len(kept))
         return Features(uv=uv[keep], octave=_keypoint_field(kept, "octave", np.int32), response=response[keep],

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import StereoCamera
+from ..camera import MIN_DEPTH_M, StereoCamera
 from ..types import StereoFrame
 from .features import match_within_radius
 
-MIN_DEPTH_M = 0.1  # landmarks closer than this in front of the camera are not predicted
+__all__ = ["MIN_DEPTH_M", "match_landmarks", "match_to_landmarks"]
 
 
 def match_landmarks(points_world: np.ndarray, descriptors: np.ndarray, frame: StereoFrame, T_cam_world: np.ndarray,
@@ -21,11 +21,8 @@ def match_landmarks(points_world: np.ndarray, descriptors: np.ndarray, frame: St
     Returns (landmark indices, feature indices).
     """
     P = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    idx = np.flatnonzero(P[:, 2] > MIN_DEPTH_M)
+    idx = np.flatnonzero(camera.in_view(P, margin_px=radius))
     pred = camera.project(P[idx])[:, :2]
-    inside = (pred[:, 0] >= -radius) & (pred[:, 0] < camera.width + radius) \
-        & (pred[:, 1] >= -radius) & (pred[:, 1] < camera.height + radius)
-    idx, pred = idx[inside], pred[inside]
     qi, tj = match_within_radius(pred, descriptors[idx], frame.features.uv, frame.features.descriptors, radius,
                                  max_distance, ratio=ratio, mutual=True)
     return idx[qi], tj

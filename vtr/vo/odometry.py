@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 from collections import deque
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -98,7 +99,6 @@ class StereoOdometry:
         self._t_last = 0
         self._velocity: np.ndarray | None = None     # twist per second of T_cur_prev ([rot, trans])
         self._keyframe_poses: dict[int, np.ndarray] = {}   # id -> T_world_kf (latest estimate)
-        self._previous_final: Keyframe | None = None
         self._frame_refs: list[tuple[int, np.ndarray]] = []
 
     @property
@@ -211,10 +211,8 @@ class StereoOdometry:
         return self._public(kf), tuple(finalized)
 
     def _public(self, kf: _WindowKeyframe) -> Keyframe:
-        T_world_kf = self._keyframe_poses[kf.id]
-        prev = self._previous_final
-        T_prev_kf = inv_T(prev.T_world_kf) @ T_world_kf if prev is not None else np.eye(4)
-        return Keyframe(kf.id, self._refined_frame(kf), T_world_kf, T_prev_kf, kf.edge_covariance, kf.edge_inliers)
+        return Keyframe(kf.id, self._refined_frame(kf), self._keyframe_poses[kf.id], kf.edge_covariance,
+                        kf.edge_inliers)
 
     def _refined_frame(self, kf: _WindowKeyframe) -> StereoFrame:
         """The keyframe's stereo frame with its landmarks where the windowed bundle adjustment put them
@@ -228,9 +226,8 @@ class StereoOdometry:
         return dataclasses.replace(kf.frame, points=points)
 
     def _finalize(self, kf: _WindowKeyframe) -> Keyframe:
-        """A keyframe leaving the window: its pose is final; the edge joins it to the previous final one."""
+        """A keyframe leaving the window: its pose is final."""
         out = self._public(kf)
-        self._previous_final = out
         if not self.keep_history:
             del self._keyframe_poses[kf.id]
         return out
@@ -314,7 +311,7 @@ class StereoOdometry:
     def _plausible(self, T_cw: np.ndarray, dt: float) -> bool:
         """Speed and rotation rate of the step since the last frame within the configured bounds."""
         cfg = self.config.odometry
-        step = T_cw @ inv_T(self._T_cw_last)
+        step = T_cw @ inv_T(cast(np.ndarray, self._T_cw_last))
         dt = max(dt, MIN_FRAME_INTERVAL_S)
         return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_speed_mps * dt
                     and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt)

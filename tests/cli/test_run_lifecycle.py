@@ -1,0 +1,274 @@
+"""`vtr teach` / `vtr repeat` record their runs truthfully, on the shipped KITTI clip through the real
+command: an error, Ctrl-C (SIGINT) or SIGTERM mid-teach writes the keyframes still in the odometry
+window and records the run aborted with the reason; a teach that wrote nothing leaves no file; a
+SIGKILLed teach reads as interrupted; `vtr repeat` refuses a teach that did not finish unless
+--allow-partial; a failed repeat is aborted; a one-vertex route is refused."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from vtr.app.pipeline import teach_command
+from vtr.cli import main
+from vtr.config import Config
+from vtr.errors import MapError, Terminated
+from vtr.map import Map
+
+BAD_FRAME = 6                 # frame whose left image is corrupted in the damaged clip
+SIGNAL_AFTER_VERTICES = 2     # the signal is sent once the map holds this many vertices
+SUBPROCESS_TIMEOUT_S = 120
+WINDOW = Config().odometry.window_keyframes
+
+
+def invoke(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def one_line_error(stderr: str, *needles: str) -> str:
+    assert "Traceback" not in stderr
+    line = stderr.strip().replace("\r", "\n").splitlines()[-1]
+    assert line.startswith("vtr: error:"), line
+    for n in needles:
+        assert n in line, line
+    return line
+
+
+def rows(path: Path) -> str:
+    """Every row of the map (its content; the SQLite header may change when a session opens it)."""
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return "\n".join(con.iterdump())
+    finally:
+        con.close()
+
+
+def taught(path: Path) -> tuple[list, np.ndarray]:
+    """(run infos, t_ns of the teach run's vertices)."""
+    with Map.open(path) as m:
+        return m.runs(), m.timestamps(0)[1]
+
+
+@pytest.fixture(scope="module")
+def reference(kitti_clip, tmp_path_factory):
+    """t_ns of the vertices of complete teaches over the first k frames of the clip, by k."""
+    cache: dict[int, np.ndarray] = {}
+
+    def vertices_of_first(k: int) -> np.ndarray:
+        if k not in cache:
+            path = tmp_path_factory.mktemp("ref") / "ref.vtrmap"
+            teach_command(kitti_clip, path, f"0:{k}", Config())
+            cache[k] = taught(path)[1]
+        return cache[k]
+
+    return vertices_of_first
+
+
+@pytest.fixture(scope="module")
+def damaged_clip(kitti_clip, tmp_path_factory):
+    """The first 12 frames of the clip with the left image of frame BAD_FRAME unreadable."""
+    clip = tmp_path_factory.mktemp("damaged") / "clip"
+    shutil.copytree(kitti_clip, clip)
+    (clip / "image_0" / f"{BAD_FRAME:06d}.png").write_bytes(b"not a png")
+    return clip
+
+
+def test_teach_error_mid_run_writes_window_and_aborts(damaged_clip, reference, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", damaged_clip, "--map", path, "--frames", "0:12")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, f"{BAD_FRAME:06d}.png", "cannot decode image")
+    [run], t_ns = taught(path)
+    assert (run.kind, run.state) == ("teach", "aborted")
+    assert re.fullmatch(rf"DataError: .*image_0/{BAD_FRAME:06d}\.png: cannot decode image.*", run.reason)
+    # every keyframe of the frames processed before the error is in the map, the window included:
+    # exactly the vertices of a complete teach over those frames
+    expected = reference(BAD_FRAME)
+    assert len(expected) > WINDOW
+    np.testing.assert_array_equal(t_ns, expected)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]   # no -wal/-shm left
+    # `map info` shows it; `repeat` refuses it in one line and writes nothing ...
+    info = invoke("map", "info", path)
+    assert info.exit_code == 0 and re.search(r"0\s+teach\s+yes\s+aborted\s+" + str(len(expected)), info.stdout)
+    assert f"run 0 aborted: DataError: {damaged_clip}" in info.stdout and "--allow-partial" in info.stdout
+    before = rows(path)
+    r = invoke("repeat", damaged_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:5")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, "teach run 0 is aborted", "not finished", "--allow-partial")
+    assert rows(path) == before
+    # ... unless --allow-partial: then it runs and only its own run is added
+    r = invoke("repeat", damaged_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:5", "--allow-partial")
+    assert r.exit_code == 0, r.output
+    runs, t_after = taught(path)
+    assert [(x.kind, x.state) for x in runs] == [("teach", "aborted"), ("repeat", "finished")]
+    np.testing.assert_array_equal(t_after, t_ns)
+
+
+def test_teach_failing_before_any_vertex_leaves_no_file(kitti_clip, tmp_path):
+    clip = tmp_path / "clip"
+    shutil.copytree(kitti_clip, clip)
+    (clip / "image_1" / "000000.png").write_bytes(b"")     # the first frame's right image
+    path = tmp_path / "maps" / "route.vtrmap"
+    r = invoke("teach", clip, "--map", path, "--frames", "0:4")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, "image_1/000000.png")
+    assert list((tmp_path / "maps").iterdir()) == []      # no map, no side or temporary file
+    r = invoke("teach", kitti_clip, "--map", path, "--frames", "0:3")   # so teaching again just works
+    assert r.exit_code == 0, r.output
+    assert [(x.state, x.n_vertices) for x in taught(path)[0]] == [("finished", 3)]
+
+
+def _teach_process(clip: Path, path: Path) -> subprocess.Popen:
+    """`vtr teach` over the whole clip in a new process (SIGINT restored to Python's default)."""
+    return subprocess.Popen([sys.executable, "-m", "vtr", "teach", str(clip), "--map", str(path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _wait_for_vertices(proc: subprocess.Popen, path: Path, n: int) -> int:
+    """Poll the map (read-only, as another process) until it holds ``n`` vertices; returns the count seen."""
+    deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
+    while True:
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "teach too slow"
+        if path.exists():
+            try:
+                with Map.open(path) as m:
+                    if m.runs() and m.runs()[0].n_vertices >= n:
+                        return m.runs()[0].n_vertices
+            except MapError:
+                pass
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize(("sig", "code", "message", "reason"), [
+    (signal.SIGTERM, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
+    (signal.SIGINT, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
+])
+def test_signal_mid_teach_writes_window_and_aborts(kitti_clip, reference, tmp_path, sig, code, message, reason):
+    path = tmp_path / "route.vtrmap"
+    proc = _teach_process(kitti_clip, path)
+    seen = _wait_for_vertices(proc, path, SIGNAL_AFTER_VERTICES)
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=SUBPROCESS_TIMEOUT_S)
+    assert proc.returncode == code, err
+    assert "Traceback" not in err and err.replace("\r", "\n").strip().splitlines()[-1] == message
+    [run], t_ns = taught(path)
+    assert (run.state, run.reason) == ("aborted", reason)
+    # a vertex is written when it leaves the odometry window, so when the map held `seen` vertices the
+    # process had made at least seen + WINDOW keyframes: all of them are stored (the window was
+    # written, not dropped) ...
+    assert len(t_ns) >= seen + WINDOW
+    # ... and nothing else than the keyframes of a complete teach up to the last stored one
+    with Map.open(path) as m:
+        last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame.index
+    np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]
+
+
+@pytest.mark.parametrize(("signal_exc", "code", "message", "reason"), [
+    (Terminated, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
+    (KeyboardInterrupt, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
+])
+def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_clip, tmp_path, monkeypatch,
+                                                                       signal_exc, code, message, reason):
+    """A signal handler that raises while a numba kernel returns surfaces as a SystemError caused by the
+    signal's exception (seen in the process test above): still an orderly Ctrl-C / SIGTERM exit."""
+    from vtr.navigation.teach import Teach
+
+    real, calls = Teach.process, []
+
+    def process(self, images):
+        calls.append(1)
+        if len(calls) == SIGNAL_AFTER_VERTICES + WINDOW:
+            try:
+                raise signal_exc()
+            except signal_exc as err:
+                raise SystemError("CPUDispatcher(<function schur>) returned a result with an exception set") from err
+        return real(self, images)
+
+    monkeypatch.setattr(Teach, "process", process)
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", kitti_clip, "--map", path)
+    assert r.exit_code == code, r.output
+    assert "Traceback" not in r.stderr and r.stderr.strip().splitlines()[-1] == message
+    [run], t_ns = taught(path)
+    assert (run.state, run.reason) == ("aborted", reason) and len(t_ns) > 0
+
+
+def test_sigkilled_teach_reads_interrupted_and_repeat_refuses(kitti_clip, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    proc = _teach_process(kitti_clip, path)
+    _wait_for_vertices(proc, path, SIGNAL_AFTER_VERTICES)
+    proc.kill()
+    proc.communicate(timeout=SUBPROCESS_TIMEOUT_S)
+    [run], t_ns = taught(path)
+    assert (run.state, run.reason, run.finished) == ("interrupted", "", False) and len(t_ns) >= 2
+    before = rows(path)
+    info = invoke("map", "info", path)
+    assert info.exit_code == 0 and re.search(r"0\s+teach\s+yes\s+interrupted\s+\d+", info.stdout)
+    r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:4")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, "teach run 0 is interrupted", "--allow-partial")
+    assert [(x.kind, x.state) for x in taught(path)[0]] == [("teach", "interrupted")]
+    assert rows(path) == before
+
+
+def test_failed_repeat_is_aborted_not_finished(kitti_clip, damaged_clip, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:12:2", Config())
+    r = invoke("repeat", damaged_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:12")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, f"{BAD_FRAME:06d}.png")
+    runs, _ = taught(path)
+    assert [(x.kind, x.state) for x in runs] == [("teach", "finished"), ("repeat", "aborted")]
+    assert runs[1].reason.startswith("DataError:") and runs[1].n_vertices >= 1
+
+
+def test_one_vertex_route_is_refused_in_one_line(kitti_clip, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", kitti_clip, "--map", path, "--frames", "0:1")
+    assert r.exit_code == 0, r.output
+    assert [(x.state, x.n_vertices) for x in taught(path)[0]] == [("finished", 1)]
+    r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:6")
+    assert r.exit_code == 1
+    one_line_error(r.stderr, "the taught path has 1 vertex", "no segment")
+    assert [x.kind for x in taught(path)[0]] == ["teach"]
+
+
+FILE_SIZE_LIMIT_BYTES = 600_000   # the map's log outgrows this within the clip: a full disk for SQLite
+
+
+def _full_disk() -> None:
+    """In the child: files cannot grow past FILE_SIZE_LIMIT_BYTES (writes fail as on a full disk)."""
+    import resource
+
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT_BYTES, FILE_SIZE_LIMIT_BYTES))
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="needs POSIX file size limits")
+def test_full_disk_mid_teach_is_one_line_and_never_finished(kitti_clip, reference, tmp_path):
+    path = tmp_path / "route.vtrmap"
+    r = subprocess.run([sys.executable, "-m", "vtr", "teach", str(kitti_clip), "--map", str(path)],
+                       capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S, preexec_fn=_full_disk)
+    assert r.returncode == 1
+    one_line_error(r.stderr, str(path))
+    [run], t_ns = taught(path)   # the map opens with what was committed
+    assert not run.finished and run.state in ("aborted", "interrupted")   # aborted when the reason still fit
+    assert 0 < len(t_ns) < 51
+    with Map.open(path) as m:
+        last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame.index
+    np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
+    r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:4")
+    one_line_error(r.stderr, "not finished", "--allow-partial")
