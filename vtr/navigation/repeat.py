@@ -45,6 +45,7 @@ class Repeat:
     """Repeat pipeline: feed frames with ``process``; ``latest`` holds the latest localization."""
 
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0):
+        config.validate()
         self.map = map_
         self.camera = map_.camera
         self.config = config
