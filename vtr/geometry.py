@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from .errors import EstimationError, VtrError
 
 SE3_TOLERANCE = 1e-6   # max deviation of R R^T from I and of the last row from [0 0 0 1]
+QUATERNION_NORM_TOLERANCE = 1e-3   # a quaternion read from a text file is unit to this (else: malformed)
 _I3 = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 

@@ -361,9 +361,11 @@ class RosbagSource(FrameSource):
             reader.open()
         except FileNotFoundError:
             raise
-        except self._errors as err:
+        except (*self._errors, MemoryError) as err:   # a damaged length field asks for absurd buffers
             hint = " (a truncated ROS 1 bag can be repaired with `rosbag reindex`)" if not self.ros2 else ""
-            raise DataError(f"{self.path}: cannot open bag: {err}{hint}") from err
+            reason = "a record length is absurd (damaged file)" if isinstance(err, MemoryError) else \
+                " ".join(str(err).split()) or type(err).__name__
+            raise DataError(f"{self.path}: cannot open bag: {reason}{hint}") from err
         self._reader = reader
         try:
             self._setup(left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired, rectify)
@@ -472,7 +474,7 @@ class RosbagSource(FrameSource):
                 stamps[c.topic].append(header_stamp_ns(raw, self.ros2))
                 logs[c.topic].append(t)
                 counted += 1
-        except self._errors as err:
+        except (*self._errors, MemoryError) as err:
             raise DataError(f"{self.path}: bag is truncated or corrupt: read error after {counted} image "
                             f"messages on {self.left_topic}, {self.right_topic}: {err}") from err
         for s in (self._left, self._right):
