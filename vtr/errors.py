@@ -27,3 +27,7 @@ class MapError(VtrError):
 
 class EstimationError(VtrError):
     """An estimator received invalid input (NaN pose, non-SE(3) matrix, non-PSD covariance...)."""
+
+
+class OutputError(VtrError):
+    """An output path cannot be written (exists as a file, parent not writable...); raised before work starts."""

@@ -1,6 +1,7 @@
 """The ``vtr`` command: a thin adapter over the library.
 
-Known errors (``VtrError``, missing files) become one line on stderr and exit code 1.
+Known errors (``VtrError``, and any ``OSError``: missing file, full disk, no permission) become one
+line on stderr naming the file, and exit code 1.
 Subcommands live in sibling modules and register on ``main``.
 """
 
@@ -30,8 +31,10 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
-        except (VtrError, FileNotFoundError) as err:
-            click.echo(f"vtr: error: {err}", err=True)
+        except (VtrError, OSError) as err:
+            from .common import OUTPUTS_KEY, error_line
+
+            click.echo(f"vtr: error: {error_line(err, ctx.meta.get(OUTPUTS_KEY))}", err=True)
             sys.exit(1)
 
 

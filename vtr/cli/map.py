@@ -72,7 +72,9 @@ def export_map_cmd(map_path: Path, ply_path: Path) -> None:
     """
     from ..map import Map
     from ..map.export import export_landmarks_ply
+    from .common import note_outputs
 
+    note_outputs(ply_path)
     with Map.open(map_path, "r") as m:
         summary = export_landmarks_ply(m, ply_path)
     total = sum(s.points for s in summary)
