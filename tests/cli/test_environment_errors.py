@@ -188,3 +188,26 @@ def test_robot_topic_names_through_every_source_command(tmp_path):
     assert_one_line(["teach", KITTI, "--map", tmp_path / "n.vtrmap", "--left-topic", "/x"],
                     "--left-topic apply to ROS bag sources only")
     assert not (tmp_path / "n.vtrmap").exists()
+
+
+def test_map_with_landmarks_behind_the_camera(tmp_path):
+    """A damaged map whose landmarks lie behind their camera: was a ValueError traceback in bundle_adjust."""
+    import sqlite3
+
+    import numpy as np
+
+    from vtr.map.records import decode_arrays, encode_arrays
+
+    m = tmp_path / "route.vtrmap"
+    code, _, err = run("teach", KITTI, "--map", m, "--frames", "0:6:2")
+    assert code == 0, err
+    with sqlite3.connect(m) as db:
+        for (trigger,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'trigger' AND "
+                                     "tbl_name = 'vertex_data'").fetchall():
+            db.execute(f"DROP TRIGGER {trigger}")       # vertex data is immutable: damage it from outside
+        vid, blob = db.execute("SELECT id, data FROM vertex_data ORDER BY id LIMIT 1").fetchone()
+        arrays = {k: np.array(v) for k, v in decode_arrays(blob, "x").items()}
+        arrays["points"][:, 2] *= -1
+        db.execute("UPDATE vertex_data SET data = ? WHERE id = ?", (encode_arrays(arrays, 3), vid))
+    assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r", "--frames", "1:6:2"],
+                    f"{m} vertex {vid}", "behind its camera")

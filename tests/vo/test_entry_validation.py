@@ -158,3 +158,21 @@ def test_controller_state_refuses_non_se3_trunk():
             controller_state(state, bad, T_o_t)
     with pytest.raises(EstimationError, match="T_sensor_vehicle"):
         controller_state(state, np.eye(4), T_o_t, np.zeros((4, 4)))
+
+
+def test_map_refuses_a_frame_with_landmarks_behind_the_camera(kitti, tmp_path):
+    from vtr.errors import MapError
+    from vtr.types import StereoFrame
+    from vtr.vo.stereo import StereoProcessor
+
+    camera, frames = kitti
+    cfg = Config()
+    f = StereoProcessor(camera, cfg.features, cfg.stereo).process(frames[0])
+    points = f.points.copy()
+    points[:, 2] *= -1
+    behind = StereoFrame(f.t_ns, f.index, f.features, f.u_right, points)
+    with Map.create(tmp_path / "m.vtrmap", camera) as m:
+        run = m.begin_run("teach", source="x", privileged=True)
+        with pytest.raises(MapError, match="behind its camera"):
+            m.add_vertex(run, f.t_ns, np.eye(4), behind, camera.T_vehicle_sensor, None)
+        m.add_vertex(run, f.t_ns, np.eye(4), f, camera.T_vehicle_sensor, None)

@@ -197,7 +197,18 @@ def frame_arrays(frame) -> dict[str, np.ndarray]:
         if a.dtype != dtype and not np.array_equal(b, a, equal_nan=both_float):
             raise MapError(f"frame {name}: values do not fit the stored dtype {dtype}")
         out[name] = b
+    check_landmarks_in_front(out["points"], "frame points")
     return out
+
+
+def check_landmarks_in_front(points: np.ndarray, where: str) -> None:
+    """``MapError`` unless every landmark (finite row) lies in front of its camera (z > 0): stereo
+    triangulation only yields such points, so another one means damaged or foreign data."""
+    z = points[:, 2]
+    behind = np.isfinite(points).all(axis=1) & ~(z > 0)
+    if behind.any():
+        k = int(np.argmax(behind))
+        raise MapError(f"{where}: landmark {k} of {len(points)} is behind its camera (z = {z[k]:.6g} m)")
 
 
 def count_landmarks(points: np.ndarray) -> int:
@@ -244,6 +255,7 @@ def decode_arrays(blob: bytes, where: str) -> dict[str, np.ndarray]:
         out[name] = np.frombuffer(source, dtype=dtype, count=size // dtype.itemsize, offset=offsets[key]).reshape(
             (n, *tail)).astype(dtype.newbyteorder("="), copy=False)
         offsets[key] += size
+    check_landmarks_in_front(out["points"], where)
     return out
 
 
