@@ -20,11 +20,12 @@ def load_config(path: Path | None) -> Config:
 
 
 def progress_bar():
-    """A tqdm factory writing to stderr (quiet when not a terminal is fine too)."""
+    """A tqdm factory writing to stderr; silent when stderr is not a terminal (a log or a pipe then
+    holds only the summary or the one-line error)."""
     from tqdm import tqdm
 
     def bar(items, total, desc):
-        return tqdm(items, total=total, desc=desc, unit="frame", dynamic_ncols=True, leave=False)
+        return tqdm(items, total=total, desc=desc, unit="frame", dynamic_ncols=True, leave=False, disable=None)
 
     return bar
 
