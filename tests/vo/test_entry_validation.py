@@ -71,6 +71,18 @@ def test_odometry_refuses_a_config_outside_its_domain(kitti):
         StereoOdometry(camera, cfg)
 
 
+def test_stereo_processor_and_feature_extractor_check_their_sections(kitti):
+    from vtr.config import FeatureConfig, StereoConfig
+    from vtr.vo.features import FeatureExtractor
+    from vtr.vo.stereo import StereoProcessor
+
+    camera, _ = kitti
+    with pytest.raises(ConfigError, match=r"features\.n_levels"):
+        FeatureExtractor(FeatureConfig(n_levels=0), camera.size)
+    with pytest.raises(ConfigError, match=r"stereo\.refine_half_window"):
+        StereoProcessor(camera, FeatureConfig(), StereoConfig(refine_half_window=-2))
+
+
 def test_teach_and_repeat_refuse_a_bad_config_before_writing(kitti, tmp_path):
     camera, frames = kitti
     bad = Config()

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FeatureConfig, StereoConfig
+from ..config import FeatureConfig, StereoConfig, check_section
 from ..errors import DataError
 from ..timing import StageTimer
 from ..types import Features, StereoFrame, StereoImages
@@ -60,6 +60,8 @@ class StereoProcessor:
 
     def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
                  timer: StageTimer | None = None):
+        check_section(features, "features")
+        check_section(stereo, "stereo")
         self.camera = camera
         self.timer = timer or StageTimer()
         self.cfg = stereo
