@@ -84,6 +84,8 @@ def setting(default: Any, domain: Range | Choice) -> Any:
 
 
 def domain_of(f: dataclasses.Field) -> Range | Choice:
+    if "domain" not in f.metadata:
+        raise TypeError(f"config field {f.name} declares no domain: declare it as setting(default, Range(...))")
     return f.metadata["domain"]
 
 
