@@ -702,6 +702,10 @@ def _fit_mle(
     """``fit_mle`` on checked data (``_check_data``)."""
     if angle_unit not in UNIT_SCALE:
         raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    for name, values in (("parallax angle", a), ("view angle", t)):
+        if np.ptp(values) == 0:
+            raise FitError(f"{source}: every observation has the same {name} ({values[0]:.6g} rad); "
+                           "the constants cannot be identified (collect data over a range of angles)")
     k = UNIT_SCALE[angle_unit]
     spec = bins or BinSpec()
     if initial is None:

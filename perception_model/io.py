@@ -39,6 +39,9 @@ class _Table:
     def where(self, k: int) -> str:
         return f"{self.path}, line {self.lines[k]}"
 
+#: a path position farther than this from the frame origin (m) is a unit or data error
+MAX_POSITION_M = 1e7
+
 
 def _read_table(path: Path, required: Sequence[str]) -> _Table:
     """Columns of a CSV file as lists of stripped strings, after checking the header."""
@@ -136,6 +139,11 @@ def read_positions(path: str | Path) -> PathPositions:
     if not table.lines:
         raise InputDataError(f"{p}: no position rows")
     xyz = _finite_matrix(table, _POINT_COLUMNS)
+    far = np.abs(xyz).max(axis=1) > MAX_POSITION_M
+    if far.any():
+        k = int(np.argmax(far))
+        raise InputDataError(f"{table.where(k)}: position {xyz[k].tolist()} is beyond {MAX_POSITION_M:g} m "
+                             "(metres expected)")
     yaw = None
     if "yaw" in table.names:
         yaw = _finite_matrix(table, ("yaw",))[:, 0]

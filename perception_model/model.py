@@ -221,6 +221,14 @@ class PerceptionModel:
         """Build a model from a ``to_dict``-style mapping; errors name ``source``."""
         if not isinstance(d, dict):
             raise ModelFileError(f"{source}: expected a JSON object at top level, got {type(d).__name__}")
+        if "format" in d and d["format"] != FILE_FORMAT:
+            raise ModelFileError(f"{source}: format {d['format']!r} is not {FILE_FORMAT!r}")
+        version = d.get("version", FILE_VERSION)
+        if isinstance(version, bool) or version != FILE_VERSION:
+            raise ModelFileError(
+                f"{source}: model file version {version!r} is not supported (this perception_model reads "
+                f"version {FILE_VERSION}; refit or upgrade perception_model)"
+            )
         missing = [key for key in REQUIRED_KEYS if key not in d]
         if missing:
             raise ModelFileError(

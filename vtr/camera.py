@@ -12,6 +12,10 @@ import cv2
 import numpy as np
 
 from .errors import CalibrationError
+from .geometry import check_se3
+
+MIN_BASELINE_M = 1e-6      # cameras closer than this on the body are the same camera
+RIGID_TOLERANCE = 1e-4     # T_BS of a calibration file is rigid to this (printed with ~8 digits)
 
 MIN_DEPTH_M = 0.1  # points closer than this in front of the camera are not in view (not predicted)
 
@@ -152,23 +156,41 @@ class StereoRectifier:
     T_rawleft_rect: np.ndarray
 
     @classmethod
-    def from_raw(cls, left: RawCamera, right: RawCamera, alpha: float = 0.0) -> StereoRectifier:
-        """Rectify a raw pair (OpenCV ``stereoRectify``); alpha 0 keeps only valid pixels."""
+    def from_raw(cls, left: RawCamera, right: RawCamera, alpha: float = 0.0, where: str = "stereo calibration"
+                 ) -> StereoRectifier:
+        """Rectify a raw pair (OpenCV ``stereoRectify``); alpha 0 keeps only valid pixels.
+
+        ``CalibrationError`` naming ``where`` (the calibration files) for a pair OpenCV cannot rectify.
+        """
         size = (left.width, left.height)
         if (right.width, right.height) != size:
             raise CalibrationError(
-                f"left and right cameras differ in size: {size} vs {(right.width, right.height)}"
+                f"{where}: left and right cameras differ in size: {size} vs {(right.width, right.height)}"
             )
+        if min(size) <= 0:
+            raise CalibrationError(f"{where}: image size {size[0]}x{size[1]} is empty")
+        for side, raw in (("left", left), ("right", right)):
+            if not (np.isfinite(raw.K).all() and np.isfinite(raw.dist).all() and np.isfinite(raw.T_body_cam).all()):
+                raise CalibrationError(f"{where}: {side} camera has NaN or infinite calibration values")
+            if raw.K[0, 0] <= 0 or raw.K[1, 1] <= 0:
+                raise CalibrationError(f"{where}: {side} camera focal lengths must be positive")
+            check_se3(raw.T_body_cam, f"{where}: {side} camera T_BS", tol=RIGID_TOLERANCE, error=CalibrationError)
         T_right_left = np.linalg.inv(right.T_body_cam) @ left.T_body_cam
-        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-            left.K, left.dist, right.K, right.dist, size,
-            T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy(),
-            flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
-        )
+        if np.linalg.norm(T_right_left[:3, 3]) < MIN_BASELINE_M:
+            raise CalibrationError(f"{where}: left and right cameras are at the same place on the body "
+                                   "(identical T_BS translations): no stereo baseline")
+        try:
+            R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
+                left.K, left.dist, right.K, right.dist, size,
+                T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy(),
+                flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+            )
+        except cv2.error as err:
+            raise CalibrationError(f"{where}: OpenCV cannot rectify this pair ({' '.join(str(err).split())})") from None
         fx = P1[0, 0]
         baseline = -P2[0, 3] / fx
-        if baseline <= 0:
-            raise CalibrationError("rectification gives a non-positive baseline: is left/right swapped?")
+        if not baseline > 0:
+            raise CalibrationError(f"{where}: rectification gives a non-positive baseline: is left/right swapped?")
         T_rawleft_rect = np.eye(4)
         T_rawleft_rect[:3, :3] = R1.T
         cam = StereoCamera(

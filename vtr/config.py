@@ -3,19 +3,94 @@
 Defaults follow the open-source VT&R3 stack (docs/README.md); benchmarks decide changes. A config
 loads from YAML (or TOML) holding any subset of the sections below; unknown keys are errors.
 Dump the resolved defaults with ``vtr config``.
+
+Every field declares its domain beside its default (``setting(default, Range(...))`` or
+``Choice(...)``): type, integer-ness, finiteness and bounds. ``Config.validate`` checks every field
+against its domain, then the cross-field rules, and names ``section.key`` and the allowed values in
+a one-line ``ConfigError``; it runs when a file loads and when ``StereoOdometry``, ``Teach`` or
+``Repeat`` receive a ``Config`` built in code, so no value reaches OpenCV or numba unchecked.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, SupportsInt, cast
 
 import yaml
 
 from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Range:
+    """Numeric domain: ``lo <= x <= hi`` (``lo_open``/``hi_open`` make a bound strict), finite;
+    ``integer`` demands an integer (bool is refused either way)."""
+
+    lo: float
+    hi: float
+    integer: bool = False
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def describe(self) -> str:
+        kind = "an integer" if self.integer else "a finite number"
+        return f"{kind} in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+
+    def check(self, value: Any) -> int | float:
+        """The value as int/float when inside the domain; ``ValueError`` (the reason) otherwise."""
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"must be {self.describe()}, got {type(value).__name__}")
+        if not math.isfinite(float(value)):
+            raise ValueError(f"must be {self.describe()}, got {value!r}")
+        if self.integer:
+            if not float(value).is_integer():
+                raise ValueError(f"must be {self.describe()}, got {value!r}")
+            out: int | float = int(cast(SupportsInt, value))
+        else:
+            out = float(value)
+        below = out <= self.lo if self.lo_open else out < self.lo
+        above = out >= self.hi if self.hi_open else out > self.hi
+        if below or above:
+            raise ValueError(f"must be {self.describe()}, got {value!r}")
+        return out
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Domain of a string field: one of ``values``."""
+
+    values: tuple[str, ...]
+
+    def __init__(self, *values: str) -> None:
+        object.__setattr__(self, "values", tuple(values))
+
+    def describe(self) -> str:
+        return "one of " + ", ".join(repr(v) for v in self.values)
+
+    def check(self, value: Any) -> str:
+        if not isinstance(value, str) or value not in self.values:
+            raise ValueError(f"must be {self.describe()}, got {value!r}")
+        return value
+
+
+def setting(default: Any, domain: Range | Choice) -> Any:
+    """A config field with its default and its domain (checked by ``Config.validate``)."""
+    return field(default=default, metadata={"domain": domain})
+
+
+def domain_of(f: dataclasses.Field) -> Range | Choice:
+    if "domain" not in f.metadata:
+        raise TypeError(f"config field {f.name} declares no domain: declare it as setting(default, Range(...))")
+    return f.metadata["domain"]
+
+
+DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)   # Hamming distance between 256-bit ORB descriptors
+RADIUS_PX = Range(0.0, 10_000.0, lo_open=True)
 
 
 @dataclass
@@ -24,121 +99,140 @@ class FeatureConfig:
 
     # features kept per image after grid bucketing; on the KITTI clip 2000 gave t_err 0.64-0.74 % over
     # five parameter variants against 0.74-0.90 % for 1500, for ~10 % more time per frame
-    n_features: int = 2000
-    detect_factor: float = 1.5      # ORB detects this many times n_features before bucketing
-    grid_rows: int = 8              # bucketing grid (cells keep their strongest features)
-    grid_cols: int = 16
-    scale_factor: float = 1.2       # ORB pyramid scale step
-    n_levels: int = 4               # ORB pyramid levels (scale range 1.7: consecutive keyframes, repeats)
-    fast_threshold: int = 20        # FAST corner threshold (grey levels)
-    edge_threshold: int = 19        # ORB border (px); also the patch half-size bound
+    n_features: int = setting(2000, Range(1, 100_000, integer=True))
+    detect_factor: float = setting(1.5, Range(1.0, 10.0))  # ORB detects this many times n_features before bucketing
+    grid_rows: int = setting(8, Range(1, 256, integer=True))  # bucketing grid (cells keep their strongest features)
+    grid_cols: int = setting(16, Range(1, 256, integer=True))
+    scale_factor: float = setting(1.2, Range(1.0, 4.0, lo_open=True))  # ORB pyramid scale step
+    # ORB pyramid levels (scale range 1.7: consecutive keyframes, repeats)
+    n_levels: int = setting(4, Range(1, 16, integer=True))
+    fast_threshold: int = setting(20, Range(1, 255, integer=True))  # FAST corner threshold (grey levels)
+    edge_threshold: int = setting(19, Range(1, 127, integer=True))  # ORB border (px); also the patch half-size bound
     # ranking of FAST corners before bucketing: "fast" (FAST score, as ORB-SLAM's extractor) or "harris"
     # (OpenCV ORB's default). On the KITTI clip Harris ranking gave t_err 1.05-1.8 % over five parameter
     # variants against 0.67-0.90 % for the FAST score, which is also ~2 ms cheaper per image
-    corner_score: str = "fast"
+    corner_score: str = setting("fast", Choice("fast", "harris"))
 
 
 @dataclass
 class StereoConfig:
     """Left-right matching on epipolar rows and triangulation."""
 
-    max_row_diff_px: float = 1.5    # |v_l - v_r| allowed at pyramid level 0 (scales with level)
-    min_disparity_px: float = 0.5   # smaller disparities are treated as unmatched (points at infinity)
-    max_disparity_px: float = 160.0
-    max_descriptor_distance: int = 64   # Hamming distance accepted between left and right
-    refine_half_window: int = 5     # subpixel refinement: SAD patch half-size (px)
-    refine_search_px: int = 3       # subpixel refinement: search +- this many px along the row
-    pixel_sigma: float = 1.0        # measurement noise on u_l, v, u_r (px) used for covariances
+    # |v_l - v_r| allowed at pyramid level 0 (scales with level)
+    max_row_diff_px: float = setting(1.5, Range(0.0, 100.0))
+    # smaller disparities are treated as unmatched (points at infinity)
+    min_disparity_px: float = setting(0.5, Range(0.0, 10_000.0, lo_open=True))
+    max_disparity_px: float = setting(160.0, Range(0.0, 10_000.0, lo_open=True))
+    max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)  # Hamming distance accepted between left and right
+    refine_half_window: int = setting(5, Range(1, 32, integer=True))  # subpixel refinement: SAD patch half-size (px)
+    # subpixel refinement: search +- this many px along the row
+    refine_search_px: int = setting(3, Range(1, 64, integer=True))
+    # measurement noise on u_l, v, u_r (px) used for covariances
+    pixel_sigma: float = setting(1.0, Range(0.0, 100.0, lo_open=True))
 
 
 @dataclass
 class OdometryConfig:
     """Frame-to-keyframe odometry, its robust estimation and the keyframe test."""
 
-    match_radius_px: float = 20.0         # search radius around the predicted projection
-    match_radius_no_prior_px: float = 200.0   # radius when the motion prior is not trusted
-    max_descriptor_distance: int = 64
-    ratio_test: float = 0.9               # best/second-best Hamming ratio for temporal matches
-    ransac_iterations: int = 2000
-    ransac_threshold_px: float = 5.0
-    ransac_confidence: float = 0.999
-    min_inliers: int = 15                 # fewer: FAILURE
-    refine_iterations: int = 10           # Gauss-Newton iterations of the two-view stereo bundle adjustment
-    huber_px: float = 1.5                 # robust kernel width in the refinement
+    match_radius_px: float = setting(20.0, RADIUS_PX)  # search radius around the predicted projection
+    match_radius_no_prior_px: float = setting(200.0, RADIUS_PX)  # radius when the motion prior is not trusted
+    max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)
+    # best/second-best Hamming ratio for temporal matches
+    ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
+    ransac_iterations: int = setting(2000, Range(1, 1_000_000, integer=True))
+    ransac_threshold_px: float = setting(5.0, Range(0.0, 1000.0, lo_open=True))
+    ransac_confidence: float = setting(0.999, Range(0.0, 1.0, lo_open=True, hi_open=True))
+    min_inliers: int = setting(15, Range(3, 100_000, integer=True))  # fewer: FAILURE
+    # Gauss-Newton iterations of the two-view stereo bundle adjustment
+    refine_iterations: int = setting(10, Range(1, 1000, integer=True))
+    huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))  # robust kernel width in the refinement
     # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
     # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
     # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
     # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
-    far_point_baselines: float = 15.0
+    far_point_baselines: float = setting(15.0, Range(0.0, 1e6, lo_open=True))
     # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
     # near landmarks, non-zero so that it stays determined when none is near (a camera high above the ground)
-    far_disparity_weight: float = 1e-4
+    far_disparity_weight: float = setting(1e-4, Range(0.0, 1.0))
     # when fewer observations than this are near, the nearest ones (largest disparities) count as near instead
-    min_near_observations: int = 60
+    min_near_observations: int = setting(60, Range(0, 100_000, integer=True))
     # a far landmark whose rays across the window span at least this angle starts the windowed bundle
     # adjustment where they meet (its depth from parallax, not from one small disparity); on kitti00_ramp_clip
     # 0.5 deg gave t_err 0.9-1.6 % over four feature variants, 1 deg 1.1-2.3 %, none 1.4-2.0 %
-    far_min_parallax_deg: float = 0.5
-    keyframe_translation_m: float = 0.3   # new vertex when translation exceeds this
-    keyframe_rotation_deg: float = 3.0    # ... or rotation exceeds this
-    keyframe_min_inliers: int = 50        # ... or inliers fall below this
+    far_min_parallax_deg: float = setting(0.5, Range(0.0, 180.0))
+    keyframe_translation_m: float = setting(0.3, Range(0.0, 1000.0))  # new vertex when translation exceeds this
+    keyframe_rotation_deg: float = setting(3.0, Range(0.0, 180.0))  # ... or rotation exceeds this
+    keyframe_min_inliers: int = setting(50, Range(0, 100_000, integer=True))  # ... or inliers fall below this
     # implausible motion is a FAILURE. VT&R3 bounds a step at 2 m / 20 deg; bounded here as rates so that
     # subsampled runs (KITTI at stride 3 moves 3.6 m between frames) are judged by speed, not by step
-    max_speed_mps: float = 40.0
-    max_rotation_rate_dps: float = 200.0
-    window_keyframes: int = 5             # keyframes in the local map matched and refined together
+    max_speed_mps: float = setting(40.0, Range(0.0, 10_000.0, lo_open=True))
+    max_rotation_rate_dps: float = setting(200.0, Range(0.0, 100_000.0, lo_open=True))
+    # keyframes in the local map matched and refined together
+    window_keyframes: int = setting(5, Range(1, 1000, integer=True))
     # landmarks in the windowed bundle adjustment (near ones first, then the longest tracks); on kitti00_ramp_clip
     # 800 gave t_err 1.4-2.0 % over four feature variants against 1.9-5.0 % for 400
-    window_max_landmarks: int = 800
-    window_iterations: int = 4            # Levenberg-Marquardt iterations of the windowed bundle adjustment
-    still_translation_m: float = 1e-3     # a step below this (and still_rotation_deg) is DO_NOTHING
-    still_rotation_deg: float = 0.01
-    failure_variance: float = 100.0       # variance put on an edge carried by the motion prior alone
-    seed: int = 0                         # RANSAC seed (runs are reproducible)
+    window_max_landmarks: int = setting(800, Range(1, 1_000_000, integer=True))
+    # Levenberg-Marquardt iterations of the windowed bundle adjustment
+    window_iterations: int = setting(4, Range(1, 1000, integer=True))
+    # a step below this (and still_rotation_deg) is DO_NOTHING
+    still_translation_m: float = setting(1e-3, Range(0.0, 1000.0))
+    still_rotation_deg: float = setting(0.01, Range(0.0, 180.0))
+    # variance put on an edge carried by the motion prior alone
+    failure_variance: float = setting(100.0, Range(0.0, 1e12, lo_open=True))
+    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
 
 
 @dataclass
 class LocalizationConfig:
     """Repeat: localizing the leaf against the taught (privileged) path."""
 
-    ransac_iterations: int = 6000
-    ransac_threshold_px: float = 10.0
-    min_inliers: int = 6                  # fewer: localization failure
-    min_inliers_unlocalized: int = 20     # before the first success (no trusted prior) demand this many
-    min_matches: int = 20                 # fewer candidate matches: do not try
-    min_inlier_ratio: float = 0.4         # fewer inliers per match: a chance alignment, reported as failure
-    match_radius_px: float = 30.0         # search radius around the prior's prediction
-    match_radius_growth: float = 2.0      # ... times this per consecutive failure (the prior grows uncertain)
-    max_match_radius_px: float = 240.0
-    max_descriptor_distance: int = 64
-    trunk_window_back: int = 10           # trunk search window along the privileged path
-    trunk_window_forward: int = 20
-    rotation_weight: float = 7.0          # trunk search metric ||rho|| + w ||phi||
+    ransac_iterations: int = setting(6000, Range(1, 1_000_000, integer=True))
+    ransac_threshold_px: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))
+    min_inliers: int = setting(6, Range(3, 100_000, integer=True))  # fewer: localization failure
+    # before the first success (no trusted prior) demand this many
+    min_inliers_unlocalized: int = setting(20, Range(3, 100_000, integer=True))
+    min_matches: int = setting(20, Range(3, 1_000_000, integer=True))  # fewer candidate matches: do not try
+    # fewer inliers per match: a chance alignment, reported as failure
+    min_inlier_ratio: float = setting(0.4, Range(0.0, 1.0))
+    match_radius_px: float = setting(30.0, RADIUS_PX)  # search radius around the prior's prediction
+    # ... times this per consecutive failure (the prior grows uncertain)
+    match_radius_growth: float = setting(2.0, Range(1.0, 100.0))
+    max_match_radius_px: float = setting(240.0, RADIUS_PX)
+    max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)
+    # trunk search window along the privileged path
+    trunk_window_back: int = setting(10, Range(0, 1_000_000, integer=True))
+    trunk_window_forward: int = setting(20, Range(0, 1_000_000, integer=True))
+    rotation_weight: float = setting(7.0, Range(0.0, 1e6))  # trunk search metric ||rho|| + w ||phi||
     # taught vertices on each side of the trunk whose (window-refined) landmarks the leaf is matched against;
     # teach even / repeat odd on kitti00_ramp_clip, T_leaf_trunk median over four feature variants:
     # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
-    neighbour_vertices: int = 1
+    neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
 
 
 @dataclass
 class SmoothingConfig:
     """Continuous-time WNOA smoother."""
 
-    qc_translation: float = 1.0           # power spectral density of the white-noise acceleration, m^2/s^3
-    qc_rotation: float = 0.1              # rad^2/s^3
-    lag_s: float = 5.0                    # fixed-lag window (s)
-    rate_hz: float = 50.0                 # default output rate of state.csv
+    # power spectral density of the white-noise acceleration, m^2/s^3
+    qc_translation: float = setting(1.0, Range(0.0, 1e6, lo_open=True))
+    qc_rotation: float = setting(0.1, Range(0.0, 1e6, lo_open=True))  # rad^2/s^3
+    lag_s: float = setting(5.0, Range(0.0, 3600.0, lo_open=True))  # fixed-lag window (s)
+    rate_hz: float = setting(50.0, Range(0.0, 1000.0, lo_open=True))  # default output rate of state.csv
     # odometry's own covariance (fixed landmarks) ignores drift; the smoother adds this much per metre
     # travelled between vertices, so that localizations against the taught path are not outvoted
-    odometry_translation_sigma_per_m: float = 0.02   # m per m (2 % drift)
-    odometry_rotation_sigma_per_m: float = 0.0005    # rad per m
+    odometry_translation_sigma_per_m: float = setting(0.02, Range(0.0, 10.0))  # m per m (2 % drift)
+    odometry_rotation_sigma_per_m: float = setting(0.0005, Range(0.0, 10.0))  # rad per m
+    # state_at answers at most this long after the newest knot (a controller's query beyond it is an error:
+    # the WNOA prior alone would extrapolate without bound)
+    max_extrapolation_s: float = setting(1.0, Range(0.0, 3600.0))
 
 
 @dataclass
 class MapConfig:
     """On-disk map."""
 
-    compress_level: int = 3               # zlib level of array blobs
+    compress_level: int = setting(3, Range(0, 9, integer=True))  # zlib level of array blobs
 
 
 @dataclass
@@ -159,25 +253,25 @@ class Config:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], where: str = "config") -> Config:
+    def from_dict(cls, data: Any, where: str = "config") -> Config:
         cfg = cls()
         if not isinstance(data, dict):
-            raise ConfigError(f"{where}: expected a mapping of sections")
+            raise ConfigError(f"{where}: expected a mapping of sections, got {type(data).__name__}")
+        sections = {f.name for f in dataclasses.fields(cls)}
         for section, values in data.items():
-            if section not in {f.name for f in dataclasses.fields(cls)}:
-                raise ConfigError(f"{where}: unknown section {section!r}")
+            if section not in sections:
+                raise ConfigError(f"{where}: unknown section {section!r} (sections: {', '.join(sorted(sections))})")
             target = getattr(cfg, section)
             if not isinstance(values, dict):
-                raise ConfigError(f"{where}: section {section!r} must be a mapping")
+                raise ConfigError(f"{where}: section {section!r} must be a mapping of keys")
             known = {f.name: f for f in dataclasses.fields(target)}
             for key, value in values.items():
                 if key not in known:
                     raise ConfigError(f"{where}: unknown key {section}.{key}")
-                default = getattr(target, key)
                 try:
-                    value = type(default)(value)
-                except (TypeError, ValueError) as err:
-                    raise ConfigError(f"{where}: {section}.{key}={value!r} is not a {type(default).__name__}") from err
+                    value = domain_of(known[key]).check(value)
+                except ValueError as err:
+                    raise ConfigError(f"{where}: {section}.{key} {err}") from None
                 setattr(target, key, value)
         cfg.validate(where)
         return cfg
@@ -188,28 +282,62 @@ class Config:
         if not path.is_file():
             raise ConfigError(f"{path}: no such config file")
         try:
+            text = path.read_bytes().decode("utf-8")
+        except OSError as err:
+            raise ConfigError(f"{path}: cannot read config file ({err.strerror or err})") from None
+        except UnicodeDecodeError:
+            raise ConfigError(f"{path}: not a text config file (not UTF-8; expected YAML or TOML)") from None
+        try:
             if path.suffix == ".toml":
-                data = tomllib.loads(path.read_text())
+                data = tomllib.loads(text)
             else:
-                data = yaml.safe_load(path.read_text()) or {}
+                data = yaml.safe_load(text)
         except (yaml.YAMLError, tomllib.TOMLDecodeError) as err:
-            raise ConfigError(f"{path}: cannot parse ({err})") from err
-        return cls.from_dict(data, str(path))
+            reason = " ".join(str(err).split())
+            raise ConfigError(f"{path}: cannot parse ({reason})") from None
+        return cls.from_dict({} if data is None else data, str(path))
 
     def validate(self, where: str = "config") -> None:
-        """Cross-field checks."""
+        """Every field inside its declared domain, then the cross-field rules; ``ConfigError`` naming the key."""
+        for section in dataclasses.fields(self):
+            check_section(getattr(self, section.name), section.name, where)
         o, s, loc = self.odometry, self.stereo, self.localization
         checks = [
-            (self.features.n_features > 0, "features.n_features must be positive"),
-            (self.features.corner_score in ("fast", "harris"), "features.corner_score must be 'fast' or 'harris'"),
-            (0 < s.min_disparity_px < s.max_disparity_px, "stereo disparity limits must satisfy 0 < min < max"),
-            (o.min_inliers >= 3, "odometry.min_inliers must be at least 3"),
-            (o.keyframe_min_inliers >= o.min_inliers, "odometry.keyframe_min_inliers must be >= min_inliers"),
-            (o.ransac_iterations > 0 and o.ransac_threshold_px > 0, "odometry RANSAC settings must be positive"),
-            (loc.min_matches >= loc.min_inliers >= 3, "localization needs min_matches >= min_inliers >= 3"),
-            (self.smoothing.qc_translation > 0 and self.smoothing.qc_rotation > 0, "smoothing Qc must be positive"),
-            (0 < o.ratio_test <= 1, "odometry.ratio_test must be in (0, 1]"),
+            (s.min_disparity_px < s.max_disparity_px,
+             "stereo.min_disparity_px must be below stereo.max_disparity_px"),
+            (o.keyframe_min_inliers >= o.min_inliers, "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
+            (o.match_radius_no_prior_px >= o.match_radius_px,
+             "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px"),
+            (loc.min_matches >= loc.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
+            (loc.max_match_radius_px >= loc.match_radius_px,
+             "localization.max_match_radius_px must be >= localization.match_radius_px"),
         ]
         for ok, msg in checks:
             if not ok:
                 raise ConfigError(f"{where}: {msg}")
+
+
+def check_section(values: Any, name: str, where: str = "config") -> None:
+    """Every field of one section (e.g. a ``SmoothingConfig`` handed to the smoother alone) in its domain."""
+    for f in dataclasses.fields(values):
+        try:
+            domain_of(f).check(getattr(values, f.name))
+        except ValueError as err:
+            raise ConfigError(f"{where}: {name}.{f.name} {err}") from None
+
+
+def check_setting(section: str, key: str, value: Any, where: str = "config") -> Any:
+    """``value`` checked against the domain of ``section.key`` (for a command-line override such as
+    ``--rate``); returns it as the field's type."""
+    f = {f.name: f for f in dataclasses.fields(getattr(Config(), section))}[key]
+    try:
+        return domain_of(f).check(value)
+    except ValueError as err:
+        raise ConfigError(f"{where}: {section}.{key} {err}") from None
+
+
+def config_keys() -> list[tuple[str, str, Range | Choice]]:
+    """Every ``(section, key, domain)`` of the configuration, in declaration order."""
+    return [(section.name, f.name, domain_of(f))
+            for section in dataclasses.fields(Config)
+            for f in dataclasses.fields(section.default_factory)]  # type: ignore[arg-type]

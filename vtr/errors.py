@@ -51,3 +51,7 @@ def interruption(exc: BaseException) -> KeyboardInterrupt | Terminated | None:
         seen.add(id(e))
         e = e.__cause__
     return None
+
+
+class OutputError(VtrError):
+    """An output path cannot be written (exists as a file, parent not writable...); raised before work starts."""

@@ -25,6 +25,7 @@ COVARIANCE_PSD_RTOL = 1e-9         # negative eigenvalue allowed (semi-definite 
 MAX_COVARIANCE_CONDITION = 1e14    # larger condition numbers are treated as singular (definite check)
 MIN_EIGENVALUE_RATIO = 1e-12       # usable_covariance floors eigenvalues at this fraction of the largest
 POSE_DIM = 6                       # pose tangent dimension [rot, trans]
+QUATERNION_NORM_TOLERANCE = 1e-3   # a quaternion read from a text file is unit to this (else: malformed)
 _I3 = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 

@@ -115,7 +115,7 @@ def test_bad_arguments(tmp_path):
     r = runner.invoke(main, ["convert", str(tmp_path / "missing"), str(tmp_path / "o")])
     assert r.exit_code == 1 and "no such file or folder" in r.output
     r = runner.invoke(main, ["convert", str(KITTI), str(tmp_path / "o"), "--left-topic", "/x"])
-    assert r.exit_code == 2 and "ROS bag sources only" in r.output
+    assert r.exit_code == 1 and "--left-topic apply to ROS bag sources only" in r.output
 
 
 def test_cli_refuses_cloud_run(tmp_path):

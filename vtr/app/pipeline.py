@@ -18,7 +18,7 @@ from ..config import Config
 from ..errors import DataError
 from ..geometry import distance_to_polyline, inv_T
 from ..io import open_source, parse_frame_range
-from ..io.base import FrameSource
+from ..io.base import FrameSource, SourceOptions
 from ..io.trajectory import write_tum
 from ..navigation.localization import Localization
 from ..types import FrameKind, FrameRecord
@@ -85,11 +85,12 @@ def write_frames_csv(path: Path, records: list[FrameRecord]) -> None:
 
 
 def odometry_command(source_path: Path, out: Path, frames: str | None, config: Config,
-                     fmt: str | None = None, progress: Callable | None = None) -> OdometrySummary:
+                     source_options: SourceOptions | str | None = None,
+                     progress: Callable | None = None) -> OdometrySummary:
     """``vtr odometry``: trajectory_tum.txt, frames.csv, trajectory.png, run.json, config.yaml in ``out``."""
     from .report import plot_trajectory
 
-    with open_source(source_path, fmt) as source:
+    with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "odometry", config, [source_path])
@@ -134,7 +135,8 @@ class TeachSummary:
 
 
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
-                  fmt: str | None = None, progress: Callable | None = None) -> TeachSummary:
+                  source_options: SourceOptions | str | None = None,
+                  progress: Callable | None = None) -> TeachSummary:
     """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path).
 
     The run ends finished, or aborted with the reason on any exception (the keyframes still in the
@@ -142,7 +144,7 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
     from ..map import Map
     from ..navigation.teach import Teach
 
-    with open_source(source_path, fmt) as source:
+    with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
         t0 = time.perf_counter()
         results = []
@@ -248,7 +250,7 @@ def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
 
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
-                   fmt: str | None = None, progress: Callable | None = None,
+                   source_options: SourceOptions | str | None = None, progress: Callable | None = None,
                    rate_hz: float | None = None, allow_partial: bool = False) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
@@ -263,7 +265,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     from .report import plot_repeat
 
     rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
-    with open_source(source_path, fmt) as source, Map.open(map_path, "a") as m:
+    with open_source(source_path, source_options) as source, Map.open(map_path, "a") as m:
         m.check_camera(source.camera)
         indices = parse_frame_range(frames, len(source), str(source_path))
         out.mkdir(parents=True, exist_ok=True)

@@ -1,8 +1,8 @@
 """The ``vtr`` command: a thin adapter over the library.
 
-Known errors (``VtrError``, missing files, full disk and other ``OSError``) become one line on stderr
-and exit code 1; Ctrl-C and SIGTERM end the command in order (runs in progress are recorded as
-aborted) with exit codes 130 and 143.
+Known errors (``VtrError``, and any ``OSError``: missing file, full disk, no permission) become one
+line on stderr naming the file, and exit code 1; Ctrl-C and SIGTERM end the command in order (runs in
+progress are recorded as aborted) with exit codes 130 and 143.
 Subcommands live in sibling modules and register on ``main``.
 """
 
@@ -14,7 +14,7 @@ import click
 
 from .. import __version__
 from ..errors import Terminated, VtrError, interruption
-from .common import EXIT_SIGINT, EXIT_SIGTERM, error_line, sigterm_as_exception
+from .common import EXIT_SIGINT, EXIT_SIGTERM, OUTPUTS_KEY, error_line, sigterm_as_exception
 
 
 def _versions() -> str:
@@ -35,7 +35,7 @@ class _Group(click.Group):
             with sigterm_as_exception():
                 return super().invoke(ctx)
         except (VtrError, OSError) as err:
-            click.echo(f"vtr: error: {error_line(err)}", err=True)
+            click.echo(f"vtr: error: {error_line(err, ctx.meta.get(OUTPUTS_KEY))}", err=True)
             sys.exit(1)
         except (KeyboardInterrupt, Terminated, SystemError) as err:
             signal_err = interruption(err)   # a SystemError out of a numba kernel may carry the signal

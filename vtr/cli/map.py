@@ -83,8 +83,10 @@ def export_map_cmd(map_path: Path, ply_path: Path, force: bool) -> None:
     from ..io.outputs import check_new_output
     from ..map import Map
     from ..map.export import export_landmarks_ply
+    from .common import note_outputs
 
     check_new_output(ply_path, force)
+    note_outputs(ply_path)
     with Map.open(map_path, "r") as m:
         summary = export_landmarks_ply(m, ply_path)
     total = sum(s.points for s in summary)

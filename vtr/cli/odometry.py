@@ -6,8 +6,18 @@ from pathlib import Path
 
 import click
 
+from ..io.base import SourceOptions
 from . import main
-from .common import config_option, format_option, frames_option, load_config, progress_bar, source_argument
+from .common import (
+    check_out_dir,
+    config_option,
+    frames_option,
+    load_config,
+    note_outputs,
+    progress_bar,
+    source_argument,
+    source_options,
+)
 
 DEMO_CLIP = "kitti06_clip"
 
@@ -31,12 +41,15 @@ def _find_datasets() -> Path:
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @frames_option
 @config_option
-@format_option
-def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None, fmt: str | None) -> None:
+@source_options
+def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None,
+                 source_options: SourceOptions) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
     from ..app.pipeline import odometry_command
 
-    summary = odometry_command(source, out, frames, load_config(config_path), fmt, progress_bar())
+    check_out_dir(out)
+    config = load_config(config_path)
+    summary = odometry_command(source, out, frames, config, source_options, progress_bar())
     for line in summary.lines():
         click.echo(line)
     click.echo(f"wrote {out}/trajectory_tum.txt, frames.csv, trajectory.png, run.json")
@@ -55,6 +68,7 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool)
     if not tum_file.is_file():
         raise FileNotFoundError(f"{tum_file}: no such file")
     check_new_output(out_file, force)
+    note_outputs(out_file)
     t_ns, T = read_tum(tum_file)
     write_trajectory(out_file, t_ns, T, fmt)
     click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")
@@ -69,6 +83,7 @@ def demo_cmd(out: Path) -> None:
 
     clip = _find_datasets() / DEMO_CLIP
     config = Config()
+    check_out_dir(out)
     out.mkdir(parents=True, exist_ok=True)
     map_path = out / "route.vtrmap"
     for stale in out.glob("route.vtrmap*"):

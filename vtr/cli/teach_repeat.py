@@ -6,8 +6,18 @@ from pathlib import Path
 
 import click
 
+from ..io.base import SourceOptions
 from . import main
-from .common import config_option, format_option, frames_option, load_config, progress_bar, source_argument
+from .common import (
+    check_out_dir,
+    config_option,
+    frames_option,
+    load_config,
+    note_outputs,
+    progress_bar,
+    source_argument,
+    source_options,
+)
 
 map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), required=True,
                           help="Map file (SQLite; created by teach, appended to by repeat).")
@@ -20,16 +30,20 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Also write trajectory_tum.txt, frames.csv and run.json here.")
 @config_option
-@format_option
+@source_options
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, config_path: Path | None,
-              fmt: str | None) -> None:
+              source_options: SourceOptions) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
 
     The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
     the keyframes still in the odometry window are written; a teach that wrote nothing leaves no MAP."""
     from ..app.pipeline import teach_command
 
-    summary = teach_command(source, map_path, frames, load_config(config_path), out, fmt, progress_bar())
+    note_outputs(map_path)
+    if out is not None:
+        check_out_dir(out)
+    config = load_config(config_path)
+    summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar())
     for line in summary.lines():
         click.echo(line)
 
@@ -40,19 +54,23 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
 @frames_option
 @click.option("--rate", "rate_hz", type=float, default=None, metavar="HZ",
-              help="Rate of the smoothed controller state in state.csv (default: smoothing.rate_hz, 50).")
+              help="Rate of the smoothed controller state in state.csv (default: smoothing.rate_hz, 50; "
+                   "domain of smoothing.rate_hz).")
 @click.option("--allow-partial", is_flag=True,
               help="Repeat even when the teach run is not finished (aborted or interrupted: route may be cut short).")
 @config_option
-@format_option
+@source_options
 def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
-               allow_partial: bool, config_path: Path | None, fmt: str | None) -> None:
+               allow_partial: bool, config_path: Path | None, source_options: SourceOptions) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     Refuses a map whose teach run did not finish unless --allow-partial."""
     from ..app.pipeline import repeat_command
 
-    summary = repeat_command(source, map_path, out, frames, load_config(config_path), fmt, progress_bar(),
+    note_outputs(map_path)
+    check_out_dir(out)
+    config = load_config(config_path)
+    summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                              rate_hz=rate_hz, allow_partial=allow_partial)
     for line in summary.lines():
         click.echo(line)

@@ -20,6 +20,26 @@ from ..types import StereoImages
 
 
 @dataclass(frozen=True)
+class SourceOptions:
+    """How to open a SOURCE: ``format`` forces a reader (default: detect); the topic names and
+    ``allow_unpaired`` apply to ROS bags only (an error for any other format when set)."""
+
+    format: str | None = None
+    left_topic: str | None = None
+    right_topic: str | None = None
+    left_info_topic: str | None = None
+    right_info_topic: str | None = None
+    allow_unpaired: bool = False
+
+    def bag_kwargs(self) -> dict[str, str | bool | None]:
+        """Keyword arguments of ``RosbagSource`` that differ from its defaults."""
+        return {k: v for k, v in (("left_topic", self.left_topic), ("right_topic", self.right_topic),
+                                  ("left_info_topic", self.left_info_topic),
+                                  ("right_info_topic", self.right_info_topic),
+                                  ("allow_unpaired", self.allow_unpaired)) if v}
+
+
+@dataclass(frozen=True)
 class GroundTruth:
     """Reference poses of the left rectified camera: ``T_world_cam`` (N, 4, 4) at ``t_ns`` (N,)."""
 

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from ..camera import RawCamera, StereoRectifier
 from ..conventions import NS_PER_S
 from ..errors import CalibrationError, DataError
+from ..geometry import QUATERNION_NORM_TOLERANCE
 from ..types import StereoImages
 from .base import FrameSource, GroundTruth
 
@@ -33,7 +34,11 @@ def read_sensor_yaml(path: Path) -> RawCamera:
     """Parse an ASL camera ``sensor.yaml`` (OpenCV's %YAML:1.0 header tolerated)."""
     if not path.is_file():
         raise CalibrationError(f"{path}: missing camera calibration")
-    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("%YAML"))
+    try:
+        raw = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file (expected an ASL sensor.yaml)") from None
+    text = "\n".join(line for line in raw.splitlines() if not line.startswith("%YAML"))
     try:
         d = yaml.safe_load(text)
         fu, fv, cu, cv = (float(v) for v in d["intrinsics"])
@@ -45,6 +50,12 @@ def read_sensor_yaml(path: Path) -> RawCamera:
     model = d.get("distortion_model", "radial-tangential")
     if model not in ("radial-tangential", "radtan", "none"):
         raise CalibrationError(f"{path}: distortion model {model!r} not supported (radial-tangential only)")
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"{path}: resolution {w}x{h} is empty")
+    if not (np.isfinite([fu, fv, cu, cv]).all() and np.isfinite(dist).all() and np.isfinite(T).all()):
+        raise CalibrationError(f"{path}: NaN or infinite value in intrinsics, distortion or T_BS")
+    if fu <= 0 or fv <= 0:
+        raise CalibrationError(f"{path}: focal lengths must be positive, got {fu:g}, {fv:g}")
     K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
     return RawCamera(K=K, dist=dist, width=w, height=h, T_body_cam=T)
 
@@ -53,8 +64,8 @@ def read_stamp_csv(path: Path) -> tuple[np.ndarray, list[str]]:
     """``#timestamp [ns],filename`` rows -> (int64 ns, filenames)."""
     if not path.is_file():
         raise DataError(f"{path}: missing image list")
-    t, names = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    t, names, linenos = [], [], []
+    for lineno, line in enumerate(_text(path).splitlines(), 1):
         if not line.strip() or line.startswith("#"):
             continue
         parts = [p.strip() for p in line.split(",")]
@@ -63,7 +74,27 @@ def read_stamp_csv(path: Path) -> tuple[np.ndarray, list[str]]:
             names.append(parts[1])
         except (ValueError, IndexError) as err:
             raise DataError(f"{path}:{lineno}: malformed row {line!r}") from err
-    return np.array(t, np.int64), names
+        linenos.append(lineno)
+    t_ns = np.array(t, np.int64)
+    check_increasing(t_ns, np.array(linenos), path)
+    return t_ns, names
+
+
+def _text(path: Path) -> str:
+    try:
+        return path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise DataError(f"{path}: not a text file ({err.reason} at byte {err.start})") from None
+
+
+def check_increasing(t_ns: np.ndarray, linenos: np.ndarray, path: Path) -> None:
+    """``DataError`` naming the file and line unless the times are strictly increasing (unique, sorted)."""
+    bad = np.flatnonzero(np.diff(t_ns) <= 0)
+    if len(bad):
+        k = int(bad[0]) + 1
+        what = "repeats" if t_ns[k] == t_ns[k - 1] else "is earlier than"
+        raise DataError(f"{path}:{linenos[k]}: timestamp {t_ns[k]} {what} the previous row's "
+                        f"({t_ns[k - 1]}, line {linenos[k - 1]}): times must be strictly increasing")
 
 
 class EurocSource(FrameSource):
@@ -81,7 +112,8 @@ class EurocSource(FrameSource):
         self.root = root
         left = read_sensor_yaml(root / "cam0" / "sensor.yaml")
         right = read_sensor_yaml(root / "cam1" / "sensor.yaml")
-        self.rectifier = StereoRectifier.from_raw(left, right, alpha=alpha)
+        self.rectifier = StereoRectifier.from_raw(
+            left, right, alpha=alpha, where=f"{root / 'cam0' / 'sensor.yaml'}, {root / 'cam1' / 'sensor.yaml'}")
         self.camera = self.rectifier.camera
         tl, nl = read_stamp_csv(root / "cam0" / "data.csv")
         tr, nr = read_stamp_csv(root / "cam1" / "data.csv")
@@ -96,6 +128,9 @@ class EurocSource(FrameSource):
         self._t_ns = tl[ok]
         self._left = [root / "cam0" / "data" / nl[i] for i in np.flatnonzero(ok)]
         self._right = [root / "cam1" / "data" / nr[k] for k in j[ok]]
+        # optional ground truth: validated now, not after a whole run
+        self._gt = body_ground_truth(root / "state_groundtruth_estimate0" / "data.csv", 1,
+                                     self.camera.T_vehicle_sensor)
 
     def __len__(self) -> int:
         return len(self._t_ns)
@@ -113,8 +148,7 @@ class EurocSource(FrameSource):
 
     def ground_truth(self) -> GroundTruth | None:
         """Left rectified camera poses from ``state_groundtruth_estimate0`` (body poses), if present."""
-        return body_ground_truth(self.root / "state_groundtruth_estimate0" / "data.csv", 1,
-                                 self.camera.T_vehicle_sensor)
+        return self._gt
 
 
 def body_ground_truth(path: Path, ns_per_unit: int, T_body_cam: np.ndarray) -> GroundTruth | None:
@@ -124,8 +158,22 @@ def body_ground_truth(path: Path, ns_per_unit: int, T_body_cam: np.ndarray) -> G
         return None
     try:
         rows = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
-    except ValueError as err:
-        raise DataError(f"{path}: malformed ({err})") from err
+    except (ValueError, UnicodeDecodeError) as err:
+        raise DataError(f"{path}: malformed ({' '.join(str(err).split())})") from None
+    if rows.shape[0] == 0:
+        raise DataError(f"{path}: no pose rows")
+    if rows.shape[1] < 8:
+        raise DataError(f"{path}: {rows.shape[1]} columns per row, expected at least 8 (time, x y z, qw qx qy qz)")
+    lines = np.array([i + 1 for i, line in enumerate(_text(path).splitlines())
+                      if line.strip() and not line.lstrip().startswith("#")])
+    bad = np.flatnonzero(~np.isfinite(rows[:, :8]).all(axis=1))
+    if len(bad):
+        raise DataError(f"{path}:{lines[bad[0]]}: NaN or infinite value")
+    q_norm = np.linalg.norm(rows[:, 4:8], axis=1)
+    bad = np.flatnonzero(np.abs(q_norm - 1.0) > QUATERNION_NORM_TOLERANCE)
+    if len(bad):
+        raise DataError(f"{path}:{lines[bad[0]]}: quaternion norm {q_norm[bad[0]]:.6g} is not 1")
+    check_increasing(rows[:, 0].astype(np.int64), lines, path)
     T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
     T_world_body[:, :3, 3] = rows[:, 1:4]
     T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
@@ -151,7 +199,8 @@ class StereoPairsSource(FrameSource):
             raise FileNotFoundError(f"{self.path}: no such folder")
         left = read_sensor_yaml(self.path / "sensor_left.yaml")
         right = read_sensor_yaml(self.path / "sensor_right.yaml")
-        self.rectifier = StereoRectifier.from_raw(left, right, alpha=alpha)
+        self.rectifier = StereoRectifier.from_raw(
+            left, right, alpha=alpha, where=f"{self.path / 'sensor_left.yaml'}, {self.path / 'sensor_right.yaml'}")
         self.camera = self.rectifier.camera
         n = 0
         while (self.path / f"left_{n}.png").is_file():
@@ -159,6 +208,7 @@ class StereoPairsSource(FrameSource):
         if n == 0:
             raise DataError(f"{self.path}: no left_0.png")
         self._n = n
+        self._gt = body_ground_truth(self.path / "groundtruth.csv", NS_PER_S, self.camera.T_vehicle_sensor)
 
     def __len__(self) -> int:
         return self._n
@@ -176,4 +226,4 @@ class StereoPairsSource(FrameSource):
 
     def ground_truth(self) -> GroundTruth | None:
         """Left rectified camera poses from ``groundtruth.csv`` (body poses, time in seconds)."""
-        return body_ground_truth(self.path / "groundtruth.csv", NS_PER_S, self.camera.T_vehicle_sensor)
+        return self._gt

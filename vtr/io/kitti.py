@@ -12,10 +12,12 @@ import numpy as np
 from ..camera import StereoCamera
 from ..conventions import NS_PER_S
 from ..errors import CalibrationError, DataError
+from ..geometry import check_se3
 from ..types import StereoImages
 from .base import FrameSource, GroundTruth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
+POSE_TOLERANCE = 1e-3   # KITTI poses are printed with ~6 significant digits: rigid to this
 
 
 def is_kitti(path: Path) -> bool:
@@ -73,6 +75,7 @@ class KittiSource(FrameSource):
             raise DataError(f"{self.left_files[0]}: cannot decode image (missing or corrupt file)")
         self.camera = read_kitti_calib(self.path / "calib.txt", first.shape[1], first.shape[0])
         self._t_ns = self._read_times()
+        self._gt = self._read_ground_truth()   # optional; validated now, not after a whole run
 
     def _read_times(self) -> np.ndarray:
         n = len(self.left_files)
@@ -114,6 +117,9 @@ class KittiSource(FrameSource):
         return StereoImages(int(self._t_ns[index]), index, left, right)
 
     def ground_truth(self) -> GroundTruth | None:
+        return self._gt
+
+    def _read_ground_truth(self) -> GroundTruth | None:
         poses = self.path / "poses.txt"
         if not poses.is_file():
             return None
@@ -133,6 +139,8 @@ def read_kitti_poses(path: Path) -> np.ndarray:
         raise DataError(f"{path}: expected 12 numbers per line, got {rows.shape[1]}")
     T = np.tile(np.eye(4), (len(rows), 1, 1))
     T[:, :3, :] = rows.reshape(-1, 3, 4)
+    for i, T_i in enumerate(T):
+        check_se3(T_i, f"{path}: pose {i + 1}", tol=POSE_TOLERANCE, error=DataError)
     return T
 
 

@@ -1,13 +1,18 @@
-"""The one rule for output files and folders a command writes: never replace an existing one
-silently. ``vtr convert`` always refuses; ``vtr export-trajectory`` and ``vtr export-map`` replace
-it only with ``--force``.
+"""The rules for output paths a command writes, checked before any work starts.
+
+A new output file or folder (:func:`check_new_output`): never replace an existing one silently.
+``vtr convert`` always refuses; ``vtr export-trajectory`` and ``vtr export-map`` replace it only with
+``--force``. An output folder that may already exist and receives the command's files
+(:func:`check_output_folder`, ``--out`` of ``vtr odometry``/``teach``/``repeat``/``demo``): it must be
+a writable folder, or creatable.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-from ..errors import DataError
+from ..errors import DataError, OutputError
 
 
 def check_new_output(path: Path, force: bool = False, *, can_force: bool = True, empty_folder_ok: bool = False) -> None:
@@ -24,3 +29,22 @@ def check_new_output(path: Path, force: bool = False, *, can_force: bool = True,
     if not force:
         hint = "; pass --force to replace it" if can_force else ""
         raise DataError(f"{path}: already exists (not overwriting{hint})")
+
+
+def check_output_folder(path: Path, option: str = "--out") -> None:
+    """Raise ``OutputError`` (one line naming ``option`` and ``path``) unless ``path`` is a writable
+    folder or can be created (its nearest existing ancestor is a writable folder)."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise OutputError(f"{option} {path}: exists and is not a folder")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise OutputError(f"{option} {path}: folder is not writable")
+        return
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{option} {path}: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{option} {path}: cannot create it ({parent} is not writable)")

@@ -352,6 +352,8 @@ class RosbagSource(FrameSource):
             raise DataError(f"{self.path}: not a ROS bag (.bag file, ROS 2 bag folder with metadata.yaml, "
                             ".db3 or .mcap)")
         self._errors = _read_errors()
+        # opening and indexing also meet MemoryError: a damaged length field asks for absurd buffers
+        self._damage_errors: tuple[type[BaseException], ...] = (*self._errors, MemoryError)
         self.mono16_shift = int(mono16_shift)
         self.pair_tolerance_ns = int(pair_tolerance_ns)
         rpath = bag_reader_path(self.path)
@@ -363,9 +365,11 @@ class RosbagSource(FrameSource):
             reader.open()
         except FileNotFoundError:
             raise
-        except self._errors as err:
+        except self._damage_errors as err:
             hint = " (a truncated ROS 1 bag can be repaired with `rosbag reindex`)" if not self.ros2 else ""
-            raise DataError(f"{self.path}: cannot open bag: {err}{hint}") from err
+            reason = "a record length is absurd (damaged file)" if isinstance(err, MemoryError) else \
+                " ".join(str(err).split()) or type(err).__name__
+            raise DataError(f"{self.path}: cannot open bag: {reason}{hint}") from err
         self._reader = reader
         try:
             self._setup(left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired, rectify)
@@ -474,7 +478,7 @@ class RosbagSource(FrameSource):
                 stamps[c.topic].append(header_stamp_ns(raw, self.ros2))
                 logs[c.topic].append(t)
                 counted += 1
-        except self._errors as err:
+        except self._damage_errors as err:
             raise DataError(f"{self.path}: bag is truncated or corrupt: read error after {counted} image "
                             f"messages on {self.left_topic}, {self.right_topic}: {err}") from err
         for s in (self._left, self._right):

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..conventions import NS_PER_S
 from ..errors import DataError
-from ..geometry import T_to_tum, tum_to_T
+from ..geometry import QUATERNION_NORM_TOLERANCE, T_to_tum, tum_to_T
 from .kitti import read_kitti_poses, write_kitti_poses
 
 TRAJECTORY_FORMATS = ("tum", "kitti", "euroc")
@@ -29,7 +29,11 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM file -> (t_ns int64, T (N, 4, 4)); names the file and line on malformed input."""
     path = Path(path)
     t_ns, rows = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: not a text file (expected a TUM trajectory)") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -42,6 +46,11 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             rows.append([float(v) for v in parts[1:]])
         except ValueError as err:
             raise DataError(f"{path}:{lineno}: not numbers: {s!r}") from err
+        if not np.isfinite(rows[-1]).all():
+            raise DataError(f"{path}:{lineno}: NaN or infinite value")
+        q_norm = float(np.linalg.norm(rows[-1][3:]))
+        if abs(q_norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise DataError(f"{path}:{lineno}: quaternion norm {q_norm:.6g} is not 1")
     if not rows:
         raise DataError(f"{path}: no poses")
     return np.array(t_ns, np.int64), tum_to_T(np.array(rows))

@@ -86,12 +86,23 @@ def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
         if a.dtype != dtype and not np.array_equal(b, a, equal_nan=both_float):
             raise MapError(f"frame {name}: values do not fit the stored dtype {dtype}")
         out[name] = b
+    check_landmarks_in_front(out["points"], "frame points")
     return out
 
 
-def encode_frame(frame: StereoFrame, t_ns: int, level: int) -> EncodedFrame:
-    """Validate and encode ``frame`` (zlib ``level``); the stored frame carries the vertex time ``t_ns``."""
-    arrays = _stored_arrays(frame)
+def check_landmarks_in_front(points: np.ndarray, where: str) -> None:
+    """``MapError`` unless every landmark (finite row) lies in front of its camera (z > 0): stereo
+    triangulation only yields such points, so another one means damaged or foreign data."""
+    z = points[:, 2]
+    behind = np.isfinite(points).all(axis=1) & ~(z > 0)
+    if behind.any():
+        k = int(np.argmax(behind))
+        raise MapError(f"{where}: landmark {k} of {len(points)} is behind its camera (z = {z[k]:.6g} m)")
+
+
+def pack_arrays(arrays: dict[str, np.ndarray], level: int) -> bytes:
+    """The blob of arrays already in their stored dtypes and shapes (no checks: :func:`encode_frame`
+    validates a frame first; tests use this alone to write damaged data)."""
     n = len(arrays["uv"])
 
     def raw(name: str, dtype: np.dtype) -> bytes:
@@ -99,7 +110,14 @@ def encode_frame(frame: StereoFrame, t_ns: int, level: int) -> EncodedFrame:
 
     stored = b"".join(raw(name, dtype) for name, dtype, _t in VERTEX_ARRAYS if name in RAW_ARRAYS)
     packed = b"".join(raw(name, dtype) for name, dtype, _t in VERTEX_ARRAYS if name not in RAW_ARRAYS)
-    blob = BLOB_MAGIC + np.uint32(n).astype("<u4").tobytes() + stored + zlib.compress(packed, level)
+    return BLOB_MAGIC + np.uint32(n).astype("<u4").tobytes() + stored + zlib.compress(packed, level)
+
+
+def encode_frame(frame: StereoFrame, t_ns: int, level: int) -> EncodedFrame:
+    """Validate and encode ``frame`` (zlib ``level``); the stored frame carries the vertex time ``t_ns``."""
+    arrays = _stored_arrays(frame)
+    n = len(arrays["uv"])
+    blob = pack_arrays(arrays, level)
     n_landmarks = int(np.count_nonzero(np.all(np.isfinite(arrays["points"]), axis=1)))
     return EncodedFrame(blob, _frame(t_ns, getattr(frame, "index", -1), arrays), n, n_landmarks)
 
@@ -126,4 +144,5 @@ def decode_frame(blob: bytes, t_ns: int, index: int, where: str) -> StereoFrame:
         out[name] = np.frombuffer(source, dtype=dtype, count=size // dtype.itemsize, offset=offsets[key]).reshape(
             (n, *tail)).astype(dtype.newbyteorder("="), copy=False)
         offsets[key] += size
+    check_landmarks_in_front(out["points"], where)
     return _frame(t_ns, index, out)

@@ -40,6 +40,7 @@ class Repeat:
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0,
                  allow_partial: bool = False):
         """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``."""
+        config.validate()
         self.map = map_
         self.camera = map_.camera
         self.config = config

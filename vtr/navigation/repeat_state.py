@@ -60,9 +60,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
+from ..config import Config, check_setting
 from ..conventions import NS_PER_S
-from ..errors import ConfigError, DataError, EstimationError
+from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
@@ -84,14 +84,8 @@ STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az"
 
 
 def check_rate(rate_hz: float) -> float:
-    """The state output rate (Hz) as a float; ConfigError unless finite and positive."""
-    try:
-        rate = float(rate_hz)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"state rate {rate_hz!r} is not a number") from err
-    if not (math.isfinite(rate) and rate > 0):
-        raise ConfigError(f"state rate must be a positive number of Hz, got {rate_hz!r}")
-    return rate
+    """The state output rate (Hz) as a float; ConfigError unless inside the domain of smoothing.rate_hz."""
+    return float(check_setting("smoothing", "rate_hz", rate_hz, "state rate"))
 
 
 def output_times(t_first_ns: int, t_last_ns: int, rate_hz: float) -> np.ndarray:

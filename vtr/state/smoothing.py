@@ -38,7 +38,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
-from ..config import SmoothingConfig
+from ..config import SmoothingConfig, check_section
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
 from ..geometry import POSE_DIM, check_covariance, check_se3, inv_T, skew
@@ -407,10 +407,7 @@ class TrajectorySmoother:
             INITIAL_LINEAR_VELOCITY_SIGMA,
         ),
     ) -> None:
-        if not (config.qc_rotation > 0 and config.qc_translation > 0):
-            raise ConfigError("smoothing: qc_rotation and qc_translation must be positive")
-        if not config.lag_s > 0:
-            raise ConfigError("smoothing: lag_s must be positive")
+        check_section(config, "smoothing")
         if not all(s > 0 for s in initial_velocity_sigma):
             raise ConfigError("smoothing: initial velocity sigmas must be positive")
         self.config = config
@@ -537,8 +534,8 @@ class TrajectorySmoother:
         Times before the window (older than ``lag_s``) are answered from the final estimates of their
         knots. The covariance of the newest segment and knot is the current posterior; older segments
         keep the joint covariance computed when they were the newest (an over-estimate: later data only
-        shrink it). Raises EstimationError for a time before the first keyframe or when nothing has
-        been measured yet.
+        shrink it). Raises EstimationError for a time before the first keyframe, more than
+        ``max_extrapolation_s`` after the newest one, or when nothing has been measured yet.
         """
         t_ns = _check_time(t_ns)
         c = self._cache
@@ -551,6 +548,11 @@ class TrajectorySmoother:
         if int(c.times_ns[i]) == t_ns:
             return self._knot_state(i, t_ns, with_covariance)
         if i == c.n - 1:
+            ahead_s = (t_ns - int(c.times_ns[i])) / NS_PER_S
+            if ahead_s > self.config.max_extrapolation_s:
+                raise EstimationError(
+                    f"state_at: t_ns={t_ns} is {ahead_s:.6g} s after the newest keyframe, beyond "
+                    f"smoothing.max_extrapolation_s={self.config.max_extrapolation_s:g} s")
             return self._extrapolate(i, t_ns, with_covariance)
         return self._interpolate(i, t_ns, with_covariance)
 

@@ -89,6 +89,7 @@ class StereoOdometry:
         """``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
         store keyframes as they are finalized, turn it off so memory does not grow with the route."""
         self.config = config or Config()
+        self.config.validate()
         self.keep_history = keep_history
         self.camera = camera
         self.timer = StageTimer()

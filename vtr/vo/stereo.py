@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FeatureConfig, StereoConfig
+from ..config import FeatureConfig, StereoConfig, check_section
+from ..errors import DataError
 from ..timing import StageTimer
 from ..types import Features, StereoFrame, StereoImages
 from .features import FeatureExtractor, descriptor_words
@@ -32,11 +33,35 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: 
     return ul.astype(float), out
 
 
+def check_stereo_images(images: StereoImages, camera: StereoCamera) -> None:
+    """``DataError`` unless both images are 2-D uint8 greyscale arrays of the camera's size and the
+    time is an integer (ns): what every source yields, checked again for library callers."""
+    if not isinstance(images, StereoImages):
+        raise DataError(f"expected StereoImages, got {type(images).__name__}")
+    if isinstance(images.t_ns, bool) or not isinstance(images.t_ns, int | np.integer):
+        raise DataError(f"frame {images.index}: t_ns must be an integer time in ns, got {images.t_ns!r}")
+    w, h = camera.size
+    for side in ("left", "right"):
+        img = getattr(images, side)
+        where = f"frame {images.index} ({images.t_ns} ns) {side} image"
+        if not isinstance(img, np.ndarray):
+            raise DataError(f"{where}: expected a numpy array, got {type(img).__name__}")
+        if img.ndim != 2:
+            raise DataError(f"{where}: expected a 2-D greyscale image, got shape {img.shape} "
+                            "(convert colour with cv2.cvtColor)")
+        if img.dtype != np.uint8:
+            raise DataError(f"{where}: expected uint8 pixels, got {img.dtype} (scale to 0..255 and cast first)")
+        if img.shape != (h, w):
+            raise DataError(f"{where}: is {img.shape[1]}x{img.shape[0]} but the camera is {w}x{h}")
+
+
 class StereoProcessor:
     """Turns a rectified stereo pair into a ``StereoFrame``."""
 
     def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
                  timer: StageTimer | None = None):
+        check_section(features, "features")
+        check_section(stereo, "stereo")
         self.camera = camera
         self.timer = timer or StageTimer()
         self.cfg = stereo
@@ -55,6 +80,7 @@ class StereoProcessor:
 
     def process(self, images: StereoImages) -> StereoFrame:
         """Features on both images, stereo matches, subpixel disparity, triangulation."""
+        check_stereo_images(images, self.camera)
         with self.timer("features"):
             left = self.extractor.extract(images.left)
             right = self.extractor.extract(images.right)

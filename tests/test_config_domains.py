@@ -1,0 +1,169 @@
+"""Every config field has a declared domain: wrong types, out-of-range and NaN values are refused
+with a one-line ConfigError naming ``section.key``; any in-domain value loads."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from vtr.config import Choice, Config, Range, config_keys
+from vtr.errors import ConfigError
+
+KEYS = config_keys()
+IDS = [f"{s}.{k}" for s, k, _ in KEYS]
+
+
+def _one_line(err: pytest.ExceptionInfo, key: str) -> str:
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert key in msg
+    return msg
+
+
+def _wrong_type(domain) -> object:
+    return "7" if isinstance(domain, Range) else 7
+
+
+def _out_of_range(domain) -> object:
+    if isinstance(domain, Choice):
+        return "no-such-choice"
+    return domain.lo - 1 if domain.integer else domain.lo - abs(domain.lo) - 1.0
+
+
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_wrong_type_names_the_key(section, key, domain):
+    with pytest.raises(ConfigError) as err:
+        Config.from_dict({section: {key: _wrong_type(domain)}}, "my.yaml")
+    msg = _one_line(err, f"{section}.{key}")
+    assert msg.startswith("my.yaml: ")
+
+
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_out_of_range_names_the_key_and_the_range(section, key, domain):
+    with pytest.raises(ConfigError) as err:
+        Config.from_dict({section: {key: _out_of_range(domain)}})
+    msg = _one_line(err, f"{section}.{key}")
+    assert domain.describe() in msg
+
+
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_nan_and_infinity_refused(section, key, domain):
+    for bad in (math.nan, math.inf, -math.inf):
+        with pytest.raises(ConfigError) as err:
+            Config.from_dict({section: {key: bad}})
+        _one_line(err, f"{section}.{key}")
+
+
+@pytest.mark.parametrize(("section", "key", "domain"), [k for k in KEYS if isinstance(k[2], Range)],
+                         ids=[i for i, k in zip(IDS, KEYS, strict=True) if isinstance(k[2], Range)])
+def test_bool_is_not_a_number(section, key, domain):
+    with pytest.raises(ConfigError) as err:
+        Config.from_dict({section: {key: True}})
+    assert "bool" in _one_line(err, f"{section}.{key}")
+
+
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_constructed_in_code_is_validated_too(section, key, domain):
+    cfg = Config()
+    setattr(getattr(cfg, section), key, _out_of_range(domain))
+    with pytest.raises(ConfigError) as err:
+        cfg.validate()
+    _one_line(err, f"{section}.{key}")
+
+
+def test_defaults_are_inside_their_domains():
+    Config().validate()
+    assert len(KEYS) >= 60
+
+
+def test_integer_valued_float_is_an_integer_and_fractions_are_refused():
+    cfg = Config.from_dict({"features": {"n_features": 1500.0}})
+    assert cfg.features.n_features == 1500 and isinstance(cfg.features.n_features, int)
+    with pytest.raises(ConfigError, match=r"features\.n_features must be an integer"):
+        Config.from_dict({"features": {"n_features": 1500.5}})
+
+
+def _in_domain(domain) -> st.SearchStrategy:
+    if isinstance(domain, Choice):
+        return st.sampled_from(domain.values)
+    if domain.integer:
+        lo = int(domain.lo) + (1 if domain.lo_open else 0)
+        hi = int(domain.hi) - (1 if domain.hi_open else 0)
+        return st.integers(lo, hi)
+    return st.floats(domain.lo, domain.hi, exclude_min=domain.lo_open, exclude_max=domain.hi_open,
+                     allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_any_in_domain_value_loads(data):
+    section, key, domain = data.draw(st.sampled_from(KEYS))
+    value = data.draw(_in_domain(domain))
+    try:
+        cfg = Config.from_dict({section: {key: value}})
+    except ConfigError as err:
+        # only a cross-field rule may refuse a single in-domain value; it names both keys
+        assert "must be" in str(err) and str(err).count(".") >= 2 and key in str(err)
+        return
+    assert getattr(getattr(cfg, section), key) == value
+
+
+# ------------------------------------------------------------------ the reported cases
+
+
+@pytest.mark.parametrize(("yaml_text", "key"), [
+    ("features:\n  n_levels: 0\n", "features.n_levels"),               # was a segfault in OpenCV's ORB
+    ("features:\n  grid_rows: 0\n", "features.grid_rows"),             # was ZeroDivisionError
+    ("odometry:\n  window_keyframes: 0\n", "odometry.window_keyframes"),
+    ("stereo:\n  refine_half_window: -2\n", "stereo.refine_half_window"),
+    ("odometry:\n  ransac_confidence: 5\n", "odometry.ransac_confidence"),
+    ("odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),   # was accepted
+    ("features:\n  n_features: true\n", "features.n_features"),        # was accepted as 1
+    ("odometry:\n  ransac_threshold_px: -1\n", "odometry.ransac_threshold_px"),
+    ("stereo:\n  pixel_sigma: -1.0\n", "stereo.pixel_sigma"),
+    ("smoothing:\n  rate_hz: 1e9\n", "smoothing.rate_hz"),
+    ("features:\n  n_features: '2000'\n", "features.n_features"),
+])
+def test_reported_config_cases(tmp_path: Path, yaml_text, key):
+    f = tmp_path / "bad.yaml"
+    f.write_text(yaml_text)
+    with pytest.raises(ConfigError) as err:
+        Config.load(f)
+    msg = _one_line(err, key)
+    assert str(f) in msg
+
+
+@pytest.mark.parametrize(("content", "expect"), [
+    (bytes(range(256)) * 4, "not UTF-8"),
+    (b"- a\n- b\n", "expected a mapping"),
+    (b"42\n", "expected a mapping"),
+    (b"features: [1, 2]\n", "must be a mapping"),
+    (b"features:\n  n_features: [\n", "cannot parse"),
+    (b"nosuch:\n  a: 1\n", "unknown section"),
+])
+def test_unreadable_config_files(tmp_path: Path, content, expect):
+    f = tmp_path / "c.yaml"
+    f.write_bytes(content)
+    with pytest.raises(ConfigError, match=expect) as err:
+        Config.load(f)
+    assert "\n" not in str(err.value) and str(f) in str(err.value)
+
+
+def test_toml_binary_and_folder(tmp_path: Path):
+    t = tmp_path / "c.toml"
+    t.write_bytes(b"\xff\xfe[features]\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        Config.load(t)
+    with pytest.raises(ConfigError, match="no such config file"):
+        Config.load(tmp_path)
+
+
+def test_cross_field_rules_name_both_keys():
+    with pytest.raises(ConfigError, match=r"stereo\.min_disparity_px.*stereo\.max_disparity_px"):
+        Config.from_dict({"stereo": {"min_disparity_px": 200.0}})
+    with pytest.raises(ConfigError, match=r"odometry\.keyframe_min_inliers.*odometry\.min_inliers"):
+        Config.from_dict({"odometry": {"min_inliers": 100}})
