@@ -104,6 +104,6 @@ def test_stereo_row_weights_split_near_and_far():
     w = stereo_row_weights(z, CAM, near_depth, 1e-4)
     np.testing.assert_array_equal(w[:, :2], 1.0)
     np.testing.assert_array_equal(w[:, 2], [1.0, 1e-4, 1e-4, 0.0])
-    # fewer near observations than asked for: the nearest ones count fully instead
+    # fewer near observations than asked for: nothing to carry the scale but the far ones, which count fully
     w = stereo_row_weights(z, CAM, near_depth, 1e-4, min_near=2)
-    np.testing.assert_array_equal(w[:, 2], [1.0, 1.0, 1e-4, 0.0])
+    np.testing.assert_array_equal(w[:, 2], [1.0, 1.0, 1.0, 0.0])

@@ -147,6 +147,13 @@ class LocalizationChain:
 REFINED_DISPARITY_TOLERANCE_PX = 1e-6
 
 
+def refined_landmarks(z: np.ndarray, depth_m: np.ndarray, camera: StereoCamera) -> np.ndarray:
+    """Which landmarks of a stored or keyframe stereo frame sit where odometry's window put them: their depth is
+    not their own triangulation ``fb / (u_l - u_r)`` (measurements ``z`` (N, 3), depths (N,))."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(z[:, 0] - z[:, 2] - camera.fb / depth_m) > REFINED_DISPARITY_TOLERANCE_PX
+
+
 @dataclass(frozen=True)
 class TaughtSubmap:
     """The landmarks a leaf is localized against: the trunk's and those of its taught neighbours.
@@ -185,7 +192,7 @@ class TaughtSubmap:
                                  for f, i, T in zip(frames, feats, T_trunk_vertex, strict=True)])
         z = np.concatenate([f.stereo_measurements[i] for f, i in zip(frames, feats, strict=True)])
         depth = np.concatenate([f.points[i, 2] for f, i in zip(frames, feats, strict=True)])
-        refined = np.abs(z[:, 0] - z[:, 2] - camera.fb / depth) > REFINED_DISPARITY_TOLERANCE_PX
+        refined = refined_landmarks(z, depth, camera)
         return cls(np.asarray(vertex_ids), np.asarray(T_vertex_trunk), trunk_slot, points,
                    np.concatenate([f.features.descriptors[i] for f, i in zip(frames, feats, strict=True)]),
                    np.concatenate([np.full(len(i), s) for s, i in enumerate(feats)]), z, np.concatenate(feats),
@@ -267,20 +274,21 @@ class Localizer:
         The taught disparity of a landmark the teach window refined is the one its refined depth implies,
         at full weight: the depth the teach established from several views, not from one stereo pair. The
         other rows are weighted by :func:`stereo_row_weights` (a far landmark's own disparity barely counts).
+        Only the taught side is anchored so: anchoring the leaf's far landmarks on the repeat window's
+        depths too would turn the two windows' scale difference, times the depth, into translation.
         """
         o = self.odometry
         n, V = len(landmarks), len(submap.vertex_ids)
         z_taught = submap.z[landmarks].copy()
-        w_taught = self._row_weights(z_taught)
+        w = self._row_weights(np.concatenate([z_taught, z_leaf]))
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
-        w_taught[refined, 2] = 1.0
-        z = np.concatenate([z_taught, z_leaf])
-        w = np.concatenate([w_taught, self._row_weights(z_leaf)])
+        w[np.flatnonzero(refined), 2] = 1.0           # taught rows come first
         res = bundle_adjust(np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
                             np.r_[np.ones(V, bool), False], submap.points_trunk[landmarks],
                             np.r_[submap.slot[landmarks], np.full(n, V)], np.r_[np.arange(n), np.arange(n)],
-                            np.nan_to_num(z), w, self.camera, self.pixel_sigma, o.huber_px, o.refine_iterations)
+                            np.nan_to_num(np.concatenate([z_taught, z_leaf])), w, self.camera, self.pixel_sigma,
+                            o.huber_px, o.refine_iterations)
         inlier = np.maximum(res.error_sq[:n], res.error_sq[n:]) <= self.config.ransac_threshold_px**2
         return res.T_cam_world[V], res.pose_covariance[V], inlier
 

@@ -51,7 +51,7 @@ def ransac_pnp(points_r: np.ndarray, uv_q: np.ndarray, camera: StereoCamera, ite
 
 
 def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float, far_disparity_weight: float,
-                       min_near: int = 0) -> np.ndarray:
+                       min_near: int = 1) -> np.ndarray:
     """Weights of the measurement rows (u_l, v, u_r) of stereo observations ``z`` (M, 3).
 
     The image position (u_l, v) always counts. The disparity row counts fully only for a near
@@ -61,19 +61,16 @@ def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float,
     near landmarks: a disparity error of a fraction of a pixel, systematic over the image (a
     rectification error, see docs/far_structure.md), is a few percent of depth for a near landmark
     and tens of percent for a far one. When fewer than ``min_near`` observations are near (a camera
-    high above the ground sees nothing near), the ``min_near`` largest disparities count fully:
-    the scale then comes from the nearest structure there is.
+    high above the ground sees nothing near), every disparity counts fully: the scale can then come
+    only from the far structure.
     """
     w = np.ones((len(z), 3))
     disparity = z[:, 0] - z[:, 2]
     measured = np.isfinite(disparity)
     w[~measured, 2] = 0.0
-    threshold = camera.fb / near_depth_m
-    if min_near > 0 and np.count_nonzero(disparity[measured] >= threshold) < min_near:
-        d = np.sort(disparity[measured])
-        threshold = min(threshold, d[-min_near]) if len(d) >= min_near else -np.inf
-    far = measured & (disparity < threshold)
-    w[far, 2] = far_disparity_weight
+    far = measured & (disparity < camera.fb / near_depth_m)
+    if np.count_nonzero(measured & ~far) >= min_near:
+        w[far, 2] = far_disparity_weight
     return w
 
 
