@@ -4,7 +4,7 @@
   both fits (through tools/perception_end_to_end.py's analysis) find the inlier probability
   falling with parallax (c3 < 0, its interval below 0) with finite R^2 and log-loss.
 - ``perception-model constraint --map`` on a small KITTI teach map: one row per position, mu > 0,
-  sigma >= 0, trunks are the nearest taught vertices; the yaw convention; one-line errors.
+  sigma >= 0, trunks follow the localizer's rule (here each taught vertex); the yaw convention; one-line errors.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from perception_model.cli import main
 from perception_model.map_landmarks import camera_rotation_from_yaw, yaw_pitch_of_axis
 from perception_model.model import PerceptionModel
 
@@ -77,6 +76,8 @@ def kitti_map(tmp_path_factory, kitti_clip):
 
 
 def _run(args):
+    from vtr.cli.perception_model import main  # the console script installed with vtr (adds the map reader)
+
     return CliRunner().invoke(main, [str(a) for a in args])
 
 
