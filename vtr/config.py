@@ -118,6 +118,32 @@ class SmoothingConfig:
 
 
 @dataclass
+class ControlConfig:
+    """Perception-aware flatness-based MPC (``vtr.control.mpc``; thesis §7.4 settings)."""
+
+    dt_s: float = 0.1                     # MPC discretization (10 Hz)
+    horizon: int = 15                     # prediction steps N (1.5 s)
+    rate_hz: float = 50.0                 # outer loop: one QP (one SQP iteration) per tick
+    speed_mps: float = 10.0               # desired speed along the taught path
+    l_min: float = 30.0                   # minimum inlier count
+    c_bar: float = 3.0                    # normal quantile of the chance constraint (3 sigma)
+    perception_margin: float = 3.0        # linearized mu - c sigma - L_min >= this (absorbs linearization error)
+    q_position: float = 1.0               # tracking weight on position error (1/m^2)
+    q_yaw: float = 10.0                   # tracking weight on yaw error (1/rad^2)
+    r_jerk: float = 1e-3                  # input weight on jerk ((s^3/m)^2)
+    r_yaw_rate: float = 0.1               # input weight on yaw rate ((s/rad)^2)
+    speed_max_mps: float = 12.0           # per-axis velocity bound
+    accel_max_mps2: float = 8.0           # per-axis acceleration bound (tilt, see flat_model.attitude_from_flat)
+    jerk_max_mps3: float = 40.0           # per-axis jerk bound
+    yaw_rate_max_rps: float = 1.5         # yaw-rate bound (rad/s)
+    slack_weight: float = 1e3             # L1 penalty of the softened path/perception rows (exact penalty)
+    slack_quadratic_weight: float = 10.0  # quadratic penalty on the same slacks (conditioning)
+    terminal_hover: bool = True           # terminal set v_N = a_N = 0 (recursive feasibility)
+    osqp_eps: float = 1e-4                # OSQP absolute/relative tolerance
+    osqp_max_iter: int = 4000
+
+
+@dataclass
 class MapConfig:
     """On-disk map."""
 
@@ -134,6 +160,7 @@ class Config:
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

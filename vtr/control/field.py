@@ -147,21 +147,33 @@ class TaughtPathField:
         return int(np.argmin(np.linalg.norm(self.vehicle_position_g - np.asarray(position, float), axis=1)))
 
     def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
-                      axes_pitch: np.ndarray | None = None) -> np.ndarray:
-        """Trunk index (N,) of each predicted vehicle pose by the localizer's rule, starting from ``previous``."""
+                      axes: np.ndarray | None = None) -> np.ndarray:
+        """Trunk index (N,) of each predicted vehicle pose by the localizer's rule, starting from ``previous``.
+
+        The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal).
+        """
         pos = np.atleast_2d(np.asarray(positions, float))
         yaw = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
+        axes_pitch = None
+        if axes is not None:
+            heading, axes_pitch = frames.heading_of_axis(np.broadcast_to(np.asarray(axes, float), (len(pos), 3)))
+            yaw = heading - self.mount.mount_yaw_rad
         c = self.config
-        out = np.empty(len(pos), dtype=np.int64)
+        n = len(pos)
         prev = int(previous)
-        for k in range(len(pos)):
-            pitch = self.pitch_down[prev] if axes_pitch is None else axes_pitch[k]
-            T_g_l = self.camera_poses(pos[k:k + 1], yaw[k:k + 1], pitch)[0]
+        # every step's window lies in [prev - n back, prev + n forward]: one batched log for all costs
+        lo_all = max(0, prev - n * c.trunk_window_back)
+        hi_all = min(len(self), prev + n * c.trunk_window_forward + 1)
+        pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
+        T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
+        T_rel = T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all]
+        xi = log_se3_batch(T_rel.reshape(-1, 4, 4)).reshape(n, hi_all - lo_all, 6)
+        cost = np.linalg.norm(xi[..., 3:], axis=2) + c.rotation_weight * np.linalg.norm(xi[..., :3], axis=2)
+        out = np.empty(n, dtype=np.int64)
+        for k in range(n):
             lo = max(0, prev - c.trunk_window_back)
             hi = min(len(self), prev + c.trunk_window_forward + 1)
-            xi = log_se3_batch(inv_T(T_g_l)[None] @ self.T_g_camera[lo:hi])
-            cost = np.linalg.norm(xi[:, 3:], axis=1) + c.rotation_weight * np.linalg.norm(xi[:, :3], axis=1)
-            prev = lo + int(np.argmin(cost))
+            prev = lo + int(np.argmin(cost[k, lo - lo_all:hi - lo_all]))
             out[k] = prev
         return out
 
@@ -173,13 +185,13 @@ class TaughtPathField:
 
         Each step's trunk is ``trunk`` (N,) when given, else selected from ``previous`` (default: the
         nearest vertex to the first position). ``axes`` (N, 3) overrides the mount's optical axes
-        (gimbal); the yaw gradient then covers the lever arm only.
+        (gimbal: also for the trunk selection); the yaw gradient then covers the lever arm only.
         """
         pos = np.atleast_2d(np.asarray(positions, float))
         psi = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
         if trunk is None:
             start = self.nearest_trunk(pos[0]) if previous is None else int(previous)
-            trunk = self.select_trunks(pos, psi, start)
+            trunk = self.select_trunks(pos, psi, start, axes=axes)
         trunk = np.asarray(trunk, dtype=np.int64)
         cam = self.camera_centres(pos, psi)
         if axes is None:
