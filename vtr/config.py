@@ -127,7 +127,7 @@ class ControlConfig:
     speed_mps: float = 10.0               # desired speed along the taught path
     l_min: float = 30.0                   # minimum inlier count
     c_bar: float = 3.0                    # normal quantile of the chance constraint (3 sigma)
-    perception_margin: float = 3.0        # linearized mu - c sigma - L_min >= this (absorbs linearization error)
+    perception_margin: float = 6.0        # linearized mu - c sigma - L_min >= this (absorbs one SQP step's error)
     q_position: float = 1.0               # tracking weight on position error (1/m^2)
     q_yaw: float = 10.0                   # tracking weight on yaw error (1/rad^2)
     r_jerk: float = 1e-3                  # input weight on jerk ((s^3/m)^2)
