@@ -141,6 +141,7 @@ class ControlConfig:
     terminal_hover: bool = True           # terminal set v_N = a_N = 0 (recursive feasibility)
     osqp_eps: float = 1e-4                # OSQP absolute/relative tolerance
     osqp_max_iter: int = 4000
+    osqp_polish: bool = False             # OSQP solution polishing (no measured gain on the thesis experiment)
 
 
 @dataclass

@@ -28,7 +28,9 @@ whenever the hard problem is feasible. The hover terminal set also makes the con
 in time: with a 1.5 s horizon it never plans faster than it can stop.
 
 QPs are solved by OSQP (sparse, warm-started; the constraint matrix keeps one sparsity pattern
-and only its values are updated).
+and only its values are updated). Each QP is posed relative to the current position and yaw (OSQP's
+tolerances are absolute: absolute map coordinates in the perception rows cost accuracy and speed).
+Perception rows with gradients steeper than 1 inlier/m are divided by their gradient norm.
 """
 
 from __future__ import annotations
@@ -200,8 +202,8 @@ class PerceptionAwareMPC:
         if self.n_soft:
             self.q[self._is(0):] = c.slack_weight
         self.solver = osqp.OSQP()
-        self.solver.setup(self.P, self.q, self.A, self.l, self.u, verbose=False, warm_starting=True, polishing=False,
-                          eps_abs=c.osqp_eps, eps_rel=c.osqp_eps, max_iter=c.osqp_max_iter)
+        self.solver.setup(self.P, self.q, self.A, self.l, self.u, verbose=False, warm_starting=True,
+                          polishing=c.osqp_polish, eps_abs=c.osqp_eps, eps_rel=c.osqp_eps, max_iter=c.osqp_max_iter)
 
     def _set_boxes(self) -> None:
         c, n = self.cfg, self.n
@@ -229,16 +231,22 @@ class PerceptionAwareMPC:
         """One QP from flat state ``z0`` (10,) in g; ``trunk`` is the current trunk index (perception mode)."""
         c, n = self.cfg, self.n
         z0 = np.asarray(z0, float)
+        # the QP works relative to the current position and yaw (small numbers: OSQP's tolerances are absolute)
+        origin, yaw0 = z0[:3].copy(), float(z0[9])
+        z0s = z0.copy()
+        z0s[:3] = 0.0
+        z0s[9] = 0.0
         # reference along the taught path at the desired speed
         s_now = float(self.reference.path.error(z0[:3]).along_track)
         self.progress_m = max(self.progress_m, min(s_now, self.reference.length))
         s_ref = self.progress_m + c.speed_mps * c.dt_s * np.arange(1, n + 1)
         r_pos, r_yaw = self.reference.at(s_ref)
-        r_yaw = z0[9] + wrap_angle(r_yaw - z0[9])
+        r_pos = r_pos - origin
+        r_yaw = wrap_angle(r_yaw - yaw0)
         for k in range(n):
             self.q[self._iz(k):self._iz(k) + 3] = -2.0 * c.q_position * r_pos[k]
             self.q[self._iz(k) + 9] = -2.0 * c.q_yaw * r_yaw[k]
-        self.l[:_NZ] = self.u[:_NZ] = self.Ad @ z0
+        self.l[:_NZ] = self.u[:_NZ] = self.Ad @ z0s
         guess = self._initial_guess(z0)
         trunks = None
         vals = self._coo_vals
@@ -248,7 +256,7 @@ class PerceptionAwareMPC:
             err = self.reference.path.error(guess[:, :3])
             seg = err.segment
             for k in range(n):
-                ref_pt = err.reference_point[k]
+                ref_pt = err.reference_point[k] - origin
                 for j, normal in enumerate((self.reference.path.left_normals[seg[k]],
                                             self.reference.path.up_normals[seg[k]])):
                     off = float(normal @ ref_pt)
@@ -267,8 +275,8 @@ class PerceptionAwareMPC:
             trunks = ev.trunk
             assert ev.dg_dpos is not None and ev.dg_dyaw is not None
             # g0 + dg.(y - y0) >= margin - s   <=>   dg.y + s >= margin - g0 + dg.y0
-            rhs = c.perception_margin - ev.g + np.einsum("nk,nk->n", ev.dg_dpos, guess[:, :3]) \
-                + ev.dg_dyaw * guess[:, 9]
+            rhs = c.perception_margin - ev.g + np.einsum("nk,nk->n", ev.dg_dpos, guess[:, :3] - origin) \
+                + ev.dg_dyaw * (guess[:, 9] - yaw0)
             # rows with steep gradients are divided by the gradient norm (OSQP conditioning); the
             # slack is then in metres, else in inliers
             scale = 1.0 / np.maximum(np.sqrt(np.einsum("nk,nk->n", ev.dg_dpos, ev.dg_dpos) + ev.dg_dyaw**2), 1.0)
@@ -279,12 +287,14 @@ class PerceptionAwareMPC:
                 i0 += 5
                 self.l[rr + k], self.u[rr + k] = rhs[k] * scale[k], np.inf
         self.solver.update(q=self.q, l=self.l, u=self.u, Ax=vals[self._perm])
-        res = self.solver.solve()
+        res = self.solver.solve(raise_error=False)  # status checked below (max_iter: best iterate)
         status = str(res.info.status)
         x = res.x
         if x is None or not np.all(np.isfinite(x)):
             raise EstimationError(f"MPC: OSQP returned no solution ({status})")
-        z_pred = x[: n * _NZ].reshape(n, _NZ)
+        z_pred = x[: n * _NZ].reshape(n, _NZ).copy()
+        z_pred[:, :3] += origin
+        z_pred[:, 9] += yaw0
         w_pred = x[n * _NZ: n * (_NZ + _NW)].reshape(n, _NW)
         slack = float(x[self._is(0):].max()) if self.n_soft else 0.0
         self.z_prev = z_pred
