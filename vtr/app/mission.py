@@ -12,6 +12,7 @@ Frames: the synthetic world is ENU; the map frame is the teach run's first camer
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -56,16 +57,18 @@ def up_in_map(T_world_cam0: np.ndarray) -> np.ndarray:
 
 def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_seed: int = 0,
            progress: Callable[[int, int], None] | None = None) -> Path:
-    """Render (or reuse) a ZED-like stereo sequence of the poses in ``out_dir``."""
-    if (out_dir / "poses_world.txt").is_file() and (out_dir / "image_0").is_dir():
-        old = np.loadtxt(out_dir / "poses_world.txt").reshape(-1, 3, 4)
-        if old.shape[0] == len(T_world_cam) and np.allclose(old, T_world_cam[:, :3, :], atol=1e-9):
-            return out_dir
+    """Render (or reuse, when scene, poses and noise seed are the same) a ZED-like stereo sequence in ``out_dir``."""
+    key = hashlib.sha1(repr(scene).encode() + np.ascontiguousarray(T_world_cam).tobytes()
+                       + str(noise_seed).encode()).hexdigest()
+    stamp = out_dir / "render.key"
+    if stamp.is_file() and stamp.read_text().strip() == key and (out_dir / "image_0").is_dir():
+        return out_dir
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    return syn.write_sequence(out_dir, scene, syn.zed_camera(), T_world_cam,
-                              syn.route_times(T_world_cam, SYNTHETIC_SPEED_MPS), noise_seed=noise_seed,
-                              progress=progress)
+    syn.write_sequence(out_dir, scene, syn.zed_camera(), T_world_cam, syn.route_times(T_world_cam, SYNTHETIC_SPEED_MPS),
+                       noise_seed=noise_seed, progress=progress)
+    stamp.write_text(key + "\n")
+    return out_dir
 
 
 def teach(seq_dir: Path, map_path: Path, config: Config) -> Path:
