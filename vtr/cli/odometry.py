@@ -68,7 +68,7 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str) -> None:
 @main.command("demo")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
 @click.option("--aerial/--no-aerial", default=True, show_default=True,
-              help="Step 4: the synthetic aerial mission (renders ~170 frames, a few minutes).")
+              help="Step 4: the synthetic aerial mission (renders ~150 frames, about a minute).")
 def demo_cmd(out: Path, aerial: bool) -> None:
     """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report,
     then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope)."""
