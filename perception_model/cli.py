@@ -5,10 +5,12 @@
     perception-model constraint model.json --landmarks L.csv --positions P.csv
     perception-model constraint model.json --map route.vtrmap --positions P.csv [--out FILE.csv | --out -]
 
-``constraint --map`` reads each position's trunk (nearest taught vertex) and its landmarks from a
-``vtr`` map, in the map frame (the teach run's first camera frame: x right, y down, z forward);
-see ``perception_model.map_landmarks`` for the orientation/yaw convention. ``vtr`` is imported
-only by that option.
+``constraint --map`` reads each position's trunk and its landmarks from a ``vtr`` map, in the map
+frame (the teach run's first camera frame: x right, y down, z forward); see
+``perception_model.map_landmarks`` for the orientation/yaw convention. This package imports nothing
+from ``vtr``: the map reader is handed in through the click context (``ctx.obj["evaluate_on_map"]``)
+by the ``perception-model`` console script installed with ``vtr`` (``vtr.cli.perception_model``,
+which also adds ``envelope``). Run from this module alone, ``--map`` reports that it needs it.
 
 A thin adapter over the library: known errors (``PerceptionModelError``, unreadable files)
 become one line ``perception-model: error: ...`` on stderr and exit code 1; library warnings are
@@ -362,7 +364,7 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     type=click.Path(path_type=Path),
     default=None,
     help="A taught vtr map: positions are in its map frame (the teach run's first camera frame, x right, "
-    "y down, z forward); the trunk of each position is the nearest taught vertex.",
+    "y down, z forward); each position's trunk is chosen by the localizer's rule.",
 )
 @click.option(
     "--positions",
@@ -441,7 +443,8 @@ def constraint_cmd(
 
     With --landmarks, landmarks and positions are in the gravity-aligned frame o (ENU-like, z up);
     the optical axis comes from yaw and --pitch-deg. With --map, each position's trunk is the
-    nearest taught vertex and its landmarks come from the map; without a yaw the camera has the
+    taught vertex the localizer would pick (its window rule, from the vertex nearest to the first
+    position) and its landmarks come from the map; without a yaw the camera has the
     trunk's orientation, with a yaw (heading about the map's -y, 0 along +z, positive to the left)
     it is pitched by --pitch-deg or the trunk's pitch (see perception_model.map_landmarks).
     """
@@ -562,7 +565,11 @@ def _constraint_on_map(
     exact: bool,
 ) -> _Table:
     """Per-position rows with each position's trunk taken from a taught vtr map."""
-    from .map_landmarks import evaluate_on_map
+    ctx = click.get_current_context()
+    evaluate_on_map = (ctx.obj or {}).get("evaluate_on_map") if isinstance(ctx.obj, dict) else None
+    if evaluate_on_map is None:
+        raise InputDataError("--map needs the map reader of vtr: run the perception-model command installed with vtr "
+                             "(python -m vtr.cli.perception_model)")
 
     yaw = path.yaw if path.yaw is not None else (None if yaw_deg is None else math.radians(yaw_deg))
     t = evaluate_on_map(

@@ -18,7 +18,7 @@ the held-out log-loss of a constant predictor for scale); the signs of c3 (proba
 parallax) and c2 (falls with view angle), and model-free checks on the binned inlier frequencies:
 marginal trends over alpha and theta bins and trends within bands of the other angle (Spearman
 rho, steps down, steps up beyond 2 standard errors). Closed loop: the MLE model's expected inlier
-count ``mu`` from the taught map (``perception_model.map_landmarks``, what ``perception-model
+count ``mu`` from the taught map (``vtr.app.perception``, what ``perception-model
 constraint --map`` prints) at each repeat's camera positions (synthetic: true; KITTI: estimated),
 beside the inlier counts the repeat observed (an in-sample consistency check, not a validation).
 
@@ -126,8 +126,8 @@ def mu_check(model_path: Path, map_path: Path, runs: list[tuple[str, np.ndarray,
     """Closed loop: the constraint's ``mu`` on the taught map (``perception-model constraint --map``) at
     each repeat's camera positions, beside the inlier counts that repeat observed (landmarks.csv)."""
     from perception_model.constraint import THESIS_C_BAR, THESIS_L_MIN
-    from perception_model.map_landmarks import evaluate_on_map
     from perception_model.model import PerceptionModel
+    from vtr.app.perception import evaluate_on_map
 
     model = PerceptionModel.load(model_path)
     out = []

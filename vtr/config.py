@@ -232,6 +232,40 @@ class SmoothingConfig:
 
 
 @dataclass
+class ControlConfig:
+    """Perception-aware flatness-based MPC (``vtr.control.mpc``; thesis §7.4 settings)."""
+
+    dt_s: float = setting(0.1, Range(0.0, 10.0, lo_open=True))  # MPC discretization (10 Hz)
+    horizon: int = setting(15, Range(1, 1000, integer=True))  # prediction steps N (1.5 s)
+    # outer loop: one QP (one SQP iteration) per tick
+    rate_hz: float = setting(50.0, Range(0.0, 10_000.0, lo_open=True))
+    speed_mps: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))  # desired speed along the taught path
+    l_min: float = setting(30.0, Range(0.0, 1e6))  # minimum inlier count
+    c_bar: float = setting(3.0, Range(0.0, 100.0))  # normal quantile of the chance constraint (3 sigma)
+    # linearized mu - c sigma - L_min >= this (absorbs one SQP step's error)
+    perception_margin: float = setting(6.0, Range(0.0, 1e6))
+    q_position: float = setting(1.0, Range(0.0, 1e9))  # tracking weight on position error (1/m^2)
+    q_yaw: float = setting(10.0, Range(0.0, 1e9))  # tracking weight on yaw error (1/rad^2)
+    r_jerk: float = setting(1e-3, Range(0.0, 1e9, lo_open=True))  # input weight on jerk ((s^3/m)^2)
+    r_yaw_rate: float = setting(0.1, Range(0.0, 1e9, lo_open=True))  # input weight on yaw rate ((s/rad)^2)
+    speed_max_mps: float = setting(12.0, Range(0.0, 1000.0, lo_open=True))  # per-axis velocity bound
+    # per-axis acceleration bound (tilt, see flat_model.attitude_from_flat)
+    accel_max_mps2: float = setting(8.0, Range(0.0, 1000.0, lo_open=True))
+    jerk_max_mps3: float = setting(40.0, Range(0.0, 100_000.0, lo_open=True))  # per-axis jerk bound
+    yaw_rate_max_rps: float = setting(1.5, Range(0.0, 100.0, lo_open=True))  # yaw-rate bound (rad/s)
+    # L1 penalty of the softened path/perception rows (exact penalty)
+    slack_weight: float = setting(1e3, Range(0.0, 1e12, lo_open=True))
+    # quadratic penalty on the same slacks (conditioning)
+    slack_quadratic_weight: float = setting(10.0, Range(0.0, 1e12))
+    # terminal set: "hover" (v_N = a_N = 0, recursive feasibility) or "free" (no terminal constraint)
+    terminal_set: str = setting("hover", Choice("hover", "free"))
+    osqp_eps: float = setting(1e-4, Range(0.0, 1.0, lo_open=True))  # OSQP absolute/relative tolerance
+    osqp_max_iter: int = setting(4000, Range(1, 10_000_000, integer=True))
+    # OSQP solution polishing (no measured gain on the thesis experiment)
+    osqp_polishing: str = setting("off", Choice("off", "on"))
+
+
+@dataclass
 class MapConfig:
     """On-disk map."""
 
@@ -248,6 +282,7 @@ class Config:
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -19,6 +19,9 @@ from scipy.spatial.transform import Rotation
 
 from .errors import EstimationError, VtrError
 
+#: Below this rotation angle (rad) ``log_se3_batch`` uses the series form of V^-1.
+SMALL_ANGLE_RAD = 1e-4
+
 SE3_TOLERANCE = 1e-6   # max deviation of R R^T from I and of the last row from [0 0 0 1]
 COVARIANCE_SYMMETRY_RTOL = 1e-9    # |C - C^T| allowed, relative to max |C|
 COVARIANCE_PSD_RTOL = 1e-9         # negative eigenvalue allowed (semi-definite check), relative to the largest
@@ -63,6 +66,28 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
 def log_se3(T: np.ndarray) -> np.ndarray:
     """Logarithm of a 4x4 transform as a twist ``[omega, v]`` (GTSAM convention)."""
     return gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, float)))
+
+
+def log_se3_batch(T: np.ndarray) -> np.ndarray:
+    """Logarithms (K, 6) ``[omega, v]`` of transforms (K, 4, 4): the vectorized ``log_se3`` (same convention).
+
+    ``v = V(omega)^-1 t`` with ``V^-1 = I - W/2 + (1/th^2) (1 - th sin th / (2 (1 - cos th))) W^2``,
+    ``W = skew(omega)``, ``th = |omega|`` (series near 0).
+    """
+    T = np.asarray(T, float).reshape(-1, 4, 4)
+    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    th = np.linalg.norm(w, axis=1)
+    W = np.zeros((len(T), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = th < SMALL_ANGLE_RAD
+    ths = np.where(small, 1.0, th)
+    coef = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
+                    (1.0 - ths * np.sin(ths) / (2.0 * (1.0 - np.cos(ths)))) / ths**2)
+    t = T[:, :3, 3]
+    Wt = np.einsum("kij,kj->ki", W, t)
+    WWt = np.einsum("kij,kj->ki", W, Wt)
+    return np.hstack([w, t - 0.5 * Wt + coef[:, None] * WWt])
 
 
 def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:

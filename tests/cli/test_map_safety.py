@@ -74,7 +74,7 @@ def test_convert_refuses_with_the_same_rule(kitti_clip, tmp_path):
 def test_readers_write_nothing_beside_a_read_only_map(small_map, tmp_path):
     """(As root the permissions do not bind; that nothing is written beside or into the map is still
     checked. test_lifecycle opens through the immutable URI directly.)"""
-    from perception_model.map_landmarks import _open_map
+    from vtr.app.perception import open_map
 
     folder = small_map.parent
     shutil.copyfile(small_map, tmp_path / "pristine.vtrmap")
@@ -86,7 +86,7 @@ def test_readers_write_nothing_beside_a_read_only_map(small_map, tmp_path):
         assert ["0", "teach", "yes", "finished", "4", "synthetic"] in [line.split() for line in r.output.splitlines()]
         r = invoke("export-map", small_map, "--ply", tmp_path / "cloud.ply")
         assert r.exit_code == 0, r.output
-        m, _err = _open_map(small_map)
+        m = open_map(small_map)
         try:
             assert m.mode == "r" and len(m.nearest_vertices(np.zeros(3), 2)) == 2
         finally:

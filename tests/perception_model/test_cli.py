@@ -138,8 +138,14 @@ def test_errors_are_one_line_with_exit_code_1(data, tmp_path):
     _assert_one_line_error(_run(["evaluate", model, data / "run2.csv"]), "nan_model.json")
     good = tmp_path / "thesis.json"
     PerceptionModel.thesis().save(good)
+    from vtr.cli.perception_model import main as with_map  # --map lives in the script installed with vtr
+
     _assert_one_line_error(
-        _run(["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]), "is a directory"
+        CliRunner().invoke(with_map, [str(a) for a in ["constraint", good, "--map", tmp_path, "--positions",
+                                                       data / "pos.csv"]]), "is a directory"
+    )
+    _assert_one_line_error(
+        _run(["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]), "needs the map reader of vtr"
     )
     _assert_one_line_error(_run(["constraint", good, "--positions", data / "pos.csv"]), "exactly one")
     _assert_one_line_error(

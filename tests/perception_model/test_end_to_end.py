@@ -4,7 +4,7 @@
   landmarks.csv; both fits (``perception_model.analysis.analyse``) find the inlier probability
   falling with parallax (c3 < 0, its interval below 0) with finite R^2 and log-loss.
 - ``perception-model constraint --map`` on a small KITTI teach map: one row per position, mu > 0,
-  sigma >= 0, trunks are the nearest taught vertices; the yaw convention; one-line errors.
+  sigma >= 0, trunks follow the localizer's rule (here each taught vertex); the yaw convention; one-line errors.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import pytest
 from click.testing import CliRunner
 
 from perception_model.analysis import analyse, table
-from perception_model.cli import main
 from perception_model.map_landmarks import camera_rotation_from_yaw, yaw_pitch_of_axis
 from perception_model.model import PerceptionModel
 
@@ -64,6 +63,8 @@ def kitti_map(tmp_path_factory, kitti_clip):
 
 
 def _run(args):
+    from vtr.cli.perception_model import main  # the console script installed with vtr (adds the map reader)
+
     return CliRunner().invoke(main, [str(a) for a in args])
 
 
@@ -140,3 +141,47 @@ def test_yaw_convention_in_the_map_frame():
         assert abs(Ri[1, 0]) < 1e-12  # no roll: image x stays horizontal
     yaw, pitch = yaw_pitch_of_axis(R[2][:, 2])
     assert np.isclose(yaw, np.radians(-30.0)) and np.isclose(pitch, np.radians(50.0))
+
+
+def test_map_commands_need_the_vtr_side_script(kitti_map, tmp_path):
+    from perception_model.cli import main as package_main
+
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    positions = tmp_path / "pos.csv"
+    positions.write_text("x,y,z\n0,0,1\n")
+    r = CliRunner().invoke(package_main, ["constraint", str(model), "--map", str(kitti_map), "--positions",
+                                          str(positions)])
+    assert r.exit_code == 1 and "needs the map reader of vtr" in r.stderr and "Traceback" not in r.output
+
+
+def test_envelope_on_a_taught_map(kitti_map, tmp_path):
+    from vtr.app.perception import ENVELOPE_BISECTIONS, _bound, _read
+    from vtr.map import Map
+
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    out = tmp_path / "env"
+    r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "10"])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader((out / "envelope.csv").open()))
+    with Map.open(kitti_map) as m:
+        ids = m.taught_path().ids
+    assert [int(row["vertex_id"]) for row in rows] == [int(i) for i in ids]
+    assert (out / "envelope.png").stat().st_size > 10_000
+    # the reported distance is the last offset that keeps mu - 3 sigma >= L_min before the first crossing
+    vertices, camera = _read(kitti_map)
+    m = PerceptionModel.thesis()
+    checked = 0
+    for v, row in zip(vertices, rows, strict=True):
+        d = float(row["left_m"])
+        if int(row["left_capped"]) or d == 0.0:
+            continue
+        R = v.T_map_camera[:3, :3]
+        left_map = -R[:, 0]  # level KITTI camera: the vehicle's left is the camera's -x
+        c = v.T_map_camera[:3, 3]
+        inside = _bound(m, v, camera, (c + d * left_map)[None], 30.0, 3.0)[0]
+        beyond = _bound(m, v, camera, (c + (d + 0.5 / 2**ENVELOPE_BISECTIONS + 1e-9) * left_map)[None], 30.0, 3.0)[0]
+        assert inside >= 30.0 > beyond
+        checked += 1
+    assert checked > 0

@@ -97,6 +97,21 @@ def check_out_dir(path: Path, option: str = "--out") -> None:
     check_output_folder(path, option)
 
 
+def frame_progress(desc: str):
+    """A ``progress(i, n)`` callback (as ``vtr.sim.synthetic.write_sequence`` takes) drawing a tqdm bar."""
+    from tqdm import tqdm
+
+    bar = tqdm(desc=desc, unit="frame", dynamic_ncols=True, leave=False, disable=None)
+
+    def cb(i: int, n: int) -> None:
+        bar.total = n
+        bar.update(1)
+        if i + 1 == n:
+            bar.close()
+
+    return cb
+
+
 source_argument = click.argument("source", type=click.Path(path_type=Path))
 frames_option = click.option("--frames", default=None, metavar="START:STOP:STEP",
                              help="Frames of SOURCE to use (Python slice).")

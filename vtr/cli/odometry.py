@@ -11,6 +11,7 @@ from . import main
 from .common import (
     check_out_dir,
     config_option,
+    frame_progress,
     frames_option,
     load_config,
     note_outputs,
@@ -76,8 +77,11 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool)
 
 @main.command("demo")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
-def demo_cmd(out: Path) -> None:
-    """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report."""
+@click.option("--aerial/--no-aerial", default=True, show_default=True,
+              help="Step 4: the synthetic aerial mission (renders ~150 frames, about a minute).")
+def demo_cmd(out: Path, aerial: bool) -> None:
+    """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report,
+    then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope)."""
     from ..app.pipeline import odometry_command, repeat_command, teach_command
     from ..config import Config
 
@@ -89,14 +93,25 @@ def demo_cmd(out: Path) -> None:
     for stale in out.glob("route.vtrmap*"):
         stale.unlink()
     click.echo(f"vtr demo on {clip}")
-    click.echo("1/3 stereo odometry over all frames")
+    click.echo("1/4 stereo odometry over all frames")
     for line in odometry_command(clip, out / "odometry", None, config, None, progress_bar()).lines():
         click.echo("    " + line)
-    click.echo("2/3 teach on the even frames")
+    click.echo("2/4 teach on the even frames")
     for line in teach_command(clip, map_path, "0::2", config, out / "teach", None, progress_bar()).lines():
         click.echo("    " + line)
-    click.echo("3/3 repeat on the odd frames, localizing against the taught path")
+    click.echo("3/4 repeat on the odd frames, localizing against the taught path")
     for line in repeat_command(clip, map_path, out / "repeat", "1::2", config, None, progress_bar()).lines():
         click.echo("    " + line)
-    click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
+    if not aerial:
+        click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
+                   f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")
+        return
+    click.echo("4/4 synthetic aerial mission: teach, repeats at 0/1/2/4/8 m to the left, model fitted on their "
+               "landmarks, localization envelope")
+    from ..app.mission import run_aerial_mission
+
+    mission = run_aerial_mission(out / "aerial", config, progress=lambda name: frame_progress(f"render {name}"))
+    for line in mission.lines():
+        click.echo("    " + line)
+    click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png, {mission.report_html}; "
                f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")

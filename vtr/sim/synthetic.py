@@ -718,6 +718,48 @@ def drifting_aerial_route(length_m: float, spacing_m: float, lateral_offset_m: f
     return T
 
 
+def segmented_aerial_route(
+    segments: Sequence[tuple[float, float]],
+    spacing_m: float = 1.0,
+    *,
+    altitude_m: float = DEFAULT_ALTITUDE_M,
+    pitch_down_rad: float = DEFAULT_AERIAL_PITCH_RAD,
+    start_xy: tuple[float, float] = (0.0, 0.0),
+    heading_rad: float = 0.0,
+    camera_heading_rad: float | None = None,
+    yaw_offset_rad: float = 0.0,
+    lateral_offset_m: float = 0.0,
+    vertical_offset_m: float = 0.0,
+    ramp_m: float = 0.0,
+    start_offset_m: float = 0.0,
+) -> np.ndarray:
+    """Multirotor camera poses ``T_world_cam`` (N, 4, 4) along consecutive ``segments`` of (length m,
+    curvature 1/m; positive turns left), e.g. a path with corners, at ``altitude_m`` (ENU, m).
+
+    The camera looks along the path tangent turned by ``yaw_offset_rad`` or, with ``camera_heading_rad``,
+    along that fixed ENU heading (a gimbal), pitched ``pitch_down_rad`` below the horizon, no roll. A
+    repeat is offset ``lateral_offset_m`` to the left of the path and ``vertical_offset_m`` up; with
+    ``ramp_m`` > 0 it starts on the path and reaches the offsets after ``ramp_m`` metres (as
+    :func:`drifting_aerial_route`).
+    """
+    if spacing_m <= 0:
+        raise ConfigError(f"spacing_m must be positive, got {spacing_m}")
+    total = sum(length for length, _ in segments)
+    s = np.arange(start_offset_m, total + 1e-9, spacing_m)
+    if len(s) == 0:
+        raise ConfigError(f"start_offset_m {start_offset_m} is beyond the route length {total}")
+    xy, psi = _arc_path(segments, s, start_xy, heading_rad)
+    blend = np.clip((s - s[0]) / ramp_m, 0.0, 1.0) if ramp_m > 0 else np.ones(len(s))
+    left = np.stack([-np.sin(psi), np.cos(psi)], axis=1)
+    xy = xy + (lateral_offset_m * blend)[:, None] * left
+    z = altitude_m + vertical_offset_m * blend
+    T = np.tile(np.eye(4), (len(s), 1, 1))
+    for i in range(len(s)):
+        cam = camera_heading_rad if camera_heading_rad is not None else psi[i] + yaw_offset_rad
+        T[i] = camera_pose([xy[i, 0], xy[i, 1], z[i]], cam, pitch_down_rad)
+    return T
+
+
 def turning_route(
     spacing_m: float = 0.25,
     *,

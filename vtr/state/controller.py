@@ -9,7 +9,8 @@ Frames (``T_a_b`` maps b coordinates into a; all SI units):
   camera, "sensor"), related by ``T_sensor_vehicle``.
 * ``o``: gravity-aligned frame at the trunk: origin at the trunk's origin, z up (opposite to gravity),
   x along the trunk's heading projected on the horizontal plane. ``T_o_t`` is a pure rotation
-  (roll and pitch of the trunk), built by :func:`gravity_aligned_T_o_t`.
+  (roll and pitch of the trunk), built by :func:`gravity_aligned_T_o_t`. The convention (frame o,
+  yaw, camera mount) has one owner, :mod:`perception_model.frames`; ``yaw_of`` is that module's.
 
 The controller state is ``z = (p, v, a, psi)`` and the output ``y = (p, psi)``: position, velocity and
 acceleration of the vehicle origin relative to o, expressed in o, and the yaw of the vehicle's x axis
@@ -23,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception_model.frames import rot_z, yaw_of
+
 from ..errors import EstimationError
 from ..geometry import check_se3, inv_T, skew
 from .smoothing import TrajectoryState, adjoint
@@ -31,17 +34,6 @@ GRAVITY_UP = np.array([0.0, 0.0, 1.0])    # z axis of o and of any gravity-align
 MIN_SEGMENT_LENGTH_M = 1e-9               # shorter path segments are merged away
 MIN_HORIZONTAL_FRACTION = 1e-9            # a segment steeper than this is treated as vertical
 _ROT_AND_LINEAR_VEL = np.array([0, 1, 2, 9, 10, 11])   # (d theta, d v) inside [pose, twist] perturbations
-
-
-def yaw_of(C_o_b: np.ndarray) -> float | np.ndarray:
-    """Yaw (rad) of frame b's x axis in o: ``atan2(C[1, 0], C[0, 0])``; works on (..., 3, 3) stacks."""
-    C = np.asarray(C_o_b, float)
-    return np.arctan2(C[..., 1, 0], C[..., 0, 0])
-
-
-def _rot_z(psi: float) -> np.ndarray:
-    c, s = np.cos(psi), np.sin(psi)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
@@ -55,7 +47,7 @@ def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
     if C_g_t.shape != (3, 3) or not np.all(np.isfinite(C_g_t)):
         raise EstimationError("C_g_t: expected a finite 3x3 rotation")
     T = np.eye(4)
-    T[:3, :3] = _rot_z(float(yaw_of(C_g_t))).T @ C_g_t
+    T[:3, :3] = rot_z(float(yaw_of(C_g_t))).T @ C_g_t
     return check_se3(T, "T_o_t")
 
 

@@ -1,0 +1,78 @@
+"""The taught-path field: trunk selection is the localizer's rule; gradients across trunk changes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from perception_model.model import PerceptionModel
+from vtr.config import LocalizationConfig
+from vtr.control.field import CameraMount, TaughtPathField
+from vtr.geometry import log_se3, log_se3_batch
+from vtr.map.path import TaughtPath
+from vtr.navigation.localization import LocalizationChain
+
+MODEL = PerceptionModel.thesis()
+
+
+def _field(vertices, lever=(0.2, 0.1, -0.1)):
+    return TaughtPathField(MODEL, vertices, T_g_map=np.eye(4),
+                           mount=CameraMount(math.pi / 2, np.array(lever)))
+
+
+def test_log_se3_batch_matches_log_se3():
+    from vtr.geometry import exp_se3
+
+    rng = np.random.default_rng(0)
+    T = np.array([exp_se3(rng.normal(0, s, 6)) for s in (1e-7, 1e-3, 0.3, 1.0, 2.5) for _ in range(4)])
+    assert np.allclose(log_se3_batch(T), [log_se3(t) for t in T], atol=1e-10)
+
+
+def test_trunk_selection_is_the_localization_chains(l_vertices):
+    field = _field(l_vertices)
+    rng = np.random.default_rng(1)
+    cfg = LocalizationConfig()
+    taught = TaughtPath(field.vertex_ids, field.T_g_camera, np.zeros(len(field), dtype=np.int64))
+    for _ in range(20):
+        prev = int(rng.integers(0, len(field)))
+        i = min(len(field) - 1, prev + int(rng.integers(0, 4)))
+        pos = field.vehicle_position_g[i] + rng.normal(0, 1.5, 3)
+        yaw = field.vehicle_yaw_g[i] + rng.normal(0, 0.3)
+        chain = LocalizationChain(taught, cfg, start_index=prev)
+        chain.update(-1, field.T_g_camera[prev], prev, np.eye(4))  # twig at the branch: prior = relative pose
+        T_g_leaf = field.camera_poses(pos[None], np.array([yaw]), field.pitch_down[prev])[0]
+        expected, _ = chain.prior(T_g_leaf)
+        assert field.select_trunks(pos[None], np.array([yaw]), prev)[0] == expected
+
+
+def test_gradients_by_finite_differences_across_trunk_changes(l_vertices):
+    field = _field(l_vertices)
+    # a horizon sweeping along the corner: its steps fall on several trunks
+    k = np.arange(15)
+    pos = np.column_stack([6.0 + 0.9 * k, 0.4 + 0.05 * k**1.5, 12.0 + 0.1 * np.sin(k)])
+    yaw = 0.05 * k
+    ev = field.evaluate(pos, yaw, previous=5)
+    assert len(np.unique(ev.trunk)) >= 5
+    h = 1e-6
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = h
+        fd = (field.evaluate(pos + d, yaw, trunk=ev.trunk, gradient=False).g
+              - field.evaluate(pos - d, yaw, trunk=ev.trunk, gradient=False).g) / (2 * h)
+        assert np.allclose(ev.dg_dpos[:, j], fd, rtol=1e-5, atol=1e-5)
+    fd_yaw = (field.evaluate(pos, yaw + h, trunk=ev.trunk, gradient=False).g
+              - field.evaluate(pos, yaw - h, trunk=ev.trunk, gradient=False).g) / (2 * h)
+    assert np.allclose(ev.dg_dyaw, fd_yaw, rtol=1e-5, atol=1e-5)  # axis yaw and lever arm together
+    assert np.any(np.abs(ev.dg_dyaw) > 1.0)
+
+
+def test_landmarks_are_cached_in_each_trunks_o(l_vertices):
+    field = _field(l_vertices, lever=(0.0, 0.0, 0.0))
+    for i in (0, 14, 20):
+        t = field.evaluator.trunks[i]
+        assert t.yaw_g == pytest.approx(field.vehicle_yaw_g[i])
+        # taught camera looks along o's +y (mount yaw 90 deg), pitched down: landmarks lie at +y, below
+        lm = t.landmarks_o
+        assert np.median(lm[:, 1]) > 5.0 and np.all(lm[:, 2] < 0) and abs(np.median(lm[:, 0])) < 5.0

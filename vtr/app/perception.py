@@ -1,0 +1,259 @@
+"""The perception model on a taught ``vtr`` map: ``constraint --map`` and the localization envelope.
+
+The map adapter of ``perception_model`` (which imports nothing from ``vtr``): taught vertices and
+their landmarks come from :func:`vtr.control.field.read_taught_vertices`, trunks are chosen by the
+localizer's rule (:meth:`vtr.control.field.TaughtPathField.select_trunks`), frames and yaw follow
+``perception_model.frames`` (the map's gravity-aligned frame g; for a level first camera, up is the
+map's ``-y``, which is the ``perception_model.map_landmarks`` yaw convention).
+
+Landmarks counted: with ``in_view=True`` only trunk landmarks in front of the camera and inside the
+image of the map's camera (the population of ``landmarks.csv``, so a model fitted on those files
+applies); with ``in_view=False`` every trunk landmark (the model's view cut is then the field of view).
+
+**Localization envelope** (:func:`localization_envelope`): for every taught vertex, how far the
+vehicle may move to the taught vehicle's left/right (horizontal, perpendicular to its heading) and
+up/down, with the camera as taught (same orientation), before ``mu - c_bar sigma < L_min`` against
+that vertex's landmarks. Offsets are scanned on a grid of ``step_m`` up to ``max_m`` and the first
+crossing is refined by bisection; a side that never crosses reports ``max_m`` (``*_capped``).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from perception_model import frames
+from perception_model.constraint import PerceptionConstraint, inlier_moments, normal_tail, poisson_binomial_tail
+from perception_model.errors import GeometryError, InputDataError
+from perception_model.map_landmarks import (
+    MapConstraintTable,
+    camera_rotation_from_yaw,
+    yaw_pitch_of_axis,
+)
+from perception_model.model import PerceptionModel
+
+from ..camera import StereoCamera
+from ..control.field import LEVEL_CAMERA_UP_MAP, TaughtPathField, TaughtVertex, read_taught_vertices
+from ..errors import VtrError
+from ..map import Map
+
+#: Envelope defaults: grid step and largest offset scanned (m), bisection steps on a crossing.
+ENVELOPE_STEP_M = 0.25
+ENVELOPE_MAX_M = 20.0
+ENVELOPE_BISECTIONS = 6
+DIRECTIONS = ("left", "right", "up", "down")
+
+
+def open_map(path: str | Path) -> Map:
+    """The map read-only; ``InputDataError`` (one line) if it cannot be opened."""
+    try:
+        return Map.open(Path(path), "r")
+    except VtrError as err:
+        raise InputDataError(str(err)) from None
+
+
+def _read(path: str | Path) -> tuple[list[TaughtVertex], StereoCamera]:
+    with open_map(path) as m:
+        try:
+            return read_taught_vertices(m), m.camera
+        except VtrError as err:
+            raise InputDataError(str(err)) from None
+
+
+def moments_at(model: PerceptionModel, vertex: TaughtVertex, positions_map: np.ndarray, R_map_cam: np.ndarray,
+               camera: StereoCamera, *, l_min: float, c_bar: float, in_view_only: bool = True) -> list[np.ndarray]:
+    """Inlier probabilities (one array per position) of ``vertex``'s landmarks from cameras at
+    ``positions_map`` (K, 3) with rotations ``R_map_cam`` (K, 3, 3); in-view landmarks only by default."""
+    pos = np.asarray(positions_map, float)
+    if vertex.points_map.shape[0] == 0:
+        return [np.zeros(0) for _ in pos]
+    centre = vertex.T_map_camera[:3, 3]
+    try:
+        con = PerceptionConstraint(model, vertex.points_map - centre, l_min=l_min, c_bar=c_bar)
+        p = con.evaluate(pos - centre, axes=R_map_cam[:, :, 2], gradient=False).p
+    except GeometryError as err:
+        raise InputDataError(f"trunk {vertex.vertex_id}: {err}") from None
+    if not in_view_only:
+        return list(p)
+    # rows of (points - c) @ R are R^T (p - c): the landmarks in the camera frame
+    return [p[k][camera.in_view((vertex.points_map - pos[k]) @ R_map_cam[k])] for k in range(len(pos))]
+
+
+def evaluate_on_map(model: PerceptionModel, map_path: str | Path, positions: np.ndarray,
+                    yaw: np.ndarray | float | None = None, *, pitch_down: float | None = None, l_min: float,
+                    c_bar: float, in_view: bool = True, exact: bool = True) -> MapConstraintTable:
+    """``mu``, ``sigma``, margins and failure probabilities at camera centres ``positions`` (N, 3), map frame.
+
+    ``yaw`` (N,) radians (``perception_model.map_landmarks`` convention) or ``None`` (each trunk's
+    orientation); ``pitch_down`` for yaw-defined axes (default the trunk's pitch). Trunks follow the
+    localizer's rule from the vertex nearest to the first position.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 3 or pos.shape[0] == 0:
+        raise InputDataError(f"positions must have shape (N, 3) with N >= 1, got {pos.shape}")
+    n = pos.shape[0]
+    psi_in = None if yaw is None else np.broadcast_to(np.asarray(yaw, dtype=np.float64), (n,))
+    vertices, camera = _read(map_path)
+    field = TaughtPathField(model, vertices, T_g_map=frames.T_g_map_from_up(LEVEL_CAMERA_UP_MAP), l_min=l_min,
+                            c_bar=c_bar)
+    pos_g = pos @ field.T_g_map[:3, :3].T
+    start = field.nearest_trunk(pos_g[0])
+    if psi_in is None:  # selection with the nearest taught vertex's heading at each position
+        near = [field.nearest_trunk(p) for p in pos_g]
+        sel_yaw = field.vehicle_yaw_g[near]
+    else:
+        sel_yaw = psi_in
+    trunk_idx = field.select_trunks(pos_g, sel_yaw, start)
+    yaw_used, pitch_used, R = np.empty(n), np.empty(n), np.empty((n, 3, 3))
+    for i, t in enumerate(trunk_idx):
+        T = vertices[t].T_map_camera
+        t_yaw, t_pitch = yaw_pitch_of_axis(T[:3, 2])
+        if psi_in is None:
+            R[i], yaw_used[i], pitch_used[i] = T[:3, :3], t_yaw, t_pitch
+        else:
+            pitch_used[i] = t_pitch if pitch_down is None else pitch_down
+            yaw_used[i] = psi_in[i]
+            R[i] = camera_rotation_from_yaw(psi_in[i], pitch_used[i])[0]
+    p_rows: list[np.ndarray] = [np.zeros(0)] * n
+    for t in np.unique(trunk_idx):
+        sel = np.flatnonzero(trunk_idx == t)
+        rows = moments_at(model, vertices[t], pos[sel], R[sel], camera, l_min=l_min, c_bar=c_bar,
+                          in_view_only=in_view)
+        for i, p in zip(sel.tolist(), rows, strict=True):
+            p_rows[i] = p
+    mu = np.array([float(inlier_moments(p)[0]) for p in p_rows])
+    sigma = np.sqrt([float(inlier_moments(p)[1]) for p in p_rows])
+    used = {int(t) for t in trunk_idx}
+    return MapConstraintTable(
+        positions=pos, yaw=yaw_used, pitch_down=pitch_used, yaw_given=psi_in is not None,
+        trunk_id=np.array([vertices[t].vertex_id for t in trunk_idx], dtype=np.int64),
+        trunk_distance_m=np.linalg.norm(pos - np.stack([vertices[t].T_map_camera[:3, 3] for t in trunk_idx]), axis=1),
+        n_landmarks=np.array([vertices[t].points_map.shape[0] for t in trunk_idx], dtype=np.int64),
+        n_in_view=np.array([p.size for p in p_rows], dtype=np.int64),
+        mu=mu, sigma=sigma, g=mu - c_bar * sigma - l_min, g_conservative=mu - c_bar * np.sqrt(mu) - l_min,
+        p_fail_normal=np.array([normal_tail(float(m), float(s), l_min, lower=True) for m, s in zip(mu, sigma,
+                                                                                                    strict=True)]),
+        p_fail_exact=np.array([poisson_binomial_tail(p, l_min, lower=True) for p in p_rows]) if exact else None,
+        n_map_landmarks=int(sum(vertices[t].points_map.shape[0] for t in used)),
+    )
+
+
+# --------------------------------------------------------------------------- envelope
+@dataclass(frozen=True)
+class EnvelopeRow:
+    """How far (m) the vehicle may move from one taught vertex before the bound fails (camera as taught)."""
+
+    vertex_id: int
+    position_g: np.ndarray  # taught camera centre in the map's gravity-aligned frame g
+    yaw_g: float  # taught heading of the optical axis in g
+    bound_taught: float  # mu - c_bar sigma at the vertex itself
+    distance_m: dict[str, float]
+    capped: dict[str, bool]
+
+
+def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
+    R = np.broadcast_to(vertex.T_map_camera[:3, :3], (len(centres_map), 3, 3))
+    rows = moments_at(model, vertex, centres_map, R, camera, l_min=l_min, c_bar=c_bar)
+    return np.array([float(inlier_moments(p)[0]) - c_bar * float(np.sqrt(inlier_moments(p)[1])) for p in rows])
+
+
+def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
+                          up_map=LEVEL_CAMERA_UP_MAP, step_m: float = ENVELOPE_STEP_M,
+                          max_m: float = ENVELOPE_MAX_M) -> list[EnvelopeRow]:
+    """The localization envelope of every taught vertex (see the module docstring)."""
+    if not (0.0 < step_m <= max_m):
+        raise InputDataError(f"envelope step {step_m} m must be in (0, max {max_m} m]")
+    vertices, camera = _read(map_path)
+    T_g_map = frames.T_g_map_from_up(up_map)
+    R_map_g = T_g_map[:3, :3].T
+    grid = np.arange(step_m, max_m + 1e-9, step_m)
+    rows = []
+    for v in vertices:
+        centre = v.T_map_camera[:3, 3]
+        heading, _pitch = frames.heading_of_axis(T_g_map[:3, :3] @ v.T_map_camera[:3, 2])
+        left = np.array([-np.sin(heading), np.cos(heading), 0.0])
+        dirs_g = {"left": left, "right": -left, "up": frames.UP, "down": -frames.UP}
+        base = float(_bound(model, v, camera, centre[None], l_min, c_bar)[0])
+        dist, capped = {}, {}
+        for name, d_g in dirs_g.items():
+            d_map = R_map_g @ d_g
+            if base < l_min:
+                dist[name], capped[name] = 0.0, False
+                continue
+            b = _bound(model, v, camera, centre + grid[:, None] * d_map, l_min, c_bar)
+            bad = np.flatnonzero(b < l_min)
+            if bad.size == 0:
+                dist[name], capped[name] = float(max_m), True
+                continue
+            hi = float(grid[bad[0]])
+            lo = hi - step_m
+            for _ in range(ENVELOPE_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                if _bound(model, v, camera, (centre + mid * d_map)[None], l_min, c_bar)[0] < l_min:
+                    hi = mid
+                else:
+                    lo = mid
+            dist[name], capped[name] = lo, False
+        rows.append(EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped))
+    return rows
+
+
+def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, title: str = "") -> tuple[Path, Path]:
+    """``out_dir/envelope.csv`` (one row per vertex) and ``out_dir/envelope.png`` (plan view); returns both paths."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = out_dir / "envelope.csv"
+    with csv_path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
+                    "down_m", "left_capped", "right_capped", "up_capped", "down_capped"])
+        for r in rows:
+            w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
+                        round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
+                        *(int(r.capped[d]) for d in DIRECTIONS)])
+    png = out_dir / "envelope.png"
+    plot_envelope(rows, png, l_min=l_min, title=title)
+    return csv_path, png
+
+
+def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: str = "") -> None:
+    """Plan view of the taught path with the left/right envelope as a band, and the four distances per vertex."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = np.array([r.position_g for r in rows])
+    h = np.array([r.yaw_g for r in rows])
+    left = np.stack([-np.sin(h), np.cos(h)], axis=1)
+    lm = np.array([r.distance_m["left"] for r in rows])
+    rm = np.array([r.distance_m["right"] for r in rows])
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+    lb = p[:, :2] + lm[:, None] * left
+    rb = p[:, :2] - rm[:, None] * left
+    ax.fill(np.r_[lb[:, 0], rb[::-1, 0]], np.r_[lb[:, 1], rb[::-1, 1]], color="tab:green", alpha=0.25,
+            label="envelope (left/right)")
+    ax.plot(p[:, 0], p[:, 1], "k.-", ms=3, label="taught path (camera)")
+    ax.quiver(p[::5, 0], p[::5, 1], np.cos(h[::5]), np.sin(h[::5]), width=0.003, color="tab:blue",
+              label="camera heading")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x_g [m]")
+    ax.set_ylabel("y_g [m]")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or f"localization envelope (mu - c sigma >= {l_min:g})")
+    s = np.arange(len(rows))
+    for d in DIRECTIONS:
+        ax2.plot(s, [r.distance_m[d] for r in rows], label=d)
+    ax2.set_xlabel("taught vertex (path order)")
+    ax2.set_ylabel("allowed offset [m]")
+    ax2.grid(True, alpha=0.3)
+    ax2.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+__all__ = ["EnvelopeRow", "evaluate_on_map", "localization_envelope", "moments_at", "open_map", "plot_envelope",
+           "write_envelope"]

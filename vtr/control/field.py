@@ -1,0 +1,217 @@
+"""The taught-path perception field: every taught vertex's landmarks, trunk selection, horizon evaluation.
+
+Built once from a taught map and a perception model. Frames follow :mod:`perception_model.frames`:
+the field works in the map's gravity-aligned frame g (z up; x the first teach camera's forward
+direction on the horizontal plane; ``up_map`` gives gravity in the map frame); each vertex's
+landmarks are cached in its own controller frame o (origin at the taught vehicle, x along its
+heading) as ``perception_model.horizon.TrunkLandmarks``.
+
+The vehicle is a level multirotor with flat outputs ``(p, psi)`` in g; its camera sits at
+``CameraMount.lever_arm_m`` (vehicle FLU frame) with the optical axis yawed ``mount_yaw_rad`` from
+the vehicle's x axis and the taught pitch below the horizon. The taught vehicle's yaw is the
+taught optical axis' heading minus ``mount_yaw_rad`` (the map stores camera poses).
+
+Trunk selection is the localizer's rule (``vtr.navigation.localization.LocalizationChain.prior``):
+in a window of ``trunk_window_back``/``trunk_window_forward`` vertices around the previous trunk,
+the vertex minimizing ``||rho|| + rotation_weight ||phi||`` of the relative camera pose
+(``config.localization``). Along a horizon the previous trunk of step k is step k-1's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from perception_model import frames
+from perception_model.constraint import THESIS_C_BAR, THESIS_L_MIN
+from perception_model.horizon import HorizonEvaluation, HorizonEvaluator, TrunkLandmarks
+from perception_model.model import PerceptionModel
+
+from ..config import LocalizationConfig
+from ..errors import MapError
+from ..geometry import inv_T, log_se3_batch
+from ..map import Map
+
+#: Default gravity "up" in the map frame: the first teach camera was level (x right, y down).
+LEVEL_CAMERA_UP_MAP = (0.0, -1.0, 0.0)
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Camera on the vehicle: axis yaw from the vehicle's x axis (rad) and lever arm (m, vehicle FLU)."""
+
+    mount_yaw_rad: float = 0.0
+    lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True)
+class TaughtVertex:
+    """A privileged vertex read from a map: camera pose and finite landmarks, both in the map frame."""
+
+    vertex_id: int
+    T_map_camera: np.ndarray
+    points_map: np.ndarray
+
+
+def read_taught_vertices(vtr_map: Map) -> list[TaughtVertex]:
+    """Every privileged vertex with its landmarks in the map frame, in path order (MapError without a teach)."""
+    path = vtr_map.taught_path()
+    out = []
+    for vid, T_mv in zip(path.ids, path.T_world_vertex, strict=True):
+        rec = vtr_map.vertex(int(vid))
+        pts = np.asarray(rec.frame.points, float)[rec.landmark_mask]
+        out.append(TaughtVertex(int(vid), np.asarray(T_mv, float), pts @ T_mv[:3, :3].T + T_mv[:3, 3]))
+    return out
+
+
+@dataclass(frozen=True)
+class FieldEvaluation:
+    """Constraint along a horizon of vehicle outputs ``(p, psi)`` in g; gradients w.r.t. the vehicle outputs.
+
+    ``dg_dpos`` (N, 3), ``dg_dyaw`` (N,) (vehicle yaw: axis yaw and lever arm), ``dg_daxis`` (N, 3)
+    (the optical axis, for a gimbal); ``vertex_id`` (N,) each step's trunk; ``flag`` as in
+    ``perception_model.horizon``. ``raw`` is the evaluator's record (camera-centre gradients).
+    """
+
+    trunk: np.ndarray
+    vertex_id: np.ndarray
+    mu: np.ndarray
+    sigma: np.ndarray
+    g: np.ndarray
+    flag: np.ndarray
+    dg_dpos: np.ndarray | None
+    dg_dyaw: np.ndarray | None
+    dg_daxis: np.ndarray | None
+    raw: HorizonEvaluation
+
+
+class TaughtPathField:
+    """The perception chance constraint over the whole taught path (value and gradient for a horizon)."""
+
+    def __init__(self, model: PerceptionModel, vertices: list[TaughtVertex], *,
+                 T_g_map: np.ndarray, mount: CameraMount | None = None,
+                 config: LocalizationConfig | None = None, l_min: float = THESIS_L_MIN,
+                 c_bar: float = THESIS_C_BAR) -> None:
+        if not vertices:
+            raise MapError("the taught path is empty")
+        self.mount = mount or CameraMount()
+        self.config = config or LocalizationConfig()
+        self.T_g_map = np.asarray(T_g_map, float)
+        lever = np.asarray(self.mount.lever_arm_m, float)
+        T_g_cam = self.T_g_map[None] @ np.stack([v.T_map_camera for v in vertices])
+        heading, pitch = frames.heading_of_axis(T_g_cam[:, :3, 2])
+        yaw = frames.wrap_angle(heading - self.mount.mount_yaw_rad)
+        centres = T_g_cam[:, :3, 3]
+        positions = centres - np.einsum("kij,j->ki", frames.rot_z(yaw), lever)
+        trunks = []
+        for i, v in enumerate(vertices):
+            pts_g = v.points_map @ self.T_g_map[:3, :3].T + self.T_g_map[:3, 3]
+            p_is_o, _ = frames.to_trunk_frame(pts_g, 0.0, centres[i], yaw[i])
+            trunks.append(TrunkLandmarks(v.vertex_id, positions[i], float(yaw[i]), lever.copy(), p_is_o,
+                                         float(pitch[i])))
+        self.vertex_ids = np.array([v.vertex_id for v in vertices], dtype=np.int64)
+        self.T_g_camera = T_g_cam
+        self.vehicle_position_g = positions
+        self.vehicle_yaw_g = np.asarray(yaw, float)
+        self.pitch_down = np.asarray(pitch, float)
+        self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
+
+    @classmethod
+    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=LEVEL_CAMERA_UP_MAP,
+                 mount: CameraMount | None = None, config: LocalizationConfig | None = None,
+                 l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR) -> TaughtPathField:
+        """Read every taught vertex of ``vtr_map`` (open) once; ``up_map``: gravity up in the map frame."""
+        return cls(model, read_taught_vertices(vtr_map), T_g_map=frames.T_g_map_from_up(up_map), mount=mount,
+                   config=config, l_min=l_min, c_bar=c_bar)
+
+    def __len__(self) -> int:
+        return len(self.vertex_ids)
+
+    # ----------------------------------------------------------------- vehicle <-> camera
+    def camera_centres(self, positions: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """Camera centres (N, 3) in g of vehicles at ``positions`` (N, 3) with yaw ``yaw`` (N,)."""
+        return frames.camera_position(positions, yaw, self.mount.lever_arm_m)
+
+    def camera_poses(self, positions: np.ndarray, yaw: np.ndarray, pitch_down: float | np.ndarray) -> np.ndarray:
+        """``T_g_camera`` (N, 4, 4) of level vehicles (camera pitched ``pitch_down`` below the horizon)."""
+        yaw = np.asarray(yaw, float)
+        T = np.tile(np.eye(4), (len(yaw), 1, 1))
+        T[:, :3, :3] = frames.camera_rotation(yaw, pitch_down, self.mount.mount_yaw_rad)
+        T[:, :3, 3] = self.camera_centres(positions, yaw)
+        return T
+
+    # ----------------------------------------------------------------- trunk selection
+    def nearest_trunk(self, position: np.ndarray) -> int:
+        """Index of the taught vertex whose vehicle position is nearest (to start a chain)."""
+        return int(np.argmin(np.linalg.norm(self.vehicle_position_g - np.asarray(position, float), axis=1)))
+
+    def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
+                      axes: np.ndarray | None = None) -> np.ndarray:
+        """Trunk index (N,) of each predicted vehicle pose by the localizer's rule, starting from ``previous``.
+
+        The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal).
+        """
+        pos = np.atleast_2d(np.asarray(positions, float))
+        yaw = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
+        axes_pitch = None
+        if axes is not None:
+            heading, axes_pitch = frames.heading_of_axis(np.broadcast_to(np.asarray(axes, float), (len(pos), 3)))
+            yaw = heading - self.mount.mount_yaw_rad
+        c = self.config
+        n = len(pos)
+        prev = int(previous)
+        # every step's window lies in [prev - n back, prev + n forward]: one batched log for all costs
+        lo_all = max(0, prev - n * c.trunk_window_back)
+        hi_all = min(len(self), prev + n * c.trunk_window_forward + 1)
+        pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
+        T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
+        T_rel = T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all]
+        xi = log_se3_batch(T_rel.reshape(-1, 4, 4)).reshape(n, hi_all - lo_all, 6)
+        cost = np.linalg.norm(xi[..., 3:], axis=2) + c.rotation_weight * np.linalg.norm(xi[..., :3], axis=2)
+        out = np.empty(n, dtype=np.int64)
+        for k in range(n):
+            lo = max(0, prev - c.trunk_window_back)
+            hi = min(len(self), prev + c.trunk_window_forward + 1)
+            prev = lo + int(np.argmin(cost[k, lo - lo_all:hi - lo_all]))
+            out[k] = prev
+        return out
+
+    # ----------------------------------------------------------------- evaluation
+    def evaluate(self, positions: np.ndarray, yaw: np.ndarray, *, trunk: np.ndarray | None = None,
+                 previous: int | None = None, axes: np.ndarray | None = None,
+                 gradient: bool = True) -> FieldEvaluation:
+        """Constraint at vehicle outputs ``positions`` (N, 3), ``yaw`` (N,) in g.
+
+        Each step's trunk is ``trunk`` (N,) when given, else selected from ``previous`` (default: the
+        nearest vertex to the first position). ``axes`` (N, 3) overrides the mount's optical axes
+        (gimbal: also for the trunk selection); the yaw gradient then covers the lever arm only.
+        """
+        pos = np.atleast_2d(np.asarray(positions, float))
+        psi = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
+        if trunk is None:
+            start = self.nearest_trunk(pos[0]) if previous is None else int(previous)
+            trunk = self.select_trunks(pos, psi, start, axes=axes)
+        trunk = np.asarray(trunk, dtype=np.int64)
+        cam = self.camera_centres(pos, psi)
+        if axes is None:
+            ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
+                                         gradient=gradient)
+        else:
+            ev = self.evaluator.evaluate(cam, trunk, axes_g=axes, gradient=gradient)
+        dpos = dyaw = None
+        if gradient:
+            assert ev.dg_dpos is not None
+            dpos = ev.dg_dpos
+            lever = np.asarray(self.mount.lever_arm_m, float)
+            s, c = np.sin(psi), np.cos(psi)
+            dcam_dyaw = np.stack([-s * lever[0] - c * lever[1], c * lever[0] - s * lever[1], np.zeros_like(psi)],
+                                 axis=1)
+            dyaw = np.einsum("nk,nk->n", dpos, dcam_dyaw)
+            if ev.dg_dyaw is not None:
+                dyaw = dyaw + ev.dg_dyaw
+        return FieldEvaluation(trunk, self.vertex_ids[trunk], ev.mu, ev.sigma, ev.g, ev.flag, dpos, dyaw,
+                               ev.dg_daxis, ev)
+
+
+__all__ = ["CameraMount", "FieldEvaluation", "TaughtPathField", "TaughtVertex", "read_taught_vertices"]
