@@ -261,8 +261,8 @@ class ControlConfig:
     terminal_set: str = setting("hover", Choice("hover", "free"))
     osqp_eps: float = setting(1e-4, Range(0.0, 1.0, lo_open=True))  # OSQP absolute/relative tolerance
     osqp_max_iter: int = setting(4000, Range(1, 10_000_000, integer=True))
-    # OSQP solution polishing (no measured gain on the thesis experiment)
-    osqp_polishing: str = setting("off", Choice("off", "on"))
+    # OSQP solution polishing (no measured gain on the thesis experiment); not on/off: YAML reads those as booleans
+    osqp_polishing: str = setting("disabled", Choice("disabled", "enabled"))
 
 
 @dataclass

@@ -204,7 +204,7 @@ class PerceptionAwareMPC:
             self.q[self._is(0):] = c.slack_weight
         self.solver = osqp.OSQP()
         self.solver.setup(self.P, self.q, self.A, self.l, self.u, verbose=False, warm_starting=True,
-                          polishing=c.osqp_polishing == "on", eps_abs=c.osqp_eps, eps_rel=c.osqp_eps,
+                          polishing=c.osqp_polishing == "enabled", eps_abs=c.osqp_eps, eps_rel=c.osqp_eps,
                           max_iter=c.osqp_max_iter)
 
     def _set_boxes(self) -> None:
