@@ -20,6 +20,7 @@ from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource
 from ..io.trajectory import write_tum
 from ..navigation.localization import Localization
+from ..parallel import prefetch_frames
 from ..types import FrameKind, FrameRecord
 from ..vo.odometry import StereoOdometry
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
@@ -60,6 +61,13 @@ def iterate(items: Iterable, total: int, progress: Callable | None, desc: str):
     return progress(items, total=total, desc=desc) if progress else items
 
 
+def frames_of(source: FrameSource, indices: list[int], config: Config, progress: Callable | None, desc: str):
+    """The selected frames of ``source``, decoded ahead in the background when ``features.threads`` allows,
+    behind the progress bar."""
+    return iterate(prefetch_frames(source.iter_frames(indices), config.features.threads), len(indices),
+                   progress, desc)
+
+
 def run_odometry(source: FrameSource, indices: list[int], config: Config,
                  progress: Callable | None = None) -> tuple[list[FrameRecord], np.ndarray, float]:
     """Odometry over the selected frames; returns per-frame records, final poses in the first
@@ -67,7 +75,7 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
     vo = StereoOdometry(source.camera, config)
     records = []
     t0 = time.perf_counter()
-    for images in iterate(source.iter_frames(indices), len(indices), progress, "odometry"):
+    for images in frames_of(source, indices, config, progress, "odometry"):
         records.append(vo.process(images).record())
     return records, vo.final_poses(), time.perf_counter() - t0
 
@@ -141,7 +149,7 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
-            for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
+            for images in frames_of(source, indices, config, progress, "teach"):
                 results.append(teach.process(images).record())
             n_vertices = teach.finish()
             _, t_taught = m.timestamps(teach.run)
@@ -271,7 +279,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         with open(out / "localization.csv", "w", newline="") as loc_file, \
                 open(out / "landmarks.csv", "w", newline="") as lm_file:
             loc_csv, lm_csv = LocalizationWriter(loc_file), LandmarksWriter(lm_file)
-            for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
+            for images in frames_of(source, indices, config, progress, "repeat"):
                 step = repeat.process(images)
                 t_loc += repeat.last_localization_seconds
                 clog.add(step)
