@@ -7,7 +7,15 @@ from pathlib import Path
 import click
 
 from . import main
-from .common import config_option, format_option, frames_option, load_config, progress_bar, source_argument
+from .common import (
+    config_option,
+    format_option,
+    frames_option,
+    load_config,
+    progress_bar,
+    source_argument,
+    threads_option,
+)
 
 DEMO_CLIP = "kitti06_clip"
 
@@ -32,11 +40,13 @@ def _find_datasets() -> Path:
 @frames_option
 @config_option
 @format_option
-def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None, fmt: str | None) -> None:
+@threads_option
+def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None, fmt: str | None,
+                 threads: int | None) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
     from ..app.pipeline import odometry_command
 
-    summary = odometry_command(source, out, frames, load_config(config_path), fmt, progress_bar())
+    summary = odometry_command(source, out, frames, load_config(config_path, threads), fmt, progress_bar())
     for line in summary.lines():
         click.echo(line)
     click.echo(f"wrote {out}/trajectory_tum.txt, frames.csv, trajectory.png, run.json")

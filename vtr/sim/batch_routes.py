@@ -1,5 +1,6 @@
 """Synthetic aerial routes for batch runs: each route a scene of its own, taught once and repeated with
-lateral offsets, written as KITTI-layout folders with a ``vtr batch`` manifest beside them.
+lateral offsets, written as KITTI-layout folders with a ``vtr batch`` manifest beside them; and a
+simulated crash (``KillWorkerOnce``) for testing that a batch survives a worker dying mid-run.
 
 Rendered folders are kept: a folder whose ``times_ns.txt`` exists is not rendered again (written last
 by the KITTI writer), so a benchmark's data is made once.
@@ -7,6 +8,10 @@ by the KITTI writer), so a benchmark's data is made once.
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -45,3 +50,29 @@ def write_batch_routes(root: str | Path, n_routes: int, offsets_m: Sequence[floa
     manifest = root / "manifest.yaml"
     manifest.write_text(yaml.safe_dump({"routes": routes}, sort_keys=False))
     return manifest
+
+
+KILL_POLL_S = 0.005
+
+
+class KillWorkerOnce:
+    """A batch ``on_start`` hook that kills its own worker process (SIGKILL, as the OOM killer does) once
+    the ``victim`` run has started writing (file ``after`` exists in its folder: a repeat's
+    localization.csv, a teach's route.vtrmap-wal), on the first attempt only: ``marker`` records the
+    attempt, with the run folder's file names at the kill."""
+
+    def __init__(self, marker: str | Path, victim: str, after: str = "localization.csv"):
+        self.marker, self.victim, self.after = Path(marker), victim, after
+
+    def __call__(self, spec, folder: Path) -> None:
+        if spec.name != self.victim or self.marker.exists():
+            return
+        self.marker.write_text("")
+
+        def kill() -> None:
+            while not (folder / self.after).exists():
+                time.sleep(KILL_POLL_S)
+            self.marker.write_text("\n".join(sorted(p.name for p in folder.iterdir())))
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        threading.Thread(target=kill, daemon=True).start()
