@@ -352,6 +352,15 @@ class BatchOptions:
     cluster_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
+def check_inputs(manifest: Manifest) -> None:
+    """Every source and config file of the manifest exists (checked before anything runs)."""
+    for spec in manifest.runs():
+        if not spec.source.exists():
+            raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.source}: no such file or folder")
+        if spec.config is not None and not spec.config.is_file():
+            raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.config}: no such config file")
+
+
 def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None = None,
               progress: Callable[[RunOutcome, int, int], None] | None = None) -> BatchResult:
     """Run every teach and repeat of ``manifest`` into ``out`` on a Dask cluster; see the module doc."""
@@ -361,11 +370,7 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = manifest.runs()
-    for spec in runs:
-        if not spec.source.exists():
-            raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.source}: no such file or folder")
-        if spec.config is not None and not spec.config.is_file():
-            raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.config}: no such config file")
+    check_inputs(manifest)
     t0 = time.perf_counter()
     outcomes: dict[RunSpec, RunOutcome] = {}
     done = 0

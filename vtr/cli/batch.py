@@ -30,9 +30,10 @@ def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | N
     """
     from tqdm import tqdm
 
-    from ..app.batch import BatchOptions, load_manifest, run_batch
+    from ..app.batch import BatchOptions, check_inputs, load_manifest, run_batch
 
     spec = load_manifest(manifest)
+    check_inputs(spec)
     n_runs = len(spec.runs())
     bar = tqdm(total=n_runs, desc="runs", unit="run", dynamic_ncols=True)
 
