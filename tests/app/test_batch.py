@@ -3,6 +3,7 @@ resume after an interruption, a worker killed mid-run retried with results equal
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -35,7 +36,7 @@ def data(tmp_path_factory) -> Path:
 def undisturbed(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
     statuses = []
-    result = run_batch(load_manifest(data), out, BatchOptions(workers=2),
+    result = run_batch(load_manifest(data), out, BatchOptions(workers=2, fit=True),
                        progress=lambda o, done, total: statuses.append((o.name, o.status, done, total)))
     return out, result, statuses
 
@@ -61,6 +62,14 @@ def test_two_workers_run_every_run_and_record_the_failure(undisturbed):
     table = "\n".join(result.table())
     assert "rep_1m" in table and "no images" in table and "1 failed" in table
     assert (out / "summary.csv").read_text().count("\n") == 5
+
+
+def test_fit_over_every_repeat(undisturbed):
+    out, result, _ = undisturbed
+    rows = sum(len((out / "route_0" / r / "landmarks.csv").read_text().splitlines()) - 1 for r in ("rep_0m", "rep_1m"))
+    assert result.fit["files"] == 2 and result.fit["observations"] == rows > 1000
+    assert json.loads((out / "fit" / "model.json").read_text())["fit"]["n"] == rows
+    assert (out / "fit" / "fit.png").stat().st_size > 1000
 
 
 def test_rerun_after_an_interruption_does_only_what_was_left(data, undisturbed, tmp_path):

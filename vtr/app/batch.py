@@ -420,7 +420,7 @@ class _client:
             self.client = Client(self.opts.scheduler)
             return self.client
         kwargs = {"n_workers": self.workers, "threads_per_worker": 1, "processes": True,
-                  "dashboard_address": None, "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
+                  "dashboard_address": ":0", "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
         # a dead worker's task is given to another one this many times before it counts as failed
         with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}):
             self.cluster = LocalCluster(**kwargs)
@@ -475,25 +475,32 @@ def repeat_landmark_files(manifest: Manifest, out: Path, outcomes: list[RunOutco
 
 
 def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> dict[str, Any]:
-    """One perception-model fit (``perception-model fit``'s defaults) over every finished repeat's
-    landmarks.csv: OUT/fit/model.json and fit.png. Returns what to report (or the error)."""
+    """One perception-model fit over every finished repeat's landmarks.csv, streamed (one file in memory at a
+    time; the binned fit of the thesis protocol, sandwich intervals): OUT/fit/model.json and fit.png.
+    Returns what to report, or the error."""
     from perception_model.cli import plot_fit
     from perception_model.errors import PerceptionModelError
-    from perception_model.fit import fit_observations
-    from perception_model.io import read_landmarks_csvs
+    from perception_model.fit import fit_binned_stream
+    from perception_model.io import read_landmarks_csv
 
     files = list(repeat_landmark_files(manifest, out, outcomes))
     folder = out / FIT_FOLDER
     if not files:
         return {"error": "no finished repeat to fit"}
+
+    def chunks():
+        for f in files:
+            obs = read_landmarks_csv(f)
+            yield obs.alpha, obs.theta, obs.inlier
+
     try:
-        obs = read_landmarks_csvs(files)
-        result = fit_observations(obs)
+        result = fit_binned_stream(chunks, source=f"{len(files)} repeats under {out}")
     except PerceptionModelError as err:
         return {"error": str(err), "files": len(files)}
     folder.mkdir(parents=True, exist_ok=True)
-    result.model.save(folder / "model.json", fit=result.to_dict(), data=obs.describe())
+    data = {"files": [str(f) for f in files], "n_observations": result.n, "n_inliers": result.n_inliers}
+    result.model.save(folder / "model.json", fit=result.to_dict(), data=data)
     plot_fit(result, folder / "fit.png")
     return {"model": folder / "model.json", "plot": folder / "fit.png", "files": len(files),
-            "observations": len(obs), "constants": {c.name: c.estimate for c in result.intervals},
+            "observations": result.n, "constants": {c.name: c.estimate for c in result.intervals},
             "r2": result.r2, "log_loss": result.log_loss}
