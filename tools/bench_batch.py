@@ -51,7 +51,9 @@ def timed_batch(manifest, out: Path, workers: int, **kw) -> tuple[float, object]
 def ctrl_c_then_rerun(manifest_path: Path, out: Path, n_runs: int) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     cmd = [sys.executable, "-m", "vtr", "batch", str(manifest_path), "--out", str(out), "--workers", "2"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # SIGINT as a terminal's Ctrl-C; default disposition in the child (a shell's background job ignores SIGINT)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     manifest = load_manifest(manifest_path)
     while proc.poll() is None:
         done = sum(run_status(s.folder(out)) == "finished" for s in manifest.runs())

@@ -38,8 +38,8 @@ class FeatureConfig:
     corner_score: str = "fast"
     # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
     # more the left and right images' features are extracted concurrently and the next frames are decoded in
-    # the background. Results are bit-identical for every value; on KITTI 1226x370 2 threads gave
-    # the measured speed-up quoted in tools/bench_odometry.py's docstring
+    # the background (vtr/parallel.py). Results are bit-identical for every value (tests/vo/test_threads.py);
+    # speed with 1 and 2 threads: tools/bench_odometry.py, tools/bench_repeat.py
     threads: int = 0
 
 
