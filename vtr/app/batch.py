@@ -394,7 +394,7 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
         threads = max(1, available_cores() // workers)
     where = opts.scheduler or f"local cluster of {workers} workers"
     if pending:
-        with _client(opts, workers) as client:
+        with _DaskClient(opts, workers) as client:
             _run_on(client, pending, outcomes, out, threads, opts, report)
     ordered = [outcomes[s] for s in runs]
     result = BatchResult(out, ordered, time.perf_counter() - t0, where)
@@ -405,7 +405,7 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
     return result
 
 
-class _client:
+class _DaskClient:
     """A Dask client on ``scheduler`` or on a new local cluster (closed on exit)."""
 
     def __init__(self, opts: BatchOptions, workers: int):
