@@ -804,8 +804,8 @@ class BinAccumulator:
             theta=self.sum_theta[used] / self.count[used],
             count=self.count[used],
             inliers=self.inliers[used],
-            alpha_edges=np.arange(na + 1) * self.spec.alpha_width,
-            theta_edges=np.arange(nt + 1) * self.spec.theta_width,
+            alpha_edges=np.arange(na + 1, dtype=np.float64) * self.spec.alpha_width,
+            theta_edges=np.arange(nt + 1, dtype=np.float64) * self.spec.theta_width,
             count_grid=self.count.copy(),
             inlier_grid=self.inliers.copy(),
         )
