@@ -38,8 +38,10 @@ class FeatureConfig:
     corner_score: str = "fast"
     # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
     # more the left and right images' features are extracted concurrently and the next frames are decoded in
-    # the background (vtr/parallel.py). Results are bit-identical for every value (tests/vo/test_threads.py);
-    # speed with 1 and 2 threads: tools/bench_odometry.py, tools/bench_repeat.py
+    # the background (vtr/parallel.py). Results are bit-identical for every value (tests/vo/test_threads.py).
+    # KITTI 1226x370 odometry on a shared 2-core machine: 2 threads 1.10-1.52x the frames/s of 1 thread
+    # (tools/bench_odometry.py). OpenCV's own pool (cv2.setNumThreads) is left alone: ORB extraction runs
+    # serially inside OpenCV, and 1 or 2 OpenCV threads measured the same; batch workers set it to this value
     threads: int = 0
 
 
