@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from machine_load import second_core_available  # tools/machine_load.py
+
 from vtr.app.batch import BatchOptions, load_manifest, run_batch
 from vtr.app.runlog import run_status
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
@@ -86,12 +88,16 @@ def main() -> None:
     manifest = load_manifest(manifest_path)
     n = len(manifest.runs())
     report: dict = {"runs": n, "routes": 2, "repeats": n - 2, "length_m": args.length, "spacing_m": args.spacing}
-    wall = {}
+    wall, control = {}, {}
     for workers in (1, 2):
+        control[workers] = second_core_available()
         wall[workers], result = timed_batch(manifest, args.out / f"w{workers}", workers, threads=1)
         assert not result.failed, result.table()
+        busy = sum(o.seconds for o in result.outcomes) / (workers * wall[workers])
         print(f"workers {workers}: {wall[workers]:.1f} s wall for {n} runs "
-              f"({sum(o.frames for o in result.outcomes)} frames)")
+              f"({sum(o.frames for o in result.outcomes)} frames); workers busy {100 * busy:.0f} % of the wall time; "
+              f"second core available before: {control[workers]:.2f}x")
+    report["second_core_available"] = control
     report["wall_s"] = wall
     report["speedup_2_vs_1"] = wall[1] / wall[2]
     print(f"2 workers vs 1: {report['speedup_2_vs_1']:.2f}x")

@@ -24,6 +24,7 @@ from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from machine_load import second_core_available  # noqa: E402  (tools/machine_load.py)
 
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
@@ -93,6 +94,7 @@ def main() -> None:
     cv2.setNumThreads(args.cv_threads)
     sources = args.sources or [ROOT / "datasets" / "kitti06_clip", synthetic_sequence()]
     for path in sources:
+        print(f"second core available (2 threads of a GIL-free OpenCV workload vs 1): {second_core_available():.2f}x")
         runs = bench(path, args.frames, args.repeats, args.threads)
         for threads, r in runs.items():
             split = "  ".join(f"{k} {r[f'{k}_ms']:.1f}" for k in STAGES)
