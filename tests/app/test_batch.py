@@ -134,3 +134,17 @@ def test_manifest_forms_and_errors(tmp_path):
         with pytest.raises(ConfigError, match=msg) as err:
             load_manifest(m)
         assert str(m) in str(err.value)
+
+
+def test_a_running_scheduler_is_used_unchanged(data, undisturbed, tmp_path):
+    from distributed import LocalCluster
+
+    out, _, _ = undisturbed
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        result = run_batch(load_manifest(data), tmp_path / "out",
+                           BatchOptions(scheduler=cluster.scheduler_address, threads=1))
+    assert result.workers == cluster.scheduler_address
+    assert [o.status for o in result.outcomes] == [FINISHED, FINISHED, FINISHED, FAILED]
+    got, want = tmp_path / "out" / "route_0" / "rep_1m", out / "route_0" / "rep_1m"
+    for f in OUTPUTS:
+        assert (got / f).read_bytes() == (want / f).read_bytes(), f
