@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -847,3 +848,125 @@ def simulate_labels(
     """Bernoulli inlier labels drawn from ``model`` at the given angles (radians)."""
     p = model.probability(alpha, theta)
     return rng.random(p.shape) < p
+
+
+# --------------------------------------------------------------------------- streamed binned fit
+Chunks = Callable[[], Iterable[tuple[ArrayLike, ArrayLike, ArrayLike]]]
+
+
+class BinAccumulator:
+    """Observations binned chunk by chunk (e.g. one landmarks.csv at a time): memory grows with the
+    number of (alpha, theta) bins, never with the number of observations. ``binned()`` equals
+    ``bin_observations`` over all chunks together (up to summation order)."""
+
+    def __init__(self, spec: BinSpec | None = None):
+        self.spec = spec or BinSpec()
+        self.count = np.zeros((1, 1), np.int64)
+        self.inliers = np.zeros((1, 1), np.int64)
+        self.sum_alpha = np.zeros((1, 1))
+        self.sum_theta = np.zeros((1, 1))
+        self.n = 0
+        self.alpha_max = 0.0
+        self.theta_max = 0.0
+
+    def add(self, alpha: ArrayLike, theta: ArrayLike, inlier: ArrayLike, source: str = "<data>") -> None:
+        a, t, y = _check_data(alpha, theta, inlier, source, need_both=False)
+        ia = (a / self.spec.alpha_width).astype(np.int64)
+        it = (t / self.spec.theta_width).astype(np.int64)
+        shape = (max(self.count.shape[0], int(ia.max()) + 1), max(self.count.shape[1], int(it.max()) + 1))
+        if shape != self.count.shape:
+            for name in ("count", "inliers", "sum_alpha", "sum_theta"):
+                old = getattr(self, name)
+                grown = np.zeros(shape, old.dtype)
+                grown[: old.shape[0], : old.shape[1]] = old
+                setattr(self, name, grown)
+        flat = ia * shape[1] + it
+        size = shape[0] * shape[1]
+        self.count += np.bincount(flat, minlength=size).reshape(shape)
+        self.inliers += np.bincount(flat, weights=y, minlength=size).round().astype(np.int64).reshape(shape)
+        self.sum_alpha += np.bincount(flat, weights=a, minlength=size).reshape(shape)
+        self.sum_theta += np.bincount(flat, weights=t, minlength=size).reshape(shape)
+        self.n += int(a.size)
+        self.alpha_max = max(self.alpha_max, float(a.max()))
+        self.theta_max = max(self.theta_max, float(t.max()))
+
+    def binned(self) -> BinnedFrequencies:
+        used = self.count >= self.spec.min_count
+        na, nt = self.count.shape
+        return BinnedFrequencies(
+            alpha=self.sum_alpha[used] / self.count[used],
+            theta=self.sum_theta[used] / self.count[used],
+            count=self.count[used],
+            inliers=self.inliers[used],
+            alpha_edges=np.arange(na + 1, dtype=np.float64) * self.spec.alpha_width,
+            theta_edges=np.arange(nt + 1, dtype=np.float64) * self.spec.theta_width,
+            count_grid=self.count.copy(),
+            inlier_grid=self.inliers.copy(),
+        )
+
+
+def fit_binned_stream(
+    chunks: Chunks,
+    *,
+    angle_unit: str = "deg",
+    bins: BinSpec | None = None,
+    confidence: float = DEFAULT_CONFIDENCE,
+    initial: ArrayLike | None = None,
+    source: str = "<data>",
+) -> FitResult:
+    """``fit_binned`` (sandwich intervals) over observations that need not fit in memory together.
+
+    ``chunks()`` returns a fresh iterable of ``(alpha, theta, inlier)`` arrays (radians), e.g. one per
+    landmarks.csv; it is iterated twice: once to bin, once for the per-observation log-loss. The
+    constants equal ``fit_binned`` on all chunks concatenated (up to summation order).
+    """
+    if angle_unit not in UNIT_SCALE:
+        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    acc = BinAccumulator(bins)
+    for a, t, y in chunks():
+        acc.add(a, t, y, source)
+    if acc.n == 0:
+        raise FitError(f"{source}: no observations")
+    n_inliers = int(acc.inliers.sum())
+    if n_inliers in (0, acc.n):
+        raise FitError(f"{source}: all {acc.n} observations have the same inlier label; nothing to fit")
+    binned = acc.binned()
+    spec = acc.spec
+    if binned.count.size < MIN_FIT_BINS:
+        raise FitError(
+            f"{source}: only {binned.count.size} (alpha, theta) bins hold >= {spec.min_count} "
+            f"observations; need {MIN_FIT_BINS} (collect more data or widen the bins)"
+        )
+    k = UNIT_SCALE[angle_unit]
+    x0 = initial_constants(angle_unit) if initial is None else np.asarray(initial, dtype=np.float64)
+    res = _lsq_binned(binned, k, x0)
+    c = res.x
+    p_bins, jac = _prob_and_jac(c, binned.alpha * k, binned.theta * k, 0.0, 1.0)
+    n_b = binned.count.astype(np.float64)
+    e_b = binned.frequency - p_bins
+    bread = _safe_inverse(jac.T @ (n_b[:, None] * jac), "the least-squares normal matrix")
+    cov = bread @ ((jac * ((n_b * e_b) ** 2)[:, None]).T @ jac) @ bread
+    model = _make_model(c, angle_unit, np.array([acc.alpha_max]), np.array([acc.theta_max]), source,
+                        bool(res.success), str(res.message))
+    loss = 0.0
+    for a, t, y in chunks():
+        yf = np.asarray(y, dtype=np.float64).reshape(-1)
+        loss += log_loss(model.probability(np.asarray(a, np.float64), np.asarray(t, np.float64)), yf) * yf.size
+    return FitResult(
+        model=model,
+        method="binned",
+        n=acc.n,
+        n_inliers=n_inliers,
+        intervals=_intervals(c, cov, confidence),
+        covariance=cov,
+        confidence=confidence,
+        ci_method="sandwich",
+        r2=weighted_r2(binned.frequency, p_bins, n_b),
+        log_loss=loss / acc.n,
+        n_bins=int(binned.count.size),
+        binned=binned,
+        converged=bool(res.success),
+        message=str(res.message),
+        extra={"bins": {"alpha_width": spec.alpha_width * k, "theta_width": spec.theta_width * k,
+                        "min_count": spec.min_count, "unit": angle_unit}, "streamed": True},
+    )

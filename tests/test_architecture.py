@@ -3,8 +3,8 @@
 Layer order (the single written statement of it, repeated in the README's Architecture section): a module
 may import from its own subpackage or from a layer to its left, never to its right.
 
-    bottom modules (errors, conventions, config, geometry, camera, timing, types, and the ``vtr`` package
-    itself) < io < vo < map < state < navigation < sim < control < app < cli
+    bottom modules (errors, conventions, config, geometry, camera, timing, types, parallel, and the
+    ``vtr`` package itself) < io < vo < map < state < navigation < sim < control < app < cli
 
 Every import is checked, including those inside functions and under ``TYPE_CHECKING`` (read with ``ast``
 from the source, nothing is imported). ``perception_model`` is a separate package and imports nothing
@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("bottom", "io", "vo", "map", "state", "navigation", "sim", "control", "app", "cli")
 RANK = {name: i for i, name in enumerate(LAYERS)}
 BOTTOM_MODULES = {"vtr", "vtr.errors", "vtr.conventions", "vtr.config", "vtr.geometry", "vtr.camera", "vtr.timing",
-                  "vtr.types"}
+                  "vtr.types", "vtr.parallel"}
 ENTRY_POINTS = {"vtr.__main__": "cli"}   # ``python -m vtr`` runs the command line
 
 

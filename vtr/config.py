@@ -112,6 +112,13 @@ class FeatureConfig:
     # (OpenCV ORB's default). On the KITTI clip Harris ranking gave t_err 1.05-1.8 % over five parameter
     # variants against 0.67-0.90 % for the FAST score, which is also ~2 ms cheaper per image
     corner_score: str = setting("fast", Choice("fast", "harris"))
+    # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
+    # more the left and right images' features are extracted concurrently and the next frames are decoded in
+    # the background (vtr/parallel.py). Results are bit-identical for every value (tests/vo/test_threads.py).
+    # KITTI 1226x370 odometry on a shared 2-core machine: 2 threads 1.10-1.52x the frames/s of 1 thread
+    # (tools/bench_odometry.py). OpenCV's own pool (cv2.setNumThreads) is left alone: ORB extraction runs
+    # serially inside OpenCV, and 1 or 2 OpenCV threads measured the same; batch workers set it to this value
+    threads: int = setting(0, Range(0, 1024, integer=True))
 
 
 @dataclass

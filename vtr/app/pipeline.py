@@ -21,8 +21,9 @@ from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource, SourceOptions
 from ..io.trajectory import write_tum
 from ..navigation.localization import Localization
-from ..types import FrameKind, FrameRecord
+from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
+from ..vo.stereo import StereoProcessor
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
 from .runlog import RunLog
 
@@ -64,6 +65,14 @@ def iterate(items: Iterable, total: int, progress: Callable | None, desc: str):
     return progress(items, total=total, desc=desc) if progress else items
 
 
+def frames_of(source: FrameSource, indices: list[int], processor: StereoProcessor, progress: Callable | None,
+              desc: str) -> Iterable[StereoFrame]:
+    """The selected frames of ``source`` as stereo frames, behind the progress bar; with ``features.threads``
+    of 2 or more the next ones are decoded and stereo-processed in the background
+    (:meth:`StereoProcessor.frames`)."""
+    return iterate(processor.frames(source.iter_frames(indices)), len(indices), progress, desc)
+
+
 def run_odometry(source: FrameSource, indices: list[int], config: Config,
                  progress: Callable | None = None) -> tuple[list[FrameRecord], np.ndarray, float]:
     """Odometry over the selected frames; returns per-frame records, final poses in the first
@@ -71,8 +80,8 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
     vo = StereoOdometry(source.camera, config)
     records = []
     t0 = time.perf_counter()
-    for images in iterate(source.iter_frames(indices), len(indices), progress, "odometry"):
-        records.append(vo.process(images).record())
+    for frame in frames_of(source, indices, vo.stereo, progress, "odometry"):
+        records.append(vo.process_frame(frame).record())
     return records, vo.final_poses(), time.perf_counter() - t0
 
 
@@ -151,8 +160,8 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         with Map.create(map_path, source.camera, config.map) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
             try:
-                for images in iterate(source.iter_frames(indices), len(indices), progress, "teach"):
-                    results.append(teach.process(images).record())
+                for frame in frames_of(source, indices, teach.odometry.stereo, progress, "teach"):
+                    results.append(teach.process_frame(frame).record())
                 n_vertices = teach.finish()
             except BaseException as err:  # error, Ctrl-C, SIGTERM, full disk: keep the window, say why
                 teach.abort(err)          # (a map left without any vertex is removed when it closes)
@@ -278,8 +287,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         with open(out / "localization.csv", "w", newline="") as loc_file, \
                 LandmarksWriter(out / "landmarks.csv") as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
-            for images in iterate(source.iter_frames(indices), len(indices), progress, "repeat"):
-                step = repeat.process(images)
+            for frame in frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"):
+                step = repeat.process_frame(frame)
                 t_loc += repeat.last_localization_seconds
                 clog.add(step)
                 t_ns.append(step.odometry.t_ns)

@@ -13,6 +13,8 @@ from typing import Any
 
 from ..config import Config
 
+STATUS_FINISHED = "finished"   # every output written; run.json is written last, so its presence means this
+STATUS_FAILED = "failed"       # the run stopped on an error (``error`` holds it); its outputs are incomplete
 KEY_PACKAGES = ("vtr", "numpy", "scipy", "opencv-python-headless", "gtsam", "open3d", "rosbags")
 
 
@@ -51,11 +53,14 @@ class RunLog:
     inputs: list[Path]
     start: float = field(default_factory=time.time)
 
-    def write(self, summary: dict[str, Any]) -> None:
+    def write(self, summary: dict[str, Any], status: str = STATUS_FINISHED, error: str | None = None) -> None:
+        """Write ``run.json`` (atomically: a temporary file renamed) and ``config.yaml``. Commands call it
+        after every other output, so a run killed before the end has no run.json."""
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "config.yaml").write_text(self.config.to_yaml())
         doc = {
             "command": self.command,
+            "status": status,
             "argv": sys.argv,
             "python": platform.python_version(),
             "versions": package_versions(),
@@ -65,9 +70,29 @@ class RunLog:
             "end": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "summary": summary,
         }
+        if error is not None:
+            doc["error"] = error
         tmp = self.out / "run.json.tmp"
         tmp.write_text(json.dumps(doc, indent=2, default=_jsonable))
         tmp.replace(self.out / "run.json")
+
+
+def read_run(out: Path) -> dict[str, Any] | None:
+    """The ``run.json`` in folder ``out``, or None when there is none (or it is unreadable: an interrupted write)."""
+    try:
+        doc = json.loads((Path(out) / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def run_status(out: Path) -> str | None:
+    """``finished`` / ``failed`` from ``out/run.json``; None when the folder holds no complete run.json.
+    (run.json files written before the status field existed are finished ones.)"""
+    doc = read_run(out)
+    if doc is None:
+        return None
+    return str(doc.get("status", STATUS_FINISHED))
 
 
 def _jsonable(o: Any) -> Any:

@@ -40,8 +40,12 @@ def sigterm_as_exception() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def load_config(path: Path | None) -> Config:
-    return Config.load(path) if path else Config()
+def load_config(path: Path | None, threads: int | None = None) -> Config:
+    """The configuration of ``--config`` (defaults without it), with ``--threads`` applied when given."""
+    config = Config.load(path) if path else Config()
+    if threads is not None:
+        config.features.threads = threads
+    return config
 
 
 def progress_bar():
@@ -143,3 +147,8 @@ def source_options(command: Callable[..., Any]) -> Callable[..., Any]:
     for option in reversed(_SOURCE_OPTIONS):
         wrapper = option(wrapper)
     return wrapper
+
+
+threads_option = click.option("--threads", type=click.IntRange(min=0), default=None,
+                              help="Threads for the per-frame work (features.threads; 0 = every core, the default). "
+                                   "Results are identical for every value.")

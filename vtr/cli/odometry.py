@@ -18,6 +18,7 @@ from .common import (
     progress_bar,
     source_argument,
     source_options,
+    threads_option,
 )
 
 DEMO_CLIP = "kitti06_clip"
@@ -43,13 +44,14 @@ def _find_datasets() -> Path:
 @frames_option
 @config_option
 @source_options
+@threads_option
 def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None,
-                 source_options: SourceOptions) -> None:
+                 source_options: SourceOptions, threads: int | None) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
     from ..app.pipeline import odometry_command
 
     check_out_dir(out)
-    config = load_config(config_path)
+    config = load_config(config_path, threads)
     summary = odometry_command(source, out, frames, config, source_options, progress_bar())
     for line in summary.lines():
         click.echo(line)

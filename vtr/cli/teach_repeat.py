@@ -17,6 +17,7 @@ from .common import (
     progress_bar,
     source_argument,
     source_options,
+    threads_option,
 )
 
 map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), required=True,
@@ -31,8 +32,9 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
               help="Also write trajectory_tum.txt, frames.csv and run.json here.")
 @config_option
 @source_options
+@threads_option
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, config_path: Path | None,
-              source_options: SourceOptions) -> None:
+              source_options: SourceOptions, threads: int | None) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
 
     The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
@@ -42,7 +44,7 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
     note_outputs(map_path)
     if out is not None:
         check_out_dir(out)
-    config = load_config(config_path)
+    config = load_config(config_path, threads)
     summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar())
     for line in summary.lines():
         click.echo(line)
@@ -60,8 +62,10 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
               help="Repeat even when the teach run is not finished (aborted or interrupted: route may be cut short).")
 @config_option
 @source_options
+@threads_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
-               allow_partial: bool, config_path: Path | None, source_options: SourceOptions) -> None:
+               allow_partial: bool, config_path: Path | None, source_options: SourceOptions,
+               threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     Refuses a map whose teach run did not finish unless --allow-partial."""
@@ -69,7 +73,7 @@ def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate
 
     note_outputs(map_path)
     check_out_dir(out)
-    config = load_config(config_path)
+    config = load_config(config_path, threads)
     summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                              rate_hz=rate_hz, allow_partial=allow_partial)
     for line in summary.lines():

@@ -299,15 +299,30 @@ class Localizer:
 
     def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate matches (submap landmarks, leaf features). The trunk's landmarks are matched first and the
+        neighbours' only to the leaf features left over, so the trunk's matches (those ``landmarks.csv``
+        records for the perception model) are the ones a localization against the trunk alone would find."""
+        trunk = np.flatnonzero(submap.slot == submap.trunk_slot)
+        others = np.flatnonzero(submap.slot != submap.trunk_slot)
+        li, lj = self._match_subset(leaf, submap, trunk, T_prior, radius)
+        if len(others):
+            lo, jo = self._match_subset(leaf, submap, others, T_prior, radius)
+            fresh = ~np.isin(jo, lj)
+            li, lj = np.r_[li, lo[fresh]], np.r_[lj, jo[fresh]]
+        return li, lj
+
+    def _match_subset(self, leaf: StereoFrame, submap: TaughtSubmap, subset: np.ndarray, T_prior: np.ndarray | None,
+                      radius: float) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
         if T_prior is not None:
-            li, lj = match_landmarks(submap.points_trunk, submap.descriptors, leaf, T_prior, self.camera, radius,
-                                     c.max_descriptor_distance, self.odometry.ratio_test)
+            li, lj = match_landmarks(submap.points_trunk[subset], submap.descriptors[subset], leaf, T_prior,
+                                     self.camera, radius, c.max_descriptor_distance, self.odometry.ratio_test)
             if len(li) >= c.min_matches:
-                return li, lj
+                return subset[li], lj
         # unguided: every taught landmark against every leaf feature, ratio test
-        return match_all(submap.descriptors, leaf.features.descriptors, c.max_descriptor_distance,
-                         ratio=self.odometry.ratio_test)
+        li, lj = match_all(submap.descriptors[subset], leaf.features.descriptors, c.max_descriptor_distance,
+                           ratio=self.odometry.ratio_test)
+        return subset[li], lj
 
 
 def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,

@@ -57,8 +57,12 @@ class Repeat:
         self._frames: dict[int, StereoFrame] = {}   # taught frames of the latest submap (kept while it slides)
 
     def process(self, images: StereoImages) -> RepeatStep:
+        """Stereo-process a rectified pair, then :meth:`process_frame`."""
+        return self.process_frame(self.odometry.stereo.process(images))
+
+    def process_frame(self, frame: StereoFrame) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
-        result = self.odometry.process(images)
+        result = self.odometry.process_frame(frame)
         loc = None
         vid = self._leaf if self._leaf is not None else -1
         if result.new_keyframe is not None:

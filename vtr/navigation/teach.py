@@ -13,7 +13,7 @@ from ..config import Config
 from ..errors import MapError
 from ..map import Map
 from ..map.store import abort_reason
-from ..types import Keyframe, OdometryResult, StereoImages
+from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 
 
@@ -29,7 +29,12 @@ class Teach:
         self.vertices = 0
 
     def process(self, images: StereoImages) -> OdometryResult:
-        result = self.odometry.process(images)
+        """Stereo-process a rectified pair, then :meth:`process_frame`."""
+        return self.process_frame(self.odometry.stereo.process(images))
+
+    def process_frame(self, frame: StereoFrame) -> OdometryResult:
+        """Odometry on one stereo frame; keyframes leaving the odometry window are written to the map."""
+        result = self.odometry.process_frame(frame)
         for kf in result.finalized:
             self._write(kf)
         return result

@@ -46,6 +46,18 @@ class _WindowKeyframe:
     edge_inliers: int
 
 
+@dataclass(frozen=True)
+class _Track:
+    """A frame tracked against the local map: its ``T_cam_world`` with 6x6 covariance, the inlier landmark
+    ids with the frame's features that observe them, and the number of candidate matches."""
+
+    T_cam_world: np.ndarray
+    covariance: np.ndarray
+    landmarks: np.ndarray
+    features: np.ndarray
+    matches: int
+
+
 class LocalMap:
     """The last keyframes and the landmarks they observe, positions in the world (first camera) frame."""
 
@@ -122,12 +134,12 @@ class StereoOdometry:
         est = self._track(frame, T_pred, radius)
         if est is None and radius < cfg.match_radius_no_prior_px:
             est = self._track(frame, T_pred, cfg.match_radius_no_prior_px)
-        if est is not None and not self._plausible(est[0], dt):
+        if est is not None and not self._plausible(est.T_cam_world, dt):
             est = None
         if est is None:
             return self._fail(frame, T_pred, ref)
-        T_cw, cov, lm_ids, feat_idx, n_matches = est
-        n_inliers = len(lm_ids)
+        T_cw, cov, n_matches = est.T_cam_world, est.covariance, est.matches
+        n_inliers = len(est.landmarks)
         T_step = T_cw @ inv_T(self._T_cw_last)
         if dt > 0:
             self._velocity = log_se3(T_step) / dt
@@ -139,7 +151,7 @@ class StereoOdometry:
         new_kf, finalized = None, ()
         if trans > cfg.keyframe_translation_m or rot > cfg.keyframe_rotation_deg \
                 or n_inliers < cfg.keyframe_min_inliers:
-            new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, lm_ids, feat_idx)
+            new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, est.landmarks, est.features)
             kind = FrameKind.CREATE_VERTEX
             T_world_frame = self._keyframe_poses[new_kf.id]
             T_kf_frame = ref.T_cam_world @ T_world_frame   # ref may have just left the window
@@ -327,11 +339,8 @@ class StereoOdometry:
         return OdometryResult(frame.t_ns, frame.index, FrameKind.FAILURE, 0, 0, ref.id, T_kf_frame,
                               res.T_world_frame, unknown, res.new_keyframe, finalized)
 
-    def _track(self, frame: StereoFrame, T_pred: np.ndarray, radius: float):
-        """Match to the local map, RANSAC, refine ``T_cam_world``; None when too few inliers.
-
-        Returns (T_cam_world, 6x6 covariance, inlier landmark ids, their feature indices, matches).
-        """
+    def _track(self, frame: StereoFrame, T_pred: np.ndarray, radius: float) -> _Track | None:
+        """Match to the local map, RANSAC, refine ``T_cam_world``; None when too few inliers."""
         cfg: OdometryConfig = self.config.odometry
         with self.timer("matching"):
             active = self.map.active()
@@ -343,7 +352,7 @@ class StereoOdometry:
         with self.timer("estimation"):
             return self._estimate(frame, lm, feat)
 
-    def _estimate(self, frame: StereoFrame, lm: np.ndarray, feat: np.ndarray):
+    def _estimate(self, frame: StereoFrame, lm: np.ndarray, feat: np.ndarray) -> _Track | None:
         """RANSAC then pose refinement on the matched landmarks (see ``_track``)."""
         cfg = self.config.odometry
         rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
@@ -356,7 +365,7 @@ class StereoOdometry:
         res, ok = self._refine_pose(rs.T_q_r, lm_in, frame.stereo_measurements[feat_in])
         if ok.sum() < cfg.min_inliers:
             return None
-        return res.T_cam_world[-1], res.pose_covariance[-1], lm_in[ok], feat_in[ok], len(lm)
+        return _Track(res.T_cam_world[-1], res.pose_covariance[-1], lm_in[ok], feat_in[ok], len(lm))
 
     def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
         """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.

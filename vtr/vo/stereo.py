@@ -4,11 +4,16 @@ disparity, triangulation into 3-D landmarks (left rectified camera frame) with c
 
 from __future__ import annotations
 
+import weakref
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FeatureConfig, StereoConfig, check_section
 from ..errors import DataError
+from ..parallel import PREFETCH_FRAMES, prefetch, resolve_threads
 from ..timing import StageTimer
 from ..types import Features, StereoFrame, StereoImages
 from .features import FeatureExtractor, descriptor_words
@@ -56,7 +61,12 @@ def check_stereo_images(images: StereoImages, camera: StereoCamera) -> None:
 
 
 class StereoProcessor:
-    """Turns a rectified stereo pair into a ``StereoFrame``."""
+    """Turns a rectified stereo pair into a ``StereoFrame``.
+
+    With ``features.threads`` resolving to 2 or more, the right image's features are extracted on a
+    thread of the processor's own while the left image's are extracted on the caller's (OpenCV
+    releases the GIL); each side has its own extractor, so results equal the one-thread run bit for bit.
+    """
 
     def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
                  timer: StageTimer | None = None):
@@ -67,6 +77,21 @@ class StereoProcessor:
         self.cfg = stereo
         self.extractor = FeatureExtractor(features, camera.size)
         self.scales = self.extractor.level_scales
+        self.threads = resolve_threads(features.threads)
+        self._right_extractor = self.extractor
+        self._pool: ThreadPoolExecutor | None = None
+        if self.threads > 1:
+            self._right_extractor = FeatureExtractor(features, camera.size)
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-features")
+            weakref.finalize(self, self._pool.shutdown, wait=False)
+
+    def frames(self, images: Iterable[StereoImages]) -> Iterator[StereoFrame]:
+        """``images`` as stereo frames, in order. With 2 or more threads the next frames are decoded and
+        stereo-processed on a background thread while the caller works on this one (odometry, localization):
+        frame ``k + 1``'s features overlap frame ``k``'s tracking. Each frame is processed exactly as
+        :meth:`process` would, so results equal the one-thread run bit for bit; an error is raised at the
+        frame it belongs to."""
+        return prefetch(map(self.process, images), PREFETCH_FRAMES if self.threads > 1 else 0)
 
     def match(self, left: Features, right: Features) -> tuple[np.ndarray, np.ndarray]:
         """Left/right matches on epipolar rows: (left indices, right indices)."""
@@ -82,8 +107,13 @@ class StereoProcessor:
         """Features on both images, stereo matches, subpixel disparity, triangulation."""
         check_stereo_images(images, self.camera)
         with self.timer("features"):
-            left = self.extractor.extract(images.left)
-            right = self.extractor.extract(images.right)
+            if self._pool is None:
+                left = self.extractor.extract(images.left)
+                right = self.extractor.extract(images.right)
+            else:
+                pending = self._pool.submit(self._right_extractor.extract, images.right)
+                left = self.extractor.extract(images.left)
+                right = pending.result()
         with self.timer("stereo"):
             return self._triangulate(images, left, right)
 

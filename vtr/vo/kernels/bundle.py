@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def residuals(R, t, X, obs_pose, obs_point, z, measured, info_rows, k_huber, fx, fy, cx, cy, fb):
     """Camera-frame points Y (M, 3), residuals e (M, 3; 0 on unmeasured rows), Huber weights w (M,),
     the robust cost and the smallest depth of any observation."""
@@ -40,7 +40,7 @@ def residuals(R, t, X, obs_pose, obs_point, z, measured, info_rows, k_huber, fx,
     return Y, e, w, cost, min_depth
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, pose_free, fix_points, fx, fy, fb):
     """Gauss-Newton blocks: pose system H (6K, 6K) and b (6K,), landmark blocks Hll (L, 3, 3) and
     bl (L, 3), and the pose-landmark coupling W (M, 6, 3) of each observation (J_pose^T J_point).
@@ -105,7 +105,7 @@ def normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, n_points, pose_
     return H, b, Hll, bl, W
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _inv3(A):
     a, b_, c = A[0, 0], A[0, 1], A[0, 2]
     d, e, f = A[1, 1], A[1, 2], A[2, 2]
@@ -119,7 +119,7 @@ def _inv3(A):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, pose_free, damping):
     """Reduced camera system S = H - sum_l W_l Hll_l^-1 W_l^T, g = b - sum_l W_l Hll_l^-1 bl_l, with
     ``damping`` (LM lambda) on the landmark blocks too; returns S, g and the damped Hll^-1 (L, 3, 3).
@@ -160,7 +160,7 @@ def schur(H, b, Hll, bl, W, obs_pose, point_start, point_obs, pose_free, damping
     return S, g, Hinv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def back_substitute(X, Hinv, bl, W, obs_pose, point_start, point_obs, dp):
     """Landmark update X + Hll^-1 (bl - sum_obs W^T dp_pose) for a pose step dp (6K,)."""
     X_new = X.copy()

@@ -19,7 +19,7 @@ _M4 = np.uint64(0x0F0F0F0F0F0F0F0F)
 _H01 = np.uint64(0x0101010101010101)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _popcount(x):
     x = x - ((x >> np.uint64(1)) & _M1)
     x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
@@ -27,7 +27,7 @@ def _popcount(x):
     return int((x * _H01) >> np.uint64(56))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def hamming(a, i, b, j):
     """Hamming distance between descriptor a[i] and b[j] (uint64 words)."""
     d = 0
@@ -36,20 +36,20 @@ def hamming(a, i, b, j):
     return d
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _no_matches(n):
     """Per-query best train index (NO_MATCH), its descriptor distance and image gap, for n queries."""
     return np.full(n, NO_MATCH, np.int64), np.zeros(n, np.int64), np.zeros(n)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pack(best_j, best_d, keep):
     """(query indices, train indices, distances) of the queries marked in ``keep``."""
     q = np.nonzero(keep)[0].astype(np.int64)
     return q, best_j[q], best_d[q]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _finish(best_j, best_d, best_gap, n_train, mutual):
     """Each query's best match; with ``mutual`` only if it is also the closest query of its train feature."""
     matched = best_j != NO_MATCH
@@ -67,7 +67,7 @@ def _finish(best_j, best_d, best_gap, n_train, mutual):
     return _pack(best_j, best_d, matched)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _consider(d, gap, j, best, second, best_j, best_gap):
     """Update (best, second, best_j, best_gap) with candidate j at descriptor distance d and image
     distance ``gap``; equal descriptors prefer the smaller gap, then the lower index."""
@@ -78,7 +78,7 @@ def _consider(d, gap, j, best, second, best_j, best_gap):
     return best, second, best_j, best_gap
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutual):
     """Match queries predicted at ``pred_uv`` (N, 2) to features at ``uv`` (M, 2) within ``radius`` px.
 
@@ -122,7 +122,7 @@ def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutua
     return _finish(best_j, best_d, best_gap, n_t, mutual)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_disparity, max_disparity,
                    max_octave_gap, max_distance):
     """Stereo matches on epipolar rows: right features within ``row_tol[oct_l]`` rows of the left
@@ -152,7 +152,7 @@ def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_dispar
     return _finish(best_j, best_d, best_gap, n_r, True)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def all_pairs_match(q_desc, t_desc, max_distance, ratio, mutual):
     """Match every query against every train descriptor (no geometric gate)."""
     n_q, n_t = len(q_desc), len(t_desc)

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def refine_rows(left, right, ul, vl, ur, half, search):
     """Subpixel right columns by mean-removed SSD block matching along row ``vl`` around ``ur``.
 

@@ -1,0 +1,65 @@
+"""``vtr batch``: every teach and repeat of a manifest on a Dask cluster (local by default), resumable."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from . import main
+
+
+@main.command("batch")
+@click.argument("manifest", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Output folder: OUT/<route>/teach/, OUT/<route>/<repeat>/, summary.csv.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes of the local cluster (default: every core).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on a running Dask scheduler (e.g. tcp://10.0.0.5:8786) instead of a local cluster.")
+@click.option("--threads", type=click.IntRange(min=0), default=None,
+              help="Threads per run (features.threads; 0 = every core). Default: cores / workers on a local "
+                   "cluster, the run's config on a scheduler.")
+@click.option("--fit", is_flag=True, help="Then fit the perception model to every repeat's landmarks (OUT/fit/).")
+def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | None, threads: int | None,
+              fit: bool) -> None:
+    """Run every teach and repeat listed in MANIFEST (YAML) as tasks on a Dask cluster.
+
+    A rerun skips runs already finished; a failing run is recorded (its run.json) and the rest go on.
+    """
+    from tqdm import tqdm
+
+    from ..app.batch import BatchOptions, check_inputs, load_manifest, run_batch
+
+    spec = load_manifest(manifest)
+    check_inputs(spec)
+    n_runs = len(spec.runs())
+    bar = tqdm(total=n_runs, desc="runs", unit="run", dynamic_ncols=True)
+
+    def progress(outcome, done: int, total: int) -> None:
+        bar.set_postfix_str(f"{outcome.route}/{outcome.name} {outcome.status}")
+        bar.update(1)
+
+    options = BatchOptions(workers=workers, scheduler=scheduler, threads=threads, fit=fit)
+    try:
+        result = run_batch(spec, out, options, progress)
+    except KeyboardInterrupt:
+        bar.close()
+        click.echo(f"interrupted: finished runs are kept in {out}; run the same command again to do the rest",
+                   err=True)
+        sys.exit(130)
+    bar.close()
+    for line in result.table():
+        click.echo(line)
+    click.echo(f"wrote {result.summary_csv}")
+    if result.fit is not None:
+        if "error" in result.fit:
+            click.echo(f"fit: not done ({result.fit['error']})")
+        else:
+            f = result.fit
+            consts = "  ".join(f"{k} {v:+.4g}" for k, v in f["constants"].items())
+            click.echo(f"fit over {f['files']} repeats, {f['observations']} observations: {consts}  "
+                       f"R^2 {f['r2']:.3f}; wrote {f['model']}, {f['plot']}")
+    if result.failed:
+        sys.exit(1)

@@ -1,0 +1,96 @@
+"""Threads inside one run: how many to use, and decoding the next frames in the background.
+
+``threads`` (``features.threads`` in the configuration, ``--threads`` on the command line) is the
+number of threads a run's per-frame work may use; 0 means every core this process may run on.
+Everything done in threads here gives results bit-identical to the single-threaded run: the
+threads only overlap independent work (left and right images, the next frame's decoding).
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from typing import TypeVar
+
+from .errors import ConfigError
+
+T = TypeVar("T")
+
+MAX_THREADS = 1024          # upper bound of the ``threads`` setting (0 = every available core)
+PREFETCH_FRAMES = 2         # frames decoded ahead when threads > 1 (two pairs: a few MB at most)
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, not the machine's total)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:      # no affinity call on this platform
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_threads(threads: int, where: str = "features.threads") -> int:
+    """The thread count meant by a ``threads`` setting: 0 = every available core, else itself."""
+    if not 0 <= threads <= MAX_THREADS:
+        raise ConfigError(f"{where}={threads}: must be in 0..{MAX_THREADS} (0 = every core)")
+    return available_cores() if threads == 0 else threads
+
+
+def prefetch_frames(frames: Iterable[T], threads: int) -> Iterator[T]:
+    """``frames`` decoded ahead in the background when ``threads`` (a setting) resolves to 2 or more."""
+    return prefetch(frames, PREFETCH_FRAMES if resolve_threads(threads) > 1 else 0)
+
+
+class _End:
+    """Marks the end of a prefetched stream (or carries the producer's exception)."""
+
+    def __init__(self, error: BaseException | None = None):
+        self.error = error
+
+
+def prefetch(items: Iterable[T], depth: int) -> Iterator[T]:
+    """Iterate ``items`` produced by a background thread that runs up to ``depth`` items ahead.
+
+    With ``depth <= 0`` it is ``iter(items)`` unchanged. Items come out in the same order; an
+    exception raised while producing is raised here, at the item where it happened. Closing the
+    returned generator early (``break``, an error in the consumer) stops the producer.
+    """
+    if depth <= 0:
+        yield from items
+        return
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put(item):
+                    return
+        except BaseException as err:  # noqa: BLE001 - handed to the consumer, raised there
+            put(_End(err))
+            return
+        put(_End())
+
+    worker = threading.Thread(target=produce, name="vtr-prefetch", daemon=True)
+    worker.start()
+    try:
+        while True:
+            item = q.get()
+            if isinstance(item, _End):
+                if item.error is not None:
+                    raise item.error
+                return
+            yield item
+    finally:
+        stop.set()
+        worker.join()

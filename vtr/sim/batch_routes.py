@@ -1,0 +1,78 @@
+"""Synthetic aerial routes for batch runs: each route a scene of its own, taught once and repeated with
+lateral offsets, written as KITTI-layout folders with a ``vtr batch`` manifest beside them; and a
+simulated crash (``KillWorkerOnce``) for testing that a batch survives a worker dying mid-run.
+
+Rendered folders are kept: a folder whose ``times_ns.txt`` exists is not rendered again (written last
+by the KITTI writer), so a benchmark's data is made once.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import yaml
+
+from . import synthetic as syn
+
+SPEED_MPS = 4.0           # flight speed: frame times follow from the 1 m frame spacing
+RAMP_M = 4.0              # a repeat drifts to its lateral offset over this distance
+REPEAT_PHASE_M = 0.5      # repeat frames fall between the taught ones
+
+
+def _sequence(folder: Path, scene, T, noise_seed: int) -> Path:
+    if not (folder / "times_ns.txt").is_file():
+        syn.write_sequence(folder, scene, syn.zed_camera(), T, syn.route_times(T, SPEED_MPS), noise_seed=noise_seed)
+    return folder
+
+
+def write_batch_routes(root: str | Path, n_routes: int, offsets_m: Sequence[float], length_m: float,
+                       spacing_m: float = 1.0) -> Path:
+    """``n_routes`` routes under ``root`` (``route_<k>/teach``, ``route_<k>/rep_<offset>``: one repeat per
+    lateral offset) and ``root/manifest.yaml`` listing them. Returns the manifest's path."""
+    root = Path(root)
+    routes = []
+    for k in range(n_routes):
+        scene = syn.aerial_scene(k)
+        name = f"route_{k}"
+        T_teach = syn.aerial_route(length_m, spacing_m)
+        teach = _sequence(root / name / "teach", scene, T_teach, noise_seed=0)
+        repeats = []
+        for j, dy in enumerate(offsets_m):
+            T_rep = syn.drifting_aerial_route(length_m - 1.0, spacing_m, dy, 0.0, RAMP_M, REPEAT_PHASE_M)
+            rep = _sequence(root / name / f"rep_{dy:g}m", scene, T_rep, noise_seed=j + 1)
+            repeats.append(str(rep.relative_to(root)))
+        routes.append({"name": name, "teach": str(teach.relative_to(root)), "repeats": repeats})
+    manifest = root / "manifest.yaml"
+    manifest.write_text(yaml.safe_dump({"routes": routes}, sort_keys=False))
+    return manifest
+
+
+KILL_POLL_S = 0.005
+
+
+class KillWorkerOnce:
+    """A batch ``on_start`` hook that kills its own worker process (SIGKILL, as the OOM killer does) once
+    the ``victim`` run has started writing (file ``after`` exists in its folder: a repeat's
+    localization.csv, a teach's route.vtrmap-wal), on the first attempt only: ``marker`` records the
+    attempt, with the run folder's file names at the kill."""
+
+    def __init__(self, marker: str | Path, victim: str, after: str = "localization.csv"):
+        self.marker, self.victim, self.after = Path(marker), victim, after
+
+    def __call__(self, spec, folder: Path) -> None:
+        if spec.name != self.victim or self.marker.exists():
+            return
+        self.marker.write_text("")
+
+        def kill() -> None:
+            while not (folder / self.after).exists():
+                time.sleep(KILL_POLL_S)
+            self.marker.write_text("\n".join(sorted(p.name for p in folder.iterdir())))
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        threading.Thread(target=kill, daemon=True).start()
