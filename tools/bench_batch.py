@@ -78,7 +78,7 @@ def main() -> None:
     ap.add_argument("out", nargs="?", type=Path, default=Path("/tmp/vtr_bench_batch"))
     ap.add_argument("--repeats-per-route", type=int, default=4)
     ap.add_argument("--length", type=float, default=80.0,
-                    help="route length (m); at 40 m per-run start-up is a third of a run (2 workers: 1.46x; 80 m: 1.91x)")
+                    help="route length (m); at 40 m per-run start-up is a third of a run (2 workers 1.46x, 80 m 1.91x)")
     ap.add_argument("--spacing", type=float, default=0.5, help="frame spacing (m)")
     ap.add_argument("--skip-ctrlc", action="store_true")
     args = ap.parse_args()

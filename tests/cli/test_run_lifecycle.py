@@ -186,18 +186,18 @@ def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_cli
     signal's exception (seen in the process test above): still an orderly Ctrl-C / SIGTERM exit."""
     from vtr.navigation.teach import Teach
 
-    real, calls = Teach.process, []
+    real, calls = Teach.process_frame, []
 
-    def process(self, images):
+    def process_frame(self, frame):
         calls.append(1)
         if len(calls) == SIGNAL_AFTER_VERTICES + WINDOW:
             try:
                 raise signal_exc()
             except signal_exc as err:
                 raise SystemError("CPUDispatcher(<function schur>) returned a result with an exception set") from err
-        return real(self, images)
+        return real(self, frame)
 
-    monkeypatch.setattr(Teach, "process", process)
+    monkeypatch.setattr(Teach, "process_frame", process_frame)
     path = tmp_path / "route.vtrmap"
     r = invoke("teach", kitti_clip, "--map", path)
     assert r.exit_code == code, r.output
