@@ -62,13 +62,6 @@ GROUND_CONTRAST = 0.2
 #: min mu - 3 sigma >= 30 in both cases (measured; smaller margins were not tried).
 PA_MARGIN = 0.5
 PITCH_DOWN_RAD = math.radians(50.0)
-#: Taught neighbours the repeat localizer matches besides the trunk (``localization.neighbour_vertices``). The
-#: taught-path field counts the trunk's landmarks, and landmarks.csv credits a trunk landmark only when the
-#: trunk's own copy was an inlier; with the library default (1: trunk +-1) the localizer spreads its inliers
-#: over three vertices' copies of the same points, so the fitted model and the field predicted about half the
-#: localizer's inliers (measured: trunk inliers per leaf 19 vs 38, c1 0.27 vs 0.53, no flight reached
-#: mu - 3 sigma >= 30). 0 localizes against the trunk alone: the population the field counts.
-LOCALIZATION_NEIGHBOURS = 0
 
 
 def scene() -> syn.Scene:
@@ -212,7 +205,6 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     cfg = Config()
     cfg.features.n_features = FEATURES_PER_IMAGE
-    cfg.localization.neighbour_vertices = LOCALIZATION_NEIGHBOURS
     control = ControlConfig(speed_mps=args.speed, perception_margin=args.margin)
     t0 = time.perf_counter()
     maps, ups, model_path, reps = prepare(args.out, cfg)
