@@ -2,18 +2,17 @@
 
 * ``ransac_pnp``: minimal-solver RANSAC (OpenCV P3P) on 3-D landmarks of a reference view
   against pixels of a query view: the outlier filter.
-* ``refine_two_view``: a two-view stereo bundle adjustment, minimising the stereo reprojection
-  error (u_l, v, u_r) in *both* views over the relative pose and the landmark positions, with a
-  Huber kernel. Depth is never taken as exact: a far landmark (small disparity) is free to move
-  along its ray, so it constrains rotation far more than translation, and the depth bias of
-  triangulation from small disparities does not leak into the translation.
+* ``bundle_adjust``: stereo bundle adjustment (Levenberg-Marquardt, Schur complement, Huber) over
+  poses and landmarks, used for tracking (landmarks held by their window observations), the window
+  of odometry and localization against a taught submap. Depth is never taken as exact: landmarks
+  stay free, and ``stereo_row_weights`` decides how much each disparity counts (near / far).
+* ``triangulate_bearings``: multi-view triangulation from left-image rays alone (parallax).
 
 Poses: ``T_q_r`` maps reference-camera coordinates into the query camera (both left rectified).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -118,38 +117,6 @@ def stereo_jacobian(p: np.ndarray, camera: StereoCamera) -> np.ndarray:
     J[:, 2, 0] = camera.fx * iz
     J[:, 2, 2] = -camera.fx * (x - camera.baseline) * iz * iz
     return J
-
-
-@dataclass(frozen=True)
-class RefineResult:
-    """Refined ``T_q_r``, its 6x6 covariance ([rot, trans], left perturbation), landmarks in r and
-    the final per-correspondence inlier mask."""
-
-    T_q_r: np.ndarray
-    covariance: np.ndarray
-    points_r: np.ndarray
-    inlier: np.ndarray
-
-
-def refine_two_view(T_q_r: np.ndarray, points_r: np.ndarray, z_r: np.ndarray, z_q: np.ndarray,
-                    camera: StereoCamera, sigma_px: float, huber_px: float, iterations: int,
-                    outlier_px: float, near_depth_m: float = math.inf,
-                    far_disparity_weight: float = 1.0) -> RefineResult:
-    """Two-view stereo bundle adjustment of T_q_r and the landmarks (reference view held fixed).
-
-    ``z_r``/``z_q`` (N, 3): stereo measurements (u_l, v, u_r) of each landmark in the reference and
-    query views, u_r NaN where a view has no right match (only u_l, v count there). Disparity rows
-    are weighted by :func:`stereo_row_weights` (by default every disparity counts fully).
-    """
-    n = len(points_r)
-    z = np.concatenate([z_r, z_q])
-    rows = stereo_row_weights(z, camera, near_depth_m, far_disparity_weight)
-    res = bundle_adjust(np.stack([np.eye(4), T_q_r]), np.array([True, False]), points_r,
-                        np.r_[np.zeros(n, int), np.ones(n, int)], np.r_[np.arange(n), np.arange(n)],
-                        np.nan_to_num(z), rows, camera, sigma_px, huber_px, iterations)
-    e2 = np.maximum(res.error_sq[:n], res.error_sq[n:])
-    inlier = e2 <= outlier_px**2
-    return RefineResult(res.T_cam_world[1], res.pose_covariance[1], res.points, inlier)
 
 
 @dataclass(frozen=True)
