@@ -27,9 +27,8 @@ from ..io import open_source
 from ..map import Map
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
-from ..navigation.teach import Teach
 from ..sim import synthetic as syn
-from .pipeline import write_landmarks_csv
+from .pipeline import teach_command, write_landmarks_csv
 
 #: Flight speed used for the synthetic timestamps (m/s).
 SYNTHETIC_SPEED_MPS = 4.0
@@ -75,11 +74,7 @@ def teach(seq_dir: Path, map_path: Path, config: Config) -> Path:
     """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one)."""
     for f in map_path.parent.glob(map_path.name + "*"):
         f.unlink()
-    with open_source(seq_dir) as src, Map.create(map_path, src.camera) as m:
-        t = Teach(m, src.camera, config, str(seq_dir))
-        for images in src:
-            t.process(images)
-        t.finish()
+    teach_command(seq_dir, map_path, None, config)
     return map_path
 
 

@@ -19,8 +19,8 @@ from ..geometry import inv_T
 from ..io import open_source
 from ..map import Map, split_vertex_id
 from ..navigation.repeat import Repeat
-from ..navigation.teach import Teach
 from ..sim import synthetic as syn
+from .mission import teach
 from .pipeline import write_landmarks_csv
 
 SPEED_MPS = 4.0          # flight speed used for timestamps
@@ -50,14 +50,7 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
     cfg = Config()
     T_teach = syn.aerial_route(length, 1.0)
     teach_dir = syn.write_sequence(out / "teach", scene, cam, T_teach, syn.route_times(T_teach, SPEED_MPS))
-    map_path = out / "route.vtrmap"
-    for f in out.glob("route.vtrmap*"):
-        f.unlink()
-    with open_source(teach_dir) as src, Map.create(map_path, src.camera) as m:
-        teach = Teach(m, src.camera, cfg, str(teach_dir))
-        for images in src:
-            teach.process(images)
-        teach.finish()
+    map_path = teach(teach_dir, out / "route.vtrmap", cfg)
     rows: list[dict[str, float]] = []
     pairs = offsets if offsets is not None else [(dy, dz) for dz in vertical for dy in lateral]
     for dy, dz in pairs:
