@@ -31,7 +31,7 @@ from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T, log_se3
 from ..map import TaughtPath
 from ..types import StereoFrame
-from ..vo.estimation import bundle_adjust, ransac_pnp, stereo_row_weights
+from ..vo.estimation import bundle_adjust, odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
 from ..vo.matching import match_landmarks
 
@@ -293,9 +293,7 @@ class Localizer:
         return res.T_cam_world[V], res.pose_covariance[V], inlier
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
-        o = self.odometry
-        return stereo_row_weights(z, self.camera, o.far_point_baselines * self.camera.baseline, o.far_disparity_weight,
-                                  o.min_near_observations)
+        return odometry_row_weights(z, self.camera, self.odometry)
 
     def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                radius: float) -> tuple[np.ndarray, np.ndarray]:

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
+from ..config import OdometryConfig
 from ..geometry import exp_se3
 from .kernels import bundle as kb
 
@@ -71,6 +72,13 @@ def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float,
     if np.count_nonzero(measured & ~far) >= min_near:
         w[far, 2] = far_disparity_weight
     return w
+
+
+def odometry_row_weights(z: np.ndarray, camera: StereoCamera, config: OdometryConfig) -> np.ndarray:
+    """:func:`stereo_row_weights` with the near/far settings of ``odometry`` (the one rule odometry and
+    localization share): near within ``far_point_baselines`` baselines."""
+    return stereo_row_weights(z, camera, config.far_point_baselines * camera.baseline, config.far_disparity_weight,
+                              config.min_near_observations)
 
 
 def triangulate_bearings(T_cam_world: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray, uv: np.ndarray,

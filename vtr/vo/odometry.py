@@ -27,7 +27,7 @@ from ..config import Config, OdometryConfig
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from .estimation import bundle_adjust, ransac_pnp, stereo_row_weights, triangulate_bearings
+from .estimation import bundle_adjust, odometry_row_weights, ransac_pnp, triangulate_bearings
 from .matching import MIN_DEPTH_M, match_landmarks
 from .stereo import StereoProcessor
 
@@ -113,10 +113,6 @@ class StereoOdometry:
         self._velocity: np.ndarray | None = None     # twist per second of T_cur_prev ([rot, trans])
         self._keyframe_poses: dict[int, np.ndarray] = {}   # id -> T_world_kf (latest estimate)
         self._frame_refs: list[tuple[int, np.ndarray]] = []
-
-    @property
-    def far_depth_m(self) -> float:
-        return self.config.odometry.far_point_baselines * self.camera.baseline
 
     def process(self, images: StereoImages) -> OdometryResult:
         """Stereo-process a rectified pair, then track it (``process_frame``)."""
@@ -256,8 +252,7 @@ class StereoOdometry:
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         """Weights of (u_l, v, u_r): see :func:`stereo_row_weights` (far landmarks: rotation and parallax)."""
-        o = self.config.odometry
-        return stereo_row_weights(z, self.camera, self.far_depth_m, o.far_disparity_weight, o.min_near_observations)
+        return odometry_row_weights(z, self.camera, self.config.odometry)
 
     def _bundle_adjust(self) -> None:
         """Windowed bundle adjustment: oldest keyframe fixed, the others and their landmarks free.
