@@ -3,12 +3,14 @@ stereo / matching / estimation / window bundle adjustment, peak memory, and whet
 every thread count are identical.
 
 usage: python tools/bench_odometry.py [SOURCE ...] [--frames A:B:S] [--repeats N] [--threads 1 2]
-                                      [--cv-threads N]
+                                      [--cv-threads N] [--preload]
 Defaults: the shipped KITTI clip (1226x370) and a synthetic aerial sequence (672x376, generated once
 into /tmp). BLAS pools are pinned to one thread before numpy loads; OpenCV's own pool to --cv-threads (1).
-With threads > 1, frame k+1 is decoded and stereo-processed in the background while frame k is tracked
+With threads > 1, later frames are decoded and stereo-processed in the background while frame k is tracked
 (``StereoProcessor.frames``): "load" is then the time spent waiting for the next stereo frame, and the
-features and stereo stages overlap the others (their times are the background thread's).
+features and stereo stages overlap the others (their times are summed over the background workers).
+``--preload`` decodes every frame before the clock starts (the ORB-SLAM3 anchor script times its tracking
+that way): the frames/s are then those of the odometry alone.
 """
 
 from __future__ import annotations
@@ -45,12 +47,13 @@ def synthetic_sequence() -> Path:
     return SYNTHETIC
 
 
-def bench_once(path: Path, frames: str | None, threads: int) -> dict:
-    """One odometry pass over ``path`` with ``threads``."""
+def bench_once(path: Path, frames: str | None, threads: int, preload: bool = False) -> dict:
+    """One odometry pass over ``path`` with ``threads``; ``preload`` decodes the frames first, untimed."""
     config = Config()
     config.features.threads = threads
     with open_source(path) as src:
         idx = parse_frame_range(frames, len(src), str(path))
+        images = [src[i] for i in idx] if preload else src.iter_frames(idx)
         vo = StereoOdometry(src.camera, config)
         load = 0.0
         inline = vo.stereo.threads == 1     # one thread: waiting for a frame also runs its features and stereo
@@ -59,7 +62,7 @@ def bench_once(path: Path, frames: str | None, threads: int) -> dict:
             return sum(vo.timer.seconds.get(k, 0.0) for k in ("features", "stereo")) if inline else 0.0
 
         t0 = time.perf_counter()
-        stream = vo.stereo.frames(src.iter_frames(idx))
+        stream = vo.stereo.frames(images)
         while True:
             t, busy = time.perf_counter(), stereo_seconds()
             frame = next(stream, None)
@@ -74,13 +77,14 @@ def bench_once(path: Path, frames: str | None, threads: int) -> dict:
             **{f"{k}_ms": 1000 * stages.get(k, 0.0) / len(idx) for k in STAGES}}
 
 
-def bench(path: Path, frames: str | None, repeats: int, thread_counts: list[int]) -> dict[int, dict]:
+def bench(path: Path, frames: str | None, repeats: int, thread_counts: list[int],
+          preload: bool = False) -> dict[int, dict]:
     """Best of ``repeats`` passes per thread count, the counts interleaved (a shared machine's load hits
     them alike)."""
     best: dict[int, dict] = {}
     for _ in range(repeats):
         for threads in thread_counts:
-            run = bench_once(path, frames, threads)
+            run = bench_once(path, frames, threads, preload)
             if threads not in best or run["fps"] > best[threads]["fps"]:
                 best[threads] = run
     for run in best.values():
@@ -95,15 +99,17 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="vtr thread counts to compare")
     ap.add_argument("--cv-threads", type=int, default=1, help="cv2.setNumThreads (OpenCV's own pool)")
+    ap.add_argument("--preload", action="store_true", help="decode every frame before timing (load is then 0)")
     args = ap.parse_args()
     cv2.setNumThreads(args.cv_threads)
     sources = args.sources or [ROOT / "datasets" / "kitti06_clip", synthetic_sequence()]
     for path in sources:
         print(f"second core available (2 threads of a GIL-free OpenCV workload vs 1): {second_core_available():.2f}x")
-        runs = bench(path, args.frames, args.repeats, args.threads)
+        runs = bench(path, args.frames, args.repeats, args.threads, args.preload)
         for threads, r in runs.items():
             split = "  ".join(f"{k} {r[f'{k}_ms']:.1f}" for k in STAGES)
-            print(f"{r['source']} ({r['size']}, {r['frames']} frames, best of {args.repeats}) threads {threads}: "
+            print(f"{r['source']} ({r['size']}, {r['frames']} frames, best of {args.repeats}"
+                  f"{', preloaded' if args.preload else ''}) threads {threads}: "
                   f"{r['fps']:.1f} frames/s, {r['ms_per_frame']:.1f} ms/frame  [{split} ms]  "
                   f"peak RSS {r['peak_rss_mb']:.0f} MB")
         first = runs[args.threads[0]]

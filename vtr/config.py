@@ -113,12 +113,18 @@ class FeatureConfig:
     # variants against 0.67-0.90 % for the FAST score, which is also ~2 ms cheaper per image
     corner_score: str = setting("fast", Choice("fast", "harris"))
     # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
-    # more the left and right images' features are extracted concurrently and the next frames are decoded in
-    # the background (vtr/parallel.py). Results are bit-identical for every value (tests/vo/test_threads.py).
-    # KITTI 1226x370 odometry on a shared 2-core machine: 2 threads 1.10-1.52x the frames/s of 1 thread
-    # (tools/bench_odometry.py). OpenCV's own pool (cv2.setNumThreads) is left alone: ORB extraction runs
-    # serially inside OpenCV, and 1 or 2 OpenCV threads measured the same; batch workers set it to this value
+    # more, a background thread decodes the frames and that many workers extract features and match stereo on
+    # whole frames ahead of the tracking thread (vtr/vo/stereo.py, vtr/parallel.py); a single frame given to
+    # StereoProcessor.process has its left and right images' features extracted concurrently. Results are
+    # bit-identical for every value (tests/vo/test_threads.py). KITTI 1226x370 odometry on 2 cores with 2
+    # threads: 1.8-1.9x the frames/s of 1 thread (tools/bench_odometry.py). OpenCV's own pool
+    # (cv2.setNumThreads) is left alone: ORB extraction runs serially inside OpenCV, and 1 or 2 OpenCV threads
+    # measured the same; batch workers set it to this value
     threads: int = setting(0, Range(0, 1024, integer=True))
+    # scheduling priority of those background threads below the tracking thread's (Linux niceness 0..19; ignored
+    # elsewhere): when every core is busy the frame being tracked goes first, the threads working ahead after.
+    # KITTI odometry, 2 threads on 2 cores: niceness 0 gave 60.0-61.8 frames/s, 10 gave 62.7-64.2
+    worker_niceness: int = setting(10, Range(0, 19, integer=True))
 
 
 @dataclass

@@ -1,17 +1,19 @@
-"""Threads inside one run: how many to use, and decoding the next frames in the background.
+"""Threads inside one run: how many to use, working ahead in the background, and at what priority.
 
 ``threads`` (``features.threads`` in the configuration, ``--threads`` on the command line) is the
 number of threads a run's per-frame work may use; 0 means every core this process may run on.
 Everything done in threads here gives results bit-identical to the single-threaded run: the
-threads only overlap independent work (left and right images, the next frame's decoding).
+threads only overlap independent work (left and right images; later frames' decoding, features and
+stereo while the caller tracks this one, see ``StereoProcessor.frames``).
 """
 
 from __future__ import annotations
 
 import os
 import queue
+import sys
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable
 from typing import TypeVar
 
 from .errors import ConfigError
@@ -19,7 +21,7 @@ from .errors import ConfigError
 T = TypeVar("T")
 
 MAX_THREADS = 1024          # upper bound of the ``threads`` setting (0 = every available core)
-PREFETCH_FRAMES = 2         # frames decoded ahead when threads > 1 (two pairs: a few MB at most)
+LOOKAHEAD_PER_THREAD = 1    # frames queued ahead of the consumer beyond one per worker (a pair is ~1 MB at KITTI size)
 
 
 def available_cores() -> int:
@@ -37,9 +39,18 @@ def resolve_threads(threads: int, where: str = "features.threads") -> int:
     return available_cores() if threads == 0 else threads
 
 
-def prefetch_frames(frames: Iterable[T], threads: int) -> Iterator[T]:
-    """``frames`` decoded ahead in the background when ``threads`` (a setting) resolves to 2 or more."""
-    return prefetch(frames, PREFETCH_FRAMES if resolve_threads(threads) > 1 else 0)
+def lookahead_frames(threads: int) -> int:
+    """Frames decoded and processed ahead of the consumer with ``threads`` workers: enough that every
+    worker has a frame while the consumer works on one."""
+    return threads + LOOKAHEAD_PER_THREAD
+
+
+def background_thread(niceness: int) -> None:
+    """Lower the calling thread's scheduling priority by ``niceness`` (0..19): called by a background
+    thread as it starts, so the thread the others feed runs first when the cores are all busy. Linux
+    only (elsewhere a thread has no niceness of its own and this does nothing)."""
+    if niceness > 0 and sys.platform == "linux":
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
 
 
 class _End:
@@ -49,12 +60,13 @@ class _End:
         self.error = error
 
 
-def prefetch(items: Iterable[T], depth: int) -> Iterator[T]:
+def prefetch(items: Iterable[T], depth: int, niceness: int = 0) -> Generator[T, None, None]:
     """Iterate ``items`` produced by a background thread that runs up to ``depth`` items ahead.
 
     With ``depth <= 0`` it is ``iter(items)`` unchanged. Items come out in the same order; an
     exception raised while producing is raised here, at the item where it happened. Closing the
-    returned generator early (``break``, an error in the consumer) stops the producer.
+    returned generator early (``break``, an error in the consumer) stops the producer. The producer
+    runs with :func:`background_thread` ``(niceness)``.
     """
     if depth <= 0:
         yield from items
@@ -73,6 +85,7 @@ def prefetch(items: Iterable[T], depth: int) -> Iterator[T]:
 
     def produce() -> None:
         try:
+            background_thread(niceness)
             for item in items:
                 if not put(item):
                     return

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator
@@ -9,10 +10,12 @@ from contextlib import contextmanager
 
 
 class StageTimer:
-    """Accumulates seconds per named stage: ``with timer("features"): ...``."""
+    """Accumulates seconds per named stage: ``with timer("features"): ...``. Safe to share between
+    threads: a stage timed on several threads at once sums their seconds."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
+        self._lock = threading.Lock()
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
@@ -20,7 +23,10 @@ class StageTimer:
         try:
             yield
         finally:
-            self.seconds[stage] += time.perf_counter() - t0
+            elapsed = time.perf_counter() - t0
+            with self._lock:
+                self.seconds[stage] += elapsed
 
     def reset(self) -> None:
-        self.seconds.clear()
+        with self._lock:
+            self.seconds.clear()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 import threading
 
 import numpy as np
@@ -106,3 +108,90 @@ def test_teach_and_repeat_identical_with_one_and_two_threads(kitti_clip, tmp_pat
         outputs[threads] = [(folder / "repeat" / name).read_bytes()
                             for name in ("localization.csv", "landmarks.csv", "trajectory_tum.txt")]
     assert outputs[1] == outputs[2]
+
+
+def _threads_named(prefix: str) -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
+
+
+def test_frames_on_the_pool_equal_one_thread_in_order(kitti_clip):
+    """Two workers process whole frames at once; the stream comes out in order, bit for bit the one-thread run."""
+    with open_source(kitti_clip) as src:
+        idx = list(range(0, 12))
+        one = list(StereoProcessor(src.camera, _config(1).features, Config().stereo).frames(src.iter_frames(idx)))
+        workers: set[str] = set()
+        two = StereoProcessor(src.camera, _config(2).features, Config().stereo)
+        original = two._process_on_worker
+
+        def spy(images):
+            workers.add(threading.current_thread().name)
+            return original(images)
+
+        two._process_on_worker = spy            # type: ignore[method-assign]
+        got = list(two.frames(src.iter_frames(idx)))
+    assert [f.index for f in got] == idx
+    assert len(workers) == 2 and all(name.startswith("vtr-stereo") for name in workers)
+    for a, b in zip(one, got, strict=True):
+        assert np.array_equal(a.features.uv, b.features.uv)
+        assert np.array_equal(a.features.descriptors, b.features.descriptors)
+        assert np.array_equal(a.u_right, b.u_right, equal_nan=True)
+        assert np.array_equal(a.points, b.points, equal_nan=True)
+    assert not _threads_named("vtr-stereo") and not _threads_named("vtr-prefetch")
+
+
+def test_frames_on_the_pool_raise_a_bad_frame_at_its_place(kitti_clip):
+    """A frame that fails on a worker is raised when the consumer reaches it, after every frame before it."""
+    from vtr.errors import DataError
+    from vtr.types import StereoImages
+
+    with open_source(kitti_clip) as src:
+        def images():
+            for i in range(8):
+                im = src[i]
+                yield StereoImages(im.t_ns, im.index, im.left[:, :-4], im.right) if i == 5 else im
+
+        processor = StereoProcessor(src.camera, _config(2).features, Config().stereo)
+        got = []
+        with pytest.raises(DataError, match="frame 5"):
+            for frame in processor.frames(images()):
+                got.append(frame.index)
+    assert got == [0, 1, 2, 3, 4]
+    assert not _threads_named("vtr-stereo") and not _threads_named("vtr-prefetch")
+
+
+def test_frames_on_the_pool_stop_when_the_consumer_stops(kitti_clip):
+    with open_source(kitti_clip) as src:
+        processor = StereoProcessor(src.camera, _config(2).features, Config().stereo)
+        read = []
+
+        def images():
+            for i in range(len(src)):
+                read.append(i)
+                yield src[i]
+
+        stream = processor.frames(images())
+        assert next(stream).index == 0
+        stream.close()                                  # type: ignore[attr-defined]
+    assert not _threads_named("vtr-stereo") and not _threads_named("vtr-prefetch")
+    assert len(read) < 10                               # bounded look-ahead: the clip has 51 frames
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority") or sys.platform != "linux", reason="per-thread niceness is Linux's")
+def test_background_threads_run_at_the_configured_niceness():
+    from vtr.parallel import background_thread
+
+    seen = {}
+
+    def worker(niceness):
+        base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        background_thread(niceness)
+        seen[niceness] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) - base
+
+    for niceness in (0, 7):
+        t = threading.Thread(target=worker, args=(niceness,))
+        t.start()
+        t.join()
+    caller = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert seen[0] == 0
+    assert seen[7] == min(7, 19 - caller)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == caller    # the caller is untouched

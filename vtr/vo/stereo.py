@@ -4,8 +4,9 @@ disparity, triangulation into 3-D landmarks (left rectified camera frame) with c
 
 from __future__ import annotations
 
+import threading
 import weakref
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -13,7 +14,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FeatureConfig, StereoConfig, check_section
 from ..errors import DataError
-from ..parallel import PREFETCH_FRAMES, prefetch, resolve_threads
+from ..parallel import background_thread, lookahead_frames, prefetch, resolve_threads
 from ..timing import StageTimer
 from ..types import Features, StereoFrame, StereoImages
 from .features import FeatureExtractor, descriptor_words
@@ -63,9 +64,10 @@ def check_stereo_images(images: StereoImages, camera: StereoCamera) -> None:
 class StereoProcessor:
     """Turns a rectified stereo pair into a ``StereoFrame``.
 
-    With ``features.threads`` resolving to 2 or more, the right image's features are extracted on a
-    thread of the processor's own while the left image's are extracted on the caller's (OpenCV
-    releases the GIL); each side has its own extractor, so results equal the one-thread run bit for bit.
+    With ``features.threads`` resolving to 2 or more, :meth:`process` extracts the right image's
+    features on a thread of the processor's own while the left image's are extracted on the caller's
+    (OpenCV releases the GIL), and :meth:`frames` processes several frames at once on a pool of
+    that many threads. Every thread has its own extractor, so results equal the one-thread run bit for bit.
     """
 
     def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
@@ -75,9 +77,11 @@ class StereoProcessor:
         self.camera = camera
         self.timer = timer or StageTimer()
         self.cfg = stereo
+        self.features_config = features
         self.extractor = FeatureExtractor(features, camera.size)
         self.scales = self.extractor.level_scales
         self.threads = resolve_threads(features.threads)
+        self._local = threading.local()     # a frames() worker's own extractor
         self._right_extractor = self.extractor
         self._pool: ThreadPoolExecutor | None = None
         if self.threads > 1:
@@ -86,12 +90,56 @@ class StereoProcessor:
             weakref.finalize(self, self._pool.shutdown, wait=False)
 
     def frames(self, images: Iterable[StereoImages]) -> Iterator[StereoFrame]:
-        """``images`` as stereo frames, in order. With 2 or more threads the next frames are decoded and
-        stereo-processed on a background thread while the caller works on this one (odometry, localization):
-        frame ``k + 1``'s features overlap frame ``k``'s tracking. Each frame is processed exactly as
-        :meth:`process` would, so results equal the one-thread run bit for bit; an error is raised at the
-        frame it belongs to."""
-        return prefetch(map(self.process, images), PREFETCH_FRAMES if self.threads > 1 else 0)
+        """``images`` as stereo frames, in order.
+
+        With 2 or more threads, a background thread pulls (decodes) the images and hands each frame
+        whole to a pool of ``threads`` workers, up to :func:`~vtr.parallel.lookahead_frames` frames ahead
+        of the caller, who meanwhile tracks and localizes the frames already done: decoding, features and
+        stereo of later frames overlap this one's tracking. Each frame is processed as :meth:`process` would,
+        so results equal the one-thread run bit for bit; an error is raised at the frame it belongs to.
+        """
+        if self.threads <= 1:
+            return map(self.process, images)
+        return self._frames_on_pool(images)
+
+    def _frames_on_pool(self, images: Iterable[StereoImages]) -> Iterator[StereoFrame]:
+        niceness = self.features_config.worker_niceness
+        with ThreadPoolExecutor(self.threads, thread_name_prefix="vtr-stereo", initializer=background_thread,
+                                initargs=(niceness,)) as pool:
+            pending = prefetch((pool.submit(self._process_on_worker, im) for im in images),
+                               lookahead_frames(self.threads), niceness)
+            try:
+                for future in pending:
+                    yield future.result()
+            finally:
+                pending.close()                         # stops the reader before the pool is shut down
+                pool.shutdown(wait=True, cancel_futures=True)
+
+    def process(self, images: StereoImages) -> StereoFrame:
+        """Features on both images, stereo matches, subpixel disparity, triangulation."""
+        return self._process(images, self._extract_split if self._pool is not None else self._extract_serial)
+
+    def _extract_serial(self, images: StereoImages) -> tuple[Features, Features]:
+        return self.extractor.extract(images.left), self.extractor.extract(images.right)
+
+    def _extract_split(self, images: StereoImages) -> tuple[Features, Features]:
+        assert self._pool is not None
+        right = self._pool.submit(self._right_extractor.extract, images.right)
+        return self.extractor.extract(images.left), right.result()
+
+    def _process_on_worker(self, images: StereoImages) -> StereoFrame:
+        extractor = getattr(self._local, "extractor", None)
+        if extractor is None:
+            extractor = self._local.extractor = FeatureExtractor(self.features_config, self.camera.size)
+        return self._process(images, lambda im: (extractor.extract(im.left), extractor.extract(im.right)))
+
+    def _process(self, images: StereoImages,
+                 extract: Callable[[StereoImages], tuple[Features, Features]]) -> StereoFrame:
+        check_stereo_images(images, self.camera)
+        with self.timer("features"):
+            left, right = extract(images)
+        with self.timer("stereo"):
+            return self._triangulate(images, left, right)
 
     def match(self, left: Features, right: Features) -> tuple[np.ndarray, np.ndarray]:
         """Left/right matches on epipolar rows: (left indices, right indices)."""
@@ -102,20 +150,6 @@ class StereoProcessor:
             c.max_row_diff_px * self.scales, c.min_disparity_px - c.refine_search_px, c.max_disparity_px,
             MAX_OCTAVE_GAP, c.max_descriptor_distance)
         return qi, tj
-
-    def process(self, images: StereoImages) -> StereoFrame:
-        """Features on both images, stereo matches, subpixel disparity, triangulation."""
-        check_stereo_images(images, self.camera)
-        with self.timer("features"):
-            if self._pool is None:
-                left = self.extractor.extract(images.left)
-                right = self.extractor.extract(images.right)
-            else:
-                pending = self._pool.submit(self._right_extractor.extract, images.right)
-                left = self.extractor.extract(images.left)
-                right = pending.result()
-        with self.timer("stereo"):
-            return self._triangulate(images, left, right)
 
     def _triangulate(self, images: StereoImages, left: Features, right: Features) -> StereoFrame:
         qi, tj = self.match(left, right)
