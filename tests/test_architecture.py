@@ -3,7 +3,7 @@
 Layer order (the single written statement of it, repeated in the README's Architecture section): a module
 may import from its own subpackage or from a layer to its left, never to its right.
 
-    bottom modules (errors, conventions, config, geometry, camera, timing, types, parallel, and the
+    bottom modules (errors, conventions, config, geometry, camera, timing, types, parallel, signals, and the
     ``vtr`` package itself) < io < vo < map < state < navigation < sim < control < app < cli
 
 Every import is checked, including those inside functions and under ``TYPE_CHECKING`` (read with ``ast``
@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("bottom", "io", "vo", "map", "state", "navigation", "sim", "control", "app", "cli")
 RANK = {name: i for i, name in enumerate(LAYERS)}
 BOTTOM_MODULES = {"vtr", "vtr.errors", "vtr.conventions", "vtr.config", "vtr.geometry", "vtr.camera", "vtr.timing",
-                  "vtr.types", "vtr.parallel"}
+                  "vtr.types", "vtr.parallel", "vtr.signals"}
 ENTRY_POINTS = {"vtr.__main__": "cli"}   # ``python -m vtr`` runs the command line
 
 

@@ -206,6 +206,36 @@ def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_cli
     assert (run.state, run.reason) == ("aborted", reason) and len(t_ns) > 0
 
 
+@pytest.mark.parametrize(("sig", "code", "reason"), [
+    (signal.SIGTERM, 143, "terminated by SIGTERM"),
+    (signal.SIGINT, 130, "interrupted by Ctrl-C (SIGINT)"),
+])
+def test_signal_during_a_keyframe_write_loses_no_keyframe(kitti_clip, reference, tmp_path, monkeypatch, sig, code,
+                                                         reason):
+    """The signal arrives while a finalized keyframe is being written: it is delivered once the frame is
+    done, so the map holds exactly the keyframes of a complete teach up to the last one (none skipped)."""
+    import os
+
+    real, calls = Map.add_keyframe, []
+
+    def add_keyframe(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == SIGNAL_AFTER_VERTICES + 1:
+            os.kill(os.getpid(), sig)             # Python runs the handler at its next instruction
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Map, "add_keyframe", add_keyframe)
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", kitti_clip, "--map", path)
+    assert r.exit_code == code, r.output
+    [run], t_ns = taught(path)
+    assert (run.state, run.reason) == ("aborted", reason)
+    assert len(t_ns) >= SIGNAL_AFTER_VERTICES + 1 + WINDOW - 1
+    with Map.open(path) as m:
+        last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame.index
+    np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
+
+
 def test_sigkilled_teach_reads_interrupted_and_repeat_refuses(kitti_clip, tmp_path):
     path = tmp_path / "route.vtrmap"
     proc = _teach_process(kitti_clip, path)

@@ -21,6 +21,7 @@ from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource, SourceOptions
 from ..io.trajectory import write_tum
 from ..navigation.localization import Localization
+from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
 from ..vo.stereo import StereoProcessor
@@ -81,7 +82,8 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
     records = []
     t0 = time.perf_counter()
     for frame in frames_of(source, indices, vo.stereo, progress, "odometry"):
-        records.append(vo.process_frame(frame).record())
+        with held_signals():                    # Ctrl-C lands between frames
+            records.append(vo.process_frame(frame).record())
     return records, vo.final_poses(), time.perf_counter() - t0
 
 
@@ -161,8 +163,10 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
             teach = Teach(m, source.camera, config, source=str(source_path))
             try:
                 for frame in frames_of(source, indices, teach.odometry.stereo, progress, "teach"):
-                    results.append(teach.process_frame(frame).record())
-                n_vertices = teach.finish()
+                    with held_signals():        # a frame's keyframes are all written or not made
+                        results.append(teach.process_frame(frame).record())
+                with held_signals():
+                    n_vertices = teach.finish()
             except BaseException as err:  # error, Ctrl-C, SIGTERM, full disk: keep the window, say why
                 teach.abort(err)          # (a map left without any vertex is removed when it closes)
                 raise
@@ -288,16 +292,17 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                 LandmarksWriter(out / "landmarks.csv") as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
             for frame in frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"):
-                step = repeat.process_frame(frame)
-                t_loc += repeat.last_localization_seconds
-                clog.add(step)
-                t_ns.append(step.odometry.t_ns)
-                T_teach.append(step.T_teach_frame)
-                if step.localization is not None:
-                    loc_csv.write(step.localization)
-                    append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
-                    # keep the numbers, not the per-landmark record: memory stays flat on long routes
-                    locs.append(dataclasses.replace(step.localization, landmarks=None))
+                with held_signals():            # a frame's vertex, localization and report rows, or none
+                    step = repeat.process_frame(frame)
+                    t_loc += repeat.last_localization_seconds
+                    clog.add(step)
+                    t_ns.append(step.odometry.t_ns)
+                    T_teach.append(step.T_teach_frame)
+                    if step.localization is not None:
+                        loc_csv.write(step.localization)
+                        append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
+                        # keep the numbers, not the per-landmark record: memory stays flat on long routes
+                        locs.append(dataclasses.replace(step.localization, landmarks=None))
         m.finish_run()  # every frame is in the map: the run is complete whatever the reports do
         clog.finish()
         state = clog.output(rate_hz)

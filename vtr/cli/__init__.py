@@ -14,7 +14,8 @@ import click
 
 from .. import __version__
 from ..errors import Terminated, VtrError, interruption
-from .common import EXIT_SIGINT, EXIT_SIGTERM, OUTPUTS_KEY, error_line, sigterm_as_exception
+from ..signals import sigterm_as_exception
+from .common import EXIT_SIGINT, EXIT_SIGTERM, OUTPUTS_KEY, error_line
 
 
 def _versions() -> str:

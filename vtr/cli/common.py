@@ -3,41 +3,18 @@
 from __future__ import annotations
 
 import functools
-import signal
-import threading
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import click
 
 from ..config import Config
-from ..errors import Terminated, VtrError
+from ..errors import VtrError
 from ..io.base import SourceOptions
 
 EXIT_SIGINT = 130                    # shell convention: 128 + signal number
 EXIT_SIGTERM = 143
-
-
-def _raise_terminated(signum: int, frame: FrameType | None) -> None:
-    raise Terminated()
-
-
-@contextmanager
-def sigterm_as_exception() -> Iterator[None]:
-    """Within the block SIGTERM raises ``Terminated`` (an orderly exit like Ctrl-C: ``with`` blocks
-    close, runs in progress are recorded as aborted); the previous handler comes back after it.
-    Only the main thread can handle signals (elsewhere this does nothing)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def load_config(path: Path | None, threads: int | None = None) -> Config:
