@@ -121,9 +121,10 @@ class FeatureConfig:
     # (cv2.setNumThreads) is left alone: ORB extraction runs serially inside OpenCV, and 1 or 2 OpenCV threads
     # measured the same; batch workers set it to this value
     threads: int = setting(0, Range(0, 1024, integer=True))
-    # scheduling priority of those background threads below the tracking thread's (Linux niceness 0..19; ignored
-    # elsewhere): when every core is busy the frame being tracked goes first, the threads working ahead after.
-    # KITTI odometry, 2 threads on 2 cores: niceness 0 gave 60.0-61.8 frames/s, 10 gave 62.7-64.2
+    # scheduling priority of those feature/stereo workers below the tracking thread's and the decoding reader's
+    # (Linux niceness 0..19; ignored elsewhere): when every core is busy the frame being tracked goes first, the
+    # workers' frames ahead after. KITTI odometry, 2 threads on 2 cores, best of 3, three rounds: niceness 0
+    # 60.0-61.8 frames/s; 10 64.7-66.7 (the reader niced too: 63.3-65.7); 19 65.7-66.4
     worker_niceness: int = setting(10, Range(0, 19, integer=True))
 
 

@@ -21,6 +21,7 @@ from .errors import ConfigError
 T = TypeVar("T")
 
 MAX_THREADS = 1024          # upper bound of the ``threads`` setting (0 = every available core)
+MAX_NICENESS = 19           # the lowest priority Linux gives a thread
 LOOKAHEAD_PER_THREAD = 1    # frames queued ahead of the consumer beyond one per worker (a pair is ~1 MB at KITTI size)
 
 
@@ -46,11 +47,17 @@ def lookahead_frames(threads: int) -> int:
 
 
 def background_thread(niceness: int) -> None:
-    """Lower the calling thread's scheduling priority by ``niceness`` (0..19): called by a background
-    thread as it starts, so the thread the others feed runs first when the cores are all busy. Linux
-    only (elsewhere a thread has no niceness of its own and this does nothing)."""
-    if niceness > 0 and sys.platform == "linux":
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    """Lower the calling thread's scheduling priority by ``niceness`` (0..19, relative to its current
+    niceness, at most 19): called by a background thread as it starts, so the thread the others feed
+    runs first when the cores are all busy. Linux only (elsewhere a thread has no niceness of its own);
+    priority is an optimisation, so a system that refuses it is ignored."""
+    if niceness <= 0 or sys.platform != "linux":
+        return
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + niceness, MAX_NICENESS))
+    except OSError:
+        pass
 
 
 class _End:
@@ -60,13 +67,12 @@ class _End:
         self.error = error
 
 
-def prefetch(items: Iterable[T], depth: int, niceness: int = 0) -> Generator[T, None, None]:
+def prefetch(items: Iterable[T], depth: int) -> Generator[T, None, None]:
     """Iterate ``items`` produced by a background thread that runs up to ``depth`` items ahead.
 
     With ``depth <= 0`` it is ``iter(items)`` unchanged. Items come out in the same order; an
     exception raised while producing is raised here, at the item where it happened. Closing the
-    returned generator early (``break``, an error in the consumer) stops the producer. The producer
-    runs with :func:`background_thread` ``(niceness)``.
+    returned generator early (``break``, an error in the consumer) stops the producer.
     """
     if depth <= 0:
         yield from items
@@ -85,7 +91,6 @@ def prefetch(items: Iterable[T], depth: int, niceness: int = 0) -> Generator[T, 
 
     def produce() -> None:
         try:
-            background_thread(niceness)
             for item in items:
                 if not put(item):
                     return

@@ -178,20 +178,25 @@ def test_frames_on_the_pool_stop_when_the_consumer_stops(kitti_clip):
 
 @pytest.mark.skipif(not hasattr(os, "setpriority") or sys.platform != "linux", reason="per-thread niceness is Linux's")
 def test_background_threads_run_at_the_configured_niceness():
+    """Relative to the thread's own niceness, capped at 19 (never an attempt to raise a priority)."""
     from vtr.parallel import background_thread
 
     seen = {}
 
-    def worker(niceness):
-        base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    def worker(start, niceness):
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + start)
+        base = os.getpriority(os.PRIO_PROCESS, tid)
         background_thread(niceness)
-        seen[niceness] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) - base
+        seen[start, niceness] = base, os.getpriority(os.PRIO_PROCESS, tid)
 
-    for niceness in (0, 7):
-        t = threading.Thread(target=worker, args=(niceness,))
+    for start, niceness in ((0, 0), (0, 7), (15, 7)):
+        t = threading.Thread(target=worker, args=(start, niceness))
         t.start()
         t.join()
     caller = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    assert seen[0] == 0
-    assert seen[7] == min(7, 19 - caller)
+    assert seen[0, 0] == (caller, caller)
+    assert seen[0, 7] == (caller, min(caller + 7, 19))
+    base, after = seen[15, 7]
+    assert after == min(base + 7, 19) and after >= base
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == caller    # the caller is untouched

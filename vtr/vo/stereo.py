@@ -106,8 +106,9 @@ class StereoProcessor:
         niceness = self.features_config.worker_niceness
         with ThreadPoolExecutor(self.threads, thread_name_prefix="vtr-stereo", initializer=background_thread,
                                 initargs=(niceness,)) as pool:
+            # the reader (decoding, a serial stage that feeds every worker) keeps the normal priority
             pending = prefetch((pool.submit(self._process_on_worker, im) for im in images),
-                               lookahead_frames(self.threads), niceness)
+                               lookahead_frames(self.threads))
             try:
                 for future in pending:
                     yield future.result()
