@@ -40,11 +40,11 @@ def run_repeat(map_path: Path, frames: str, config: Config) -> dict:
         rp.timer.reset()
         t_loc, locs = [], []
         t0 = time.perf_counter()
-        for frame in rp.odometry.stereo.frames(images):   # with 2 threads: the next frame's stereo ahead
-            step = rp.process_frame(frame)
+        # with 2 threads: later frames' stereo ahead on workers, localization on its own thread
+        for step in rp.steps(rp.odometry.stereo.frames(images)):
             if step.localization is not None:
                 locs.append(step.localization)
-                t_loc.append(rp.last_localization_seconds)
+                t_loc.append(step.localization_seconds)
         seconds = time.perf_counter() - t0
         ok = [loc for loc in locs if loc.success]
         err = chain_errors(ok, m, src.ground_truth())

@@ -114,7 +114,8 @@ class FeatureConfig:
     corner_score: str = setting("fast", Choice("fast", "harris"))
     # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
     # more, a background thread decodes the frames and that many workers extract features and match stereo on
-    # whole frames ahead of the tracking thread (vtr/vo/stereo.py, vtr/parallel.py); a single frame given to
+    # whole frames ahead of the tracking thread (vtr/vo/stereo.py, vtr/parallel.py), and a repeat localizes on a
+    # thread of its own (Repeat.steps; docs/architecture.md "Threads inside one run"); a single frame given to
     # StereoProcessor.process has its left and right images' features extracted concurrently. Results are
     # bit-identical for every value (tests/vo/test_threads.py). KITTI 1226x370 odometry on 2 cores with 2
     # threads: 1.8-1.9x the frames/s of 1 thread (tools/bench_odometry.py). OpenCV's own pool

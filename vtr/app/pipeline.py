@@ -8,6 +8,7 @@ import csv
 import dataclasses
 import time
 from collections.abc import Callable, Iterable
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -291,18 +292,19 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         with open(out / "localization.csv", "w", newline="") as loc_file, \
                 LandmarksWriter(out / "landmarks.csv") as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
-            for frame in frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"):
-                with held_signals():            # a frame's vertex, localization and report rows, or none
-                    step = repeat.process_frame(frame)
-                    t_loc += repeat.last_localization_seconds
-                    clog.add(step)
-                    t_ns.append(step.odometry.t_ns)
-                    T_teach.append(step.T_teach_frame)
-                    if step.localization is not None:
-                        loc_csv.write(step.localization)
-                        append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
-                        # keep the numbers, not the per-landmark record: memory stays flat on long routes
-                        locs.append(dataclasses.replace(step.localization, landmarks=None))
+            stream = frames_of(source, indices, repeat.odometry.stereo, progress, "repeat")
+            with closing(repeat.steps(stream)) as steps:    # closed, its localizations done, before the map
+                for step in steps:
+                    with held_signals():                    # a step's report rows, all or none
+                        t_loc += step.localization_seconds
+                        clog.add(step)
+                        t_ns.append(step.odometry.t_ns)
+                        T_teach.append(step.T_teach_frame)
+                        if step.localization is not None:
+                            loc_csv.write(step.localization)
+                            append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
+                            # keep the numbers, not the per-landmark record: memory stays flat on long routes
+                            locs.append(dataclasses.replace(step.localization, landmarks=None))
         m.finish_run()  # every frame is in the map: the run is complete whatever the reports do
         clog.finish()
         state = clog.output(rate_hz)

@@ -1,13 +1,23 @@
 """Repeat on top of odometry, the map and the localization chain.
 
-* ``Repeat``: a program feeds frames one by one; odometry runs on the new run (stored in the same
-  map as a repeat run), and every new keyframe (leaf) is localized against the taught path
-  through the ``LocalizationChain``. ``latest`` is the latest localization.
+* ``Repeat``: a program feeds frames one by one (``process_frame``) or as a stream (``steps``);
+  odometry runs on the new run (stored in the same map as a repeat run), and every new keyframe
+  (leaf) is localized against the taught path through the ``LocalizationChain``. ``latest`` is the
+  latest localization delivered.
+
+Localizing a leaf needs its odometry and the localizations before it, never a later frame's
+odometry, and the odometry never needs a localization: so ``steps`` with 2 or more threads runs each
+new vertex's map write and localization on a thread of their own, in order, while the odometry goes
+on with the next frames. The results are those of ``process_frame`` frame after frame, bit for bit.
 """
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import deque
+from collections.abc import Generator, Iterable
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,10 +42,15 @@ class RepeatStep:
     localization: Localization | None
     vertex_id: int
     T_teach_frame: np.ndarray
+    localization_seconds: float = 0.0     # time spent localizing this frame (0 when it made no vertex)
+
+
+LOCALIZATION_LOOKAHEAD = 2   # frames the odometry may run ahead of the localization thread in ``steps``
 
 
 class Repeat:
-    """Repeat pipeline: feed frames with ``process``; ``latest`` holds the latest localization."""
+    """Repeat pipeline: feed frames with ``process`` / ``process_frame``, or a stream to ``steps``;
+    ``latest`` holds the latest localization delivered."""
 
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0,
                  allow_partial: bool = False):
@@ -51,7 +66,6 @@ class Repeat:
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
-        self.last_localization_seconds = 0.0     # time the latest frame spent localizing (0 if none)
         self._leaf: int | None = None            # map id of the newest repeat vertex
         self._attempts = 0
         self._frames: dict[int, StereoFrame] = {}   # taught frames of the latest submap (kept while it slides)
@@ -62,8 +76,53 @@ class Repeat:
 
     def process_frame(self, frame: StereoFrame) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
-        result = self.odometry.process_frame(frame)
-        loc = None
+        return self._deliver(self._localize_step(self.odometry.process_frame(frame)))
+
+    def steps(self, frames: Iterable[StereoFrame]) -> Generator[RepeatStep, None, None]:
+        """:meth:`process_frame` over ``frames``, in order.
+
+        With ``features.threads`` of 2 or more, the map write and localization of each new vertex run on
+        a thread of their own (in order) while the odometry goes on with up to ``LOCALIZATION_LOOKAHEAD``
+        more frames; steps equal :meth:`process_frame`'s bit for bit. While the stream is open only that
+        thread writes the map; closing it early (an error, Ctrl-C) lets the localization under way finish
+        and drops those not started, and after a failed one (a full disk...) none runs: the vertices in
+        the map are whole and in order.
+        """
+        if self.odometry.stereo.threads <= 1:
+            yield from map(self.process_frame, frames)
+            return
+        failed = threading.Event()
+
+        def in_order(result: OdometryResult) -> RepeatStep:
+            if failed.is_set():                 # an earlier vertex failed: never write a later one
+                raise CancelledError()
+            try:
+                return self._localize_step(result)
+            except BaseException:
+                failed.set()
+                raise
+
+        pending: deque[Future[RepeatStep]] = deque()
+        with ThreadPoolExecutor(1, thread_name_prefix="vtr-localize") as pool:
+            try:
+                for frame in frames:
+                    pending.append(pool.submit(in_order, self.odometry.process_frame(frame)))
+                    while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
+                        yield self._deliver(pending.popleft().result())
+                while pending:
+                    yield self._deliver(pending.popleft().result())
+            finally:
+                for future in pending:
+                    future.cancel()
+
+    def _deliver(self, step: RepeatStep) -> RepeatStep:
+        if step.localization is not None:
+            self.latest = step.localization
+        return step
+
+    def _localize_step(self, result: OdometryResult) -> RepeatStep:
+        """The step of an odometry result: its keyframe written to the map and localized."""
+        loc, seconds = None, 0.0
         vid = self._leaf if self._leaf is not None else -1
         if result.new_keyframe is not None:
             kf = result.new_keyframe
@@ -75,11 +134,8 @@ class Repeat:
             t0 = time.perf_counter()
             with self.timer("localization"):
                 loc = self._localize(v.id, kf)
-            self.last_localization_seconds = time.perf_counter() - t0
-            self.latest = loc
-        else:
-            self.last_localization_seconds = 0.0
-        return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame))
+            seconds = time.perf_counter() - t0
+        return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame), seconds)
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""

@@ -1,0 +1,116 @@
+"""Repeat.steps with 2 threads: localizations on their own thread, in order, the map whole on every way out."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from vtr.app.pipeline import teach_command
+from vtr.config import Config
+from vtr.errors import MapError
+from vtr.io import open_source
+from vtr.map import Map
+from vtr.navigation.repeat import Repeat
+
+FRAMES = list(range(1, 24, 2))
+
+
+@pytest.fixture(scope="module")
+def taught(kitti_clip, tmp_path_factory):
+    path = tmp_path_factory.mktemp("pipeline") / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:24:2", Config())
+    return path
+
+
+def _config(threads: int) -> Config:
+    cfg = Config()
+    cfg.features.threads = threads
+    return cfg
+
+
+def _copy(path, tmp_path, name="route.vtrmap"):
+    dst = tmp_path / name
+    dst.write_bytes(path.read_bytes())
+    return dst
+
+
+def _key(step):
+    loc = step.localization
+    return (step.vertex_id, step.T_teach_frame.tobytes(), step.odometry.T_world_frame.tobytes(),
+            None if loc is None else (loc.trunk_id, loc.inliers, loc.T_leaf_trunk.tobytes(), loc.covariance.tobytes()))
+
+
+def _repeat_vertices_whole(m: Map, run: int) -> list[int]:
+    """The run's vertex ids, checked consecutive and chained by temporal edges (one per consecutive pair)."""
+    ids = [int(i) for i in m.vertex_ids(run)]
+    assert ids == list(range(ids[0], ids[0] + len(ids)))
+    temporal = [(e.from_id, e.to_id) for e in m.edges(run, "temporal")]
+    assert temporal == list(zip(ids[:-1], ids[1:], strict=True))
+    return ids
+
+
+def _threads(prefix: str) -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith(prefix)]
+
+
+def test_steps_on_two_threads_equal_process_frame(kitti_clip, taught, tmp_path):
+    keys, latest = {}, {}
+    for threads in (1, 2):
+        with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path, f"t{threads}.vtrmap"), "a") as m:
+            rp = Repeat(m, _config(threads), "test")
+            frames = rp.odometry.stereo.frames(src.iter_frames(FRAMES))
+            if threads == 1:
+                steps = [rp.process_frame(f) for f in frames]          # the one-frame-at-a-time API
+            else:
+                steps = list(rp.steps(frames))
+            keys[threads] = [_key(s) for s in steps]
+            latest[threads] = rp.latest.T_leaf_trunk.tobytes()
+            assert all(s.localization_seconds > 0 for s in steps if s.localization is not None)
+            m.finish_run()
+            _repeat_vertices_whole(m, rp.run)
+    assert len(keys[1]) == len(FRAMES) and keys[1] == keys[2]
+    assert latest[1] == latest[2]
+    assert not _threads("vtr-localize")
+
+
+def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_path, monkeypatch):
+    """The write of the 4th vertex fails (a full disk): the error comes out at its step, after the three
+    steps before it, and no later vertex is written although the odometry had run ahead."""
+    import time
+
+    real, calls = Map.add_keyframe, []
+
+    def add_keyframe(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            time.sleep(0.5)           # the odometry runs ahead meanwhile: the next vertices wait in the queue
+            raise MapError("disk full (injected)")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Map, "add_keyframe", add_keyframe)
+    with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path), "a") as m:
+        rp = Repeat(m, _config(2), "test")
+        got = []
+        with pytest.raises(MapError, match="disk full"):
+            for step in rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES))):
+                got.append(step.vertex_id)
+        assert len(got) == 3 and len(calls) == 4           # nothing attempted after the failure
+        assert _repeat_vertices_whole(m, rp.run) == got
+        assert [e.from_id for e in m.edges(rp.run, "spatial")] == got
+    assert not _threads("vtr-localize")
+
+
+def test_closing_the_stream_early_leaves_whole_vertices(kitti_clip, taught, tmp_path):
+    with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path), "a") as m:
+        rp = Repeat(m, _config(2), "test")
+        stream = rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES)))
+        got = [next(stream).vertex_id for _ in range(3)]
+        stream.close()                               # as an error or Ctrl-C in the consumer does
+        assert not _threads("vtr-localize")
+        ids = _repeat_vertices_whole(m, rp.run)
+        assert ids[:3] == got and len(ids) <= 3 + 2 + 1     # at most the look-ahead beyond the last step
+        spatial = [e.from_id for e in m.edges(rp.run, "spatial")]
+        assert spatial == ids                        # every written vertex was localized
+    assert np.all(np.diff(got) == 1)
