@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from vtr.app.convert import convert
 from vtr.cli import main
-from vtr.errors import DataError
+from vtr.errors import DataError, OutputError
 from vtr.io import KittiSource, open_source
 from vtr.io.rosbag_writer import BagTopics, write_bag
 from vtr.types import StereoImages
@@ -101,7 +101,7 @@ def test_failed_conversion_leaves_no_output(tmp_path, target, name):
 def test_bad_arguments(tmp_path):
     src = open_source(KITTI)
     (tmp_path / "x.bag").write_bytes(b"")
-    with pytest.raises(DataError, match="already exists"):
+    with pytest.raises(OutputError, match="already exists"):
         convert(src, tmp_path / "x.bag")
     with pytest.raises(DataError, match=r"must end in \.bag"):
         convert(src, tmp_path / "y", to="rosbag1")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from vtr.camera import StereoCamera
-from vtr.errors import CalibrationError, DataError
+from vtr.errors import CalibrationError, DataError, OutputError
 from vtr.io import EurocSource, open_source
 from vtr.io.rosbag import (
     CameraInfoData,
@@ -294,7 +294,7 @@ def test_writer_rejects_bad_input(tmp_path):
             w.add(0, np.zeros((48, 64), np.uint16), np.zeros((48, 64), np.uint16))
         with pytest.raises(DataError, match="negative time"):
             w.add(-1, np.zeros((48, 64), np.uint8), np.zeros((48, 64), np.uint8))
-    with pytest.raises(DataError, match="already exists"):
+    with pytest.raises(OutputError, match="already exists"):
         RosbagWriter(tmp_path / "y.bag", SMALL)
 
 

@@ -12,11 +12,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import DataError, OutputError
+from ..errors import OutputError
 
 
 def check_new_output(path: Path, force: bool = False, *, can_force: bool = True, empty_folder_ok: bool = False) -> None:
-    """Raise ``DataError`` (one line naming ``path``) when ``path`` exists, unless ``force`` (a file is
+    """Raise ``OutputError`` (one line naming ``path``) when ``path`` exists, unless ``force`` (a file is
     then replaced) or it is an empty folder and ``empty_folder_ok``. A folder is never replaced.
     ``can_force`` says whether the command has ``--force`` (the message offers it)."""
     path = Path(path)
@@ -25,10 +25,10 @@ def check_new_output(path: Path, force: bool = False, *, can_force: bool = True,
     if path.is_dir():
         if empty_folder_ok and not any(path.iterdir()):
             return
-        raise DataError(f"{path}: already exists and is a folder (not overwriting)")
+        raise OutputError(f"{path}: already exists and is a folder (not overwriting)")
     if not force:
         hint = "; pass --force to replace it" if can_force else ""
-        raise DataError(f"{path}: already exists (not overwriting{hint})")
+        raise OutputError(f"{path}: already exists (not overwriting{hint})")
 
 
 def check_output_folder(path: Path, option: str = "--out") -> None:

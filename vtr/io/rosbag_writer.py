@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import StereoCamera
 from ..conventions import NS_PER_S
-from ..errors import DataError
+from ..errors import DataError, OutputError
 from ..types import StereoImages
 from .rosbag import (
     _COMPRESSED_FORMATS,
@@ -67,7 +67,7 @@ class RosbagWriter:
             raise DataError(f"encoding {encoding!r} not supported for writing")
         self.path = Path(path)
         if self.path.exists():
-            raise DataError(f"{self.path}: already exists (not overwriting)")
+            raise OutputError(f"{self.path}: already exists (not overwriting)")
         if kind == "rosbag1" and self.path.suffix != ROS1_SUFFIX:
             raise DataError(f"{self.path}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
         self.kind, self.encoding, self.camera = kind, encoding, camera

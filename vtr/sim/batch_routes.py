@@ -2,13 +2,16 @@
 lateral offsets, written as KITTI-layout folders with a ``vtr batch`` manifest beside them; and a
 simulated crash (``KillWorkerOnce``) for testing that a batch survives a worker dying mid-run.
 
-Rendered folders are kept: a folder whose ``times_ns.txt`` exists is not rendered again (written last
-by the KITTI writer), so a benchmark's data is made once.
+Rendered folders are kept: a folder whose ``times_ns.txt`` exists (written last by the KITTI writer) and
+whose ``render_key.txt`` matches what is asked (scene, poses, noise) is not rendered again, so a
+benchmark's data is made once; other parameters (a longer route) render it anew.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import shutil
 import signal
 import threading
 import time
@@ -24,9 +27,19 @@ RAMP_M = 4.0              # a repeat drifts to its lateral offset over this dist
 REPEAT_PHASE_M = 0.5      # repeat frames fall between the taught ones
 
 
-def _sequence(folder: Path, scene, T, noise_seed: int) -> Path:
-    if not (folder / "times_ns.txt").is_file():
-        syn.write_sequence(folder, scene, syn.zed_camera(), T, syn.route_times(T, SPEED_MPS), noise_seed=noise_seed)
+RENDER_KEY = "render_key.txt"
+
+
+def _sequence(folder: Path, scene_index: int, T, noise_seed: int) -> Path:
+    key = hashlib.sha256(f"{scene_index} {noise_seed} {SPEED_MPS} ".encode() + T.tobytes()).hexdigest()
+    if (folder / "times_ns.txt").is_file() and (folder / RENDER_KEY).is_file() \
+            and (folder / RENDER_KEY).read_text().strip() == key:
+        return folder
+    if folder.exists():
+        shutil.rmtree(folder)               # rendered with other parameters (or unfinished)
+    syn.write_sequence(folder, syn.aerial_scene(scene_index), syn.zed_camera(), T, syn.route_times(T, SPEED_MPS),
+                       noise_seed=noise_seed)
+    (folder / RENDER_KEY).write_text(key + "\n")
     return folder
 
 
@@ -37,14 +50,13 @@ def write_batch_routes(root: str | Path, n_routes: int, offsets_m: Sequence[floa
     root = Path(root)
     routes = []
     for k in range(n_routes):
-        scene = syn.aerial_scene(k)
         name = f"route_{k}"
         T_teach = syn.aerial_route(length_m, spacing_m)
-        teach = _sequence(root / name / "teach", scene, T_teach, noise_seed=0)
+        teach = _sequence(root / name / "teach", k, T_teach, noise_seed=0)
         repeats = []
         for j, dy in enumerate(offsets_m):
             T_rep = syn.drifting_aerial_route(length_m - 1.0, spacing_m, dy, 0.0, RAMP_M, REPEAT_PHASE_M)
-            rep = _sequence(root / name / f"rep_{dy:g}m", scene, T_rep, noise_seed=j + 1)
+            rep = _sequence(root / name / f"rep_{dy:g}m", k, T_rep, noise_seed=j + 1)
             repeats.append(str(rep.relative_to(root)))
         routes.append({"name": name, "teach": str(teach.relative_to(root)), "repeats": repeats})
     manifest = root / "manifest.yaml"
