@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -55,14 +55,16 @@ def test_check_se3_rejects_bad_matrices():
 
 
 @given(arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)), st.floats(-12.0, 0.0))
+@example(np.full((6, 6), 1.97899807e-162), 0.0)       # subnormal products: no information, not a broken floor
+@example(np.full((6, 6), 1e-100) + np.eye(6) * 1e-100, 0.0)   # tiny but informative
 def test_usable_covariance_is_the_one_repair_rule(A, log_scale):
     """Symmetric, eigenvalues floored at MIN_EIGENVALUE_RATIO of the largest, unchanged where already fine."""
-    from vtr.geometry import MIN_EIGENVALUE_RATIO, check_covariance, usable_covariance
+    from vtr.geometry import MIN_EIGENVALUE_RATIO, MIN_INFORMATIVE_VARIANCE, check_covariance, usable_covariance
 
     C = 10.0**log_scale * (A @ A.T)
     out = usable_covariance(C)
     w = np.linalg.eigvalsh(0.5 * (C + C.T))
-    if w[-1] <= 0:
+    if w[-1] < MIN_INFORMATIVE_VARIANCE:       # no information (e.g. subnormal entries: found by hypothesis)
         assert out is None and np.array_equal(usable_covariance(C, 100.0), np.eye(6) * 100.0)
         return
     assert out is not None and np.array_equal(out, out.T)

@@ -27,6 +27,9 @@ COVARIANCE_SYMMETRY_RTOL = 1e-9    # |C - C^T| allowed, relative to max |C|
 COVARIANCE_PSD_RTOL = 1e-9         # negative eigenvalue allowed (semi-definite check), relative to the largest
 MAX_COVARIANCE_CONDITION = 1e14    # larger condition numbers are treated as singular (definite check)
 MIN_EIGENVALUE_RATIO = 1e-12       # usable_covariance floors eigenvalues at this fraction of the largest
+# the largest variance of a covariance that carries information: below it (far below any physical variance)
+# the floored eigenvalues would sink into subnormal numbers, where the floor no longer keeps them positive
+MIN_INFORMATIVE_VARIANCE = 1e-200
 POSE_DIM = 6                       # pose tangent dimension [rot, trans]
 QUATERNION_NORM_TOLERANCE = 1e-3   # a quaternion read from a text file is unit to this (else: malformed)
 _I3 = np.eye(3)
@@ -205,8 +208,8 @@ def usable_covariance(C: np.ndarray, unknown_variance: float | None = None) -> n
     ``MIN_EIGENVALUE_RATIO`` times the largest (so it is invertible with a bounded condition number).
 
     An estimate that carries no information (not a finite 6x6 matrix, e.g. NaN from a singular
-    solve, or without a positive eigenvalue) gives ``unknown_variance * I`` when ``unknown_variance``
-    is given (the variance of an edge nothing measured), else ``None``.
+    solve, or without an eigenvalue of at least ``MIN_INFORMATIVE_VARIANCE``) gives ``unknown_variance * I``
+    when ``unknown_variance`` is given (the variance of an edge nothing measured), else ``None``.
     """
     C = np.asarray(C, float)
     unknown = None if unknown_variance is None else np.eye(POSE_DIM) * float(unknown_variance)
@@ -214,7 +217,7 @@ def usable_covariance(C: np.ndarray, unknown_variance: float | None = None) -> n
         return unknown
     C = 0.5 * (C + C.T)
     w, V = np.linalg.eigh(C)
-    if w[-1] <= 0:
+    if not w[-1] >= MIN_INFORMATIVE_VARIANCE:
         return unknown
     C = (V * np.maximum(w, w[-1] * MIN_EIGENVALUE_RATIO)) @ V.T
     return 0.5 * (C + C.T)
