@@ -61,6 +61,11 @@ def check_stereo_images(images: StereoImages, camera: StereoCamera) -> None:
             raise DataError(f"{where}: is {img.shape[1]}x{img.shape[0]} but the camera is {w}x{h}")
 
 
+def _both(extractor: FeatureExtractor) -> Callable[[StereoImages], tuple[Features, Features]]:
+    """Left then right image's features, with one extractor on the calling thread."""
+    return lambda images: (extractor.extract(images.left), extractor.extract(images.right))
+
+
 class StereoProcessor:
     """Turns a rectified stereo pair into a ``StereoFrame``.
 
@@ -118,10 +123,7 @@ class StereoProcessor:
 
     def process(self, images: StereoImages) -> StereoFrame:
         """Features on both images, stereo matches, subpixel disparity, triangulation."""
-        return self._process(images, self._extract_split if self._pool is not None else self._extract_serial)
-
-    def _extract_serial(self, images: StereoImages) -> tuple[Features, Features]:
-        return self.extractor.extract(images.left), self.extractor.extract(images.right)
+        return self._process(images, self._extract_split if self._pool is not None else _both(self.extractor))
 
     def _extract_split(self, images: StereoImages) -> tuple[Features, Features]:
         assert self._pool is not None
@@ -132,7 +134,7 @@ class StereoProcessor:
         extractor = getattr(self._local, "extractor", None)
         if extractor is None:
             extractor = self._local.extractor = FeatureExtractor(self.features_config, self.camera.size)
-        return self._process(images, lambda im: (extractor.extract(im.left), extractor.extract(im.right)))
+        return self._process(images, _both(extractor))
 
     def _process(self, images: StereoImages,
                  extract: Callable[[StereoImages], tuple[Features, Features]]) -> StereoFrame:
