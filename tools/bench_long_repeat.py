@@ -94,8 +94,9 @@ def main() -> None:
     with Map.create(path, camera) as m:
         teach = Teach(m, camera, config, "synthetic circuit")
         rss_teach, t0 = {}, time.perf_counter()
-        for k, images in enumerate(tqdm(frames(teach_lap, args.laps), total=total, desc="teach", unit="frame")):
-            teach.process(images)
+        stream = teach.odometry.stereo.frames(frames(teach_lap, args.laps))     # as `vtr teach` runs it
+        for k, frame in enumerate(tqdm(stream, total=total, desc="teach", unit="frame")):
+            teach.process_frame(frame)
             if k + 1 == EARLY_KEYFRAMES:
                 rss_teach["early"] = rss_mb()
         vertices = teach.finish()
@@ -106,8 +107,8 @@ def main() -> None:
     with Map.open(path, "a") as m:
         rp = Repeat(m, config, "synthetic circuit, 1 m left")
         rss_repeat, attempts, localized, t0 = {}, 0, 0, time.perf_counter()
-        for k, images in enumerate(tqdm(frames(repeat_lap, args.laps), total=total, desc="repeat", unit="frame")):
-            step = rp.process(images)
+        steps = rp.steps(rp.odometry.stereo.frames(frames(repeat_lap, args.laps)))   # as `vtr repeat` runs it
+        for k, step in enumerate(tqdm(steps, total=total, desc="repeat", unit="frame")):
             if step.localization is not None:
                 attempts += 1
                 localized += step.localization.success
