@@ -207,12 +207,36 @@ class LocalizationConfig:
 
     ransac_iterations: int = setting(6000, Range(1, 1_000_000, integer=True))
     ransac_threshold_px: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))
-    min_inliers: int = setting(6, Range(3, 100_000, integer=True))  # fewer: localization failure
-    # before the first success (no trusted prior) demand this many
-    min_inliers_unlocalized: int = setting(20, Range(3, 100_000, integer=True))
-    min_matches: int = setting(20, Range(3, 1_000_000, integer=True))  # fewer candidate matches: do not try
+    # fewer inliers: not a success. 30 is the perception constraint's L_min (thesis §7.4): a success the
+    # controller counts on has at least the inliers the controller plans for
+    min_inliers: int = setting(30, Range(3, 100_000, integer=True))
+    # searching (the start of a repeat, after a loss: unguided matches against a place candidate) demand this many
+    min_inliers_unlocalized: int = setting(60, Range(3, 100_000, integer=True))
+    min_matches: int = setting(30, Range(3, 1_000_000, integer=True))  # fewer candidate matches: do not try
     # fewer inliers per match: a chance alignment, reported as failure
     min_inlier_ratio: float = setting(0.4, Range(0.0, 1.0))
+    # median reprojection error of the inliers (px, the worse of the taught and the leaf view) above this does not
+    # fit the pixel noise: a chance alignment spreads its inliers up to the RANSAC threshold
+    max_median_residual_px: float = setting(2.5, Range(0.0, 1000.0, lo_open=True))
+    # the bundle adjustment's covariance (pixel noise only, after the residuals' variance factor) times this: the
+    # taught landmarks' own errors are not in it. Set so the reported sigma covers the error against ground truth
+    covariance_scale: float = setting(4.0, Range(0.0, 1e6, lo_open=True))
+    # chi-square gate (6 dof) on the innovation of a localization against the odometry-propagated prior, and
+    # between two keyframes' place candidates before the first success: 22.46 = 99.9 %
+    innovation_gate: float = setting(22.46, Range(0.0, 1e9, lo_open=True))
+    # floor of the prior's standard deviation (model errors odometry's covariance leaves out)
+    prior_floor_translation_m: float = setting(0.05, Range(0.0, 1000.0))
+    prior_floor_rotation_deg: float = setting(0.5, Range(0.0, 180.0))
+    # the chain is lost (place recognition again) after this many failures in a row, or this far since the last
+    # success, or at once when odometry failed in between
+    lost_after_failures: int = setting(3, Range(1, 1_000_000, integer=True))
+    lost_after_distance_m: float = setting(10.0, Range(0.0, 1e6, lo_open=True))
+    # a pose further than this beyond either end of the taught route is off the route: not localized
+    off_route_distance_m: float = setting(3.0, Range(0.0, 1e6))
+    # along-track motion between successive localizations that decides the direction of travel
+    direction_min_step_m: float = setting(0.2, Range(0.0, 1e6))
+    # while localized, every this many keyframes place recognition checks that no other place fits better
+    place_check_every: int = setting(10, Range(1, 1_000_000, integer=True))
     match_radius_px: float = setting(30.0, RADIUS_PX)  # search radius around the prior's prediction
     # ... times this per consecutive failure (the prior grows uncertain)
     match_radius_growth: float = setting(2.0, Range(1.0, 100.0))
@@ -226,6 +250,18 @@ class LocalizationConfig:
     # teach even / repeat odd on kitti00_ramp_clip, T_leaf_trunk median over four feature variants:
     # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
+
+
+@dataclass
+class PlaceConfig:
+    """Place recognition over the taught vertices (vtr/navigation/place.py): a bag of binary ORB words."""
+
+    # vocabulary: a two-level tree of k-majority clusters, this many nodes per level (branching^2 words)
+    branching: int = setting(32, Range(2, 256, integer=True))
+    # taught descriptors sampled to learn the vocabulary (spread evenly over the vertices), clustering iterations
+    training_descriptors: int = setting(50_000, Range(2, 100_000_000, integer=True))
+    training_iterations: int = setting(6, Range(0, 1000, integer=True))
+    candidates: int = setting(3, Range(1, 1000, integer=True))  # best-scoring vertices verified geometrically
 
 
 @dataclass
@@ -295,6 +331,7 @@ class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
+    place: PlaceConfig = field(default_factory=PlaceConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     map: MapConfig = field(default_factory=MapConfig)
     control: ControlConfig = field(default_factory=ControlConfig)

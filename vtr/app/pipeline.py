@@ -191,7 +191,7 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
 LOCALIZATION_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers",
                            "x", "y", "z", "qx", "qy", "qz", "qw",
                            "var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z",
-                           "consecutive_failures", "distance_since_success_m")
+                           "consecutive_failures", "distance_since_success_m", "status", "direction")
 
 
 @dataclass(frozen=True)
@@ -245,7 +245,8 @@ class LocalizationWriter:
         var = np.diag(loc.covariance)
         self._csv.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, int(loc.success),
                             loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
-                            loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}"])
+                            loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}", loc.status.value,
+                            loc.direction])
 
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:

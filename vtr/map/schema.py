@@ -16,6 +16,9 @@ Tables:
   (:mod:`vtr.map.codec`, blob magic ``VTRV\\x02``: feature count, raw descriptors, then zlib of
   uv, octave, u_right and points).
 - ``edges``: ``T_from_to`` (128-byte blob), ``covariance`` (6x6, 288-byte blob), kind, inliers.
+- ``derived(key, data)``: data computed from the vertices that can be rebuilt at any time, created when first
+  written (older maps have none): ``place_index/<run>`` is the taught run's place-recognition index
+  (``vtr.navigation.place``).
 
 Triggers make vertices, vertex data and edges append-only, let a run's state only leave
 ``running`` (never come back or change again), and refuse new vertices or temporal edges in a
@@ -27,6 +30,8 @@ from __future__ import annotations
 
 MATRIX4_BYTES = 16 * 8
 MATRIX6_BYTES = 36 * 8
+
+DERIVED_TABLE = "CREATE TABLE IF NOT EXISTS derived (key TEXT PRIMARY KEY, data BLOB NOT NULL) WITHOUT ROWID"
 
 SCHEMA = f"""
 CREATE TABLE meta (

@@ -75,7 +75,7 @@ from .records import (
     split_vertex_id,
     vertex_id,
 )
-from .schema import SCHEMA
+from .schema import DERIVED_TABLE, SCHEMA
 
 if TYPE_CHECKING:
     from ..types import Keyframe, StereoFrame
@@ -937,6 +937,27 @@ class Map:
         with self._db() as conn:
             self._run_row(conn, run)
         return run
+
+    # ------------------------------------------------------------ derived data
+
+    def derived(self, key: str) -> bytes | None:
+        """Derived data stored under ``key`` (e.g. the taught route's place index), None when absent.
+
+        Derived data (table ``derived``) is computed from the vertices and may be rebuilt from them at any
+        time: a map written before a kind of derived data existed simply has none.
+        """
+        with self._db() as conn:
+            if conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'derived'").fetchone() is None:
+                return None
+            row = conn.execute("SELECT data FROM derived WHERE key = ?", (str(key),)).fetchone()
+        return None if row is None else bytes(row[0])
+
+    def put_derived(self, key: str, data: bytes) -> None:
+        """Store (or replace) derived data under ``key``; needs a map opened for writing."""
+        self._check_writable()
+        with self._tx() as conn:
+            conn.execute(DERIVED_TABLE)
+            conn.execute("INSERT OR REPLACE INTO derived(key, data) VALUES (?, ?)", (str(key), sqlite3.Binary(data)))
 
     def stats(self) -> dict:
         """Counts and size: runs, vertices, features, landmarks, edges (and by kind), bytes on disk."""

@@ -21,6 +21,7 @@ chain only ever composes transforms between adjacent frames, so the two worlds n
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -28,12 +29,25 @@ from perception_model.landmarks_file import Observations
 
 from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
-from ..geometry import inv_T, log_se3
-from ..map import TaughtPath
+from ..geometry import inv_T
 from ..types import StereoFrame
 from ..vo.estimation import bundle_adjust, odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
 from ..vo.matching import match_landmarks
+
+
+class LocalizationStatus(StrEnum):
+    """Outcome of one localization attempt, as ``localization.csv``'s ``status`` column says it."""
+
+    LOCALIZED = "localized"                   # a success: consistent, and (when searching) confirmed
+    UNCONFIRMED = "unconfirmed"               # verified against a place candidate, waiting for the next keyframe
+    NO_CANDIDATES = "no_candidates"           # place recognition found no taught vertex that verified
+    TOO_FEW_MATCHES = "too_few_matches"       # fewer candidate matches than localization.min_matches
+    TOO_FEW_INLIERS = "too_few_inliers"       # fewer inliers than localization.min_inliers (or _unlocalized)
+    LOW_INLIER_RATIO = "low_inlier_ratio"     # inliers / matches below localization.min_inlier_ratio
+    RESIDUALS = "residuals_inconsistent"      # inlier residuals do not fit the pixel noise model
+    INCONSISTENT = "inconsistent_with_odometry"   # outside the innovation gate of the odometry-propagated prior
+    OFF_ROUTE = "off_route"                   # beyond either end of the taught route
 
 
 @dataclass(frozen=True)
@@ -45,6 +59,8 @@ class Localization:
     twig and branch *before* this attempt (-1 before the first success). ``landmarks`` holds the
     taught landmarks in the leaf's view as the ``landmarks.csv`` record (``perception_model``'s
     ``Observations``: one row per landmark, angles in radians), written as is by ``vtr repeat``.
+    ``status`` says why an attempt failed; ``direction`` is the chain's direction of travel along the
+    taught path after this attempt.
     """
 
     t_ns: int
@@ -60,88 +76,11 @@ class Localization:
     consecutive_failures: int
     distance_since_success_m: float
     landmarks: Observations | None = None
+    status: LocalizationStatus = LocalizationStatus.LOCALIZED
+    direction: int = 1                      # +1 the route travelled as taught, -1 backward
 
 
-def pose_distance(T: np.ndarray, rotation_weight: float) -> float:
-    """Trunk-search metric ``||rho|| + w ||phi||`` of a relative transform (m and rad)."""
-    xi = log_se3(T)
-    return float(np.linalg.norm(xi[3:]) + rotation_weight * np.linalg.norm(xi[:3]))
-
-
-class LocalizationChain:
-    """Bookkeeping of trunk/branch/twig/leaf and the prior ``T_l_t`` (no image work here).
-
-    The chain owns the taught ``path`` (:class:`~vtr.map.TaughtPath`); ``trunk`` and ``branch`` are
-    indices along it. The current path is described by the repeat odometry poses handed to ``prior``
-    and ``update``; :meth:`T_teach` places any repeat pose in the teach frame through the chain.
-    """
-
-    def __init__(self, path: TaughtPath, config: LocalizationConfig, start_index: int = 0):
-        if len(path) == 0:
-            raise ValueError("the privileged path is empty")
-        self.path = path
-        self.config = config
-        self.trunk = start_index                 # index along the privileged path
-        # Until the first success the chain assumes the repeat starts at the taught vertex
-        # ``start_index``: a virtual twig (the repeat's first camera) on a virtual branch.
-        self.branch = start_index                # index of the branch on the privileged path
-        self.localized = False
-        self.twig_id: int = -1
-        self.T_world_twig = np.eye(4)            # twig pose in the repeat run's world
-        self.T_twig_branch = np.eye(4)
-        self.consecutive_failures = 0
-        self.distance_since_success = 0.0
-        self._last_leaf_position: np.ndarray | None = None
-
-    @property
-    def branch_id(self) -> int:
-        """Map id of the branch (-1 before the first successful localization)."""
-        return int(self.path.ids[self.branch]) if self.localized else -1
-
-    def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
-        """A repeat camera pose (repeat run's world) in the teach frame, through twig and branch:
-        ``T_teach_branch @ T_branch_twig @ T_twig_world @ T_world_frame``."""
-        T_teach_branch = self.path.T_world_vertex[self.branch]
-        return T_teach_branch @ inv_T(self.T_twig_branch) @ inv_T(self.T_world_twig) @ T_world_frame
-
-    def T_teach_localized(self, trunk_id: int, T_leaf_trunk: np.ndarray) -> np.ndarray:
-        """The teach-frame pose of a leaf localized against taught vertex ``trunk_id``:
-        ``T_teach_trunk @ inv(T_leaf_trunk)`` (what :meth:`T_teach` gives at that leaf right after the success)."""
-        return self.path.T_world_vertex[self.path.index(trunk_id)] @ inv_T(T_leaf_trunk)
-
-    def prior(self, T_world_leaf: np.ndarray) -> tuple[int, np.ndarray]:
-        """Trunk index and prior ``T_leaf_trunk`` for a leaf at repeat-odometry pose ``T_world_leaf``.
-
-        The trunk is searched in a window around the previous one along the path.
-        """
-        if self._last_leaf_position is not None:
-            self.distance_since_success += float(np.linalg.norm(T_world_leaf[:3, 3] - self._last_leaf_position))
-        self._last_leaf_position = T_world_leaf[:3, 3].copy()
-        T_l_b = inv_T(T_world_leaf) @ self.T_world_twig @ self.T_twig_branch
-        c = self.config
-        lo, hi = self.path.window(self.trunk, c.trunk_window_back, c.trunk_window_forward)
-        candidates = np.arange(lo, hi)
-        T_priv = self.path.T_world_vertex
-        T_l_v = T_l_b @ inv_T(T_priv[self.branch]) @ T_priv[candidates]
-        cost = [pose_distance(T, c.rotation_weight) for T in T_l_v]
-        best = int(np.argmin(cost))
-        self.trunk = int(candidates[best])
-        return self.trunk, T_l_v[best]
-
-    def update(self, leaf_id: int, T_world_leaf: np.ndarray, trunk: int, T_leaf_trunk: np.ndarray | None) -> None:
-        """After an attempt: on success twig/branch move to leaf/trunk; on failure odometry carries the chain."""
-        if T_leaf_trunk is None:
-            self.consecutive_failures += 1
-            return
-        self.localized = True
-        self.twig_id = leaf_id
-        self.T_world_twig = T_world_leaf
-        self.branch = trunk
-        self.trunk = trunk
-        self.T_twig_branch = T_leaf_trunk
-        self.consecutive_failures = 0
-        self.distance_since_success = 0.0
-
+STEREO_ROWS = 3   # measured rows of a stereo observation (u_l, v, u_r)
 
 #: a stored landmark whose depth differs from its own triangulation by more than this disparity was refined
 REFINED_DISPARITY_TOLERANCE_PX = 1e-6
@@ -219,11 +158,22 @@ class LocalizationEstimate:
     matches: int
     matched: np.ndarray
     inlier: np.ndarray
+    status: LocalizationStatus = LocalizationStatus.LOCALIZED
+    median_residual_px: float = float("nan")   # median reprojection error of the inliers (worse of the two views)
+
+    @property
+    def ok(self) -> bool:
+        return self.T_leaf_trunk is not None
+
+    @property
+    def inliers(self) -> int:
+        return int(self.inlier.sum())
 
     @classmethod
-    def failed(cls, matched: np.ndarray, inlier: np.ndarray | None = None) -> LocalizationEstimate:
+    def failed(cls, matched: np.ndarray, status: LocalizationStatus, inlier: np.ndarray | None = None,
+               median_residual_px: float = float("nan")) -> LocalizationEstimate:
         return cls(None, np.full((6, 6), np.nan), len(matched), matched,
-                   np.zeros(len(matched), bool) if inlier is None else inlier)
+                   np.zeros(len(matched), bool) if inlier is None else inlier, status, median_residual_px)
 
 
 class Localizer:
@@ -240,30 +190,43 @@ class Localizer:
                  seed: int = 0, trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:
         """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
 
-        Without a trusted prior (before the first success) a localization needs
+        Without a trusted prior (searching: the start, after a loss) a localization needs
         ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong. The search
         radius around the prior's prediction grows with the failures since the last success, as the
-        prior (odometry since then) grows less certain.
+        prior (odometry since then) grows less certain. An estimate is refused (with its reason) unless
+        it has enough inliers, enough inliers per match, and inlier residuals that fit the pixel noise
+        (median at most ``max_median_residual_px``); its covariance is scaled by the residuals' variance
+        factor when they are wider than the noise model says.
         """
         c = self.config
+        S = LocalizationStatus
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
         radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
         li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
-            return LocalizationEstimate.failed(li)
+            return LocalizationEstimate.failed(li, S.TOO_FEW_MATCHES)
         rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
                         c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
         if rs is None or len(rs.inliers) < min_inliers:
-            return LocalizationEstimate.failed(li)
+            return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS)
         sel = rs.inliers
         depth = submap.points_trunk[li[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         sel = sel[depth > MIN_DEPTH_M]
-        T, cov, ok = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
+        T, cov, ok, err_sq = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
         inlier = np.zeros(len(li), bool)
         inlier[sel[ok]] = True
-        if inlier.sum() < max(min_inliers, c.min_inlier_ratio * len(li)):
-            return LocalizationEstimate.failed(li, inlier)
-        return LocalizationEstimate(T, cov, len(li), li, inlier)
+        n_in = int(inlier.sum())
+        median_px = float(np.sqrt(np.median(err_sq[ok]))) if n_in else float("nan")
+        if n_in < min_inliers:
+            return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS, inlier, median_px)
+        if n_in < c.min_inlier_ratio * len(li):
+            return LocalizationEstimate.failed(li, S.LOW_INLIER_RATIO, inlier, median_px)
+        if not median_px <= c.max_median_residual_px:
+            return LocalizationEstimate.failed(li, S.RESIDUALS, inlier, median_px)
+        # a posteriori variance factor of the inlier rows (per measured row, in units of the pixel sigma)
+        factor = float(np.mean(err_sq[ok])) / (STEREO_ROWS * self.pixel_sigma**2)
+        cov = cov * max(1.0, factor) * c.covariance_scale
+        return LocalizationEstimate(T, cov, len(li), li, inlier, S.LOCALIZED, median_px)
 
     def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
                 T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -289,8 +252,9 @@ class Localizer:
                             np.r_[submap.slot[landmarks], np.full(n, V)], np.r_[np.arange(n), np.arange(n)],
                             np.nan_to_num(np.concatenate([z_taught, z_leaf])), w, self.camera, self.pixel_sigma,
                             o.huber_px, o.refine_iterations)
-        inlier = np.maximum(res.error_sq[:n], res.error_sq[n:]) <= self.config.ransac_threshold_px**2
-        return res.T_cam_world[V], res.pose_covariance[V], inlier
+        err_sq = np.maximum(res.error_sq[:n], res.error_sq[n:])
+        inlier = err_sq <= self.config.ransac_threshold_px**2
+        return res.T_cam_world[V], res.pose_covariance[V], inlier, err_sq
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         return odometry_row_weights(z, self.camera, self.odometry)

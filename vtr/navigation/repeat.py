@@ -25,9 +25,11 @@ import numpy as np
 from ..config import Config
 from ..geometry import inv_T, usable_covariance
 from ..map import Map
-from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
-from .localization import Localization, LocalizationChain, Localizer, TaughtSubmap, landmark_record
+from .chain import ChainLocalizer, LocalizationChain
+from .localization import Localization, Localizer, TaughtSubmap, landmark_record
+from .place import route_place_index
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,7 @@ class RepeatStep:
     localization_seconds: float = 0.0     # time spent localizing this frame (0 when it made no vertex)
 
 
+SUBMAP_FRAMES_KEPT = 64     # taught frames held for submaps before the cache starts again (memory stays flat)
 LOCALIZATION_LOOKAHEAD = 2   # frames the odometry may run ahead of the localization thread in ``steps``
 
 
@@ -52,23 +55,30 @@ class Repeat:
     """Repeat pipeline: feed frames with ``process`` / ``process_frame``, or a stream to ``steps``;
     ``latest`` holds the latest localization delivered."""
 
-    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int = 0,
+    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int | None = None,
                  allow_partial: bool = False):
-        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``."""
+        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``.
+
+        ``start_index`` (optional) is a hint: the taught vertex (path index) the repeat starts near. Without
+        it place recognition finds where on the route the repeat is; with it that vertex is tried first.
+        """
         config.validate()
         self.map = map_
         self.camera = map_.camera
         self.config = config
         map_.check_taught_route(allow_partial)
-        self.chain = LocalizationChain(map_.taught_path(), config.localization, start_index)
+        self.chain = LocalizationChain(map_.taught_path(), config, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
+        self.place = route_place_index(map_, config.place, config.odometry.seed)
+        self.locator = ChainLocalizer(self.chain, self.localizer, self.place, self._submap, config)
+        self._odometry_broken = False             # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
-        self._attempts = 0
-        self._frames: dict[int, StereoFrame] = {}   # taught frames of the latest submap (kept while it slides)
+        self._frames: dict[int, StereoFrame] = {}   # taught frames of recent submaps (kept while they slide)
+        self._submaps: dict[int, TaughtSubmap] = {}
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Stereo-process a rectified pair, then :meth:`process_frame`."""
@@ -124,6 +134,8 @@ class Repeat:
         """The step of an odometry result: its keyframe written to the map and localized."""
         loc, seconds = None, 0.0
         vid = self._leaf if self._leaf is not None else -1
+        if result.kind == FrameKind.FAILURE:
+            self._odometry_broken = True
         if result.new_keyframe is not None:
             kf = result.new_keyframe
             with self.timer("map_write"):
@@ -144,31 +156,43 @@ class Repeat:
     def _localize(self, leaf_id: int, kf: Keyframe) -> Localization:
         c = self.chain
         twig, branch = c.twig_id, c.branch_id
-        trunk, T_prior = c.prior(kf.T_world_kf)
-        submap = self._submap(trunk)
-        self._attempts += 1
-        est = self.localizer.localize(kf.frame, submap, T_prior, seed=self.config.odometry.seed + self._attempts,
-                                      trusted_prior=c.localized, consecutive_failures=c.consecutive_failures)
-        trunk_id = int(c.path.ids[trunk])
-        T = est.T_leaf_trunk
-        n_inliers = int(est.inlier.sum()) if T is not None else 0
-        if T is not None:
+        broken, self._odometry_broken = self._odometry_broken, False
+        attempt = self.locator.localize(leaf_id, kf, broken)
+        est = attempt.estimate
+        trunk_id = int(c.path.ids[attempt.trunk])
+        covariance = est.covariance
+        if attempt.success:
+            assert est.T_leaf_trunk is not None
             covariance = usable_covariance(est.covariance, self.config.odometry.failure_variance)
-            self.map.add_edge(leaf_id, trunk_id, T, covariance, "spatial", n_inliers)
-        c.update(leaf_id, kf.T_world_kf, trunk, T)
-        T_used = T if T is not None else T_prior
-        record = landmark_record(self._frames[trunk_id], T_used, self.camera, submap.trunk_features(est.matched),
-                                 submap.trunk_features(est.matched[est.inlier]), t_ns=kf.t_ns, leaf_id=leaf_id,
-                                 trunk_id=trunk_id)
-        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, T is not None, est.matches, n_inliers, T_used,
-                            est.covariance, c.consecutive_failures, c.distance_since_success, record)
+            self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
+        record = None
+        if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
+            sub = self._submap(attempt.trunk)
+            record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
+                                     sub.trunk_features(est.matched), sub.trunk_features(est.matched[est.inlier]),
+                                     t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
+        s = c.state
+        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, attempt.success, est.matches, est.inliers,
+                            attempt.T_report, covariance, s.consecutive_failures, s.distance_since_success_m, record,
+                            attempt.status, s.direction)
 
     def _submap(self, trunk: int) -> TaughtSubmap:
-        """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap."""
+        """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap (the submaps of
+        the latest leaf's attempts are kept, and the taught frames they use)."""
+        sub = self._submaps.get(trunk)
+        if sub is not None:
+            return sub
         path, n = self.chain.path, self.config.localization.neighbour_vertices
         slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(path.ids)))
         ids = [int(i) for i in path.ids[slots]]
-        self._frames = {i: self._frames.get(i) or self.map.vertex(i).frame for i in ids}
+        if len(self._frames) > SUBMAP_FRAMES_KEPT:
+            self._frames = {}
+            self._submaps = {}
+        for i in ids:
+            if i not in self._frames:
+                self._frames[i] = self.map.vertex(i).frame
         T_vertex_trunk = inv_T(path.T_world_vertex[slots]) @ path.T_world_vertex[trunk]
-        return TaughtSubmap.build([self._frames[i] for i in ids], path.ids[slots], T_vertex_trunk,
-                                  int(np.flatnonzero(slots == trunk)[0]), self.camera)
+        sub = TaughtSubmap.build([self._frames[i] for i in ids], path.ids[slots], T_vertex_trunk,
+                                 int(np.flatnonzero(slots == trunk)[0]), self.camera)
+        self._submaps[trunk] = sub
+        return sub

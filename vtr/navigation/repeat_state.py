@@ -66,7 +66,7 @@ from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
-from .localization import LocalizationChain
+from .chain import LocalizationChain
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],

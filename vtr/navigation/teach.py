@@ -12,6 +12,7 @@ from ..camera import StereoCamera
 from ..config import Config
 from ..errors import MapError
 from ..map import Map
+from .place import route_place_index
 from ..map.store import abort_reason
 from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
@@ -26,6 +27,8 @@ class Teach:
         self.odometry = StereoOdometry(camera, config, keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._unknown_variance = config.odometry.failure_variance
+        self._place = config.place
+        self._seed = config.odometry.seed
         self.vertices = 0
 
     def process(self, images: StereoImages) -> OdometryResult:
@@ -46,6 +49,7 @@ class Teach:
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
         self.map.finish_run()
+        route_place_index(self.map, self._place, self._seed)   # where-am-I index of the route, stored in the map
         return self.vertices
 
     def abort(self, exc: BaseException) -> int:

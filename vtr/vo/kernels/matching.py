@@ -165,3 +165,38 @@ def all_pairs_match(q_desc, t_desc, max_distance, ratio, mutual):
         if bj != NO_MATCH and best <= max_distance and (ratio >= 1.0 or best < ratio * second):
             best_j[q], best_d[q] = bj, best
     return _finish(best_j, best_d, best_gap, n_t, mutual)
+
+
+@njit(cache=True, nogil=True)
+def nearest(a, b):
+    """Index (N,) of the nearest row of ``b`` (K, 4) to each row of ``a`` (N, 4) (Hamming; ties: lower index)."""
+    out = np.empty(a.shape[0], np.int64)
+    for i in range(a.shape[0]):
+        best, best_d = 0, 1 << 30
+        for j in range(b.shape[0]):
+            d = hamming(a, i, b, j)
+            if d < best_d:
+                best, best_d = j, d
+        out[i] = best
+    return out
+
+
+@njit(cache=True, nogil=True)
+def nearest_in_tree(a, top, leaves, branching):
+    """Leaf word (N,) of each descriptor of ``a`` (N, 4) in a two-level tree: the nearest of the ``top`` nodes
+    (T, 4), then the nearest of that node's ``branching`` leaves (``leaves`` (T * branching, 4), node t's at
+    ``t * branching ...``)."""
+    out = np.empty(a.shape[0], np.int64)
+    for i in range(a.shape[0]):
+        t, t_d = 0, 1 << 30
+        for j in range(top.shape[0]):
+            d = hamming(a, i, top, j)
+            if d < t_d:
+                t, t_d = j, d
+        best, best_d = t * branching, 1 << 30
+        for j in range(t * branching, (t + 1) * branching):
+            d = hamming(a, i, leaves, j)
+            if d < best_d:
+                best, best_d = j, d
+        out[i] = best
+    return out

@@ -1,0 +1,412 @@
+"""The localization chain and the decision what a leaf's localization is worth (docs/localization.md).
+
+The chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
+
+    privileged (teach) path   o────o────b────o────o────t────o────o───▶
+                                        ▲                ▲
+                                 T_w_b  │                │  T_l_t  (estimated at each new leaf)
+                                        │                │
+    current (repeat) path          o────w────o────o────l
+                               w: twig (last localized repeat vertex), b: branch (its trunk),
+                               l: leaf (newest repeat vertex),  t: trunk (closest taught vertex)
+
+    prior      T_l_t = T_l_w @ T_w_b @ T_b_t
+               (odometry along the repeat path, last localization, the taught path)
+
+Two modes. **Tracking** (localized, odometry intact since): the trunk is searched around the previous one
+in the direction of travel, the leaf matched guided by the prior, and the estimate accepted only inside a
+chi-square gate on its innovation against the prior (both covariances). **Searching** (the start of a
+repeat, odometry broken, ``lost_after_failures`` failures in a row or ``lost_after_distance_m`` since the
+last success): place recognition proposes taught vertices, each verified by unguided matching against its
+landmarks; a verified candidate is only *unconfirmed* until the next keyframe's candidate agrees with it
+through odometry (the same gate). Anywhere, a pose beyond either end of the route is *off the route*.
+
+Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's first camera
+frame; those of repeat vertices in the repeat run's own first camera frame; the chain only composes
+transforms between adjacent frames, so the two worlds never mix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+from ..errors import MapError
+from ..geometry import inv_T, log_se3
+from ..map import TaughtPath
+from ..state.smoothing import adjoint
+from ..types import Keyframe
+from .localization import Localization, LocalizationEstimate, LocalizationStatus, Localizer, TaughtSubmap
+from .place import PlaceIndex
+from .trunk import BACKWARD, FORWARD, select_trunk, trunk_window
+
+S = LocalizationStatus
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A verified but unconfirmed localization (searching): leaf pose in the repeat world, trunk, estimate."""
+
+    leaf_id: int
+    T_world_leaf: np.ndarray
+    trunk: int
+    T_leaf_trunk: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class ChainState:
+    """The chain between two leaves (read-only; the chain replaces it after each attempt).
+
+    ``tracking``: localized with odometry intact since; ``trunk``/``branch`` path indices (branch -1 before
+    the first success); ``T_world_twig`` the twig's repeat-world pose and ``T_twig_branch`` its localization
+    with ``twig_covariance``; ``direction`` +1 along the taught path, -1 against it.
+    """
+
+    tracking: bool = False
+    trunk: int = 0
+    branch: int = -1
+    twig_id: int = -1
+    T_world_twig: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    T_twig_branch: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    twig_covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(6))
+    consecutive_failures: int = 0
+    distance_since_success_m: float = 0.0
+    direction: int = FORWARD
+    last_position: np.ndarray | None = None
+    candidate: Candidate | None = None
+    leaves_since_check: int = 0
+    along_track_m: float | None = None       # of the last success
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The chain's prediction for a leaf: trunk (path index), ``T_leaf_trunk`` and its 6x6 covariance."""
+
+    trunk: int
+    T_leaf_trunk: np.ndarray
+    covariance: np.ndarray
+
+
+def innovation_chi2(T_est: np.ndarray, P_est: np.ndarray, T_pred: np.ndarray, P_pred: np.ndarray) -> float:
+    """Squared Mahalanobis length of ``log(T_est inv(T_pred))`` (left perturbations, [rot, trans]) under
+    ``P_est + P_pred``; inf when it cannot be computed."""
+    xi = log_se3(np.asarray(T_est) @ inv_T(np.asarray(T_pred)))
+    S_ = np.asarray(P_est) + np.asarray(P_pred)
+    try:
+        value = float(xi @ np.linalg.solve(S_, xi))
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return value if np.isfinite(value) else float("inf")
+
+
+class LocalizationChain:
+    """Trunk/branch/twig/leaf bookkeeping over the taught ``path`` with a read-only :class:`ChainState`."""
+
+    def __init__(self, path: TaughtPath, config: Config, start_index: int | None = None):
+        if len(path) == 0:
+            raise MapError("the privileged path is empty")
+        if start_index is not None and not 0 <= int(start_index) < len(path):
+            raise MapError(f"start vertex {start_index} is not on the taught path (0..{len(path) - 1})")
+        self.path = path
+        self.config = config.localization
+        self._drift = config.smoothing
+        self.start_index = None if start_index is None else int(start_index)
+        self.state = ChainState(trunk=self.start_index or 0)
+        self._arc = path.arc_length_m()
+
+    # -- read-only views ---------------------------------------------------------------------------
+
+    @property
+    def localized(self) -> bool:
+        return self.state.tracking
+
+    @property
+    def trunk(self) -> int:
+        return self.state.trunk
+
+    @property
+    def branch_id(self) -> int:
+        """Map id of the branch (-1 before the first successful localization)."""
+        return int(self.path.ids[self.state.branch]) if self.state.branch >= 0 else -1
+
+    @property
+    def twig_id(self) -> int:
+        return self.state.twig_id
+
+    def window(self, trunk: int) -> tuple[int, int]:
+        """Trunk-search window (path indices, hi exclusive) around ``trunk`` in the direction of travel."""
+        c = self.config
+        return trunk_window(trunk, len(self.path), c.trunk_window_back, c.trunk_window_forward, self.state.direction)
+
+    def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
+        """A repeat camera pose (repeat run's world) in the teach frame, through twig and branch (before the
+        first success: as if the repeat started at the hint vertex, or the route's first)."""
+        s = self.state
+        T_teach_branch = self.path.T_world_vertex[s.branch if s.branch >= 0 else (self.start_index or 0)]
+        return T_teach_branch @ inv_T(s.T_twig_branch) @ inv_T(s.T_world_twig) @ T_world_frame
+
+    def T_teach_localized(self, trunk_id: int, T_leaf_trunk: np.ndarray) -> np.ndarray:
+        """Teach-frame pose of a leaf localized against taught vertex ``trunk_id``: ``T_teach_trunk @ inv(T_leaf_trunk)``."""
+        return self.path.T_world_vertex[self.path.index(trunk_id)] @ inv_T(T_leaf_trunk)
+
+    # -- geometry on the route ---------------------------------------------------------------------
+
+    def along_track_m(self, trunk: int, T_leaf_trunk: np.ndarray) -> float:
+        """Arc length along the taught path of a leaf localized against ``trunk`` (its projection on the
+        tangent at the trunk)."""
+        p = (self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[:3, 3]
+        return float(self._arc[trunk] + (p - self.path.positions[trunk]) @ self._tangent(trunk))
+
+    def beyond_end_m(self, trunk: int, T_leaf_trunk: np.ndarray) -> float:
+        """How far (m) a leaf localized against ``trunk`` lies beyond the nearer end of the route (<= 0 inside)."""
+        p = (self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[:3, 3]
+        P = self.path.positions
+        if len(P) < 2:
+            return float(np.linalg.norm(p - P[0]))
+        return float(max((p - P[-1]) @ self._tangent(len(P) - 1), (p - P[0]) @ -self._tangent(0)))
+
+    def _tangent(self, i: int) -> np.ndarray:
+        """Unit direction of the path at vertex i (over the vertices within a metre or two of it)."""
+        P = self.path.positions
+        lo, hi = max(0, i - 2), min(len(P) - 1, i + 2)
+        d = P[hi] - P[lo]
+        n = float(np.linalg.norm(d))
+        return d / n if n > 1e-9 else np.zeros(3)
+
+    # -- prediction and gates ----------------------------------------------------------------------
+
+    def prior(self, T_world_leaf: np.ndarray) -> Prior:
+        """Trunk and ``T_leaf_trunk`` of a leaf at repeat-odometry pose ``T_world_leaf`` through the twig and the
+        branch, with the covariance of the last localization moved to the leaf plus odometry drift."""
+        s = self.state
+        T_l_w = inv_T(T_world_leaf) @ s.T_world_twig
+        T_l_b = T_l_w @ s.T_twig_branch
+        lo, hi = self.window(s.trunk)
+        T_priv = self.path.T_world_vertex
+        T_l_v = T_l_b @ inv_T(T_priv[max(s.branch, 0)]) @ T_priv[lo:hi]
+        trunk = select_trunk(T_l_v, lo, self.config.rotation_weight)
+        T_l_t = T_l_v[trunk - lo]
+        A = adjoint(T_l_w)
+        distance = float(np.linalg.norm((T_l_w)[:3, 3]))
+        P = A @ s.twig_covariance @ A.T + self.drift_covariance(distance)
+        return Prior(trunk, T_l_t, P)
+
+    def drift_covariance(self, distance_m: float) -> np.ndarray:
+        """Odometry drift over ``distance_m`` plus the prior's floor ([rot, trans])."""
+        d, c = self._drift, self.config
+        rot = (d.odometry_rotation_sigma_per_m * distance_m) ** 2 + np.radians(c.prior_floor_rotation_deg) ** 2
+        trans = (d.odometry_translation_sigma_per_m * distance_m) ** 2 + c.prior_floor_translation_m**2
+        return np.diag(np.r_[[rot] * 3, [trans] * 3])
+
+    def consistent(self, est: LocalizationEstimate, T_pred: np.ndarray, P_pred: np.ndarray) -> bool:
+        """The innovation gate."""
+        assert est.T_leaf_trunk is not None
+        return innovation_chi2(est.T_leaf_trunk, est.covariance, T_pred, P_pred) <= self.config.innovation_gate
+
+    def candidate_prediction(self, T_world_leaf: np.ndarray, trunk: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """What the pending candidate predicts for a leaf at ``T_world_leaf`` against ``trunk``, with covariance."""
+        cand = self.state.candidate
+        if cand is None:
+            return None
+        T_l_c = inv_T(T_world_leaf) @ cand.T_world_leaf
+        T_priv = self.path.T_world_vertex
+        T_pred = T_l_c @ cand.T_leaf_trunk @ inv_T(T_priv[cand.trunk]) @ T_priv[trunk]
+        A = adjoint(T_l_c)
+        return T_pred, A @ cand.covariance @ A.T + self.drift_covariance(float(np.linalg.norm(T_l_c[:3, 3])))
+
+    def searching(self, odometry_broken: bool, distance_m: float) -> bool:
+        """Whether this leaf is localized by place recognition rather than through the chain."""
+        s, c = self.state, self.config
+        return (not s.tracking or odometry_broken or s.consecutive_failures >= c.lost_after_failures
+                or s.distance_since_success_m + distance_m > c.lost_after_distance_m)
+
+    # -- updates -----------------------------------------------------------------------------------
+
+    def step_distance(self, T_world_leaf: np.ndarray) -> float:
+        last = self.state.last_position
+        return 0.0 if last is None else float(np.linalg.norm(T_world_leaf[:3, 3] - last))
+
+    def succeeded(self, leaf_id: int, T_world_leaf: np.ndarray, trunk: int, T_leaf_trunk: np.ndarray,
+                  covariance: np.ndarray, along_prev_m: float | None = None) -> None:
+        """Twig and branch move to the leaf and its trunk; the direction follows the along-track motion."""
+        s, c = self.state, self.config
+        along = self.along_track_m(trunk, T_leaf_trunk)
+        ref = s.along_track_m if along_prev_m is None else along_prev_m
+        direction = s.direction
+        if ref is not None and abs(along - ref) >= c.direction_min_step_m:
+            direction = FORWARD if along > ref else BACKWARD
+        self.state = ChainState(True, trunk, trunk, leaf_id, np.array(T_world_leaf, float),
+                                np.array(T_leaf_trunk, float), np.array(covariance, float), 0, 0.0, direction,
+                                np.array(T_world_leaf[:3, 3], float), None, s.leaves_since_check + 1, along)
+
+    def failed(self, T_world_leaf: np.ndarray, trunk: int | None, *, lost: bool,
+               candidate: Candidate | None = None) -> None:
+        """A failure: odometry carries the chain; ``lost`` drops tracking (the next leaf searches)."""
+        s = self.state
+        self.state = dataclasses.replace(
+            s, tracking=s.tracking and not lost, trunk=s.trunk if trunk is None else trunk,
+            consecutive_failures=s.consecutive_failures + 1,
+            distance_since_success_m=s.distance_since_success_m + self.step_distance(T_world_leaf),
+            last_position=np.array(T_world_leaf[:3, 3], float), candidate=candidate)
+
+    def checked(self) -> None:
+        self.state = dataclasses.replace(self.state, leaves_since_check=0)
+
+
+SubmapFn = Callable[[int], TaughtSubmap]
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """What one leaf's localization came to: its trunk (path index), the estimate (``T_leaf_trunk`` set
+    even when refused: an unconfirmed or inconsistent estimate is still reported), the status, and the
+    ``T_leaf_trunk`` to report (the estimate, else the chain's prior)."""
+
+    trunk: int
+    estimate: LocalizationEstimate
+    status: LocalizationStatus
+    T_report: np.ndarray
+
+    @property
+    def success(self) -> bool:
+        return self.status == S.LOCALIZED
+
+
+class ChainLocalizer:
+    """Localizes each new leaf: through the chain when tracking, by place recognition when searching.
+
+    ``submap(trunk)`` returns the taught submap around a path index; ``place`` proposes taught vertices.
+    """
+
+    def __init__(self, chain: LocalizationChain, localizer: Localizer, place: PlaceIndex, submap: SubmapFn,
+                 config: Config):
+        self.chain = chain
+        self.localizer = localizer
+        self.place = place
+        self.submap = submap
+        self.config = config
+        self._seed = config.odometry.seed
+        self._attempts = 0
+
+    def _localize(self, kf: Keyframe, trunk: int, T_prior: np.ndarray | None, trusted: bool,
+                  failures: int = 0) -> LocalizationEstimate:
+        self._attempts += 1
+        return self.localizer.localize(kf.frame, self.submap(trunk), T_prior, seed=self._seed + self._attempts,
+                                       trusted_prior=trusted, consecutive_failures=failures)
+
+    def localize(self, leaf_id: int, kf: Keyframe, odometry_broken: bool) -> Attempt:
+        """Localize leaf ``leaf_id`` (``odometry_broken``: odometry failed since the previous leaf) and update
+        the chain."""
+        ch = self.chain
+        if odometry_broken:
+            ch.state = dataclasses.replace(ch.state, candidate=None)
+        if ch.searching(odometry_broken, ch.step_distance(kf.T_world_kf)):
+            return self._search(leaf_id, kf)
+        return self._track(leaf_id, kf)
+
+    def _fail(self, kf: Keyframe, trunk: int, est: LocalizationEstimate, status: LocalizationStatus,
+              T_report: np.ndarray, *, lost: bool, candidate: Candidate | None = None) -> Attempt:
+        self.chain.failed(kf.T_world_kf, trunk, lost=lost, candidate=candidate)
+        return Attempt(trunk, est, status, T_report)
+
+    # -- tracking ----------------------------------------------------------------------------------
+
+    def _track(self, leaf_id: int, kf: Keyframe) -> Attempt:
+        ch, c = self.chain, self.config.localization
+        pr = ch.prior(kf.T_world_kf)
+        if ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m:
+            none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.OFF_ROUTE)
+            return self._fail(kf, pr.trunk, none, S.OFF_ROUTE, pr.T_leaf_trunk, lost=True)
+        est = self._localize(kf, pr.trunk, pr.T_leaf_trunk, True, ch.state.consecutive_failures)
+        if est.T_leaf_trunk is None:
+            return self._fail(kf, pr.trunk, est, est.status, pr.T_leaf_trunk, lost=False)
+        if not ch.consistent(est, pr.T_leaf_trunk, pr.covariance):
+            return self._fail(kf, pr.trunk, est, S.INCONSISTENT, est.T_leaf_trunk, lost=False)
+        if ch.beyond_end_m(pr.trunk, est.T_leaf_trunk) > c.off_route_distance_m:
+            return self._fail(kf, pr.trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
+        if ch.state.leaves_since_check + 1 >= c.place_check_every and self._elsewhere(kf, pr.trunk, est):
+            return self._fail(kf, pr.trunk, est, S.INCONSISTENT, est.T_leaf_trunk, lost=True)
+        ch.succeeded(leaf_id, kf.T_world_kf, pr.trunk, est.T_leaf_trunk, est.covariance)
+        return Attempt(pr.trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+
+    def _elsewhere(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
+        """Periodic check: does a place outside the trunk's window verify better than the tracked estimate?"""
+        ch = self.chain
+        ch.checked()
+        lo, hi = ch.window(trunk)
+        for cand in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices:
+            if lo <= cand < hi:
+                continue
+            other = self._localize(kf, int(cand), None, False)
+            if other.ok and other.inliers > est.inliers:
+                return True
+        return False
+
+    # -- searching ---------------------------------------------------------------------------------
+
+    def _candidates(self, kf: Keyframe) -> list[int]:
+        ch = self.chain
+        found = [int(i) for i in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices]
+        extra = []
+        if ch.start_index is not None and ch.state.branch < 0:
+            extra.append(ch.start_index)                       # the user's hint, tried first
+        if ch.state.candidate is not None:
+            extra.append(ch.state.candidate.trunk)            # where the pending candidate was
+        out: list[int] = []
+        for i in extra + found:
+            if i not in out:
+                out.append(i)
+        return out
+
+    def _search(self, leaf_id: int, kf: Keyframe) -> Attempt:
+        ch, c = self.chain, self.config.localization
+        best: tuple[int, LocalizationEstimate] | None = None
+        tried: list[tuple[int, LocalizationEstimate]] = []
+        for cand in self._candidates(kf):
+            est = self._localize(kf, cand, None, False)
+            tried.append((cand, est))
+            if est.ok and (best is None or est.inliers > best[1].inliers):
+                best = (cand, est)
+        T_chain = ch.prior(kf.T_world_kf).T_leaf_trunk if ch.state.branch >= 0 else np.eye(4)
+        if best is None:
+            if not tried:
+                none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.NO_CANDIDATES)
+                return self._fail(kf, ch.state.trunk, none, S.NO_CANDIDATES, T_chain, lost=True)
+            trunk, est = max(tried, key=lambda x: x[1].inliers)
+            return self._fail(kf, trunk, est, est.status, T_chain, lost=True)
+        trunk, est = self._nearest_trunk(kf, *best)
+        assert est.T_leaf_trunk is not None
+        if ch.beyond_end_m(trunk, est.T_leaf_trunk) > c.off_route_distance_m:
+            return self._fail(kf, trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
+        pred = ch.candidate_prediction(kf.T_world_kf, trunk)
+        cand = ch.state.candidate
+        if pred is not None and cand is not None and ch.consistent(est, *pred):
+            ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
+                         along_prev_m=ch.along_track_m(cand.trunk, cand.T_leaf_trunk))
+            return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+        new = Candidate(leaf_id, np.array(kf.T_world_kf, float), trunk, est.T_leaf_trunk, est.covariance)
+        return self._fail(kf, trunk, est, S.UNCONFIRMED, est.T_leaf_trunk, lost=True, candidate=new)
+
+    def _nearest_trunk(self, kf: Keyframe, cand: int, est: LocalizationEstimate) -> tuple[int, LocalizationEstimate]:
+        """Re-localize against the taught vertex nearest to a verified candidate's estimate, guided by it."""
+        assert est.T_leaf_trunk is not None
+        ch = self.chain
+        w = max(ch.config.trunk_window_back, ch.config.trunk_window_forward)
+        lo, hi = trunk_window(cand, len(ch.path), w, w)
+        T_priv = ch.path.T_world_vertex
+        T_l_v = est.T_leaf_trunk @ inv_T(T_priv[cand]) @ T_priv[lo:hi]
+        trunk = select_trunk(T_l_v, lo, ch.config.rotation_weight)
+        if trunk == cand:
+            return cand, est
+        again = self._localize(kf, trunk, T_l_v[trunk - lo], False)
+        if again.ok and again.inliers >= est.inliers // 2:
+            return trunk, again
+        return cand, est
+
+
+__all__ = ["Attempt", "Candidate", "ChainLocalizer", "ChainState", "LocalizationChain", "Prior", "innovation_chi2"]
