@@ -254,6 +254,16 @@ class LocalizationChain:
             distance_since_success_m=s.distance_since_success_m + self.step_distance(T_world_leaf),
             last_position=np.array(T_world_leaf[:3, 3], float), candidate=candidate)
 
+    def refresh(self, current: dict[int, np.ndarray]) -> None:
+        """Twig and candidate poses updated from odometry's latest window adjustment (by leaf id)."""
+        s = self.state
+        twig = current.get(s.twig_id)
+        cand = s.candidate
+        if cand is not None and cand.leaf_id in current:
+            cand = dataclasses.replace(cand, T_world_leaf=np.array(current[cand.leaf_id], float))
+        self.state = dataclasses.replace(s, T_world_twig=s.T_world_twig if twig is None else np.array(twig, float),
+                                         candidate=cand)
+
     def checked(self) -> None:
         self.state = dataclasses.replace(self.state, leaves_since_check=0)
 
@@ -299,10 +309,14 @@ class ChainLocalizer:
         return self.localizer.localize(kf.frame, self.submap(trunk), T_prior, seed=self._seed + self._attempts,
                                        trusted_prior=trusted, consecutive_failures=failures)
 
-    def localize(self, leaf_id: int, kf: Keyframe, odometry_broken: bool) -> Attempt:
+    def localize(self, leaf_id: int, kf: Keyframe, odometry_broken: bool,
+                 current: dict[int, np.ndarray] | None = None) -> Attempt:
         """Localize leaf ``leaf_id`` (``odometry_broken``: odometry failed since the previous leaf) and update
-        the chain."""
+        the chain. ``current`` holds repeat-world poses of earlier leaves as odometry's window now has them:
+        the twig's and the pending candidate's are read from there when present, so the odometry between
+        them and the leaf is one adjustment's."""
         ch = self.chain
+        ch.refresh(current or {})
         if odometry_broken:
             ch.state = dataclasses.replace(ch.state, candidate=None)
         if ch.searching(odometry_broken, ch.step_distance(kf.T_world_kf)):

@@ -79,6 +79,7 @@ class Repeat:
         self._leaf: int | None = None            # map id of the newest repeat vertex
         self._frames: dict[int, StereoFrame] = {}   # taught frames of recent submaps (kept while they slide)
         self._submaps: dict[int, TaughtSubmap] = {}
+        self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Stereo-process a rectified pair, then :meth:`process_frame`."""
@@ -86,7 +87,12 @@ class Repeat:
 
     def process_frame(self, frame: StereoFrame) -> RepeatStep:
         """Odometry on the frame; localize it when it becomes a new vertex."""
-        return self._deliver(self._localize_step(self.odometry.process_frame(frame)))
+        return self._deliver(self._localize_step(*self._odometry(frame)))
+
+    def _odometry(self, frame: StereoFrame) -> tuple[OdometryResult, dict[int, np.ndarray]]:
+        """The frame's odometry and the window's keyframe poses right after it (what its localization reads)."""
+        result = self.odometry.process_frame(frame)
+        return result, self.odometry.window_poses() if result.new_keyframe is not None else {}
 
     def steps(self, frames: Iterable[StereoFrame]) -> Generator[RepeatStep, None, None]:
         """:meth:`process_frame` over ``frames``, in order.
@@ -103,11 +109,11 @@ class Repeat:
             return
         failed = threading.Event()
 
-        def in_order(result: OdometryResult) -> RepeatStep:
+        def in_order(result: OdometryResult, window: dict[int, np.ndarray]) -> RepeatStep:
             if failed.is_set():                 # an earlier vertex failed: never write a later one
                 raise CancelledError()
             try:
-                return self._localize_step(result)
+                return self._localize_step(result, window)
             except BaseException:
                 failed.set()
                 raise
@@ -116,7 +122,7 @@ class Repeat:
         with ThreadPoolExecutor(1, thread_name_prefix="vtr-localize") as pool:
             try:
                 for frame in frames:
-                    pending.append(pool.submit(in_order, self.odometry.process_frame(frame)))
+                    pending.append(pool.submit(in_order, *self._odometry(frame)))
                     while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
                         yield self._deliver(pending.popleft().result())
                 while pending:
@@ -130,8 +136,9 @@ class Repeat:
             self.latest = step.localization
         return step
 
-    def _localize_step(self, result: OdometryResult) -> RepeatStep:
-        """The step of an odometry result: its keyframe written to the map and localized."""
+    def _localize_step(self, result: OdometryResult, window: dict[int, np.ndarray] | None = None) -> RepeatStep:
+        """The step of an odometry result: its keyframe written to the map and localized (``window``: the
+        odometry window's keyframe poses right after it, by odometry keyframe id)."""
         loc, seconds = None, 0.0
         vid = self._leaf if self._leaf is not None else -1
         if result.kind == FrameKind.FAILURE:
@@ -143,9 +150,10 @@ class Repeat:
                                           unknown_variance=self.config.odometry.failure_variance)
             self._leaf = v.id
             vid = v.id
+            self._kf_of_leaf[v.id] = kf.id
             t0 = time.perf_counter()
             with self.timer("localization"):
-                loc = self._localize(v.id, kf)
+                loc = self._localize(v.id, kf, window or {})
             seconds = time.perf_counter() - t0
         return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame), seconds)
 
@@ -153,11 +161,14 @@ class Repeat:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""
         return self.chain.T_teach(T_world_frame)
 
-    def _localize(self, leaf_id: int, kf: Keyframe) -> Localization:
+    def _localize(self, leaf_id: int, kf: Keyframe, window: dict[int, np.ndarray]) -> Localization:
         c = self.chain
         twig, branch = c.twig_id, c.branch_id
         broken, self._odometry_broken = self._odometry_broken, False
-        attempt = self.locator.localize(leaf_id, kf, broken)
+        # the leaves still in the odometry window where its latest adjustment put them
+        current = {leaf: window[k] for leaf, k in self._kf_of_leaf.items() if k in window}
+        self._kf_of_leaf = {leaf: k for leaf, k in self._kf_of_leaf.items() if k in window}
+        attempt = self.locator.localize(leaf_id, kf, broken, current)
         est = attempt.estimate
         trunk_id = int(c.path.ids[attempt.trunk])
         covariance = est.covariance

@@ -159,6 +159,11 @@ class StereoOdometry:
         return OdometryResult(frame.t_ns, frame.index, kind, n_matches, n_inliers, ref.id, T_kf_frame,
                               T_world_frame, cov, new_kf, finalized)
 
+    def window_poses(self) -> dict[int, np.ndarray]:
+        """Current ``T_world_kf`` (copies) of the keyframes in the window, by keyframe id: later keyframes' bundle
+        adjustments move them, so relative odometry between two window keyframes is read from here."""
+        return {kf.id: self._keyframe_poses[kf.id].copy() for kf in self.map.keyframes}
+
     def flush(self) -> list[Keyframe]:
         """Finalize every keyframe still in the window (call at the end of a run)."""
         out = []
