@@ -12,7 +12,8 @@ from vtr.config import LocalizationConfig
 from vtr.control.field import CameraMount, TaughtPathField
 from vtr.geometry import log_se3, log_se3_batch
 from vtr.map.path import TaughtPath
-from vtr.navigation.localization import LocalizationChain
+from vtr.config import Config
+from vtr.navigation.chain import LocalizationChain
 
 MODEL = PerceptionModel.thesis()
 
@@ -40,10 +41,11 @@ def test_trunk_selection_is_the_localization_chains(l_vertices):
         i = min(len(field) - 1, prev + int(rng.integers(0, 4)))
         pos = field.vehicle_position_g[i] + rng.normal(0, 1.5, 3)
         yaw = field.vehicle_yaw_g[i] + rng.normal(0, 0.3)
-        chain = LocalizationChain(taught, cfg, start_index=prev)
-        chain.update(-1, field.T_g_camera[prev], prev, np.eye(4))  # twig at the branch: prior = relative pose
+        chain = LocalizationChain(taught, Config(localization=cfg), start_index=prev)
+        # twig at the branch: the prior is the relative pose
+        chain.succeeded(-1, field.T_g_camera[prev], prev, np.eye(4), np.eye(6) * 1e-6)
         T_g_leaf = field.camera_poses(pos[None], np.array([yaw]), field.pitch_down[prev])[0]
-        expected, _ = chain.prior(T_g_leaf)
+        expected = chain.prior(T_g_leaf).trunk
         assert field.select_trunks(pos[None], np.array([yaw]), prev)[0] == expected
 
 

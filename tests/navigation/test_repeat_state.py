@@ -17,7 +17,8 @@ from vtr.errors import ConfigError
 from vtr.geometry import inv_T, make_T
 from vtr.io.trajectory import read_tum
 from vtr.map import Map, TaughtPath
-from vtr.navigation.localization import Localization, LocalizationChain
+from vtr.navigation.chain import LocalizationChain
+from vtr.navigation.localization import Localization
 from vtr.navigation.repeat import RepeatStep
 from vtr.navigation.repeat_state import (
     STATE_CSV_HEADER,
@@ -78,7 +79,7 @@ def test_state_matches_localized_poses(kitti_run):
     loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
     with Map.open(d / "route.vtrmap") as m:
         taught = m.taught_path()
-        clog = ControllerLog(Config(), LocalizationChain(taught, Config().localization), m.camera.T_vehicle_sensor)
+        clog = ControllerLog(Config(), LocalizationChain(taught, Config()), m.camera.T_vehicle_sensor)
     ids = taught.ids
     index = {int(v): i for i, v in enumerate(ids)}
     offsets = []
@@ -144,7 +145,7 @@ def test_output_times():
 
 def _chain(ids: np.ndarray, T_priv: np.ndarray) -> LocalizationChain:
     """A chain on a taught path of these ids and poses (times one second apart)."""
-    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config().localization)
+    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config())
 
 
 def test_level_camera_frame_o():

@@ -11,7 +11,7 @@ The vehicle is a level multirotor with flat outputs ``(p, psi)`` in g; its camer
 the vehicle's x axis and the taught pitch below the horizon. The taught vehicle's yaw is the
 taught optical axis' heading minus ``mount_yaw_rad`` (the map stores camera poses).
 
-Trunk selection is the localizer's rule (``vtr.navigation.localization.LocalizationChain.prior``):
+Trunk selection is the localizer's rule (``vtr.navigation.trunk``, as ``vtr.navigation.chain.LocalizationChain.prior``):
 in a window of ``trunk_window_back``/``trunk_window_forward`` vertices around the previous trunk,
 the vertex minimizing ``||rho|| + rotation_weight ||phi||`` of the relative camera pose
 (``config.localization``). Along a horizon the previous trunk of step k is step k-1's.
@@ -30,7 +30,8 @@ from perception_model.model import PerceptionModel
 
 from ..config import LocalizationConfig
 from ..errors import MapError
-from ..geometry import inv_T, log_se3_batch
+from ..geometry import inv_T
+from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
 from ..map import Map
 
 #: Default gravity "up" in the map frame: the first teach camera was level (x right, y down).
@@ -147,8 +148,9 @@ class TaughtPathField:
         return int(np.argmin(np.linalg.norm(self.vehicle_position_g - np.asarray(position, float), axis=1)))
 
     def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
-                      axes: np.ndarray | None = None) -> np.ndarray:
-        """Trunk index (N,) of each predicted vehicle pose by the localizer's rule, starting from ``previous``.
+                      axes: np.ndarray | None = None, direction: int = FORWARD) -> np.ndarray:
+        """Trunk index (N,) of each predicted vehicle pose by the localizer's rule (:mod:`vtr.navigation.trunk`),
+        starting from ``previous``; ``direction`` -1 for a route flown backward (the window mirrors).
 
         The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal).
         """
@@ -161,18 +163,15 @@ class TaughtPathField:
         c = self.config
         n = len(pos)
         prev = int(previous)
-        # every step's window lies in [prev - n back, prev + n forward]: one batched log for all costs
-        lo_all = max(0, prev - n * c.trunk_window_back)
-        hi_all = min(len(self), prev + n * c.trunk_window_forward + 1)
+        # every step's window lies in n windows' reach of prev: one batched cost for all steps
+        reach = n * max(c.trunk_window_back, c.trunk_window_forward)
+        lo_all, hi_all = trunk_window(prev, len(self), reach, reach)
         pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
         T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
-        T_rel = T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all]
-        xi = log_se3_batch(T_rel.reshape(-1, 4, 4)).reshape(n, hi_all - lo_all, 6)
-        cost = np.linalg.norm(xi[..., 3:], axis=2) + c.rotation_weight * np.linalg.norm(xi[..., :3], axis=2)
+        cost = trunk_cost(T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all], c.rotation_weight)
         out = np.empty(n, dtype=np.int64)
         for k in range(n):
-            lo = max(0, prev - c.trunk_window_back)
-            hi = min(len(self), prev + c.trunk_window_forward + 1)
+            lo, hi = trunk_window(prev, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
             prev = lo + int(np.argmin(cost[k, lo - lo_all:hi - lo_all]))
             out[k] = prev
         return out
