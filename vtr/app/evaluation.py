@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..geometry import inv_T, rotation_angle
+from ..geometry import inv_T, log_se3, rotation_angle
 
 SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
 
@@ -114,3 +114,99 @@ def localization_errors(T_leaf_trunk: np.ndarray, leaf_t_ns: np.ndarray, trunk_t
     G = inv_T(gt_T_world_cam[gl]) @ gt_T_world_cam[gtr]
     E = inv_T(G) @ np.asarray(T_leaf_trunk)[both]
     return LocalizationErrors(np.linalg.norm(E[:, :3, 3], axis=1), np.degrees(rotation_angle(E[:, :3, :3])))
+
+
+#: a reported success further than this from ground truth is a *wrong success*
+WRONG_SUCCESS_M = 0.30
+WRONG_SUCCESS_DEG = 2.0
+#: chi-square quantile (3 dof, 99.73 %: "3 sigma") a success's translation error must stay inside to be covered
+COVERAGE_CHI2_3DOF = 14.16
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """What a repeat's localization attempts were worth against ground truth (every attempt, in order).
+
+    A success is *correct* within ``WRONG_SUCCESS_M`` and ``WRONG_SUCCESS_DEG`` of the truth, else *wrong*.
+    ``first_correct`` is the attempt index of the first correct one (None: none), ``rate_after`` the share of
+    attempts from there on that are correct, ``covered`` the share of correct successes whose translation
+    error lies inside the 3-sigma ellipsoid of the reported covariance, ``median_nees`` their median
+    normalized squared translation error (2.37 for an honest covariance).
+    """
+
+    attempts: int
+    successes: int
+    correct: int
+    wrong: int
+    first_correct: int | None
+    rate_after: float
+    median_error_m: float
+    covered: float
+    median_nees: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def __str__(self) -> str:
+        first = "none" if self.first_correct is None else f"attempt {self.first_correct}"
+        return (f"against ground truth: {self.correct} of {self.attempts} attempts correct, {self.wrong} wrong "
+                f"successes (> {100 * WRONG_SUCCESS_M:.0f} cm or {WRONG_SUCCESS_DEG:g} deg); first correct {first}, "
+                f"{100 * self.rate_after:.0f} % correct after it; reported sigma covers "
+                f"{100 * self.covered:.0f} % of errors (3 sigma)")
+
+
+def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covariance: np.ndarray,
+                           T_true: np.ndarray) -> Integrity:
+    """Judge attempts (``success`` (N,), estimates and covariances (N, 4, 4), (N, 6, 6) [rot, trans] left
+    perturbation) against the true ``T_leaf_trunk`` (N, 4, 4; NaN where unknown: such a success is wrong)."""
+    success = np.asarray(success, bool)
+    n = len(success)
+    correct = np.zeros(n, bool)
+    errors, nees = [], []
+    for k in np.flatnonzero(success):
+        if not np.all(np.isfinite(T_true[k])):
+            continue
+        E = T_leaf_trunk[k] @ inv_T(T_true[k])
+        xi = log_se3(E)
+        e_t, e_r = float(np.linalg.norm((inv_T(T_true[k]) @ T_leaf_trunk[k])[:3, 3])), \
+            float(np.degrees(np.linalg.norm(xi[:3])))
+        if e_t <= WRONG_SUCCESS_M and e_r <= WRONG_SUCCESS_DEG:
+            correct[k] = True
+            errors.append(e_t)
+            P = np.asarray(covariance[k], float)[3:, 3:]
+            try:
+                nees.append(float(xi[3:] @ np.linalg.solve(P, xi[3:])))
+            except np.linalg.LinAlgError:
+                nees.append(float("inf"))
+    first = int(np.argmax(correct)) if correct.any() else None
+    after = float(correct[first:].mean()) if first is not None else 0.0
+    nees_a = np.array(nees)
+    return Integrity(n, int(success.sum()), int(correct.sum()), int(success.sum() - correct.sum()), first, after,
+                     float(np.median(errors)) if errors else float("nan"),
+                     float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
+                     float(np.median(nees_a)) if len(nees_a) else float("nan"))
+
+
+def true_leaf_trunk(leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray, gt_repeat_t_ns: np.ndarray,
+                    gt_repeat_T: np.ndarray, gt_teach_t_ns: np.ndarray, gt_teach_T: np.ndarray,
+                    tolerance_ns: int = 20_000_000) -> np.ndarray:
+    """True ``T_leaf_trunk`` (N, 4, 4) = ``inv(G_leaf) @ G_trunk`` from the repeat's and the teach's ground truth
+    (one world); NaN where either time has no ground truth within tolerance."""
+    out = np.full((len(leaf_t_ns), 4, 4), np.nan)
+    il, gl = associate(np.asarray(leaf_t_ns, np.int64), np.asarray(gt_repeat_t_ns), tolerance_ns)
+    it, gt = associate(np.asarray(trunk_t_ns, np.int64), np.asarray(gt_teach_t_ns), tolerance_ns)
+    both = np.intersect1d(il, it)
+    G_l = gt_repeat_T[gl[np.searchsorted(il, both)]]
+    G_t = gt_teach_T[gt[np.searchsorted(it, both)]]
+    out[both] = inv_T(G_l) @ G_t
+    return out
+
+
+def integrity_of(locs, trunk_t_ns: np.ndarray, gt_repeat, gt_teach) -> Integrity:
+    """:func:`localization_integrity` of ``Localization`` records whose trunks were taught at ``trunk_t_ns``, with
+    the repeat's and the teach's ground truth (``GroundTruth``: ``t_ns``, ``T_world_cam``, one world)."""
+    T_true = true_leaf_trunk(np.array([loc.t_ns for loc in locs], np.int64), trunk_t_ns, gt_repeat.t_ns,
+                             gt_repeat.T_world_cam, gt_teach.t_ns, gt_teach.T_world_cam)
+    return localization_integrity(np.array([loc.success for loc in locs], bool),
+                                  np.array([loc.T_leaf_trunk for loc in locs]).reshape(-1, 4, 4),
+                                  np.array([loc.covariance for loc in locs]).reshape(-1, 6, 6), T_true)

@@ -386,13 +386,19 @@ class ChainLocalizer:
             tried.append((cand, est))
             if est.ok and (best is None or est.inliers > best[1].inliers):
                 best = (cand, est)
-        T_chain = ch.prior(kf.T_world_kf).T_leaf_trunk if ch.state.branch >= 0 else np.eye(4)
+        pr = ch.prior(kf.T_world_kf) if ch.state.branch >= 0 else None
+        T_chain = pr.T_leaf_trunk if pr is not None else np.eye(4)
         if best is None:
+            # nothing verified; past an end of the route by odometry since the last localization: off the route
+            off = pr is not None and ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m
             if not tried:
                 none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.NO_CANDIDATES)
-                return self._fail(kf, ch.state.trunk, none, S.NO_CANDIDATES, T_chain, lost=True)
+                return self._fail(kf, ch.state.trunk, none, S.OFF_ROUTE if off else S.NO_CANDIDATES, T_chain,
+                                  lost=True)
             trunk, est = max(tried, key=lambda x: x[1].inliers)
-            return self._fail(kf, trunk, est, est.status, T_chain, lost=True)
+            if pr is not None:              # the reported T_leaf_trunk is the chain's prior: against its trunk
+                trunk = pr.trunk
+            return self._fail(kf, trunk, est, S.OFF_ROUTE if off else est.status, T_chain, lost=True)
         trunk, est = self._nearest_trunk(kf, *best)
         assert est.T_leaf_trunk is not None
         if ch.beyond_end_m(trunk, est.T_leaf_trunk) > c.off_route_distance_m:
