@@ -57,3 +57,51 @@ def test_repeat_recovers_lateral_offset(taught, lateral):
     est = np.array(est)
     tol = max(OFFSET_TOLERANCE * lateral, ZERO_OFFSET_TOLERANCE_M)
     assert np.all(np.abs(est - lateral) <= tol), est
+
+
+class _Truth:
+    """Ground truth of a synthetic sequence in the scene's world (``GroundTruth``'s two fields)."""
+
+    def __init__(self, T_world_cam: np.ndarray, t_ns: np.ndarray):
+        self.T_world_cam, self.t_ns = T_world_cam, t_ns
+
+
+def _repeat_integrity(taught, name: str, scene, T_rep: np.ndarray):
+    from vtr.app.evaluation import integrity_of
+
+    root, _, cam, T_teach = taught
+    t_rep = syn.route_times(T_rep, 4.0)
+    rep_dir = syn.write_sequence(root / name, scene, cam, T_rep, t_rep, noise_seed=2)
+    path = root / f"{name}.vtrmap"
+    path.write_bytes((root / "route.vtrmap").read_bytes())
+    with open_source(rep_dir) as src, Map.open(path, "a") as m:
+        rp = Repeat(m, Config(), str(rep_dir))
+        locs = [s.localization for s in rp.steps(rp.odometry.stereo.frames(iter(src))) if s.localization is not None]
+        trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
+    return locs, integrity_of(locs, trunk_t, _Truth(T_rep, t_rep), _Truth(T_teach, syn.route_times(T_teach, 4.0)))
+
+
+def test_synthetic_repeat_started_part_way(taught):
+    """Started 7.5 m along the route, 1 m to the left: found by place recognition, no wrong success."""
+    _, scene, _, _ = taught
+    locs, integrity = _repeat_integrity(taught, "partway", scene,
+                                        syn.aerial_route(LENGTH_M - 0.5, 1.0, start_offset_m=7.5, lateral_offset_m=1.0))
+    assert integrity.wrong == 0 and integrity.first_correct is not None and integrity.first_correct < 3, integrity
+    assert integrity.rate_after >= 0.9, integrity
+
+
+def test_synthetic_route_flown_backward(taught):
+    """The return flight: the taught route from its end to its start, the camera facing as taught."""
+    _, scene, _, _ = taught
+    T_back = syn.aerial_route(14.0, 1.0, start_offset_m=0.5, lateral_offset_m=0.5)[::-1].copy()
+    locs, integrity = _repeat_integrity(taught, "backward", scene, T_back)
+    assert integrity.wrong == 0 and integrity.first_correct is not None and integrity.first_correct < 3, integrity
+    assert integrity.rate_after >= 0.9, integrity
+    assert all(loc.direction == -1 for loc in locs if loc.success)
+
+
+def test_synthetic_scene_of_another_place_never_succeeds(taught):
+    """A route through another scene: place recognition proposes vertices, none verifies twice: no success."""
+    locs, integrity = _repeat_integrity(taught, "elsewhere", syn.aerial_scene(7), syn.aerial_route(12.0, 1.0))
+    assert integrity.successes == 0, [loc.status for loc in locs]
+    assert all(loc.status.value != "localized" for loc in locs)
