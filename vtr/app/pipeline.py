@@ -26,7 +26,15 @@ from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
 from ..vo.stereo import StereoProcessor
-from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
+from .evaluation import (
+    DriftMetrics,
+    Integrity,
+    LocalizationErrors,
+    associate,
+    drift_metrics,
+    integrity_of,
+    localization_errors,
+)
 from .runlog import RunLog
 
 if TYPE_CHECKING:
@@ -205,6 +213,8 @@ class RepeatSummary:
     path_error_m: float
     errors: LocalizationErrors | None = None
     state: dict | None = None          # state.csv: rate, rows, smoother cost, smoothed path errors
+    statuses: dict | None = None       # attempts by localization.csv status
+    integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
 
     @property
     def success_rate(self) -> float:
@@ -218,14 +228,18 @@ class RepeatSummary:
                 "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m,
                 "median_error_m": self.errors.median_translation_m if self.errors else None,
                 "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
-                "state": self.state}
+                "state": self.state, "statuses": self.statuses,
+                "integrity": self.integrity.to_dict() if self.integrity else None}
 
     def lines(self) -> list[str]:
         fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
         return [f"repeat: frames {self.frames}  vertices {self.vertices}  localized {self.localized} "
                 f"({100 * self.success_rate:.1f} %)  median inliers {self.median_inliers:.0f}  {fps:.1f} frames/s",
-                f"path-tracking error to the taught path: median {self.path_error_m:.3f} m",
+                *([", ".join(f"{k} {v}" for k, v in self.statuses.items())] if self.statuses else []),
+                (f"path-tracking error to the taught path (localized frames): median {self.path_error_m:.3f} m"
+                 if np.isfinite(self.path_error_m) else "path-tracking error: none (never localized)"),
                 *([str(self.errors)] if self.errors is not None else []),
+                *([str(self.integrity)] if self.integrity is not None else []),
                 *([f"state.csv: {self.state['rows']} rows at {self.state['rate_hz']:g} Hz, smoothed lateral error "
                    f"median {self.state['median_abs_lateral_m']:.3f} m, smoother "
                    f"{self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
@@ -288,7 +302,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         _check_path_to_follow(m)
         repeat = Repeat(m, config, source=str(source_path), allow_partial=allow_partial)
         clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
-        t_ns, T_teach, locs, t_loc = [], [], [], 0.0
+        t_ns, T_teach, locs, t_loc, step_localized = [], [], [], 0.0, []
         t0 = time.perf_counter()
         with open(out / "localization.csv", "w", newline="") as loc_file, \
                 LandmarksWriter(out / "landmarks.csv") as lm_csv:
@@ -301,6 +315,7 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                         clog.add(step)
                         t_ns.append(step.odometry.t_ns)
                         T_teach.append(step.T_teach_frame)
+                        step_localized.append(clog.vertex_localized[-1] if clog.vertex_localized else False)
                         if step.localization is not None:
                             loc_csv.write(step.localization)
                             append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
@@ -315,16 +330,25 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         write_tum(out / "trajectory_tum.txt", t_frames, T_teach_frames)
         taught = repeat.chain.path
         errors = distance_to_polyline(T_teach_frames[:, :3, 3], taught.positions)
+        errors[~np.array(step_localized, bool)] = np.nan          # no path error where not localized
         plot_repeat(out / "report.png", locs, taught, T_teach_frames, t_frames, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
+        integrity = None
+        if gt_errors is not None or (not ok and _same_source(source, m)):
+            gt = source.ground_truth()
+            integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
+        statuses: dict[str, int] = {}
+        for loc in locs:
+            statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
         state_info = {"rate_hz": rate_hz, "rows": len(state),
                       "smoother_ms_per_frame": 1000 * clog.seconds / max(len(t_ns), 1),
                       "median_abs_lateral_m": float(np.nanmedian(np.abs(state.lateral))) if len(state) else None,
                       "median_abs_vertical_m": float(np.nanmedian(np.abs(state.vertical))) if len(state) else None}
         summary = RepeatSummary(len(t_ns), len(locs), len(ok), seconds, t_loc,
                                 float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                                float(np.median(errors)), gt_errors, state_info)
+                                float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
+                                gt_errors, state_info, statuses, integrity)
         log.write(summary.to_dict())
     return summary
 
@@ -343,14 +367,18 @@ def _check_path_to_follow(m) -> None:
                        "positions to follow): teach a longer route") from None
 
 
-def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:
-    """Localization errors when the repeat source's ground truth also covers the taught vertices
-    (teach and repeat taken from one source, e.g. even and odd frames of a clip)."""
-    gt = source.ground_truth()
+def _same_source(source: FrameSource, m) -> bool:
+    """The repeat source's ground truth also covers the taught vertices (teach and repeat taken from one
+    source, e.g. even and odd frames of a clip)."""
     teach = m.reference_run()
-    if gt is None or not locs or teach is None or str(source.path) != m.run(teach).source:
+    return source.ground_truth() is not None and teach is not None and str(source.path) == m.run(teach).source
+
+
+def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:
+    """Localization errors of the successes when :func:`_same_source`."""
+    if not locs or not _same_source(source, m):
         return None
-    return chain_errors(locs, m, gt)
+    return chain_errors(locs, m, source.ground_truth())
 
 
 def chain_errors(locs, m, gt) -> LocalizationErrors:

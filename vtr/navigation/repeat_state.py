@@ -80,7 +80,7 @@ UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
 UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
 
 STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "trunk_id",
-                    "lateral_m", "vertical_m", "along_track_m")
+                    "lateral_m", "vertical_m", "along_track_m", "localized")
 
 
 def check_rate(rate_hz: float) -> float:
@@ -122,6 +122,7 @@ class StateTable:
     lateral: np.ndarray
     vertical: np.ndarray
     along_track: np.ndarray
+    localized: np.ndarray | None = None   # (N,) bool: the chain held a localization at that time
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -165,6 +166,9 @@ class ControllerLog:
         self._last: _Vertex | None = None
         self.vertex_t_ns: list[int] = []
         self.vertex_trunk: list[int] = []     # index along the privileged path
+        self.vertex_localized: list[bool] = []   # the chain held a localization after the vertex's attempt
+        self._lost_after = config.localization.lost_after_failures
+        self._ever = False
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self.seconds = 0.0                    # time spent feeding the smoother and answering queries
@@ -194,6 +198,11 @@ class ControllerLog:
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
+            success = loc is not None and loc.success
+            self._ever = self._ever or success
+            carried = (loc is not None and self._ever and loc.status.value != "off_route"
+                       and loc.consecutive_failures < self._lost_after)
+            self.vertex_localized.append(bool(success or carried))
             trunk = loc.trunk_id if loc is not None else None
             self.vertex_trunk.append(self.path.index(trunk) if trunk is not None else
                                      (self.vertex_trunk[-1] if self.vertex_trunk else 0))
@@ -202,6 +211,9 @@ class ControllerLog:
             else:
                 self._pending.append(v)
                 if T_teach_leaf is not None:
+                    # the waiting vertices are placed through odometry from the first localization: localized
+                    n = len(self._pending)
+                    self.vertex_localized[-n:] = [True] * n
                     self._flush_localized()
         self.seconds += time.perf_counter() - t0
 
@@ -303,8 +315,11 @@ class ControllerLog:
             if path is not None:
                 e: PathError = path.error(P[sel])
                 lat[sel], ver[sel], along[sel] = e.lateral, e.vertical, e.along_track + offset
+        i = np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), t_ns, side="right") - 1
+        localized = np.asarray(self.vertex_localized, bool)[np.maximum(i, 0)] & (i >= 0)
+        lat[~localized] = ver[~localized] = np.nan        # no path error where the repeat is not localized
         self.seconds += time.perf_counter() - t0
-        return StateTable(t_ns, P, Vel, A, yaw, self.path.ids[trunks], lat, ver, along)
+        return StateTable(t_ns, P, Vel, A, yaw, self.path.ids[trunks], lat, ver, along, localized)
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""
@@ -316,11 +331,13 @@ class ControllerLog:
 def write_state_csv(path: Path, table: StateTable) -> None:
     """``state.csv``: one row per time, columns :data:`STATE_CSV_HEADER` (SI units, yaw in rad)."""
     lines = [",".join(STATE_CSV_HEADER)]
+    loc = np.ones(len(table), bool) if table.localized is None else table.localized
     for j in range(len(table)):
         p, v, a = table.position[j], table.velocity[j], table.acceleration[j]
         lines.append(f"{table.t_ns[j]},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{v[0]:.6f},{v[1]:.6f},{v[2]:.6f},"
                      f"{a[0]:.6f},{a[1]:.6f},{a[2]:.6f},{table.yaw[j]:.8f},{table.trunk_id[j]},"
-                     f"{table.lateral[j]:.6f},{table.vertical[j]:.6f},{table.along_track[j]:.6f}")
+                     f"{table.lateral[j]:.6f},{table.vertical[j]:.6f},{table.along_track[j]:.6f},"
+                     f"{int(loc[j])}")
     tmp = Path(path).with_suffix(".csv.tmp")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(path)
@@ -334,8 +351,9 @@ def read_state_csv(path: Path) -> StateTable:
     rows = [line.split(",") for line in text[1:] if line]
     t = np.array([int(r[0]) for r in rows], np.int64)
     trunk = np.array([int(r[11]) for r in rows], np.int64)
-    f = np.array([[float(x) for i, x in enumerate(r) if i not in (0, 11)] for r in rows], float).reshape(-1, 13)
-    return StateTable(t, f[:, 0:3], f[:, 3:6], f[:, 6:9], f[:, 9], trunk, f[:, 10], f[:, 11], f[:, 12])
+    f = np.array([[float(x) for i, x in enumerate(r) if i not in (0, 11, 15)] for r in rows], float).reshape(-1, 13)
+    localized = np.array([r[15] == "1" for r in rows], bool)
+    return StateTable(t, f[:, 0:3], f[:, 3:6], f[:, 6:9], f[:, 9], trunk, f[:, 10], f[:, 11], f[:, 12], localized)
 
 
 __all__ = [
