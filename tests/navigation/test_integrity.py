@@ -6,7 +6,6 @@ at least 90 % of the keyframes after it correct."""
 from __future__ import annotations
 
 import csv
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,27 +16,12 @@ from vtr.app.pipeline import repeat_command, teach_command
 from vtr.config import Config
 from vtr.geometry import tum_to_T
 from vtr.io import open_source
+from vtr.io.kitti import write_reordered_clip
 from vtr.map import Map
 from vtr.navigation.localization import Localization, LocalizationStatus
 
 FIRST_WITHIN = 3
 RATE_AFTER = 0.90
-
-
-def write_clip(src: Path, dst: Path, order: list[int]) -> Path:
-    """A KITTI-layout copy of ``src`` with its frames in ``order`` (times kept increasing, poses with their frames):
-    reversed order is the route flown backward facing as taught; a gap removes frames mid-route."""
-    (dst / "image_0").mkdir(parents=True)
-    (dst / "image_1").mkdir()
-    shutil.copy(src / "calib.txt", dst / "calib.txt")
-    times = np.loadtxt(src / "times.txt", ndmin=1)
-    poses = np.loadtxt(src / "poses.txt", ndmin=2)
-    for k, i in enumerate(order):
-        for side in ("image_0", "image_1"):
-            (dst / side / f"{k:06d}.png").symlink_to((src / side / f"{i:06d}.png").resolve())
-    np.savetxt(dst / "times.txt", np.sort(times[order]), fmt="%.6e")
-    np.savetxt(dst / "poses.txt", poses[order], fmt="%.9e")
-    return dst
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +70,7 @@ def test_started_part_way_along_the_route(maps, kitti_clip, kitti_ramp_clip, tmp
 def test_flown_backward(maps, kitti_clip, kitti_ramp_clip, tmp_path, clip_name):
     clip = kitti_clip if clip_name == "kitti06" else kitti_ramp_clip
     n = len(list((clip / "image_0").glob("*.png")))
-    reversed_clip = write_clip(clip, tmp_path / "reversed", list(range(n - 1, -1, -1)))
+    reversed_clip = write_reordered_clip(clip, tmp_path / "reversed", list(range(n - 1, -1, -1)))
     _, rows, integrity = _repeat(maps[clip_name], clip, reversed_clip, "1::2", tmp_path)
     _judge(integrity)
     localized = [r for r in rows if r["status"] == "localized"]
@@ -97,7 +81,7 @@ def test_flown_backward(maps, kitti_clip, kitti_ramp_clip, tmp_path, clip_name):
 def test_frames_removed_mid_route(maps, kitti_clip, kitti_ramp_clip, tmp_path, clip_name, gap):
     clip = kitti_clip if clip_name == "kitti06" else kitti_ramp_clip
     n = len(list((clip / "image_0").glob("*.png")))
-    gapped = write_clip(clip, tmp_path / "gapped", [i for i in range(n) if not gap[0] <= i < gap[1]])
+    gapped = write_reordered_clip(clip, tmp_path / "gapped", [i for i in range(n) if not gap[0] <= i < gap[1]])
     _, rows, integrity = _repeat(maps[clip_name], clip, gapped, "1::2", tmp_path)
     _judge(integrity)
 

@@ -280,9 +280,12 @@ def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
 
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    source_options: SourceOptions | str | None = None, progress: Callable | None = None,
-                   rate_hz: float | None = None, allow_partial: bool = False) -> RepeatSummary:
+                   rate_hz: float | None = None, allow_partial: bool = False, start_vertex: int | None = None,
+                   start_distance_m: float | None = None) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
+    ``start_vertex`` (path index) or ``start_distance_m`` (along the taught path) is an optional hint of where
+    the repeat starts; without it place recognition finds it.
 
     Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
     finished once every frame is processed, or aborted with the reason on any exception."""
@@ -300,7 +303,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         out.mkdir(parents=True, exist_ok=True)
         log = RunLog(out, "repeat", config, [source_path, map_path])
         _check_path_to_follow(m)
-        repeat = Repeat(m, config, source=str(source_path), allow_partial=allow_partial)
+        start = _start_hint(m, start_vertex, start_distance_m)
+        repeat = Repeat(m, config, source=str(source_path), start_index=start, allow_partial=allow_partial)
         clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
         t_ns, T_teach, locs, t_loc, step_localized = [], [], [], 0.0, []
         t0 = time.perf_counter()
@@ -351,6 +355,26 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
                                 gt_errors, state_info, statuses, integrity)
         log.write(summary.to_dict())
     return summary
+
+
+def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> int | None:
+    """The path index a start hint names; ``MapError`` for a vertex or distance beyond the taught route."""
+    from ..errors import ConfigError, MapError
+
+    if start_vertex is not None and start_distance_m is not None:
+        raise ConfigError("give either a start vertex or a start distance, not both")
+    taught = m.taught_path()
+    if start_vertex is not None:
+        if not 0 <= start_vertex < len(taught):
+            raise MapError(f"{m.path}: start vertex {start_vertex} is not on the taught path (0..{len(taught) - 1})")
+        return int(start_vertex)
+    if start_distance_m is not None:
+        arc = taught.arc_length_m()
+        if not 0 <= start_distance_m <= arc[-1]:
+            raise MapError(f"{m.path}: start distance {start_distance_m:g} m is beyond the taught route "
+                           f"(0..{arc[-1]:.1f} m)")
+        return int(np.argmin(np.abs(arc - start_distance_m)))
+    return None
 
 
 def _check_path_to_follow(m) -> None:

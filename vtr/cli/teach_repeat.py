@@ -60,22 +60,29 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
                    "domain of smoothing.rate_hz).")
 @click.option("--allow-partial", is_flag=True,
               help="Repeat even when the teach run is not finished (aborted or interrupted: route may be cut short).")
+@click.option("--start-vertex", type=click.IntRange(min=0), default=None, metavar="N",
+              help="Optional hint: the repeat starts near taught vertex N (index along the taught path). Never "
+                   "needed: place recognition finds where on the route the repeat is.")
+@click.option("--start-distance", type=click.FloatRange(min=0.0), default=None, metavar="M",
+              help="Optional hint: the repeat starts M metres along the taught path (as --start-vertex).")
 @config_option
 @source_options
 @threads_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
-               allow_partial: bool, config_path: Path | None, source_options: SourceOptions,
-               threads: int | None) -> None:
+               allow_partial: bool, start_vertex: int | None, start_distance: float | None,
+               config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
-    Refuses a map whose teach run did not finish unless --allow-partial."""
+    The repeat may start anywhere on the route and travel it either way. Refuses a map whose teach run did
+    not finish unless --allow-partial."""
     from ..app.pipeline import repeat_command
 
     note_outputs(map_path)
     check_out_dir(out)
     config = load_config(config_path, threads)
     summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
-                             rate_hz=rate_hz, allow_partial=allow_partial)
+                             rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
+                             start_distance_m=start_distance)
     for line in summary.lines():
         click.echo(line)
     click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")

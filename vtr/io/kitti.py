@@ -147,3 +147,23 @@ def read_kitti_poses(path: Path) -> np.ndarray:
 def write_kitti_poses(path: Path, T: np.ndarray) -> None:
     """Write (N, 4, 4) poses in KITTI's 3x4 row-major format."""
     np.savetxt(path, np.asarray(T)[:, :3, :].reshape(-1, 12), fmt="%.9e")
+
+
+def write_reordered_clip(src: str | Path, dst: str | Path, order: list[int]) -> Path:
+    """A KITTI-layout copy of clip ``src`` at ``dst`` with its frames in ``order`` (images linked, not copied;
+    times kept increasing, poses with their frames): reversed order is the route travelled backward facing as
+    taught (a gimbal's return flight), a gap drops frames mid-route (odometry loses track across it)."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    (dst / "image_0").mkdir(parents=True)
+    (dst / "image_1").mkdir()
+    shutil.copy(src / "calib.txt", dst / "calib.txt")
+    times = np.loadtxt(src / "times.txt", ndmin=1)
+    poses = np.loadtxt(src / "poses.txt", ndmin=2)
+    for k, i in enumerate(order):
+        for side in ("image_0", "image_1"):
+            (dst / side / f"{k:06d}.png").symlink_to((src / side / f"{i:06d}.png").resolve())
+    np.savetxt(dst / "times.txt", np.sort(times[order]), fmt="%.6e")
+    np.savetxt(dst / "poses.txt", poses[order], fmt="%.9e")
+    return dst
