@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 
 from perception_model.model import PerceptionModel
-from vtr.config import LocalizationConfig
+from vtr.config import Config, LocalizationConfig
 from vtr.control.field import CameraMount, TaughtPathField
 from vtr.geometry import log_se3, log_se3_batch
 from vtr.map.path import TaughtPath
-from vtr.config import Config
 from vtr.navigation.chain import LocalizationChain
 
 MODEL = PerceptionModel.thesis()

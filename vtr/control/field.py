@@ -31,8 +31,8 @@ from perception_model.model import PerceptionModel
 from ..config import LocalizationConfig
 from ..errors import MapError
 from ..geometry import inv_T
-from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
 from ..map import Map
+from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
 
 #: Default gravity "up" in the map frame: the first teach camera was level (x right, y down).
 LEVEL_CAMERA_UP_MAP = (0.0, -1.0, 0.0)

@@ -40,7 +40,7 @@ from ..geometry import inv_T, log_se3
 from ..map import TaughtPath
 from ..state.smoothing import adjoint
 from ..types import Keyframe
-from .localization import Localization, LocalizationEstimate, LocalizationStatus, Localizer, TaughtSubmap
+from .localization import LocalizationEstimate, LocalizationStatus, Localizer, TaughtSubmap
 from .place import PlaceIndex
 from .trunk import BACKWARD, FORWARD, select_trunk, trunk_window
 
@@ -404,10 +404,10 @@ class ChainLocalizer:
         if ch.beyond_end_m(trunk, est.T_leaf_trunk) > c.off_route_distance_m:
             return self._fail(kf, trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
         pred = ch.candidate_prediction(kf.T_world_kf, trunk)
-        cand = ch.state.candidate
-        if pred is not None and cand is not None and ch.consistent(est, *pred):
+        pending = ch.state.candidate
+        if pred is not None and pending is not None and ch.consistent(est, *pred):
             ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
-                         along_prev_m=ch.along_track_m(cand.trunk, cand.T_leaf_trunk))
+                         along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
             return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
         new = Candidate(leaf_id, np.array(kf.T_world_kf, float), trunk, est.T_leaf_trunk, est.covariance)
         return self._fail(kf, trunk, est, S.UNCONFIRMED, est.T_leaf_trunk, lost=True, candidate=new)

@@ -229,7 +229,7 @@ class Localizer:
         return LocalizationEstimate(T, cov, len(li), li, inlier, S.LOCALIZED, median_px)
 
     def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
-                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Stereo bundle adjustment of ``T_leaf_trunk`` with the matched landmarks free, each observed by its
         taught vertex (held where the taught path puts it) and by the leaf. Returns (T_leaf_trunk,
         covariance, inlier mask).

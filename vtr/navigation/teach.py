@@ -12,10 +12,10 @@ from ..camera import StereoCamera
 from ..config import Config
 from ..errors import MapError
 from ..map import Map
-from .place import route_place_index
 from ..map.store import abort_reason
 from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
+from .place import route_place_index
 
 
 class Teach:
