@@ -151,7 +151,8 @@ class LocalizationChain:
         return T_teach_branch @ inv_T(s.T_twig_branch) @ inv_T(s.T_world_twig) @ T_world_frame
 
     def T_teach_localized(self, trunk_id: int, T_leaf_trunk: np.ndarray) -> np.ndarray:
-        """Teach-frame pose of a leaf localized against taught vertex ``trunk_id``: ``T_teach_trunk @ inv(T_leaf_trunk)``."""
+        """Teach-frame pose of a leaf localized against taught vertex ``trunk_id``:
+        ``T_teach_trunk @ inv(T_leaf_trunk)``."""
         return self.path.T_world_vertex[self.path.index(trunk_id)] @ inv_T(T_leaf_trunk)
 
     # -- geometry on the route ---------------------------------------------------------------------

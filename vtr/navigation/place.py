@@ -171,8 +171,8 @@ class PlaceIndex:
 
     def to_bytes(self) -> bytes:
         buf = io.BytesIO()
-        np.savez(buf, top=self.vocabulary.top, leaves=self.vocabulary.leaves, idf=self.idf, indptr=self.indptr, word=self.word,
-                 weight=self.weight)
+        np.savez(buf, top=self.vocabulary.top, leaves=self.vocabulary.leaves, idf=self.idf, indptr=self.indptr,
+                 word=self.word, weight=self.weight)
         return INDEX_MAGIC + buf.getvalue()
 
     @classmethod
@@ -185,8 +185,8 @@ class PlaceIndex:
         except (ValueError, KeyError, OSError) as err:
             raise MapError(f"{where}: damaged place index ({err})") from None
         W, B = len(out.vocabulary), len(out.vocabulary.top)
-        if (out.vocabulary.top.shape != (B, DESCRIPTOR_BYTES) or out.vocabulary.leaves.shape != (B * B, DESCRIPTOR_BYTES)
-                or out.idf.shape != (W,)
+        if (out.vocabulary.top.shape != (B, DESCRIPTOR_BYTES)
+                or out.vocabulary.leaves.shape != (B * B, DESCRIPTOR_BYTES) or out.idf.shape != (W,)
                 or out.indptr.ndim != 1 or len(out.indptr) < 2 or out.indptr[-1] != len(out.word)
                 or out.word.shape != out.weight.shape or (len(out.word) and (out.word.min() < 0 or out.word.max() >= W))
                 or np.any(np.diff(out.indptr) < 0) or not np.all(np.isfinite(out.weight))):
