@@ -28,6 +28,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from vtr.app.repeat_run import run_repeat  # noqa: E402
 from vtr.config import Config  # noqa: E402
 from vtr.map import Map  # noqa: E402
 from vtr.navigation.repeat import Repeat  # noqa: E402
@@ -106,14 +107,21 @@ def main() -> None:
 
     with Map.open(path, "a") as m:
         rp = Repeat(m, config, "synthetic circuit, 1 m left")
-        rss_repeat, attempts, localized, t0 = {}, 0, 0, time.perf_counter()
-        steps = rp.steps(rp.odometry.stereo.frames(frames(repeat_lap, args.laps)))   # as `vtr repeat` runs it
-        for k, step in enumerate(tqdm(steps, total=total, desc="repeat", unit="frame")):
+        rss_repeat, counts, t0 = {}, {"frames": 0, "attempts": 0, "localized": 0}, time.perf_counter()
+        bar = tqdm(total=total, desc="repeat", unit="frame")
+
+        def watch(step) -> None:
+            counts["frames"] += 1
+            bar.update()
             if step.localization is not None:
-                attempts += 1
-                localized += step.localization.success
-            if k + 1 == EARLY_KEYFRAMES:
+                counts["attempts"] += 1
+                counts["localized"] += step.localization.success
+            if counts["frames"] == EARLY_KEYFRAMES:
                 rss_repeat["early"] = rss_mb()
+
+        run_repeat(rp, rp.odometry.stereo.frames(frames(repeat_lap, args.laps)), on_step=watch)  # as `vtr repeat`
+        bar.close()
+        attempts, localized = counts["attempts"], counts["localized"]
         rss_repeat["end"] = rss_mb()
         repeat_fps = total / (time.perf_counter() - t0)
 

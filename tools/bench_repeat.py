@@ -16,7 +16,6 @@ for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import tempfile  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
@@ -24,6 +23,7 @@ import numpy as np  # noqa: E402
 
 from vtr.app.evaluation import path_length  # noqa: E402
 from vtr.app.pipeline import chain_errors, teach_command  # noqa: E402
+from vtr.app.repeat_run import run_repeat  # noqa: E402
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
 from vtr.map import Map  # noqa: E402
@@ -32,20 +32,22 @@ from vtr.navigation.repeat import Repeat  # noqa: E402
 CLIP = Path(__file__).resolve().parents[1] / "datasets" / "kitti06_clip"
 
 
-def run_repeat(map_path: Path, frames: str, config: Config) -> dict:
+def timed_repeat(map_path: Path, frames: str, config: Config) -> dict:
     with open_source(CLIP) as src, Map.open(map_path, "a") as m:
         idx = parse_frame_range(frames, len(src), str(CLIP))
         images = [src[i] for i in idx]              # decode first: load time is not repeat time
         rp = Repeat(m, config, str(CLIP))
         rp.timer.reset()
-        t_loc, locs = [], []
-        t0 = time.perf_counter()
-        # with 2 threads: later frames' stereo ahead on workers, localization on its own thread
-        for step in rp.steps(rp.odometry.stereo.frames(images)):
+        t_loc: list[float] = []
+
+        def latency(step) -> None:
             if step.localization is not None:
-                locs.append(step.localization)
                 t_loc.append(step.localization_seconds)
-        seconds = time.perf_counter() - t0
+
+        # the repeat loop `vtr repeat` runs (with 2 threads: later frames' stereo ahead on workers, localization
+        # on its own thread), the smoother fed as it goes
+        loop = run_repeat(rp, rp.odometry.stereo.frames(images), on_step=latency)
+        locs, seconds = list(loop.localizations), loop.seconds
         ok = [loc for loc in locs if loc.success]
         err = chain_errors(ok, m, src.ground_truth())
     stages = {k: 1000 * v / len(idx) for k, v in rp.timer.seconds.items()}
@@ -81,7 +83,7 @@ def main() -> None:
                     config.features.threads = threads
                     copy = Path(tmp) / f"r{k}.vtrmap"
                     copy.write_bytes(taught.read_bytes())
-                    r = run_repeat(copy, frames, config)
+                    r = timed_repeat(copy, frames, config)
                     copy.unlink()
                     if threads not in runs or r["fps"] > runs[threads]["fps"]:
                         runs[threads] = r

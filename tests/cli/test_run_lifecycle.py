@@ -6,6 +6,7 @@ SIGKILLed teach reads as interrupted; `vtr repeat` refuses a teach that did not 
 
 from __future__ import annotations
 
+import csv
 import re
 import shutil
 import signal
@@ -302,3 +303,42 @@ def test_full_disk_mid_teach_is_one_line_and_never_finished(kitti_clip, referenc
     np.testing.assert_array_equal(t_ns, reference(last_frame + 1))
     r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "rep", "--frames", "1:4")
     one_line_error(r.stderr, "not finished", "--allow-partial")
+
+
+def _localized_in_map(path: Path) -> list[int]:
+    with Map.open(path) as m:
+        repeat = [r for r in m.runs() if r.kind == "repeat"][-1]
+        return sorted(e.from_id for e in m.edges(repeat.id, "spatial"))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_an_interrupted_repeat_leaves_map_and_reports_in_agreement(kitti_clip, tmp_path, sig):
+    """A repeat stopped by a signal mid-run (a real process, localizing on its own thread while odometry runs
+    ahead): every localized vertex in the map has its localization.csv row and its landmarks.csv rows."""
+    path = tmp_path / "route.vtrmap"
+    assert invoke("teach", kitti_clip, "--map", path, "--frames", "0::2").exit_code == 0
+    out = tmp_path / "repeat"
+    proc = subprocess.Popen([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path),
+                             "--out", str(out), "--threads", "2"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
+    while True:                                  # until the run has localized a few leaves
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "repeat too slow"
+        csv_path = out / "localization.csv"
+        if csv_path.exists() and len(csv_path.read_text().splitlines()) > 3:
+            break
+        time.sleep(0.02)
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=SUBPROCESS_TIMEOUT_S)
+    assert proc.returncode in (130, 143), err
+    rows = list(csv.DictReader(open(out / "localization.csv")))
+    reported = sorted(int(r["leaf_id"]) for r in rows if r["success"] == "1")
+    assert reported == _localized_in_map(path)
+    with Map.open(path) as m:
+        repeat = [r for r in m.runs() if r.kind == "repeat"][-1]
+        assert repeat.state == "aborted"
+        assert len(rows) == repeat.n_vertices            # one row per written vertex
+    landmark_leaves = {int(r["leaf_id"]) for r in csv.DictReader(open(out / "landmarks.csv"))}
+    assert landmark_leaves == set(reported)

@@ -29,6 +29,7 @@ from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
 from .pipeline import teach_command, write_landmarks_csv
+from .repeat_run import run_repeat
 
 #: Flight speed used for the synthetic timestamps (m/s).
 SYNTHETIC_SPEED_MPS = 4.0
@@ -81,13 +82,9 @@ def teach(seq_dir: Path, map_path: Path, config: Config) -> Path:
 def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0,
            spacing_m: float = 1.0) -> RepeatSummary:
     """Repeat ``seq_dir`` against the map; ``out_dir/landmarks.csv`` holds the localizations after ``skip_first_m``."""
-    locs = []
     with open_source(seq_dir) as src, Map.open(map_path, "a") as m:
         rp = Repeat(m, config, str(seq_dir))
-        for images in src:
-            step = rp.process(images)
-            if step.localization is not None:
-                locs.append(step.localization)
+        locs = list(run_repeat(rp, rp.odometry.stereo.frames(iter(src)), keep_landmarks=True).localizations)
     skip = int(np.ceil(skip_first_m / spacing_m))
     kept = locs[skip:]
     out_dir.mkdir(parents=True, exist_ok=True)

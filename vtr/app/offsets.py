@@ -9,7 +9,6 @@ result. Camera: ZED-like 672x376, 0.12 m baseline, 12 m above ground, 50 deg dow
 from __future__ import annotations
 
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
 from .mission import teach
 from .pipeline import write_landmarks_csv
+from .repeat_run import run_repeat
 
 SPEED_MPS = 4.0          # flight speed used for timestamps
 REPEAT_PHASE_M = 0.5     # repeat frames sit half a spacing along from the taught ones
@@ -65,13 +65,8 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
             taught = m.taught_path()
             src_times = np.loadtxt(teach_dir / "times_ns.txt", dtype=np.int64)
             rp = Repeat(m, cfg, str(rep_dir))
-            locs = []
-            t0 = time.perf_counter()
-            for images in src:
-                step = rp.process(images)
-                if step.localization is not None:
-                    locs.append(step.localization)
-            seconds = time.perf_counter() - t0
+            loop = run_repeat(rp, rp.odometry.stereo.frames(iter(src)), keep_landmarks=True)
+            locs, seconds = list(loop.localizations), loop.seconds
         est = []
         # judged once the offset is reached (1 m spacing: every frame is a keyframe)
         locs = [loc for loc in locs if split_vertex_id(loc.leaf_id)[1] >= ramp_m]

@@ -5,10 +5,8 @@ with a progress bar, save, summarize). The library never prints; progress goes t
 from __future__ import annotations
 
 import csv
-import dataclasses
 import time
 from collections.abc import Callable, Iterable
-from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,6 +37,9 @@ from .runlog import RunLog
 
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
+
+    from ..navigation.repeat import Repeat, RepeatStep
+    from .repeat_run import RepeatLoop
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
@@ -241,14 +242,16 @@ class RepeatSummary:
                 *([str(self.errors)] if self.errors is not None else []),
                 *([str(self.integrity)] if self.integrity is not None else []),
                 *([f"state.csv: {self.state['rows']} rows at {self.state['rate_hz']:g} Hz, smoothed lateral error "
-                   f"median {self.state['median_abs_lateral_m']:.3f} m, smoother "
-                   f"{self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
+                   + (f"median {self.state['median_abs_lateral_m']:.3f} m" if self.state['median_abs_lateral_m']
+                      is not None else "none (never localized)")
+                   + f", smoother {self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
 
 
 class LocalizationWriter:
     """Appends one ``localization.csv`` row per localization attempt."""
 
     def __init__(self, file):
+        self._file = file
         self._csv = csv.writer(file)
         self._csv.writerow(LOCALIZATION_CSV_HEADER)
 
@@ -261,6 +264,7 @@ class LocalizationWriter:
                             loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
                             loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}", loc.status.value,
                             loc.direction])
+        self._file.flush()              # a row per keyframe, readable while the repeat runs
 
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
@@ -293,8 +297,8 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
 
     from ..map import Map
     from ..navigation.repeat import Repeat
-    from ..navigation.repeat_state import ControllerLog, check_rate, write_state_csv
-    from .report import plot_repeat
+    from ..navigation.repeat_state import check_rate
+    from .repeat_run import run_repeat
 
     rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
     with open_source(source_path, source_options) as source, Map.open(map_path, "a") as m:
@@ -305,56 +309,56 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         _check_path_to_follow(m)
         start = _start_hint(m, start_vertex, start_distance_m)
         repeat = Repeat(m, config, source=str(source_path), start_index=start, allow_partial=allow_partial)
-        clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
-        t_ns, T_teach, locs, t_loc, step_localized = [], [], [], 0.0, []
-        t0 = time.perf_counter()
         with open(out / "localization.csv", "w", newline="") as loc_file, \
                 LandmarksWriter(out / "landmarks.csv") as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
-            stream = frames_of(source, indices, repeat.odometry.stereo, progress, "repeat")
-            with closing(repeat.steps(stream)) as steps:    # closed, its localizations done, before the map
-                for step in steps:
-                    with held_signals():                    # a step's report rows, all or none
-                        t_loc += step.localization_seconds
-                        clog.add(step)
-                        t_ns.append(step.odometry.t_ns)
-                        T_teach.append(step.T_teach_frame)
-                        step_localized.append(clog.vertex_localized[-1] if clog.vertex_localized else False)
-                        if step.localization is not None:
-                            loc_csv.write(step.localization)
-                            append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
-                            # keep the numbers, not the per-landmark record: memory stays flat on long routes
-                            locs.append(dataclasses.replace(step.localization, landmarks=None))
-        m.finish_run()  # every frame is in the map: the run is complete whatever the reports do
-        clog.finish()
-        state = clog.output(rate_hz)
-        seconds = time.perf_counter() - t0
-        write_state_csv(out / "state.csv", state)
-        t_frames, T_teach_frames = np.array(t_ns, np.int64), np.array(T_teach)
-        write_tum(out / "trajectory_tum.txt", t_frames, T_teach_frames)
-        taught = repeat.chain.path
-        errors = distance_to_polyline(T_teach_frames[:, :3, 3], taught.positions)
-        errors[~np.array(step_localized, bool)] = np.nan          # no path error where not localized
-        plot_repeat(out / "report.png", locs, taught, T_teach_frames, t_frames, errors, state)
-        ok = [loc for loc in locs if loc.success]
-        gt_errors = _errors_against_ground_truth(source, m, ok)
-        integrity = None
-        if gt_errors is not None or (not ok and _same_source(source, m)):
-            gt = source.ground_truth()
-            integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
-        statuses: dict[str, int] = {}
-        for loc in locs:
-            statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
-        state_info = {"rate_hz": rate_hz, "rows": len(state),
-                      "smoother_ms_per_frame": 1000 * clog.seconds / max(len(t_ns), 1),
-                      "median_abs_lateral_m": float(np.nanmedian(np.abs(state.lateral))) if len(state) else None,
-                      "median_abs_vertical_m": float(np.nanmedian(np.abs(state.vertical))) if len(state) else None}
-        summary = RepeatSummary(len(t_ns), len(locs), len(ok), seconds, t_loc,
-                                float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                                float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
-                                gt_errors, state_info, statuses, integrity)
+
+            def report(step: RepeatStep) -> None:
+                if step.localization is not None:
+                    loc_csv.write(step.localization)
+                    append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
+
+            loop = run_repeat(repeat, frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"),
+                              on_step=report)
+        summary = _write_repeat_outputs(out, loop, repeat, rate_hz, source, m)
         log.write(summary.to_dict())
     return summary
+
+
+def _write_repeat_outputs(out: Path, loop: RepeatLoop, repeat: Repeat, rate_hz: float, source: FrameSource,
+                          m) -> RepeatSummary:
+    """After the loop: state.csv, trajectory_tum.txt, report.png; the evaluation; the summary."""
+    from ..navigation.repeat_state import write_state_csv
+    from .report import plot_repeat
+
+    t_smooth = time.perf_counter()
+    state = loop.controller.output(rate_hz)
+    write_state_csv(out / "state.csv", state)
+    write_tum(out / "trajectory_tum.txt", loop.t_ns, loop.T_teach)
+    taught = repeat.chain.path
+    errors = distance_to_polyline(loop.T_teach[:, :3, 3], taught.positions)
+    errors[~loop.localized] = np.nan          # no path error where not localized
+    locs = list(loop.localizations)
+    plot_repeat(out / "report.png", locs, taught, loop.T_teach, loop.t_ns, errors, state)
+    ok = [loc for loc in locs if loc.success]
+    gt_errors = _errors_against_ground_truth(source, m, ok)
+    integrity = None
+    if locs and _same_source(source, m):
+        gt = source.ground_truth()
+        integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
+    statuses: dict[str, int] = {}
+    for loc in locs:
+        statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
+    lateral, vertical = np.abs(state.lateral), np.abs(state.vertical)
+    state_info = {"rate_hz": rate_hz, "rows": len(state),
+                  "smoother_ms_per_frame": 1000 * loop.controller.seconds / max(len(loop.t_ns), 1),
+                  "median_abs_lateral_m": float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
+                  "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None}
+    seconds = loop.seconds + time.perf_counter() - t_smooth
+    return RepeatSummary(len(loop.t_ns), len(locs), len(ok), seconds, loop.localization_seconds,
+                         float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
+                         float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
+                         gt_errors, state_info, statuses, integrity)
 
 
 def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> int | None:

@@ -80,6 +80,7 @@ class Repeat:
         self._frames: dict[int, StereoFrame] = {}   # taught frames of recent submaps (kept while they slide)
         self._submaps: dict[int, TaughtSubmap] = {}
         self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf
+        self._undelivered: list[RepeatStep] = []
 
     def process(self, images: StereoImages) -> RepeatStep:
         """Stereo-process a rectified pair, then :meth:`process_frame`."""
@@ -119,17 +120,31 @@ class Repeat:
                 raise
 
         pending: deque[Future[RepeatStep]] = deque()
-        with ThreadPoolExecutor(1, thread_name_prefix="vtr-localize") as pool:
-            try:
-                for frame in frames:
-                    pending.append(pool.submit(in_order, *self._odometry(frame)))
-                    while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
-                        yield self._deliver(pending.popleft().result())
-                while pending:
+        pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-localize")
+        try:
+            for frame in frames:
+                pending.append(pool.submit(in_order, *self._odometry(frame)))
+                while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
                     yield self._deliver(pending.popleft().result())
-            finally:
-                for future in pending:
-                    future.cancel()
+            while pending:
+                yield self._deliver(pending.popleft().result())
+        finally:
+            for future in pending:
+                future.cancel()
+            pool.shutdown(wait=True)
+            # steps the map already holds but the stream did not deliver (it was closed early): a caller that
+            # reports every step takes them with take_undelivered, so the map and its reports agree
+            done = []
+            for future in pending:
+                if future.cancelled() or future.exception() is not None:
+                    break
+                done.append(self._deliver(future.result()))
+            self._undelivered = done
+
+    def take_undelivered(self) -> list[RepeatStep]:
+        """Steps written to the map (and localized) that a stream closed early never yielded, in order (once)."""
+        out, self._undelivered = self._undelivered, []
+        return out
 
     def _deliver(self, step: RepeatStep) -> RepeatStep:
         if step.localization is not None:
