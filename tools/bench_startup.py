@@ -47,9 +47,8 @@ def wall(cmd: list[str]) -> float:
 def first_frame(cmd: list[str], tty: bool) -> tuple[float, float]:
     """(seconds to the first processed frame, seconds to the end) of one odometry process."""
     if tty:
-        import pty
-
         import fcntl
+        import pty
         import struct
         import termios
 

@@ -21,7 +21,6 @@ from ..geometry import distance_to_polyline, inv_T
 from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource, SourceOptions
 from ..io.trajectory import write_tum
-from ..navigation.localization import Localization
 from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
@@ -31,6 +30,8 @@ from .runlog import RunLog
 
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
+
+    from ..navigation.localization import Localization
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
 
