@@ -453,7 +453,8 @@ def field_comments(section_cls: type) -> dict[str, list[str]]:
         for item in node.body:
             if not (isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)):
                 continue
-            above, n = [], item.lineno - 1
+            above: list[str] = []
+            n = item.lineno - 1
             while n >= 1 and lines[n - 1].strip().startswith("#"):
                 above.insert(0, comments.get(n, ""))
                 n -= 1
