@@ -1,9 +1,12 @@
 """The ``perception-model`` command: fit, evaluate and apply the perception model.
 
-    perception-model fit LANDMARKS.csv|.parquet... --out model.json [--method binned|mle] [--plot FIG.png]
-    perception-model evaluate model.json LANDMARKS.csv|.parquet...
-    perception-model constraint model.json --landmarks L.csv --positions P.csv
-    perception-model constraint model.json --map route.vtrmap --positions P.csv [--out FILE.csv | --out -]
+    perception-model fit LANDMARKS.csv|.parquet... --out DIR [--method binned|mle]   # DIR/model.json, DIR/fit.png
+    perception-model evaluate DIR/model.json LANDMARKS.csv|.parquet... [--out DIR] [--json]
+    perception-model constraint DIR/model.json --landmarks L.csv --positions P.csv
+    perception-model constraint DIR/model.json --map route.vtrmap --positions P.csv [--out DIR | --out -]
+
+The conventions of both console scripts (one-line usage errors, ``--out DIR`` always a folder, ``--force``
+to replace outputs, ``--json`` a flag) are written in ``perception_model.commandline``.
 
 ``constraint --map`` reads each position's trunk and its landmarks from a ``vtr`` map, in the map
 frame (the teach run's first camera frame: x right, y down, z forward); see
@@ -26,12 +29,16 @@ import os
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
-import numpy as np
 
-from .errors import InputDataError, PerceptionModelError
+from .commandline import OneLineGroup, force_option, version_option
+from .errors import InputDataError, PerceptionModelError, PerceptionModelWarning
+from .outputs import existing_output
+
+if TYPE_CHECKING:
+    import numpy as np
 
 PROG = "perception-model"
 DIST = "vtr"  # the distribution that ships this package
@@ -44,7 +51,7 @@ PLOT_SIZE_IN = (12.0, 4.8)
 PLOT_CONTOURS = (0.05, 0.1, 0.2, 0.3, 0.4)
 
 
-class _Group(click.Group):
+class _Group(OneLineGroup):
     """Click group that reports known errors and warnings in one line each."""
 
     def invoke(self, ctx: click.Context) -> Any:
@@ -76,8 +83,25 @@ def _flush_warnings(caught: list[warnings.WarningMessage]) -> None:
         click.echo(f"{PROG}: warning: {_one_line(Exception(str(w.message)))}", err=True)
 
 
-@click.group(cls=_Group)
-@click.version_option(None, package_name=DIST, prog_name=PROG, message="%(prog)s %(version)s")
+def _version() -> str:
+    from importlib.metadata import version
+
+    return version(DIST)
+
+
+def check_output(path: Path, force: bool, *, folder: bool = False, option: str | None = None) -> None:
+    """The output rule of every command (:func:`perception_model.outputs.existing_output`) as an error."""
+    problem = existing_output(path, force, folder=folder, option=option)
+    if problem is not None:
+        raise InputDataError(problem)
+
+
+def deprecated(message: str) -> None:
+    warnings.warn(message, PerceptionModelWarning, stacklevel=2)
+
+
+@click.group(cls=_Group, name=PROG)
+@version_option(_version(), PROG)
 def main() -> None:
     """Perception model for visual teach and repeat: p = c1 cos(c2 theta) exp(c3 alpha)."""
 
@@ -98,9 +122,10 @@ def bin_options(command):
     "--out",
     "out",
     required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Model JSON to write.",
+    type=click.Path(path_type=Path),
+    help="Output folder: model.json and fit.png (the figure). Deprecated: a FILE.json path writes that file.",
 )
+@force_option("model.json and the figure")
 @click.option(
     "--method",
     type=click.Choice(["binned", "mle"]),
@@ -112,7 +137,8 @@ def bin_options(command):
     "--plot",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="PNG: observed inlier frequency over (alpha, theta) beside the fitted surface.",
+    help="Write the figure (observed inlier frequency per (alpha, theta) bin beside the fitted surface) here "
+    "instead of OUT/fit.png.",
 )
 @click.option(
     "--unit",
@@ -155,6 +181,7 @@ def bin_options(command):
 def fit_cmd(
     landmarks: tuple[Path, ...],
     out: Path,
+    force: bool,
     method: str,
     plot: Path | None,
     unit: str,
@@ -166,10 +193,21 @@ def fit_cmd(
     ci: str,
     n_bootstrap: int,
 ) -> None:
-    """Fit the model to landmarks files (.csv or .parquet) and write model.json."""
+    """Fit the model to landmarks files (.csv or .parquet): OUT/model.json and OUT/fit.png."""
     from .fit import BinSpec, fit_observations
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
 
+    if out.suffix.lower() == ".json":
+        deprecated(f"--out {out}: a model file is deprecated; give a folder (--out DIR writes DIR/model.json and "
+                   "DIR/fit.png)")
+        model_path = out
+    else:
+        check_output(out, force, folder=True, option="--out")
+        model_path = out / "model.json"
+        plot = out / "fit.png" if plot is None else plot
+    check_output(model_path, force)
+    if plot is not None:
+        check_output(plot, force)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
     bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
     result = fit_observations(
@@ -182,13 +220,13 @@ def fit_cmd(
         ci=ci,  # type: ignore[arg-type]
         n_bootstrap=n_bootstrap,
     )
-    out.parent.mkdir(parents=True, exist_ok=True)
+    model_path.parent.mkdir(parents=True, exist_ok=True)
     data = obs.describe()
-    result.model.save(out, fit=result.to_dict(), data=data)
+    result.model.save(model_path, fit=result.to_dict(), data=data)
     click.echo(_fit_summary(result, data))
-    click.echo(f"wrote {out}")
+    click.echo(f"wrote {model_path}")
     if plot is not None:
-        plot_fit(result, plot)
+        plot_fit(result, plot, min_bin_count)
         click.echo(f"wrote {plot}")
 
 
@@ -238,26 +276,36 @@ def _evaluation_lines(ev: Any) -> list[str]:
     return lines
 
 
-def plot_fit(result: Any, path: Path) -> None:
-    """Observed inlier frequency per (alpha, theta) bin beside the fitted surface (cf. thesis Fig. 7.3)."""
+def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
+    """Observed inlier frequency per (alpha, theta) bin beside the fitted surface (cf. thesis Fig. 7.3) and the
+    number of observations per bin. Bins with fewer than ``min_count`` observations (the fit did not use
+    them; default: the smallest count among the bins it used) are hatched, not coloured: a frequency of 0 or
+    1 from a handful of samples says nothing."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
+    from matplotlib.colors import LogNorm
 
     model = result.model
     k = model.unit_scale
     unit = model.angle_unit
     binned = result.binned
+    counts = binned.count_grid
+    if min_count is None:
+        min_count = int(binned.count.min()) if binned.count.size else 1
     a_edges, t_edges = binned.alpha_edges, binned.theta_edges
-    freq = np.where(binned.count_grid >= 1, binned.frequency_grid, np.nan)
+    freq = np.where(counts >= min_count, binned.frequency_grid, np.nan)
     a_mid = 0.5 * (a_edges[1:] + a_edges[:-1])
     t_mid = 0.5 * (t_edges[1:] + t_edges[:-1])
     fitted = model.probability(a_mid[:, None], t_mid[None, :])
     vmax = float(np.nanmax([np.nanmax(freq) if np.isfinite(freq).any() else 0.0, fitted.max(), 1e-3]))
-    fig, axes = plt.subplots(1, 2, figsize=PLOT_SIZE_IN, sharey=True, constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(PLOT_SIZE_IN[0] * 1.4, PLOT_SIZE_IN[1]), sharey=True,
+                             constrained_layout=True)
+    sparse = (counts > 0) & (counts < min_count)
     for ax, data, title in (
-        (axes[0], freq, "observed inlier frequency"),
+        (axes[0], freq, f"observed inlier frequency (bins with >= {min_count} observations)"),
         (axes[1], fitted, f"fitted model ({result.method})"),
     ):
         mesh = ax.pcolormesh(a_edges * k, t_edges * k, data.T, vmin=0.0, vmax=vmax, cmap="viridis")
@@ -271,13 +319,26 @@ def plot_fit(result: Any, path: Path) -> None:
         )
         ax.clabel(cs, fontsize=7)
         ax.set_xlabel(f"parallax angle alpha [{unit}]")
-        ax.set_title(title)
+        ax.set_title(title, fontsize=9)
+    if sparse.any():
+        axes[0].contourf(a_mid * k, t_mid * k, sparse.T.astype(float), levels=[0.5, 1.5], colors="none",
+                         hatches=["////"])
+        axes[0].text(0.01, 0.99, f"hatched: 1-{min_count - 1} observations (not used)",
+                     transform=axes[0].transAxes, va="top", fontsize=7,
+                     bbox={"facecolor": "white", "alpha": 0.7, "linewidth": 0})
     axes[0].set_ylabel(f"view angle theta [{unit}]")
+    fig.colorbar(mesh, ax=axes[:2], label="probability of inlier [-]", shrink=0.9)
+    shown = np.where(counts > 0, counts, np.nan)
+    cmesh = axes[2].pcolormesh(a_edges * k, t_edges * k, shown.T, cmap="magma",
+                               norm=LogNorm(vmin=1, vmax=max(2.0, float(counts.max()))))
+    axes[2].set_xlabel(f"parallax angle alpha [{unit}]")
+    axes[2].set_title("observations per bin (white: none)", fontsize=9)
+    fig.colorbar(cmesh, ax=axes[2], label="observations [count]", shrink=0.9)
     c1, c2, c3 = model.constants
     fig.suptitle(
-        f"p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha)   R^2 = {result.r2:.3f}, n = {result.n}"
+        f"perception model fit: p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha), angles in {unit}   "
+        f"R^2 = {result.r2:.3f}, n = {result.n}"
     )
-    fig.colorbar(mesh, ax=axes, label="probability of inlier")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=PLOT_DPI)
     plt.close(fig)
@@ -291,11 +352,21 @@ def plot_fit(result: Any, path: Path) -> None:
 @click.option("--min-bin-count", type=click.IntRange(min=1), default=10, show_default=True)
 @click.option("--calibration-bins", type=click.IntRange(min=1), default=10, show_default=True)
 @click.option(
-    "--json",
-    "json_out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    "--out",
+    "out",
+    type=click.Path(file_okay=False, path_type=Path),
     default=None,
-    help="Also write the results as JSON.",
+    help="Output folder: evaluation.json.",
+)
+@force_option("evaluation.json")
+@click.option(
+    "--json",
+    "json_flag",
+    is_flag=False,
+    flag_value="-",
+    default=None,
+    metavar="",
+    help="Print the results as JSON on stdout (instead of the table). Deprecated: --json FILE writes FILE.",
 )
 def evaluate_cmd(
     model_path: Path,
@@ -304,13 +375,24 @@ def evaluate_cmd(
     theta_bin: float,
     min_bin_count: int,
     calibration_bins: int,
-    json_out: Path | None,
+    out: Path | None,
+    force: bool,
+    json_flag: str | None,
 ) -> None:
     """Report log-loss, calibration and R^2 of a model on (held-out) landmarks files (.csv or .parquet)."""
     from .fit import BinSpec, evaluate
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
     from .model import PerceptionModel
 
+    if out is not None:
+        check_output(out, force, folder=True, option="--out")
+    json_out = None if out is None else out / "evaluation.json"
+    if json_flag not in (None, "-"):
+        deprecated(f"--json {json_flag}: a file after --json is deprecated; use --out DIR (DIR/evaluation.json) "
+                   "or --json alone (JSON on stdout)")
+        json_out = Path(json_flag)
+    if json_out is not None:
+        check_output(json_out, force)
     model = PerceptionModel.load(model_path)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
     bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
@@ -324,22 +406,24 @@ def evaluate_cmd(
         source=obs.source_names,
     )
     c1, c2, c3 = model.constants
-    click.echo(f"model {model_path}: c = ({c1:.4g}, {c2:.4g}, {c3:.4g}) [{model.angle_unit}]")
-    click.echo(f"data: {obs.source_names}")
-    for line in _evaluation_lines(ev):
-        click.echo(line)
+    results = json.dumps({"model": str(model_path), "data": obs.describe(), "evaluation": ev.to_dict()}, indent=2)
+    if json_flag == "-":
+        click.echo(results)
+    else:
+        click.echo(f"model {model_path}: c = ({c1:.4g}, {c2:.4g}, {c3:.4g}) [{model.angle_unit}]")
+        click.echo(f"data: {obs.source_names}")
+        for line in _evaluation_lines(ev):
+            click.echo(line)
     if json_out is not None:
-        json_out.write_text(
-            json.dumps(
-                {"model": str(model_path), "data": obs.describe(), "evaluation": ev.to_dict()}, indent=2
-            )
-            + "\n"
-        )
-        click.echo(f"wrote {json_out}")
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(results + "\n")
+        click.echo(f"wrote {json_out}", err=json_flag == "-")
 
 
 # --------------------------------------------------------------------------- constraint
 def _parse_vector(text: str, name: str) -> np.ndarray:
+    import numpy as np
+
     try:
         vec = np.array([float(v) for v in text.split(",")])
     except ValueError:
@@ -420,10 +504,12 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
 @click.option(
     "--out",
     "out",
-    type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+    type=click.Path(allow_dash=True, path_type=Path),
     default=None,
-    help="Write the per-position table as CSV ('-': CSV on stdout, the summary on stderr).",
+    help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the summary on stderr). "
+    "Deprecated: a FILE.csv path writes that file.",
 )
+@force_option("constraint.csv")
 def constraint_cmd(
     model_path: Path,
     landmarks_path: Path | None,
@@ -438,6 +524,7 @@ def constraint_cmd(
     in_view: bool,
     exact: bool,
     out: Path | None,
+    force: bool,
 ) -> None:
     """Evaluate mu, sigma and the chance-constraint margin along a path.
 
@@ -448,10 +535,22 @@ def constraint_cmd(
     trunk's orientation, with a yaw (heading about the map's -y, 0 along +z, positive to the left)
     it is pitched by --pitch-deg or the trunk's pitch (see perception_model.map_landmarks).
     """
+    import numpy as np
+
     from .constraint import THESIS_C_BAR, c_bar_from_delta, delta_from_c_bar
     from .io import read_positions
     from .model import PerceptionModel
 
+    to_stdout = out is not None and str(out) == "-"
+    csv_path = None
+    if out is not None and not to_stdout:
+        if out.suffix.lower() == ".csv":
+            deprecated(f"--out {out}: a CSV file is deprecated; give a folder (--out DIR writes DIR/constraint.csv)")
+            csv_path = out
+        else:
+            check_output(out, force, folder=True, option="--out")
+            csv_path = out / "constraint.csv"
+        check_output(csv_path, force)
     if (landmarks_path is None) == (map_path is None):
         raise InputDataError("give exactly one of --landmarks FILE or --map MAP")
     if map_path is not None and taught_camera is not None:
@@ -469,7 +568,6 @@ def constraint_cmd(
             model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact
         )
     header, rows, fmt, intro = table
-    to_stdout = out is not None and str(out) == "-"
     echo = (lambda text: click.echo(text, err=True)) if to_stdout else click.echo
     echo(f"{intro}, L_min = {l_min:g}, c_bar = {cbar:.4g} (delta = {delta_from_c_bar(cbar):.3g})")
     if not to_stdout:
@@ -483,18 +581,17 @@ def constraint_cmd(
         f"constraint mu - c_bar sigma >= L_min violated at {int((g < 0).sum())} of {len(rows)} positions; "
         f"smallest margin g = {g[worst]:.2f} at index {worst}"
     )
-    if out is not None:
-        if to_stdout:
-            writer = csv.writer(sys.stdout, lineterminator="\n")
-            writer.writerow(header)
-            writer.writerows(rows)
-            return
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with out.open("w", newline="") as fh:
+    if to_stdout:
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(rows)
+    elif csv_path is not None:
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+        with csv_path.open("w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(header)
             writer.writerows(rows)
-        echo(f"wrote {out}")
+        echo(f"wrote {csv_path}")
 
 
 _Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
@@ -519,6 +616,8 @@ def _constraint_on_landmarks(
     exact: bool,
 ) -> _Table:
     """Per-position rows for landmarks given in frame o."""
+    import numpy as np
+
     from .constraint import PerceptionConstraint, normal_tail, poisson_binomial_tail
     from .io import read_points
 
@@ -565,6 +664,8 @@ def _constraint_on_map(
     exact: bool,
 ) -> _Table:
     """Per-position rows with each position's trunk taken from a taught vtr map."""
+    import numpy as np
+
     ctx = click.get_current_context()
     evaluate_on_map = (ctx.obj or {}).get("evaluate_on_map") if isinstance(ctx.obj, dict) else None
     if evaluate_on_map is None:

@@ -48,6 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 from .angles import THESIS_PITCH_DOWN_RAD
 from .errors import GeometryError, PerceptionModelError
 from .model import PerceptionModel
+from .records import short_repr
 
 #: Thesis simulation settings (§7.4): minimum inliers and the c_bar multiplier (3 sigma).
 THESIS_L_MIN = 30.0
@@ -225,6 +226,8 @@ class ConstraintEvaluation:
     radian); ``None`` when not requested (or, for yaw, when explicit axes were given).
     """
 
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
+
     p: NDArray[np.float64]
     mu: NDArray[np.float64]
     sigma: NDArray[np.float64]
@@ -246,6 +249,8 @@ class Linearization:
 
     For one SQP step of an MPC: impose ``value_k + grad_k . (y_k - y0_k) >= 0`` for each step k.
     """
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     kind: str
     positions: NDArray[np.float64]

@@ -176,7 +176,8 @@ class Evaluation:
             "n_inliers": self.n_inliers,
             "log_loss": self.log_loss,
             "brier": self.brier,
-            "r2_binned": self.r2,
+            # None (JSON null) when no held-out bin holds enough observations: NaN is not JSON
+            "r2_binned": self.r2 if math.isfinite(self.r2) else None,
             "n_bins": self.n_bins,
             "calibration": [vars(c) for c in self.calibration],
         }

@@ -39,6 +39,7 @@ from .constraint import THESIS_C_BAR, THESIS_L_MIN, _build_view_factor
 from .errors import GeometryError, PerceptionModelError
 from .frames import rot_z
 from .model import PerceptionModel
+from .records import short_repr
 
 #: Per-step flags of a horizon evaluation.
 OK = 0
@@ -56,6 +57,8 @@ class TrunkLandmarks:
     pitch below the horizon (used for yaw-defined axes).
     """
 
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
+
     vertex_id: int
     position_g: NDArray[np.float64]
     yaw_g: float
@@ -67,6 +70,8 @@ class TrunkLandmarks:
 @dataclass(frozen=True)
 class HorizonEvaluation:
     """Values (N,) and gradients of the constraint along a horizon (gradients in frame g)."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     trunk: NDArray[np.int64]  # index of each step's trunk in the evaluator
     mu: NDArray[np.float64]

@@ -47,6 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputDataError
+from .records import short_repr
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,8 @@ class Observations:
     read (a fit reads only ``FIT_FIELDS``) or, for ``matched``, not recorded. ``sources`` maps row
     ranges back to files.
     """
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     alpha: NDArray[np.float64]
     theta: NDArray[np.float64]

@@ -52,6 +52,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .records import short_repr
+
 _E_X = np.array([1.0, 0.0, 0.0])
 _E_Y = np.array([0.0, 1.0, 0.0])
 _E_Z = np.array([0.0, 0.0, 1.0])
@@ -85,6 +87,8 @@ def yaw_pitch_of_axis(z: ArrayLike) -> tuple[float, float]:
 class Trunk:
     """A privileged vertex and its landmarks in the map frame."""
 
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
+
     vertex_id: int
     T_map_vertex: NDArray[np.float64]
     points_map: NDArray[np.float64]  # (M, 3)
@@ -103,6 +107,8 @@ class Trunk:
 @dataclass(frozen=True)
 class MapConstraintTable:
     """Per-position results of the constraint on a map (arrays of length N)."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     positions: NDArray[np.float64]
     yaw: NDArray[np.float64]  # heading used (radians, map convention; the trunk's when none given)

@@ -33,3 +33,17 @@ def test_no_citation_of_an_outside_design_file():
     offenders = [str(p.relative_to(ROOT)) for p in SOURCES if p != Path(__file__).resolve()
                  and "DESIGN" + ".md" in p.read_text()]
     assert not offenders, offenders
+
+
+def test_ramp_clip_source_names_the_turn_its_poses_make():
+    """SOURCE.md's turn direction agrees with poses.txt (camera x right, z forward: a heading turning from +z
+    towards +x is a right turn)."""
+    import numpy as np
+
+    clip = ROOT / "datasets" / "kitti00_ramp_clip"
+    P = np.loadtxt(clip / "poses.txt").reshape(-1, 3, 4)
+    forward = P[-1, :, 2]
+    turn_deg = float(np.degrees(np.arctan2(forward[0], forward[2])))
+    side = "right" if turn_deg > 0 else "left"
+    text = (clip / "SOURCE.md").read_text()
+    assert f"{side} turn" in text and f"turns {side} by about {abs(round(turn_deg))} degrees" in text, turn_deg

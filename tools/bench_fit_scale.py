@@ -72,6 +72,7 @@ def run_fit(data: Path, out: Path, method: str, pythonpath: Path, label: str) ->
     """One ``perception-model fit`` in a fresh process: wall seconds, peak RSS (wait4), exit code, constants."""
     model_path = out / f"model_{data.name}_{method}_{label}.json"
     log = out / f"log_{data.name}_{method}_{label}.txt"
+    model_path.unlink(missing_ok=True)   # fit refuses to replace an existing model (no --force: older versions lack it)
     cmd = [sys.executable, "-m", "perception_model.cli", "fit", str(data), "--out", str(model_path),
            "--method", method]  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(pythonpath))

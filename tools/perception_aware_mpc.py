@@ -71,6 +71,11 @@ def scene() -> syn.Scene:
                             clear_path_xy=route, clear_radius_m=4.0, ground_contrast=GROUND_CONTRAST)
 
 
+def say(text: str) -> None:
+    """A progress line on stderr (the experiment takes minutes)."""
+    print(text, file=sys.stderr, flush=True)
+
+
 def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarray], Path, list[dict]]:
     """Teach both cases, repeat each once off the path, fit the model: (maps, up vectors, model path, repeats)."""
     sc = scene()
@@ -78,11 +83,13 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
     for case, heading in CASES.items():
         T_teach = syn.segmented_aerial_route(SEGMENTS, SPACING_M, camera_heading_rad=heading,
                                              pitch_down_rad=PITCH_DOWN_RAD)
+        say(f"{case}: rendering the teach sequence ({len(T_teach)} frames; cached after the first run)")
         seq = mission.render(out / case / "teach", sc, T_teach, progress=frame_progress(f"render {case} teach"))
         map_path = out / case / "route.vtrmap"
         stamp = out / case / "route.done"  # the map is reused only for the same taught poses and config
         key = hashlib.sha1(np.ascontiguousarray(T_teach).tobytes() + cfg.to_yaml().encode()).hexdigest()
         if not (stamp.is_file() and map_path.is_file() and stamp.read_text().strip() == key):
+            say(f"{case}: teaching the route")
             mission.teach(seq, map_path, cfg)
             stamp.write_text(key + "\n")
             shutil.rmtree(out / case / "repeat", ignore_errors=True)
@@ -92,15 +99,18 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
                                            camera_heading_rad=heading, pitch_down_rad=PITCH_DOWN_RAD,
                                            lateral_offset_m=dy, vertical_offset_m=dz, ramp_m=RAMP_M,
                                            start_offset_m=0.5 * SPACING_M)
+        say(f"{case}: rendering the repeat {dy:+g} m / {dz:+g} m off the path")
         rep_seq = mission.render(out / case / "repeat_seq", sc, T_rep, noise_seed=1,
                                  progress=frame_progress(f"render {case} repeat"))
         rep_dir = out / case / "repeat"
         if not (rep_dir / "landmarks.csv").is_file():
+            say(f"{case}: repeating through the pipeline (localization against the taught map)")
             summary = mission.repeat(rep_seq, map_path, rep_dir, cfg, skip_first_m=RAMP_M)
             reps.append({"case": case, "lateral_m": dy, "vertical_m": dz, "localizations": summary.localizations,
                          "successes": summary.successes})
         files.append(rep_dir / "landmarks.csv")
     model_path = out / "model.json"
+    say(f"fitting the perception model on {len(files)} repeats' landmarks")
     model = mission.fit_model(files)
     model.save(model_path)
     return maps, ups, model_path, reps
@@ -162,7 +172,7 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float) -> None:
         ax.annotate("camera", (12.0, 5.0), xytext=(12.0, 5.0 + 6.0 * math.sin(CASES[case])),
                     arrowprops={"arrowstyle": "<-"}, ha="center")
         ax.set_aspect("equal")
-        ax.set_title(f"case {case}: flown paths")
+        ax.set_title(f"case {case}: flown paths (camera {case})")
         ax.set_xlabel("east [m]")
         ax.set_ylabel("north [m]")
         ax.legend(fontsize=8)
@@ -177,10 +187,12 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float) -> None:
                 r = by_ctrl[name]
                 ax.plot(r.t_s, r.bound, label=name)
         ax.axhline(l_min, color="r", ls=":", label="L_min")
-        ax.set_title(f"case {case}: mu - 3 sigma along the flight")
+        ax.set_title(f"case {case}: predicted inlier bound along the flight")
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("mu - 3 sigma [inliers]")
         ax.legend(fontsize=8)
         ax.grid(True, alpha=0.3)
+    fig.suptitle("perception-aware MPC: localization bound (must stay above L_min)")
     fig.tight_layout()
     fig.savefig(out / "bounds.png", dpi=110)
     plt.close(fig)
@@ -212,6 +224,7 @@ def main(argv: list[str] | None = None) -> None:
     controllers = ["none", *(f"fixed_{b}m" for b in FIXED_BOUNDS_M), "pa"]
     rows, runs, fields = [], {}, {}
     for case in args.cases.split(","):
+        say(f"{case}: building the taught-path field, then flying {len(controllers)} controllers")
         field, axis = build_field(maps[case], ups[case], model_path, control, cfg)
         fields[case] = field
         runs[case] = {}

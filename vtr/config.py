@@ -339,8 +339,26 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
-    def to_yaml(self) -> str:
-        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+    def to_yaml(self, comments: bool = False) -> str:
+        """The configuration as YAML; with ``comments``, every section and key preceded by its comment in
+        this module (units, measurements) and its domain (what ``vtr config`` prints; still loadable)."""
+        if not comments:
+            return yaml.safe_dump(self.to_dict(), sort_keys=False)
+        lines = ["# vtr configuration: every key with its default, its comment in vtr/config.py and its domain.",
+                 "# Keep only the keys you change; load with --config FILE.", ""]
+        for section in dataclasses.fields(self):
+            part = getattr(self, section.name)
+            doc = (type(part).__doc__ or "").strip().splitlines()[0]
+            lines.append(f"{section.name}:  # {doc}")
+            notes = field_comments(type(part))
+            for f in dataclasses.fields(part):
+                for text in notes.get(f.name, []):
+                    lines.append(f"  # {text}")
+                lines.append(f"  # domain: {domain_of(f).describe()}")
+                value = yaml.safe_dump({f.name: getattr(part, f.name)}, default_flow_style=True).strip()
+                lines.append(f"  {value.removeprefix('{').removesuffix('}')}")
+            lines.append("")
+        return "\n".join(lines)
 
     @classmethod
     def from_dict(cls, data: Any, where: str = "config") -> Config:
@@ -350,14 +368,16 @@ class Config:
         sections = {f.name for f in dataclasses.fields(cls)}
         for section, values in data.items():
             if section not in sections:
-                raise ConfigError(f"{where}: unknown section {section!r} (sections: {', '.join(sorted(sections))})")
+                hint = _did_you_mean(cls, None, section)
+                raise ConfigError(f"{where}: unknown section {section!r}{hint or ''} "
+                                  f"(sections: {', '.join(sorted(sections))})")
             target = getattr(cfg, section)
             if not isinstance(values, dict):
                 raise ConfigError(f"{where}: section {section!r} must be a mapping of keys")
             known = {f.name: f for f in dataclasses.fields(target)}
             for key, value in values.items():
                 if key not in known:
-                    raise ConfigError(f"{where}: unknown key {section}.{key}")
+                    raise ConfigError(f"{where}: unknown key {section}.{key}{_did_you_mean(cls, section, key)}")
                 try:
                     value = domain_of(known[key]).check(value)
                 except ValueError as err:
@@ -431,3 +451,52 @@ def config_keys() -> list[tuple[str, str, Range | Choice]]:
     return [(section.name, f.name, domain_of(f))
             for section in dataclasses.fields(Config)
             for f in dataclasses.fields(section.default_factory)]  # type: ignore[arg-type]
+
+
+def _did_you_mean(cls: type, section: str | None, key: str) -> str:
+    """``" (did you mean features.n_features?)"`` for a mistyped key (also one put in the wrong section) or
+    section; empty when nothing is close."""
+    import difflib
+
+    sections = {f.name: f.type for f in dataclasses.fields(cls)}
+    keys = {f"{s}.{k.name}": k.name for s in sections for k in dataclasses.fields(getattr(cls(), s))}
+    if section is None:
+        close = difflib.get_close_matches(key, list(sections), n=1, cutoff=0.6)
+    else:
+        close = [k for k, name in keys.items() if name == key][:1]     # the right key in the wrong section
+        if not close:
+            close = difflib.get_close_matches(f"{section}.{key}", list(keys), n=1, cutoff=0.75)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def field_comments(section_cls: type) -> dict[str, list[str]]:
+    """Comment lines of each field of a config section class, as written in this module: the comment
+    lines right above the field and the comment at its end (read from the source, not hand-copied)."""
+    import ast
+    import inspect
+    import io
+    import tokenize
+
+    source = Path(inspect.getsourcefile(section_cls) or __file__).read_text()
+    comments: dict[int, str] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = tok.string.lstrip("#").strip()
+    lines = source.splitlines()
+    out: dict[str, list[str]] = {}
+    for node in ast.walk(ast.parse(source)):
+        if not (isinstance(node, ast.ClassDef) and node.name == section_cls.__name__):
+            continue
+        for item in node.body:
+            if not (isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)):
+                continue
+            above: list[str] = []
+            n = item.lineno - 1
+            while n >= 1 and lines[n - 1].strip().startswith("#"):
+                above.insert(0, comments.get(n, ""))
+                n -= 1
+            trailing = [comments[k] for k in range(item.lineno, (item.end_lineno or item.lineno) + 1)
+                        if k in comments and not lines[k - 1].strip().startswith("#")]
+            out[item.target.id] = [t for t in above + trailing if t]
+    return out
+

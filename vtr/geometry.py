@@ -15,7 +15,6 @@ from typing import overload
 
 import gtsam
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import EstimationError, VtrError
 
@@ -78,6 +77,8 @@ def log_se3_batch(T: np.ndarray) -> np.ndarray:
     ``W = skew(omega)``, ``th = |omega|`` (series near 0).
     """
     T = np.asarray(T, float).reshape(-1, 4, 4)
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
+
     w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
     th = np.linalg.norm(w, axis=1)
     W = np.zeros((len(T), 3, 3))
@@ -123,6 +124,8 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 def T_to_tum(T: np.ndarray) -> np.ndarray:
     """4x4 transform(s) (..., 4, 4) -> (..., 7) ``x y z qx qy qz qw``."""
     T = np.asarray(T, float)
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
+
     q = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat()
     return np.concatenate([T[..., :3, 3].reshape(-1, 3), q], axis=1).reshape(T.shape[:-2] + (7,))
 
@@ -132,6 +135,8 @@ def tum_to_T(xyzq: np.ndarray) -> np.ndarray:
     xyzq = np.asarray(xyzq, float)
     flat = xyzq.reshape(-1, 7)
     T = np.tile(np.eye(4), (len(flat), 1, 1))
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
+
     T[:, :3, :3] = Rotation.from_quat(flat[:, 3:]).as_matrix()
     T[:, :3, 3] = flat[:, :3]
     return T.reshape(xyzq.shape[:-1] + (4, 4))

@@ -12,10 +12,14 @@ from enum import StrEnum
 
 import numpy as np
 
+from perception_model.records import short_repr
+
 
 @dataclass(frozen=True)
 class StereoImages:
     """One rectified stereo pair: ``t_ns`` is the left image's time, ``index`` its position in the source."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -26,6 +30,8 @@ class StereoImages:
 @dataclass(frozen=True)
 class Features:
     """Keypoints of one image: ``uv`` (N, 2) px, ``octave`` (N,), ``response`` (N,), ``descriptors`` (N, 32)."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     uv: np.ndarray
     octave: np.ndarray
@@ -46,6 +52,8 @@ class StereoFrame:
     ``u_right`` (N,) is the matched right-image column (NaN when unmatched); ``points`` (N, 3) the
     triangulated landmark in the left camera frame (NaN rows when unmatched), metres.
     """
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -82,6 +90,8 @@ class Keyframe:
     relative transform from the two stored poses.
     """
 
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
+
     id: int
     frame: StereoFrame
     T_world_kf: np.ndarray
@@ -96,6 +106,8 @@ class Keyframe:
 @dataclass(frozen=True)
 class OdometryResult:
     """Outcome of one frame. ``T_keyframe_frame`` maps the frame into the keyframe it was matched to."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -123,6 +135,8 @@ class OdometryResult:
 @dataclass(frozen=True)
 class FrameRecord:
     """What a long run keeps of each frame: its result, match counts and the vertex it belongs to."""
+
+    __repr__ = short_repr        # arrays by shape: print(record) stays short
 
     t_ns: int
     kind: FrameKind

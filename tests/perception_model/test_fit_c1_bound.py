@@ -77,6 +77,7 @@ def test_bound_reported_in_fit_observations_cli_summary_and_model_file(tmp_path)
     # an inner model: no bound line, flag false
     write_landmarks(tmp_path / "lo.csv", simulate_observations(PerceptionModel(0.7, C2, C3), 40_000,
                                                                np.random.default_rng(3), name="lo"))  # fmt: skip
-    res = CliRunner().invoke(main, ["fit", str(tmp_path / "lo.csv"), "--out", str(out)])
+    # the same model file again: fit refuses to replace it without --force (the output rule)
+    res = CliRunner().invoke(main, ["fit", str(tmp_path / "lo.csv"), "--out", str(out), "--force"])
     assert res.exit_code == 0 and "at its bound" not in res.output
     assert json.loads(out.read_text())["fit"]["c1_at_bound"] is False

@@ -79,9 +79,9 @@ def _landmarks(path, rng, n=600, alpha=None, theta=None, p=0.5):
 def test_mle_on_degenerate_data(tmp_path, alpha, theta, p, match):
     f = tmp_path / "lm.csv"
     _landmarks(f, np.random.default_rng(0), alpha=alpha, theta=theta, p=p)
-    r = _run(["fit", f, "--out", tmp_path / "m.json", "--method", "mle"])
+    r = _run(["fit", f, "--out", tmp_path / "m", "--method", "mle"])
     _one_line(r, match)
-    assert not (tmp_path / "m.json").exists()
+    assert not (tmp_path / "m").exists()
     a = np.radians(np.full(10, 1.0))
     with pytest.raises(FitError, match="same parallax angle"):
         fit_mle(a, np.radians(np.linspace(0, 50, 10)), np.arange(10) % 2)

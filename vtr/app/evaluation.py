@@ -3,6 +3,10 @@
 ``t_err`` is the mean translation error of the relative pose over every sub-segment of the given
 lengths (percent of the length), ``r_err`` the mean rotation error (degrees per metre), as the
 KITTI odometry benchmark defines them; ``end_pct`` the end-point error over the travelled distance.
+The shipped clips are 10-60 m long, so the segments are 10-40 m (``SEGMENT_LENGTHS_M``); KITTI's benchmark
+averages 100-800 m segments, so the figures are not comparable with its table. When the ground-truth path
+is shorter than the shortest segment (or the frames are not a trajectory), no segment exists: the string
+says so instead of printing NaN.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import numpy as np
 from ..geometry import inv_T, log_se3, rotation_angle
 
 SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
+KITTI_BENCHMARK_SEGMENTS = "100-800 m"
 
 
 @dataclass(frozen=True)
@@ -24,14 +29,30 @@ class DriftMetrics:
     length_ratio: float    # estimated path length / true path length
     distance_m: float
     segments: int
+    segment_lengths_m: tuple[float, ...] = SEGMENT_LENGTHS_M
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["segment_lengths_m"] = list(self.segment_lengths_m)
+        return d
+
+    @property
+    def segments_text(self) -> str:
+        """``10-40 m`` (or ``10 m``): the sub-segment lengths the errors average over."""
+        lo, hi = min(self.segment_lengths_m), max(self.segment_lengths_m)
+        return f"{lo:g} m" if lo == hi else f"{lo:g}-{hi:g} m"
 
     def __str__(self) -> str:
-        return (f"t_err {self.t_err_pct:.3f} %  r_err {self.r_err_deg_per_m:.4f} deg/m  "
-                f"end {self.end_pct:.3f} %  path length x{self.length_ratio:.4f}  "
-                f"({self.distance_m:.1f} m, {self.segments} segments)")
+        if self.segments:
+            relative = (f"t_err {self.t_err_pct:.3f} %  r_err {self.r_err_deg_per_m:.4f} deg/m over "
+                        f"{self.segments} sub-segments of {self.segments_text} (KITTI's benchmark averages "
+                        f"{KITTI_BENCHMARK_SEGMENTS}: not comparable)")
+        else:
+            relative = (f"t_err, r_err not measured: the ground-truth path ({self.distance_m:.1f} m) holds no "
+                        f"sub-segment of {self.segments_text}")
+        end = (f"end {self.end_pct:.3f} % of {self.distance_m:.1f} m  path length x{self.length_ratio:.4f}"
+               if self.distance_m > 0 else "end error and path length not measured: the ground truth does not move")
+        return f"{relative}; {end}"
 
 
 def path_length(T: np.ndarray) -> float:
@@ -69,6 +90,7 @@ def drift_metrics(T_est: np.ndarray, T_gt: np.ndarray,
         length_ratio=path_length(T_est) / dist if dist > 0 else float("nan"),
         distance_m=dist,
         segments=n,
+        segment_lengths_m=tuple(float(v) for v in lengths),
     )
 
 

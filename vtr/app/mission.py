@@ -173,6 +173,9 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
 def _write_report(path: Path, rows: list[dict], env: list, env_png: Path, model: PerceptionModel,
                   l_min: float) -> None:
     left = [e.distance_m["left"] for e in env]
+    n_capped = sum(e.capped["left"] for e in env)
+    capped_note = (f" ({n_capped} of {len(env)} vertices capped at the scan limit {max(left):g} m: there the "
+                   "envelope is at least that wide, the number is the scan's limit, not a result)" if n_capped else "")
     head = "".join(f"<th>{k}</th>" for k in rows[0])
     body = "".join("<tr>" + "".join(f"<td>{v:g}</td>" if isinstance(v, float) else f"<td>{v}</td>"
                                     for v in r.values()) + "</tr>" for r in rows)
@@ -184,7 +187,8 @@ repeated drifting to lateral offsets (left) through the real pipeline (stereo VO
 perception model was fitted (maximum likelihood) on the repeats' <code>landmarks.csv</code>:
 c = ({model.c1:.3g}, {model.c2:.3g}, {model.c3:.3g}) per {model.angle_unit}. The <b>localization envelope</b>
 (<code>perception-model envelope</code>) gives, for every taught vertex, how far the vehicle may move before
-mu - 3 sigma &lt; L_min = {l_min:g} (camera as taught); median allowed left offset {np.median(left):.2f} m.</p>
+mu - 3 sigma &lt; L_min = {l_min:g} (camera as taught); median allowed left offset {np.median(left):.2f} m
+{capped_note}.</p>
 <h2>Repeats against the envelope</h2>
 <table border="1" cellpadding="4"><tr>{head}</tr>{body}</table>
 <p><i>envelope_holds</i>: localizations (after the drift ramp) whose offset lies inside their trunk's

@@ -219,7 +219,9 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
 
 
 def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: str = "") -> None:
-    """Plan view of the taught path with the left/right envelope as a band, and the four distances per vertex."""
+    """Plan view of the taught path with the left/right envelope as a band and heading arrows, and the four
+    distances per vertex. Distances capped at the scan limit (no crossing found within ``--max``) are marked
+    as capped: the true envelope there is at least that wide, the value is not a result."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -230,26 +232,42 @@ def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: s
     left = np.stack([-np.sin(h), np.cos(h)], axis=1)
     lm = np.array([r.distance_m["left"] for r in rows])
     rm = np.array([r.distance_m["right"] for r in rows])
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5.5))
     lb = p[:, :2] + lm[:, None] * left
     rb = p[:, :2] - rm[:, None] * left
     ax.fill(np.r_[lb[:, 0], rb[::-1, 0]], np.r_[lb[:, 1], rb[::-1, 1]], color="tab:green", alpha=0.25,
             label="envelope (left/right)")
-    ax.plot(p[:, 0], p[:, 1], "k.-", ms=3, label="taught path (camera)")
-    ax.quiver(p[::5, 0], p[::5, 1], np.cos(h[::5]), np.sin(h[::5]), width=0.003, color="tab:blue",
-              label="camera heading")
+    ax.plot(p[:, 0], p[:, 1], "k.-", ms=3, label="taught path (vehicle)")
+    for edge, d in ((lb, "left"), (rb, "right")):
+        capped = np.array([r.capped[d] for r in rows])
+        if capped.any():
+            ax.plot(edge[capped, 0], edge[capped, 1], "x", color="tab:gray", ms=4,
+                    label="capped at the scan limit" if d == "left" else None)
+    extent = float(np.ptp(np.r_[lb, rb], axis=0).max()) or 1.0
+    every = max(1, len(rows) // 12)
+    arrow = 0.1 * extent                         # arrows in data units, long enough to see on any route
+    ax.quiver(p[::every, 0], p[::every, 1], arrow * np.cos(h[::every]), arrow * np.sin(h[::every]),
+              angles="xy", scale_units="xy", scale=1.0, width=0.008, color="tab:blue", zorder=3,
+              label=f"heading (every {every} vertices)" if every > 1 else "heading")
     ax.set_aspect("equal")
-    ax.set_xlabel("x_g [m]")
-    ax.set_ylabel("y_g [m]")
+    ax.set_xlabel("x_g [m] (first taught heading)")
+    ax.set_ylabel("y_g [m] (to its left)")
     ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or f"localization envelope (mu - c sigma >= {l_min:g})")
+    ax.set_title("plan view: where the vehicle may be (camera as taught)", fontsize=10)
     s = np.arange(len(rows))
     for d in DIRECTIONS:
-        ax2.plot(s, [r.distance_m[d] for r in rows], label=d)
-    ax2.set_xlabel("taught vertex (path order)")
+        vals = np.array([r.distance_m[d] for r in rows])
+        capped = np.array([r.capped[d] for r in rows])
+        (line,) = ax2.plot(s, np.where(capped, np.nan, vals), label=d)
+        if capped.any():
+            ax2.plot(s[capped], vals[capped], "^", mfc="none", color=line.get_color(), ms=5,
+                     label=f"{d}: capped ({int(capped.sum())} of {len(rows)})")
+    ax2.set_xlabel("taught vertex [index along the path]")
     ax2.set_ylabel("allowed offset [m]")
+    ax2.set_title("allowed offset per direction (open triangles: no crossing within the scan limit)", fontsize=10)
     ax2.grid(True, alpha=0.3)
-    ax2.legend()
+    ax2.legend(fontsize=8, ncol=2)
+    fig.suptitle(f"{title or 'localization envelope'} (offsets keeping mu - c_bar sigma >= L_min = {l_min:g} inliers)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -19,7 +19,6 @@ from ..geometry import distance_to_polyline, inv_T
 from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource, SourceOptions
 from ..io.trajectory import write_tum
-from ..navigation.localization import Localization
 from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
@@ -38,6 +37,7 @@ from .runlog import RunLog
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
 
+    from ..navigation.localization import Localization
     from ..navigation.repeat import Repeat, RepeatStep
     from .repeat_run import RepeatLoop
 
@@ -51,6 +51,7 @@ class OdometrySummary:
     failures: int
     seconds: float
     drift: DriftMetrics | None
+    note: str | None = None            # why the counts look odd (e.g. a camera that never moved enough)
 
     @property
     def fps(self) -> float:
@@ -66,6 +67,8 @@ class OdometrySummary:
     def lines(self) -> list[str]:
         out = [f"frames {self.frames}  keyframes {self.keyframes}  failures {self.failures}  "
                f"{self.fps:.1f} frames/s"]
+        if self.note:
+            out.append(self.note)
         if self.drift is not None:
             out.append(f"drift vs ground truth: {self.drift}")
         return out
@@ -130,12 +133,30 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
         failures = np.array([r.kind == FrameKind.FAILURE for r in results])
         plot_trajectory(out / "trajectory.png", poses, T_gt, failures,
                         title=f"{source_path.name}: {len(results)} frames")
-        summary = OdometrySummary(len(results), sum(r.new_vertex for r in results),
-                                  int(failures.sum()), seconds, drift)
+        keyframes = sum(r.new_vertex for r in results)
+        summary = OdometrySummary(len(results), keyframes, int(failures.sum()), seconds, drift,
+                                  keyframe_note(keyframes, len(results), poses, config))
         log.write(summary.to_dict())
     if not results:
         raise DataError(f"{source_path}: no frames processed")
     return summary
+
+
+def keyframe_note(keyframes: int, frames: int, poses: np.ndarray, config: Config) -> str | None:
+    """Why a run of several frames made a single keyframe: the camera never moved past the keyframe test
+    (``odometry.keyframe_translation_m`` / ``keyframe_rotation_deg``) from the first frame."""
+    if keyframes > 1 or frames < 2 or len(poses) < 2:
+        return None
+    from ..geometry import rotation_angle
+
+    rel = inv_T(poses[0]) @ poses
+    moved = float(np.linalg.norm(rel[:, :3, 3], axis=1).max())
+    turned = float(np.degrees(rotation_angle(rel[:, :3, :3])).max())
+    o = config.odometry
+    return (f"only the first frame is a keyframe: the camera moved at most {moved:.2f} m and turned "
+            f"{turned:.1f} deg from it, below the keyframe test (odometry.keyframe_translation_m "
+            f"{o.keyframe_translation_m:g} m, keyframe_rotation_deg {o.keyframe_rotation_deg:g} deg): a nearly "
+            "static log")
 
 
 # ---------------------------------------------------------------------------------------- teach

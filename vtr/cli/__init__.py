@@ -12,10 +12,18 @@ import sys
 
 import click
 
+from perception_model.commandline import OneLineGroup, version_option
+
 from .. import __version__
 from ..errors import Terminated, VtrError, interruption
 from ..signals import sigterm_as_exception
 from .common import EXIT_SIGINT, EXIT_SIGTERM, OUTPUTS_KEY, error_line
+
+#: (module to import, distribution) of every dependency `vtr versions` checks; the heavy ones first
+DEPENDENCIES = (("numpy", "numpy"), ("numba", "numba"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
+                ("gtsam", "gtsam"), ("open3d", "open3d"), ("rosbags", "rosbags"), ("pyarrow", "pyarrow"),
+                ("osqp", "osqp"), ("dask", "dask"), ("distributed", "distributed"), ("matplotlib", "matplotlib"),
+                ("click", "click"), ("tqdm", "tqdm"), ("yaml", "PyYAML"))
 
 
 def _versions() -> str:
@@ -23,14 +31,13 @@ def _versions() -> str:
     from importlib import import_module, metadata
 
     parts = [f"vtr {__version__}"]
-    for module, dist in (("numpy", "numpy"), ("numba", "numba"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
-                         ("gtsam", "gtsam"), ("open3d", "open3d"), ("rosbags", "rosbags")):
+    for module, dist in DEPENDENCIES:
         import_module(module)
         parts.append(f"{module} {metadata.version(dist)}")
     return ", ".join(parts)
 
 
-class _Group(click.Group):
+class _Group(OneLineGroup):
     def invoke(self, ctx: click.Context):
         try:
             with sigterm_as_exception():
@@ -49,8 +56,8 @@ class _Group(click.Group):
             sys.exit(EXIT_SIGINT)
 
 
-@click.group(cls=_Group)
-@click.version_option(__version__, message="%(version)s", prog_name="vtr")
+@click.group(cls=_Group, name="vtr")
+@version_option(__version__, "vtr")
 def main() -> None:
     """Visual teach-and-repeat: stereo odometry, maps, localization, smoothing."""
 
@@ -63,10 +70,11 @@ def versions_cmd() -> None:
 
 @main.command("config")
 def config_cmd() -> None:
-    """Print the default configuration as YAML (reusable with --config)."""
+    """Print the default configuration as YAML (reusable with --config), every key with its comment and
+    domain from vtr/config.py."""
     from ..config import Config
 
-    click.echo(Config().to_yaml(), nl=False)
+    click.echo(Config().to_yaml(comments=True), nl=False)
 
 
 def _register() -> None:
@@ -75,6 +83,8 @@ def _register() -> None:
     from importlib import import_module
 
     for info in pkgutil.iter_modules(__path__):
+        if info.name == "perception_model":      # the other console script's group, not vtr's
+            continue
         import_module(f"{__name__}.{info.name}")
 
 

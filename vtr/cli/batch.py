@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from . import main
+from .common import make_bar
 
 
 @main.command("batch")
@@ -28,14 +29,12 @@ def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | N
 
     A rerun skips runs already finished; a failing run is recorded (its run.json) and the rest go on.
     """
-    from tqdm import tqdm
-
     from ..app.batch import BatchOptions, check_inputs, load_manifest, run_batch
 
     spec = load_manifest(manifest)
     check_inputs(spec)
     n_runs = len(spec.runs())
-    bar = tqdm(total=n_runs, desc="runs", unit="run", dynamic_ncols=True)
+    bar = make_bar(n_runs, "runs", "run", every=1, leave=True)   # without a terminal: a line per run
 
     def progress(outcome, done: int, total: int) -> None:
         bar.set_postfix_str(f"{outcome.route}/{outcome.name} {outcome.status}")

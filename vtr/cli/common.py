@@ -5,13 +5,19 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..config import Config
+from perception_model.commandline import force_option
+
 from ..errors import VtrError
-from ..io.base import SourceOptions
+
+if TYPE_CHECKING:
+    from ..config import Config
+
+# Nothing numerical is imported here or by any vtr.cli module at import time (a help page must start
+# fast: tests/cli/test_startup.py); commands import the library where they run.
 
 EXIT_SIGINT = 130                    # shell convention: 128 + signal number
 EXIT_SIGTERM = 143
@@ -19,19 +25,80 @@ EXIT_SIGTERM = 143
 
 def load_config(path: Path | None, threads: int | None = None) -> Config:
     """The configuration of ``--config`` (defaults without it), with ``--threads`` applied when given."""
+    from ..config import Config
+
     config = Config.load(path) if path else Config()
     if threads is not None:
         config.features.threads = threads
     return config
 
 
-def progress_bar():
-    """A tqdm factory writing to stderr; silent when stderr is not a terminal (a log or a pipe then
-    holds only the summary or the one-line error)."""
-    from tqdm import tqdm
+#: without a terminal, a progress line every this many items (and at the first and the last)
+PROGRESS_LINE_EVERY = 100
+
+
+class LineProgress:
+    """Progress for a log or a pipe: ``DESC: k/N UNITs`` lines on stderr at the first item, every ``every``
+    items and at the last (no carriage returns); the same methods as the tqdm bars used here."""
+
+    def __init__(self, total: int | None, desc: str, unit: str, every: int = PROGRESS_LINE_EVERY) -> None:
+        self.total, self.desc, self.unit, self.every, self.n = total, desc, unit, max(1, every), 0
+        self._postfix = ""
+
+    def update(self, n: int = 1) -> None:
+        before, self.n = self.n, self.n + n
+        if before == 0 or self.n // self.every > before // self.every or self.n == self.total:
+            of = f"/{self.total}" if self.total else ""
+            click.echo(f"{self.desc}: {self.n}{of} {self.unit}s{self._postfix}", err=True)
+
+    def set_postfix_str(self, text: str) -> None:
+        self._postfix = f" ({text})" if text else ""
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> LineProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _NoProgress(LineProgress):
+    def __init__(self) -> None:
+        super().__init__(None, "", "")
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+
+def make_bar(total: int | None, desc: str, unit: str = "frame", *, disable: bool = False,
+             every: int = PROGRESS_LINE_EVERY, leave: bool = False) -> Any:
+    """A progress bar on stderr: tqdm on a terminal, :class:`LineProgress` lines when stderr is a log or a
+    pipe, nothing when ``disable``."""
+    import sys
+
+    if disable:
+        return _NoProgress()
+    if sys.stderr.isatty():
+        from tqdm import tqdm
+
+        return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=leave)
+    return LineProgress(total, desc, unit, every)
+
+
+def progress_bar(unit: str = "frame"):
+    """A progress factory ``bar(items, total, desc)`` (as ``vtr.app.pipeline`` takes): :func:`make_bar`
+    around the items."""
 
     def bar(items, total, desc):
-        return tqdm(items, total=total, desc=desc, unit="frame", dynamic_ncols=True, leave=False, disable=None)
+        with_bar = make_bar(total, desc, unit)
+        try:
+            for item in items:
+                yield item
+                with_bar.update(1)
+        finally:
+            with_bar.close()
 
     return bar
 
@@ -69,26 +136,39 @@ def error_line(err: BaseException, outputs: list[str] | None = None) -> str:
     return " ".join(str(first).split()) or type(first).__name__
 
 
-def check_out_dir(path: Path, option: str = "--out") -> None:
-    """Refuse an output folder that cannot be written before any work starts (one line, ``OutputError``,
-    :func:`vtr.io.outputs.check_output_folder`); its path is noted for later write errors."""
+def check_out_dir(path: Path, force: bool, option: str = "--out") -> None:
+    """Refuse, before any work starts, an output folder that cannot be written or that already holds files
+    (unless ``force``): one line, ``OutputError`` (:func:`vtr.io.outputs.check_output_folder`). Its path is
+    noted for later write errors."""
     from ..io.outputs import check_output_folder
 
     note_outputs(path)
-    check_output_folder(path, option)
+    check_output_folder(path, option, force)
+
+
+def check_out_file(path: Path, force: bool) -> None:
+    """Refuse, before any work starts, an output file that exists (unless ``force``) or is a folder."""
+    from ..io.outputs import check_new_output
+
+    note_outputs(path)
+    check_new_output(path, force)
+
+
+force_out_option = force_option("existing output files (in --out)")
 
 
 def frame_progress(desc: str):
-    """A ``progress(i, n)`` callback (as ``vtr.sim.synthetic.write_sequence`` takes) drawing a tqdm bar."""
-    from tqdm import tqdm
-
-    bar = tqdm(desc=desc, unit="frame", dynamic_ncols=True, leave=False, disable=None)
+    """A ``progress(i, n)`` callback (as ``vtr.sim.synthetic.write_sequence`` takes) drawing a :func:`make_bar`.
+    The bar starts with the first call, once its total is known (a cached sequence never calls it and so
+    leaves no bar standing at 0)."""
+    bars: list[Any] = []
 
     def cb(i: int, n: int) -> None:
-        bar.total = n
-        bar.update(1)
+        if not bars:
+            bars.append(make_bar(n, desc))
+        bars[0].update(1)
         if i + 1 == n:
-            bar.close()
+            bars[0].close()
 
     return cb
 
@@ -99,8 +179,13 @@ frames_option = click.option("--frames", default=None, metavar="START:STOP:STEP"
 config_option = click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
                              help="YAML/TOML configuration (see `vtr config`).")
 
+#: ``--format`` values: the readers of ``vtr.io.FORMATS`` and, as aliases of ``rosbag``, the bag kinds
+#: ``vtr convert --to`` writes (tests/cli/test_conventions.py checks the two lists agree).
+SOURCE_FORMATS = ("kitti", "euroc", "stereo-pairs", "rosbag", "rosbag1", "rosbag2", "mcap", "cloud")
+
 _SOURCE_OPTIONS = (
-    click.option("--format", "fmt", default=None, help="Force the SOURCE format (default: detect)."),
+    click.option("--format", "fmt", type=click.Choice(SOURCE_FORMATS), default=None,
+                 help="Force the SOURCE format (default: detect); rosbag1, rosbag2 and mcap are read as rosbag."),
     click.option("--left-topic", default=None, help="ROS bag SOURCE: left image topic."),
     click.option("--right-topic", default=None, help="ROS bag SOURCE: right image topic."),
     click.option("--left-info-topic", default=None, help="ROS bag SOURCE: left CameraInfo topic."),
@@ -118,6 +203,8 @@ def source_options(command: Callable[..., Any]) -> Callable[..., Any]:
     def wrapper(*args: Any, fmt: str | None, left_topic: str | None, right_topic: str | None,
                 left_info_topic: str | None, right_info_topic: str | None, allow_unpaired: bool,
                 **kwargs: Any) -> Any:
+        from ..io.base import SourceOptions
+
         opts = SourceOptions(fmt, left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired)
         return command(*args, source_options=opts, **kwargs)
 

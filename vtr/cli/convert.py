@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
-from ..io.base import SourceOptions
 from . import main
-from .common import frames_option, note_outputs, source_argument, source_options
+from .common import frames_option, make_bar, note_outputs, source_argument, source_options
+
+if TYPE_CHECKING:
+    from ..io.base import SourceOptions
 
 
 @main.command("convert")
@@ -23,14 +26,12 @@ from .common import frames_option, note_outputs, source_argument, source_options
 def convert_cmd(source: Path, out: Path, to: str | None, frames: str | None, source_options: SourceOptions,
                 no_progress: bool) -> None:
     """Convert SOURCE to OUT losslessly (PNG / mono8 images, exact ns stamps, stereo calibration)."""
-    from tqdm import tqdm
-
     from ..app.convert import convert
     from ..io import open_source, parse_frame_range
 
     note_outputs(out)
     with open_source(source, source_options) as src:
         idx = parse_frame_range(frames, len(src), str(source))
-        with tqdm(total=len(idx), unit="frame", desc="convert", disable=no_progress, leave=False) as bar:
+        with make_bar(len(idx), "convert", disable=no_progress) as bar:
             summary = convert(src, out, to=to, indices=idx, progress=lambda n: bar.update(n - bar.n))
     click.echo(summary.line())

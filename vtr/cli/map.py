@@ -80,13 +80,11 @@ def export_map_cmd(map_path: Path, ply_path: Path, force: bool) -> None:
     Repeat runs linked to the teach run by spatial edges are placed through them; an unlinked
     run stays in its own world frame (reported as "own frame").
     """
-    from ..io.outputs import check_new_output
     from ..map import Map
     from ..map.export import export_landmarks_ply
-    from .common import note_outputs
+    from .common import check_out_file
 
-    check_new_output(ply_path, force)
-    note_outputs(ply_path)
+    check_out_file(ply_path, force)
     with Map.open(map_path, "r") as m:
         summary = export_landmarks_ply(m, ply_path)
     total = sum(s.points for s in summary)

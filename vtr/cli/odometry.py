@@ -3,23 +3,27 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
-from ..io.base import SourceOptions
 from . import main
 from .common import (
     check_out_dir,
+    check_out_file,
     config_option,
+    force_out_option,
     frame_progress,
     frames_option,
     load_config,
-    note_outputs,
     progress_bar,
     source_argument,
     source_options,
     threads_option,
 )
+
+if TYPE_CHECKING:
+    from ..io.base import SourceOptions
 
 DEMO_CLIP = "kitti06_clip"
 
@@ -41,16 +45,17 @@ def _find_datasets() -> Path:
 @main.command("odometry")
 @source_argument
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@force_out_option
 @frames_option
 @config_option
 @source_options
 @threads_option
-def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path | None,
+def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, config_path: Path | None,
                  source_options: SourceOptions, threads: int | None) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
     from ..app.pipeline import odometry_command
 
-    check_out_dir(out)
+    check_out_dir(out, force)
     config = load_config(config_path, threads)
     summary = odometry_command(source, out, frames, config, source_options, progress_bar())
     for line in summary.lines():
@@ -65,13 +70,11 @@ def odometry_cmd(source: Path, out: Path, frames: str | None, config_path: Path 
 @click.option("--force", is_flag=True, help="Replace OUT_FILE if it exists.")
 def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool) -> None:
     """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
-    from ..io.outputs import check_new_output
     from ..io.trajectory import read_tum, write_trajectory
 
     if not tum_file.is_file():
         raise FileNotFoundError(f"{tum_file}: no such file")
-    check_new_output(out_file, force)
-    note_outputs(out_file)
+    check_out_file(out_file, force)
     t_ns, T = read_tum(tum_file)
     write_trajectory(out_file, t_ns, T, fmt)
     click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")
@@ -83,13 +86,16 @@ def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool)
               help="Step 4: the synthetic aerial mission (renders ~150 frames, about a minute).")
 def demo_cmd(out: Path, aerial: bool) -> None:
     """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report,
-    then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope)."""
+    then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope).
+
+    The one command that replaces its outputs without --force: OUT is the demo's own folder, rewritten
+    by every run."""
     from ..app.pipeline import odometry_command, repeat_command, teach_command
     from ..config import Config
 
     clip = _find_datasets() / DEMO_CLIP
     config = Config()
-    check_out_dir(out)
+    check_out_dir(out, force=True)        # the documented exception: the demo rewrites its own folder
     out.mkdir(parents=True, exist_ok=True)
     map_path = out / "route.vtrmap"
     for stale in out.glob("route.vtrmap*"):

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
-from ..io.base import SourceOptions
 from . import main
 from .common import (
     check_out_dir,
     config_option,
+    force_out_option,
     frames_option,
     load_config,
     note_outputs,
@@ -19,6 +20,9 @@ from .common import (
     source_options,
     threads_option,
 )
+
+if TYPE_CHECKING:
+    from ..io.base import SourceOptions
 
 map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), required=True,
                           help="Map file (SQLite; created by teach, appended to by repeat).")
@@ -30,20 +34,24 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 @frames_option
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Also write trajectory_tum.txt, frames.csv and run.json here.")
+@force_out_option
 @config_option
 @source_options
 @threads_option
-def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, config_path: Path | None,
-              source_options: SourceOptions, threads: int | None) -> None:
+def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, force: bool,
+              config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
 
     The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
-    the keyframes still in the odometry window are written; a teach that wrote nothing leaves no MAP."""
+    the keyframes still in the odometry window are written; a teach that wrote nothing leaves no MAP.
+    MAP must not exist (a map is never replaced, even with --force: delete it first)."""
     from ..app.pipeline import teach_command
+    from ..io.outputs import check_new_output
 
+    check_new_output(map_path, can_force=False)   # the map is never replaced (Map.create checks it again)
     note_outputs(map_path)
     if out is not None:
-        check_out_dir(out)
+        check_out_dir(out, force)
     config = load_config(config_path, threads)
     summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar())
     for line in summary.lines():
@@ -54,6 +62,7 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @source_argument
 @map_option
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@force_out_option
 @frames_option
 @click.option("--rate", "rate_hz", type=float, default=None, metavar="HZ",
               help="Rate of the smoothed controller state in state.csv (default: smoothing.rate_hz, 50; "
@@ -68,17 +77,18 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @config_option
 @source_options
 @threads_option
-def repeat_cmd(source: Path, map_path: Path, out: Path, frames: str | None, rate_hz: float | None,
+def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str | None, rate_hz: float | None,
                allow_partial: bool, start_vertex: int | None, start_distance: float | None,
                config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     The repeat may start anywhere on the route and travel it either way. Refuses a map whose teach run did
-    not finish unless --allow-partial."""
+    not finish unless --allow-partial. The repeat is appended to MAP as a new run (the documented exception
+    to the output rule: MAP is an input that grows)."""
     from ..app.pipeline import repeat_command
 
     note_outputs(map_path)
-    check_out_dir(out)
+    check_out_dir(out, force)
     config = load_config(config_path, threads)
     summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                              rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,

@@ -22,6 +22,8 @@ FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]]
     # CLOUD runs are monocular: detected so that open_source can say why they are refused
     "cloud": (is_cloud_run, refuse_cloud_stereo),
 }
+#: other names of a format: the bag kinds ``vtr convert --to`` writes are all read by the rosbag reader
+FORMAT_ALIASES = {"rosbag1": "rosbag", "rosbag2": "rosbag", "mcap": "rosbag"}
 
 
 def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
@@ -38,10 +40,10 @@ def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
         opts = dataclasses.replace(opts, format=format)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    name = opts.format
+    name = FORMAT_ALIASES.get(opts.format, opts.format) if opts.format is not None else None
     if name is not None:
         if name not in FORMATS:
-            raise DataError(f"unknown format {name!r}; known: {', '.join(FORMATS)}")
+            raise DataError(f"unknown format {name!r}; known: {', '.join([*FORMATS, *FORMAT_ALIASES])}")
     else:
         name = next((n for n, (detect, _) in FORMATS.items() if detect(path)), None)
     if name is None:
@@ -58,6 +60,6 @@ def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
 
 
 __all__ = [
-    "FORMATS", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource",
+    "FORMATS", "FORMAT_ALIASES", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource",
     "RosbagSource", "SourceOptions", "StereoPairsSource", "open_source", "parse_frame_range",
 ]

@@ -42,10 +42,10 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import DataError
 from .base import GroundTruth
@@ -82,6 +82,13 @@ R_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 R_FLU_FRD = np.diag([1.0, -1.0, -1.0])
 #: R_gimbal_camera: gimbal FRD (x along the optical axis) <- camera optical (x right, y down, z forward)
 R_GIMBAL_CAMERA = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def _transform() -> Any:
+    """``scipy.spatial.transform``, imported on first use (~0.3 s: not on the path of other formats)."""
+    from scipy.spatial import transform
+
+    return transform
 
 
 # ---------------------------------------------------------------------------------------------
@@ -152,7 +159,7 @@ def rotation_from_gimbal_angles(roll, pitch, yaw_rel, R_enu_vehicle: np.ndarray,
     R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
     psi = vehicle_yaw_ned(R_enu_vehicle) + np.asarray(yaw_rel, float)
     ang = np.stack(np.broadcast_arrays(psi, np.asarray(pitch, float), np.asarray(roll, float)), axis=-1)
-    R_ned_gimbal = Rotation.from_euler("ZYX", ang.reshape(-1, 3)).as_matrix()
+    R_ned_gimbal = _transform().Rotation.from_euler("ZYX", ang.reshape(-1, 3)).as_matrix()
     R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)
     R_vehicle_camera = np.swapaxes(R_enu_vehicle, -1, -2) @ R_ENU_NED @ R_ned_gimbal @ R_gimbal_camera
     return R_vb.T @ R_vehicle_camera
@@ -165,7 +172,7 @@ def gimbal_angles_from_rotation(R_base_camera: np.ndarray, R_enu_vehicle: np.nda
     R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
     R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)
     R_ned_gimbal = R_ENU_NED @ R_enu_vehicle @ R_vb @ np.asarray(R_base_camera, float) @ R_gimbal_camera.T
-    psi, pitch, roll = Rotation.from_matrix(R_ned_gimbal.reshape(-1, 3, 3)).as_euler("ZYX").T
+    psi, pitch, roll = _transform().Rotation.from_matrix(R_ned_gimbal.reshape(-1, 3, 3)).as_euler("ZYX").T
     yaw_rel = np.angle(np.exp(1j * (psi - vehicle_yaw_ned(R_enu_vehicle))))
     return roll, pitch, yaw_rel
 
@@ -193,11 +200,11 @@ class Attitude:
 
     @property
     def R_enu_vehicle(self) -> np.ndarray:
-        return Rotation.from_quat(self.quat_xyzw).as_matrix()
+        return _transform().Rotation.from_quat(self.quat_xyzw).as_matrix()
 
     def at(self, t_ns: np.ndarray) -> np.ndarray:
         """``R_enu_vehicle`` slerped at times inside the stream's span (N, 3, 3)."""
-        return _slerp(self.t_ns, Rotation.from_quat(self.quat_xyzw), np.asarray(t_ns, np.int64))
+        return _slerp(self.t_ns, _transform().Rotation.from_quat(self.quat_xyzw), np.asarray(t_ns, np.int64))
 
 
 @dataclass(frozen=True)
@@ -254,11 +261,11 @@ class MonoImage:
     image: np.ndarray
 
 
-def _slerp(t: np.ndarray, rots: Rotation, tq: np.ndarray) -> np.ndarray:
+def _slerp(t: np.ndarray, rots: Any, tq: np.ndarray) -> np.ndarray:
     if len(t) == 1:
         return np.repeat(rots.as_matrix(), len(tq), axis=0)
     t0 = t[0]
-    return Slerp((t - t0).astype(float), rots)((tq - t0).astype(float)).as_matrix()
+    return _transform().Slerp((t - t0).astype(float), rots)((tq - t0).astype(float)).as_matrix()
 
 
 def _interp(t: np.ndarray, v: np.ndarray, tq: np.ndarray) -> np.ndarray:
@@ -465,7 +472,7 @@ class CloudRun:
         t, v, lines, f = self._numeric("gimbal_state")
         q = self._quats(v[:, 3:], lines, f)
         T = np.tile(np.eye(4), (len(t), 1, 1))
-        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+        T[:, :3, :3] = _transform().Rotation.from_quat(q).as_matrix()
         T[:, :3, 3] = v[:, :3]
         return GimbalState(t, T)
 
@@ -545,7 +552,7 @@ class CloudRun:
         T_ev[:, :3, :3] = att.at(tq)
         T_ev[:, :3, 3] = _interp(gps.t_ns, gps.enu(), tq)
         T_bc = np.tile(np.eye(4), (len(tq), 1, 1))
-        T_bc[:, :3, :3] = _slerp(gs.t_ns, Rotation.from_matrix(gs.T_base_camera[:, :3, :3]), tq)
+        T_bc[:, :3, :3] = _slerp(gs.t_ns, _transform().Rotation.from_matrix(gs.T_base_camera[:, :3, :3]), tq)
         T_bc[:, :3, 3] = _interp(gs.t_ns, gs.T_base_camera[:, :3, 3], tq)
         return GroundTruth(tq, T_ev @ self.T_vehicle_base @ T_bc)
 
@@ -578,7 +585,7 @@ class CloudRunWriter:
         return f
 
     def _q(self, R: np.ndarray) -> np.ndarray:
-        q = Rotation.from_matrix(np.asarray(R, float).reshape(-1, 3, 3)).as_quat()
+        q = _transform().Rotation.from_matrix(np.asarray(R, float).reshape(-1, 3, 3)).as_quat()
         return q[:, [3, 0, 1, 2]] if self.quat_order == "wxyz" else q
 
     def write_images(self, t_ns: np.ndarray, images: Sequence[np.ndarray], ext: str = ".png") -> None:

@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from ..camera import RawCamera, StereoRectifier
 from ..conventions import NS_PER_S
@@ -176,6 +175,8 @@ def body_ground_truth(path: Path, ns_per_unit: int, T_body_cam: np.ndarray) -> G
     check_increasing(rows[:, 0].astype(np.int64), lines, path)
     T_world_body = np.tile(np.eye(4), (len(rows), 1, 1))
     T_world_body[:, :3, 3] = rows[:, 1:4]
+    from scipy.spatial.transform import Rotation  # here: ~0.3 s to import
+
     T_world_body[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()
     return GroundTruth(rows[:, 0].astype(np.int64) * ns_per_unit, T_world_body @ T_body_cam)
 

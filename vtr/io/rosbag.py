@@ -45,7 +45,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..camera import StereoCamera
 from ..conventions import NS_PER_S
@@ -453,6 +452,8 @@ class RosbagSource(FrameSource):
                 for tr in self._reader.deserialize(raw, c.msgtype).transforms:
                     q, p = tr.transform.rotation, tr.transform.translation
                     T = np.eye(4)
+                    from scipy.spatial.transform import Rotation  # here: ~0.3 s to import
+
                     T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
                     T[:3, 3] = [p.x, p.y, p.z]
                     parent_of[tr.child_frame_id.lstrip("/")] = (tr.header.frame_id.lstrip("/"), T)

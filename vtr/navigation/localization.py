@@ -26,6 +26,7 @@ from enum import StrEnum
 import numpy as np
 
 from perception_model.landmarks_file import Observations
+from perception_model.records import short_repr
 
 from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
@@ -78,6 +79,8 @@ class Localization:
     landmarks: Observations | None = None
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     direction: int = 1                      # +1 the route travelled as taught, -1 backward
+
+    __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
 
 
 STEREO_ROWS = 3   # measured rows of a stereo observation (u_l, v, u_r)
