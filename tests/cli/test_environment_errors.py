@@ -82,12 +82,36 @@ def test_out_in_a_read_only_folder(tmp_path):
 
 @needs_dev_full
 @pytest.mark.parametrize("victim", ["trajectory_tum.txt", "trajectory.png"])
-def test_full_disk_while_writing_outputs(tmp_path, victim):
+def test_a_link_to_a_full_disk_is_not_written_through(tmp_path, victim):
+    """A link planted at an output's name (here to /dev/full) is refused before any work (vtr.app.outputs)."""
     out = tmp_path / "o"
     out.mkdir()
     (out / victim).symlink_to(FULL)
-    line = assert_one_line(["odometry", KITTI, "--out", out, "--frames", "0:3"], "No space left on device")
-    assert str(out) in line
+    line = assert_one_line(["odometry", KITTI, "--out", out, "--frames", "0:3"], "symbolic link")
+    assert str(out / victim) in line
+
+
+@pytest.mark.parametrize("limit", [300, 3000])
+def test_no_room_while_writing_outputs(tmp_path, limit):
+    """Writes that fail mid-run (a file-size limit: the kernel refuses a write past ``limit`` bytes, as a full
+    disk refuses any) are one line naming the output folder; the output that failed is not left half written."""
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "vtr", "odometry", KITTI, "--out", out, "--frames", "0:12"],
+                       capture_output=True, text=True, preexec_fn=small_files)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    lines = r.stderr.rsplit("\r", 1)[-1].strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vtr: error: ") and str(out) in lines[0], r.stderr
+    assert "File too large" in lines[0] and "Traceback" not in r.stderr
+    assert not (out / "run.json").exists() and not list(out.glob(".vtr-tmp-*"))
 
 
 @needs_dev_full

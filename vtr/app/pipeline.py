@@ -27,12 +27,18 @@ from ..types import FrameKind, FrameRecord, StereoFrame
 from ..vo.odometry import StereoOdometry
 from ..vo.stereo import StereoProcessor
 from .evaluation import DriftMetrics, LocalizationErrors, associate, drift_metrics, localization_errors
+from .outputs import OutputFolder
 from .runlog import RunLog
 
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
+# the files each command writes into its --out (checked before work: vtr.app.outputs)
+RUN_FILES = ("config.yaml", "run.json")
+ODOMETRY_OUTPUTS = ("trajectory_tum.txt", "frames.csv", "trajectory.png", *RUN_FILES)
+TEACH_OUTPUTS = ("trajectory_tum.txt", "frames.csv", *RUN_FILES)
+REPEAT_OUTPUTS = ("localization.csv", "landmarks.csv", "state.csv", "trajectory_tum.txt", "report.png", *RUN_FILES)
 
 
 @dataclass(frozen=True)
@@ -104,12 +110,12 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
 
     with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
-        out.mkdir(parents=True, exist_ok=True)
+        folder = OutputFolder.prepare(out, [source_path], ODOMETRY_OUTPUTS)
         log = RunLog(out, "odometry", config, [source_path])
         results, poses, seconds = run_odometry(source, indices, config, progress)
         t_ns = np.array([r.t_ns for r in results], np.int64)
-        write_tum(out / "trajectory_tum.txt", t_ns, poses)
-        write_frames_csv(out / "frames.csv", results)
+        folder.write("trajectory_tum.txt", write_tum, t_ns, poses)
+        folder.write("frames.csv", write_frames_csv, results)
         drift, T_gt = None, None
         gt = source.ground_truth()
         if gt is not None:
@@ -119,8 +125,8 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
                 T_gt = inv_T(T_gt[0]) @ T_gt
                 drift = drift_metrics(poses[ie], T_gt)
         failures = np.array([r.kind == FrameKind.FAILURE for r in results])
-        plot_trajectory(out / "trajectory.png", poses, T_gt, failures,
-                        title=f"{source_path.name}: {len(results)} frames")
+        folder.write("trajectory.png", plot_trajectory, poses, T_gt, failures,
+                     title=f"{source_path.name}: {len(results)} frames")
         summary = OdometrySummary(len(results), sum(r.new_vertex for r in results),
                                   int(failures.sum()), seconds, drift)
         log.write(summary.to_dict())
@@ -158,6 +164,7 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
 
     with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
+        folder = OutputFolder.prepare(out, [source_path], TEACH_OUTPUTS) if out is not None else None
         t0 = time.perf_counter()
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
@@ -176,11 +183,10 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
         summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
-        if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
+        if out is not None and folder is not None:
             log = RunLog(out, "teach", config, [source_path])
-            write_tum(out / "trajectory_tum.txt", t_taught, T_taught)
-            write_frames_csv(out / "frames.csv", results)
+            folder.write("trajectory_tum.txt", write_tum, t_taught, T_taught)
+            folder.write("frames.csv", write_frames_csv, results)
             log.write({"frames": summary.frames, "vertices": n_vertices, "failures": failures,
                        "seconds": seconds, "map": str(map_path)})
     return summary
@@ -282,15 +288,15 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     with open_source(source_path, source_options) as source, Map.open(map_path, "a") as m:
         m.check_camera(source.camera)
         indices = parse_frame_range(frames, len(source), str(source_path))
-        out.mkdir(parents=True, exist_ok=True)
+        folder = OutputFolder.prepare(out, [source_path], REPEAT_OUTPUTS)
         log = RunLog(out, "repeat", config, [source_path, map_path])
         _check_path_to_follow(m)
         repeat = Repeat(m, config, source=str(source_path), allow_partial=allow_partial)
         clog = ControllerLog(config, repeat.chain, m.camera.T_vehicle_sensor)
         t_ns, T_teach, locs, t_loc = [], [], [], 0.0
         t0 = time.perf_counter()
-        with open(out / "localization.csv", "w", newline="") as loc_file, \
-                LandmarksWriter(out / "landmarks.csv") as lm_csv:
+        with folder.open("localization.csv") as loc_file, \
+                LandmarksWriter(folder.create("landmarks.csv")) as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
             stream = frames_of(source, indices, repeat.odometry.stereo, progress, "repeat")
             with closing(repeat.steps(stream)) as steps:    # closed, its localizations done, before the map
@@ -309,12 +315,12 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
         clog.finish()
         state = clog.output(rate_hz)
         seconds = time.perf_counter() - t0
-        write_state_csv(out / "state.csv", state)
+        folder.write("state.csv", write_state_csv, state)
         t_frames, T_teach_frames = np.array(t_ns, np.int64), np.array(T_teach)
-        write_tum(out / "trajectory_tum.txt", t_frames, T_teach_frames)
+        folder.write("trajectory_tum.txt", write_tum, t_frames, T_teach_frames)
         taught = repeat.chain.path
         errors = distance_to_polyline(T_teach_frames[:, :3, 3], taught.positions)
-        plot_repeat(out / "report.png", locs, taught, T_teach_frames, t_frames, errors, state)
+        folder.write("report.png", plot_repeat, locs, taught, T_teach_frames, t_frames, errors, state)
         ok = [loc for loc in locs if loc.success]
         gt_errors = _errors_against_ground_truth(source, m, ok)
         state_info = {"rate_hz": rate_hz, "rows": len(state),
