@@ -209,6 +209,16 @@ def test_workers_and_scheduler_are_checked():
     one_error_line(r, "--workers 1000")
 
 
+def test_workers_times_threads_is_bounded(routes, tmp_path):
+    from vtr.app.batch import check_batch
+    from vtr.parallel import available_cores
+
+    with pytest.raises(ConfigError, match="--workers 1 x --threads 1024"):
+        check_batch(load_manifest(routes), tmp_path / "out", BatchOptions(workers=1, threads=1024))
+    assert check_batch(load_manifest(routes), tmp_path / "out", BatchOptions(workers=1, threads=1)) == 1
+    assert available_cores() >= 1 and not (tmp_path / "out").exists()
+
+
 # ------------------------------------------------------------------------------ class 3: batch outputs
 
 

@@ -576,11 +576,17 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
 def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     """Everything checkable before a batch starts (inputs exist, ``--workers``, ``--scheduler``, ``out`` apart
     from every source and config); returns the local cluster's size."""
-    from ..parallel import available_cores
+    from ..parallel import available_cores, resolve_threads
 
     check_inputs(manifest)
     workers = check_workers(opts.workers) if opts.scheduler is None else (opts.workers or available_cores())
     check_scheduler(opts.scheduler)
+    if opts.scheduler is None and opts.threads is not None:   # sizes that multiply: processes x threads
+        cores = available_cores()
+        threads = resolve_threads(opts.threads, "--threads")
+        if workers * threads > MAX_WORKERS_PER_CORE * cores:
+            raise ConfigError(f"--workers {workers} x --threads {opts.threads} is {workers * threads} threads on "
+                              f"{cores} cores; at most {MAX_WORKERS_PER_CORE * cores}")
     check_apart(Path(out), [p for spec in manifest.runs() for p in (spec.source, spec.config)])
     for route in manifest.routes:
         if (Path(out) / route.name).exists():
