@@ -45,10 +45,13 @@ import json
 import logging
 import os
 import re
+import signal
 import sqlite3
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -660,6 +663,22 @@ def one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
 
 
+@contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """SIGINT ignored while the local workers are spawned: they inherit that (a Python process started with
+    SIGINT ignored installs no KeyboardInterrupt handler), so a Ctrl-C in the terminal, which reaches the
+    whole process group, interrupts only the batch, which closes the cluster in order; the workers print no
+    tracebacks. (A nanny restarts a dead worker from its own process, where SIGINT is ignored too.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class _DaskClient:
     """A Dask client on ``scheduler`` or on a new local cluster (closed on exit)."""
 
@@ -684,7 +703,8 @@ class _DaskClient:
                   "dashboard_address": "127.0.0.1:0", "scheduler_kwargs": {"dashboard": self.opts.dashboard},
                   "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
         # a dead worker's task is given to another one this many times before it counts as failed
-        with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}):
+        with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}), \
+                _workers_ignore_ctrl_c():
             self.cluster = LocalCluster(**kwargs)
         self.client = Client(self.cluster, security=security)
         if self.opts.dashboard and self.opts.on_dashboard is not None:
