@@ -155,7 +155,7 @@ def test_another_process_cannot_use_the_batch_cluster(tmp_path):
         address = client.scheduler.address
         assert address.startswith("tls://127.0.0.1:")
         assert client.submit(sum, [1, 2]).result() == 3                # the batch's own client works
-        assert dashboard_status(client) == 404                         # no dashboard unless asked
+        assert http_hosts(client) == {"127.0.0.1"}                     # its HTTP server (health) on loopback
         marker = tmp_path / "ran"
         probe = textwrap.dedent(f"""
             import sys
@@ -174,24 +174,36 @@ def test_another_process_cannot_use_the_batch_cluster(tmp_path):
     assert not marker.exists()
 
 
-def dashboard_status(client) -> int:
-    """HTTP status of the scheduler's /status page (the dashboard) on 127.0.0.1."""
-    import urllib.error
-    import urllib.request
-
-    port = client.scheduler_info()["services"]["dashboard"]
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=30) as r:
-            return r.status
-    except urllib.error.HTTPError as err:
-        return err.code
+def http_hosts(client) -> set[str]:
+    """Hosts the scheduler's HTTP server (dashboard, health) listens on."""
+    server = client.cluster.scheduler.http_server
+    return {sock.getsockname()[0] for sock in server._sockets.values()}
 
 
-def test_dashboard_only_when_asked_and_on_loopback():
-    links: list[str] = []
-    with _DaskClient(BatchOptions(dashboard=True, on_dashboard=links.append), 1) as client:
-        assert dashboard_status(client) == 200
-    assert len(links) == 1 and links[0].startswith("http://127.0.0.1:")
+@pytest.mark.parametrize("dashboard", [False, True])
+def test_dashboard_only_when_asked_and_on_loopback(dashboard):
+    """In a fresh process (Dask's HTTP routes are process-wide once a dashboard was served): /status is served
+    only with dashboard=True, and only on 127.0.0.1."""
+    probe = textwrap.dedent(f"""
+        import urllib.error, urllib.request
+        from vtr.app.batch import BatchOptions, _DaskClient
+        links = []
+        with _DaskClient(BatchOptions(dashboard={dashboard}, on_dashboard=links.append), 1) as client:
+            server = client.cluster.scheduler.http_server
+            hosts = {{s.getsockname()[0] for s in server._sockets.values()}}
+            port = client.scheduler_info()["services"]["dashboard"]
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{{port}}/status", timeout=30) as r:
+                    code = r.status
+            except urllib.error.HTTPError as err:
+                code = err.code
+        print(sorted(hosts), code, links)
+    """)
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    hosts, code, links = r.stdout.strip().rsplit("\n", 1)[-1].split(" ", 2)
+    assert hosts == "['127.0.0.1']", r.stdout + r.stderr
+    assert code == ("200" if dashboard else "404"), r.stdout + r.stderr
+    assert ("http://127.0.0.1:" in links) == dashboard
 
 
 def test_workers_and_scheduler_are_checked():
