@@ -173,6 +173,18 @@ def test_envelope_grid_and_bounds_have_a_domain(kitti_map, tmp_path, args, msg):
     assert not (tmp_path / "env" / "envelope.csv").exists()
 
 
+def test_envelope_never_writes_through_a_planted_link(kitti_map, tmp_path):
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    out = tmp_path / "env"
+    out.mkdir()
+    (out / "envelope.csv").symlink_to(victim)
+    r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "2"])
+    assert r.exit_code == 1 and "symbolic link" in r.stderr and victim.read_text() == "keep", r.output
+
+
 def test_envelope_on_a_taught_map(kitti_map, tmp_path):
     from vtr.app.perception import ENVELOPE_BISECTIONS, _bound, _read
     from vtr.map import Map

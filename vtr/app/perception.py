@@ -237,9 +237,10 @@ def check_envelope_grid(step_m: float, max_m: float) -> None:
 
 def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, title: str = "") -> tuple[Path, Path]:
     """``out_dir/envelope.csv`` (one row per vertex) and ``out_dir/envelope.png`` (plan view); returns both paths."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path = out_dir / "envelope.csv"
-    with csv_path.open("w", newline="") as fh:
+    from .outputs import OutputFolder
+
+    folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
+    with folder.open("envelope.csv") as fh:
         w = csv.writer(fh)
         w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
                     "down_m", "left_capped", "right_capped", "up_capped", "down_capped"])
@@ -247,9 +248,8 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
             w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
                         round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
                         *(int(r.capped[d]) for d in DIRECTIONS)])
-    png = out_dir / "envelope.png"
-    plot_envelope(rows, png, l_min=l_min, title=title)
-    return csv_path, png
+    png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
+    return out_dir / "envelope.csv", png
 
 
 def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: str = "") -> None:
