@@ -360,6 +360,15 @@ def _horner(
     return out
 
 
+def check_bounds(l_min: float, c_bar: float) -> None:
+    """``PerceptionModelError`` unless ``l_min`` (an inlier count) and ``c_bar`` (a normal quantile) are finite
+    and non-negative: a negative one turns the chance constraint into one that any pose satisfies."""
+    for name, v in (("l_min", l_min), ("c_bar", c_bar)):
+        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating) \
+                or not math.isfinite(float(v)) or v < 0:
+            raise PerceptionModelError(f"{name} must be a finite number >= 0, got {v!r}")
+
+
 class PerceptionConstraint:
     """The chance constraint for one trunk: landmarks fixed, camera poses varying.
 
@@ -393,6 +402,7 @@ class PerceptionConstraint:
             )
         if not (math.isfinite(c_bar) and math.isfinite(l_min) and math.isfinite(pitch_down)):
             raise PerceptionModelError("c_bar, l_min and pitch_down must be finite")
+        check_bounds(l_min, c_bar)
         self.model = model
         self.l_min = float(l_min)
         self.c_bar = float(c_bar)
@@ -474,6 +484,8 @@ class PerceptionConstraint:
             x = x[None, :]
         if x.ndim != 2 or x.shape[1] != _VECTOR_DIM:
             raise GeometryError(f"positions must have shape (N, 3), got {x.shape}")
+        if x.shape[0] == 0:
+            raise GeometryError("positions: none given (shape (0, 3)); evaluate at least one camera position")
         if not math.isfinite(float(x.sum())):
             raise GeometryError("positions contain NaN/inf")
         return x

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .angles import THESIS_PITCH_DOWN_RAD
-from .constraint import THESIS_C_BAR, THESIS_L_MIN, _build_view_factor
+from .constraint import THESIS_C_BAR, THESIS_L_MIN, _build_view_factor, check_bounds
 from .errors import GeometryError, PerceptionModelError
 from .frames import rot_z
 from .model import PerceptionModel
@@ -89,6 +89,14 @@ class HorizonEvaluation:
     dsigma_dpos: NDArray[np.float64] | None = None
 
 
+def _broadcast(values: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
+    """``values`` as floats broadcast to ``shape`` (``GeometryError`` naming ``name`` when they do not fit)."""
+    try:
+        return np.broadcast_to(np.asarray(values, dtype=np.float64), shape)
+    except (ValueError, TypeError):
+        raise GeometryError(f"{name}: shape {np.shape(values)} does not fit the horizon {shape}") from None
+
+
 def _kernel():
     """The compiled loop (numba is imported on first evaluation only)."""
     from . import _horizon_kernel
@@ -109,8 +117,7 @@ class HorizonEvaluator:
     ) -> None:
         if len(trunks) == 0:
             raise PerceptionModelError("a horizon evaluator needs at least one trunk")
-        if not (math.isfinite(l_min) and math.isfinite(c_bar)):
-            raise PerceptionModelError("l_min and c_bar must be finite")
+        check_bounds(l_min, c_bar)
         self.model = model
         self.l_min, self.c_bar = float(l_min), float(c_bar)
         self.trunks = list(trunks)
@@ -174,7 +181,13 @@ class HorizonEvaluator:
         n = x_g.shape[0]
         if x_g.shape != (n, 3) or not np.all(np.isfinite(x_g)):
             raise GeometryError(f"positions must be finite with shape (N, 3), got {x_g.shape}")
-        tr = np.broadcast_to(np.asarray(trunk, dtype=np.int64), (n,))
+        if n == 0:
+            raise GeometryError("positions: an empty horizon (shape (0, 3)); give at least one step")
+        trunk_a = np.asarray(trunk)
+        if trunk_a.dtype.kind not in "iu" or trunk_a.shape not in ((), (n,)):
+            raise PerceptionModelError(f"trunk must be integer indices of shape ({n},), got {trunk_a.dtype} "
+                                       f"{trunk_a.shape}")
+        tr = np.broadcast_to(trunk_a.astype(np.int64), (n,))
         if tr.min() < 0 or tr.max() >= len(self.trunks):
             raise PerceptionModelError(f"trunk indices must be in [0, {len(self.trunks)})")
         if (yaw_g is None) == (axes_g is None):
@@ -190,7 +203,7 @@ class HorizonEvaluator:
         X -= self.camera_o[tr]
         dz = None
         if yaw_g is not None:
-            psi = np.broadcast_to(np.asarray(yaw_g, dtype=np.float64), (n,)) - psi_t
+            psi = _broadcast(yaw_g, (n,), "yaw") - psi_t
             if not np.all(np.isfinite(psi)):
                 raise GeometryError("yaw contains NaN/inf")
             b = self.pitch_down[tr]
@@ -198,7 +211,8 @@ class HorizonEvaluator:
             z = np.stack([np.cos(psi) * cb, np.sin(psi) * cb, -np.sin(b)], axis=1)
             dz = np.stack([-np.sin(psi) * cb, np.cos(psi) * cb, np.zeros(n)], axis=1)
         else:
-            zg = np.broadcast_to(np.asarray(axes_g, dtype=np.float64), (n, 3))
+            assert axes_g is not None
+            zg = _broadcast(axes_g, (n, 3), "axes")
             norm = np.linalg.norm(zg, axis=1)
             if not np.all(np.isfinite(norm)) or np.any(norm == 0.0):
                 raise GeometryError("optical axes must be finite and non-zero")

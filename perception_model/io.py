@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputDataError
+from .landmarks_file import check_unique_columns
 
 _POINT_COLUMNS = ("x", "y", "z")
 _VECTOR_DIM = 3
@@ -46,12 +47,13 @@ MAX_POSITION_M = 1e7
 def _read_table(path: Path, required: Sequence[str]) -> _Table:
     """Columns of a CSV file as lists of stripped strings, after checking the header."""
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM is not part of the header
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
                 raise InputDataError(f"{path}: empty file (no header line)")
             names = [h.strip() for h in header]
+            check_unique_columns(path, names)
             missing = [c for c in required if c not in names]
             if missing:
                 raise InputDataError(

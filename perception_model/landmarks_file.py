@@ -346,9 +346,20 @@ def _fields(fields: Collection[str] | None) -> tuple[str, ...]:
 
 
 def _check_header(path: Path, names: Sequence[str]) -> None:
+    check_unique_columns(path, names)
     missing = [c for c in LANDMARK_COLUMNS if c not in names]
     if missing:
         raise InputDataError(f"{path}: missing column(s) {', '.join(missing)} (header has: {', '.join(names)})")
+
+
+def check_unique_columns(path: Path, names: Sequence[str]) -> None:
+    """``InputDataError`` when a header names a column twice (which one would be read is a guess)."""
+    seen: dict[str, int] = {}
+    for k, name in enumerate(names):
+        if name in seen:
+            raise InputDataError(f"{path}: column {name!r} appears twice in the header (columns {seen[name] + 1} "
+                                 f"and {k + 1})")
+        seen[name] = k
 
 
 class _Bad(Exception):
@@ -395,7 +406,7 @@ def _finish(path: Path, parts: dict[str, list[NDArray[Any]]], n: int, fields: tu
 
 def _csv_header(path: Path) -> list[str]:
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM is not a header
             header = next(csv.reader(fh), None)
     except OSError as err:
         raise InputDataError(f"{path}: cannot read ({err.strerror or err})") from None
@@ -468,7 +479,7 @@ def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
     wanted = [(_BY_FIELD[f].name, _BY_FIELD[f].kind) for f in fields]
     bufs: dict[str, array[Any]] = {}
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM is not a header
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:

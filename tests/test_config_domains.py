@@ -163,6 +163,10 @@ def test_toml_binary_and_folder(tmp_path: Path):
 
 
 def test_cross_field_rules_name_both_keys():
+    # was a raw cv2.error from OpenCV's pyramid (4 ** 5 = 1024: the top level of a 370 px image is empty)
+    with pytest.raises(ConfigError, match=r"features\.scale_factor.*features\.n_levels.*1024"):
+        Config.from_dict({"features": {"n_levels": 6, "scale_factor": 4.0}})
+    assert Config.from_dict({"features": {"n_levels": 4, "scale_factor": 4.0}}).features.n_levels == 4
     with pytest.raises(ConfigError, match=r"stereo\.min_disparity_px.*stereo\.max_disparity_px"):
         Config.from_dict({"stereo": {"min_disparity_px": 200.0}})
     with pytest.raises(ConfigError, match=r"odometry\.keyframe_min_inliers.*odometry\.min_inliers"):

@@ -93,6 +93,9 @@ DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)   # Hamming distance between 2
 RADIUS_PX = Range(0.0, 10_000.0, lo_open=True)
 
 
+MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (Config.validate)
+
+
 @dataclass
 class FeatureConfig:
     """Detection and description (left and right images)."""
@@ -421,6 +424,12 @@ class Config:
             (loc.min_matches >= loc.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
             (loc.max_match_radius_px >= loc.match_radius_px,
              "localization.max_match_radius_px must be >= localization.match_radius_px"),
+            # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
+            # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
+            (self.features.scale_factor ** (self.features.n_levels - 1) <= MAX_PYRAMID_SCALE,
+             f"features.scale_factor ** (features.n_levels - 1) = {self.features.scale_factor:g} ** "
+             f"{self.features.n_levels - 1} = {self.features.scale_factor ** (self.features.n_levels - 1):.4g} must "
+             f"be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few pixels)"),
         ]
         for ok, msg in checks:
             if not ok:

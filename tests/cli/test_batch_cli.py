@@ -42,3 +42,33 @@ def test_batch_runs_and_resumes(kitti_clip, tmp_path):
 def test_threads_option_is_checked(kitti_clip, tmp_path):
     r = vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--threads", "-1")
     assert r.returncode == 1 and "--threads" in r.stderr and len(r.stderr.splitlines()) == 1   # a usage error: one line
+
+
+
+def test_ctrl_c_of_a_batch_leaves_no_worker_tracebacks(tmp_path):
+    """Ctrl-C in a terminal reaches the whole process group (the batch and its Dask workers): the batch ends
+    with exit 130 and its one line, the workers print nothing (were: a KeyboardInterrupt traceback each), and
+    the same command then finishes the rest."""
+    import os
+    import signal
+    import time
+
+    from vtr.sim.batch_routes import write_batch_routes
+
+    manifest = write_batch_routes(tmp_path / "data", 1, [0.0, 1.0], 8.0)
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "vtr", "batch", str(manifest), "--out", str(out), "--workers", "2"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    started = out / "route_0" / "teach" / "route.vtrmap"
+    deadline = time.monotonic() + 600                   # a bound on waiting, not an assertion on time
+    while not started.exists() and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert started.exists() and p.poll() is None
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate()
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert err.rstrip().splitlines()[-1].startswith("interrupted: finished runs are kept")
+    r = vtr("batch", manifest, "--out", out, "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    assert "0 failed" in r.stdout and (out / "route_0" / "rep_1m" / "run.json").is_file()

@@ -88,13 +88,37 @@ def test_out_in_a_read_only_folder(tmp_path):
 
 @needs_dev_full
 @pytest.mark.parametrize("victim", ["trajectory_tum.txt", "trajectory.png"])
-def test_full_disk_while_writing_outputs(tmp_path, victim):
+def test_a_link_to_a_full_disk_is_not_written_through(tmp_path, victim):
+    """A link planted at an output's name (here to /dev/full) is refused before any work (vtr.app.outputs)."""
     out = tmp_path / "o"
     out.mkdir()
     (out / victim).symlink_to(FULL)
-    # the folder holds a file already: --force to write into it (without, the output rule refuses first)
-    line = assert_one_line(["odometry", KITTI, "--out", out, "--frames", "0:3", "--force"], "No space left on device")
-    assert str(out) in line
+    # the folder holds a file already: --force to write into it, and still never through a planted link
+    line = assert_one_line(["odometry", KITTI, "--out", out, "--frames", "0:3", "--force"], "symbolic link")
+    assert str(out / victim) in line
+
+
+@pytest.mark.parametrize("limit", [300, 3000])
+def test_no_room_while_writing_outputs(tmp_path, limit):
+    """Writes that fail mid-run (a file-size limit: the kernel refuses a write past ``limit`` bytes, as a full
+    disk refuses any) are one line naming the output folder; the output that failed is not left half written."""
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "vtr", "odometry", KITTI, "--out", out, "--frames", "0:12"],
+                       capture_output=True, text=True, preexec_fn=small_files)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
+    assert len(lines) == 1 and lines[0].startswith("vtr: error: ") and str(out) in lines[0], r.stderr
+    assert "File too large" in lines[0] and "Traceback" not in r.stderr
+    assert not (out / "run.json").exists() and not list(out.glob(".vtr-tmp-*"))
 
 
 @needs_dev_full
@@ -217,5 +241,15 @@ def test_map_with_landmarks_behind_the_camera(tmp_path):
         arrays = {"uv": f.features.uv, "octave": f.features.octave, "descriptors": f.features.descriptors,
                   "u_right": f.u_right, "points": f.points * [1.0, 1.0, -1.0]}
         db.execute("UPDATE vertex_data SET data = ? WHERE id = ?", (pack_arrays(arrays, 3), vid))
+    # the vertex's checksum finds the damage first (vtr.map.integrity) ...
     assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r", "--frames", "1:6:2"],
+                    f"{m}: vertex {vid}", "damaged")
+    # ... and in a map made before checksums existed the codec's check does
+    from vtr.map.integrity import META_KEY, TABLE
+
+    with sqlite3.connect(m) as db:
+        db.executescript(f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; "
+                         f"DROP TABLE {TABLE};")
+        db.execute("DELETE FROM meta WHERE key = ?", (META_KEY,))
+    assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r2", "--frames", "1:6:2"],
                     f"{m} vertex {vid}", "behind its camera")

@@ -131,6 +131,28 @@ def test_euroc_raw_bag_is_rectified_from_camera_info(tmp_path):
         assert_same_frames(list(src), [euroc[i] for i in range(4)])
 
 
+@pytest.mark.parametrize("D", [[-50.0, 0.0, 0.0, 0.0, 0.0], [0.0, -40.0, 0.0, 0.0, 0.0], [0.3, 0.1, 0.0, 0.0, 1e9],
+                               [-0.28, 0.07, 0.0, 0.0, float("nan")], [-0.28, 0.07, 0.0]])
+def test_absurd_camera_info_distortion_is_refused(tmp_path, D):
+    """Coefficients that fold the image over (or a wrong count, NaN) are a CalibrationError when the bag is opened
+    (were: accepted, and the 'rectified' images were garbage)."""
+    from dataclasses import replace
+
+    from vtr.errors import CalibrationError
+
+    euroc = EurocSource(EUROC)
+    infos, T_body_cam0 = _euroc_raw_infos(euroc)
+    infos = (replace(infos[0], D=np.array(D)), infos[1])
+    topics = BagTopics("/cam0/image_raw", "/cam1/image_raw", "/cam0/camera_info", "/cam1/camera_info")
+    with RosbagWriter(tmp_path / "raw.bag", euroc.camera, topics=topics, infos=infos,
+                      T_base_left=T_body_cam0) as w:
+        for i, t in enumerate(euroc.timestamps()[:2]):
+            w.add(t, *(cv2.imread(str(f[i]), cv2.IMREAD_GRAYSCALE) for f in (euroc._left, euroc._right)))
+    with pytest.raises(CalibrationError, match="distortion|not finite"):
+        with open_source(tmp_path / "raw.bag") as src:
+            list(src)
+
+
 def _synthetic_pair(seed: int = 0):
     rng = np.random.default_rng(seed)
     bgr = rng.integers(0, 256, (SMALL.height, SMALL.width, 3), dtype=np.uint8)

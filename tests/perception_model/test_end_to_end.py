@@ -155,6 +155,36 @@ def test_map_commands_need_the_vtr_side_script(kitti_map, tmp_path):
     assert r.exit_code == 1 and "needs the map reader of vtr" in r.stderr and "Traceback" not in r.output
 
 
+@pytest.mark.parametrize("args, msg", [
+    (["--step", "1e-4"], "grid cells a side"),           # was: grew to 24 GB, killed by the kernel
+    (["--step", "1e-6"], "grid cells a side"),           # was: an allocation traceback
+    (["--max", "1e9"], "--max 1e+09 m: at most"),        # was: an allocation traceback
+    (["--max", "inf"], "--max"),
+    (["--step", "5", "--max", "1"], "at most --max"),
+    (["--l-min", "-5"], "l_min must be"),
+])
+def test_envelope_grid_and_bounds_have_a_domain(kitti_map, tmp_path, args, msg):
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", *args])
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and msg in lines[0], r.stderr
+    assert not (tmp_path / "env" / "envelope.csv").exists()
+
+
+def test_envelope_never_writes_through_a_planted_link(kitti_map, tmp_path):
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    out = tmp_path / "env"
+    out.mkdir()
+    (out / "envelope.csv").symlink_to(victim)
+    r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "2"])
+    assert r.exit_code == 1 and "symbolic link" in r.stderr and victim.read_text() == "keep", r.output
+
+
 def test_envelope_on_a_taught_map(kitti_map, tmp_path):
     from vtr.app.perception import ENVELOPE_BISECTIONS, _bound, _read
     from vtr.map import Map

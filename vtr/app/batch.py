@@ -17,8 +17,18 @@ same files as ``vtr teach --out`` / ``vtr repeat --out``; the taught map is ``OU
 and each repeat appends to its own copy of it (so repeats of a route run in parallel, never write the
 same file, and give the same result whatever the order they run in).
 
-Resume: a run is done when its folder's ``run.json`` says ``finished`` (run.json is written last);
-anything else (no run.json: interrupted; ``failed``) is deleted and run again. A failing run writes
+Resume: a run is done when its folder's ``run.json`` says ``finished`` (run.json is written last) and its
+``batch_key.json`` matches what would make it now (source path and size, frames, format, the run's config
+without its thread count, the vtr version, and for a repeat its teach's key): a changed manifest reruns
+what changed, and the summary says what changed. Anything else (no run.json: interrupted; ``failed``;
+changed) has the files vtr made in its folder removed (:mod:`vtr.app.outputs`: only those) and runs again.
+One batch at a time writes an output folder (``OUT/.vtr-batch.lock``, an ``flock``); ``OUT`` must be apart
+from every source (neither inside one nor holding one), and nothing vtr did not make there (a symbolic
+link as a route folder) is written through.
+
+The local cluster listens on loopback only, with TLS and temporary credentials made for the batch
+(``Security.temporary()``): only the batch's own client and workers can connect. Its dashboard is off
+unless asked (``dashboard=True``: on loopback). A failing run writes
 run.json with status ``failed`` and its error; the other runs go on (its route's repeats are
 ``blocked`` when a teach fails). A worker process that dies mid-run (killed, out of memory) is
 replaced and its run started again by Dask, from an empty folder.
@@ -29,29 +39,42 @@ The library never prints: progress goes to a callback, the summary is returned.
 from __future__ import annotations
 
 import csv
+import fcntl
+import hashlib
+import json
 import logging
+import os
 import re
-import shutil
+import signal
 import sqlite3
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from .. import __version__
 from ..config import Config
-from ..errors import ConfigError, DataError
-from .runlog import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run, run_status
+from ..errors import ConfigError, DataError, OutputError
+from .outputs import RECORD, OutputFolder, check_apart, check_no_links
+from .runlog import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
 
 MAP_NAME = "route.vtrmap"          # the taught map inside OUT/<route>/teach/ (each repeat holds a copy)
 TEACH_FOLDER = "teach"
 SUMMARY_CSV = "summary.csv"
 FIT_FOLDER = "fit"
 DEFAULT_RETRIES = 2                # extra attempts of a task that raised inside Dask (its worker died: see above)
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")   # route and run names are folder names
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")   # route and run names are folder names (fullmatch)
+LOCK_NAME = ".vtr-batch.lock"      # one batch per OUT (flock)
+KEY_NAME = "batch_key.json"        # what made a run (resume compares it)
+RESERVED_NAMES = {SUMMARY_CSV, FIT_FOLDER, LOCK_NAME, RECORD}   # OUT's own files: no route may be named so
+MAX_WORKERS_PER_CORE = 4           # --workers above this many per core only thrash (each worker is a process)
+SCHEDULER_SCHEMES = ("tcp", "tls")
 RUN_KEYS = {"source", "name", "frames", "config", "format"}
 ROUTE_KEYS = {"name", "teach", "repeats", "frames", "config", "format"}
 TOP_KEYS = {"routes", "frames", "config", "format"}
@@ -107,21 +130,40 @@ class Manifest:
         return [r for route in self.routes for r in (route.teach, *route.repeats)]
 
 
+class _ManifestLoader(yaml.SafeLoader):
+    """YAML as written: no YAML 1.1 base-60 numbers (an unquoted ``frames: 1:10`` is the string "1:10", not 70)."""
+
+
+_ManifestLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _tag, _pattern, _first in (
+        ("tag:yaml.org,2002:int", r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$",
+         "-+0123456789"),
+        ("tag:yaml.org,2002:float", r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?"
+         r"|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$", "-+0123456789.")):
+    _ManifestLoader.add_implicit_resolver(_tag, re.compile(_pattern), list(_first))
+
+
 def load_manifest(path: str | Path) -> Manifest:
     """Read and check a batch manifest; errors name the file and the field."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such manifest file")
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.load(path.read_text(encoding="utf-8-sig"), Loader=_ManifestLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: cannot parse YAML ({str(err).splitlines()[0]})") from err
+    except (UnicodeDecodeError, OSError) as err:
+        raise ConfigError(f"{path}: cannot read the manifest ({err})") from err
     if not isinstance(doc, dict) or not isinstance(doc.get("routes"), list) or not doc["routes"]:
         raise ConfigError(f"{path}: expected a mapping with a non-empty list 'routes'")
     _check_keys(doc, TOP_KEYS, f"{path}")
     base = path.parent
     defaults = _defaults(doc, {}, base, f"{path}")
-    routes, seen = [], set()
+    routes: list[RouteSpec] = []
+    seen: set[str] = set()
     for i, entry in enumerate(doc["routes"]):
         where = f"{path}: routes[{i}]"
         if not isinstance(entry, dict):
@@ -129,9 +171,12 @@ def load_manifest(path: str | Path) -> Manifest:
         _check_keys(entry, ROUTE_KEYS, where)
         name = _name(entry.get("name"), f"{where}.name")
         where = f"{path}: route {name!r}"
-        if name in seen:
-            raise ConfigError(f"{where}: route name used twice")
-        seen.add(name)
+        if name.casefold() in seen:
+            raise ConfigError(f"{where}: route name used twice (names differing only in case count as one folder)")
+        if name in RESERVED_NAMES or name.casefold() in {n.casefold() for n in RESERVED_NAMES}:
+            raise ConfigError(f"{where}: {name!r} is the name of the batch's own output "
+                              f"({', '.join(sorted(RESERVED_NAMES))}); rename the route")
+        seen.add(name.casefold())
         if "teach" not in entry:
             raise ConfigError(f"{where}: no 'teach' source")
         route_defaults = _defaults(entry, defaults, base, where)
@@ -142,10 +187,10 @@ def load_manifest(path: str | Path) -> Manifest:
         repeats, names = [], {TEACH_FOLDER}
         for j, rep in enumerate(repeats_doc):
             run = _run(rep, name, route_defaults, base, f"{where}.repeats[{j}]", None)
-            if run.name in names:
+            if run.name.casefold() in names:
                 raise ConfigError(f"{where}.repeats[{j}]: output folder {run.name!r} is used twice in the route "
                                   f"(give the repeat a distinct 'name')")
-            names.add(run.name)
+            names.add(run.name.casefold())
             repeats.append(run)
         routes.append(RouteSpec(name, teach, tuple(repeats)))
     return Manifest(path, tuple(routes))
@@ -158,8 +203,9 @@ def _check_keys(doc: dict, allowed: set[str], where: str) -> None:
 
 
 def _name(value: Any, where: str) -> str:
-    if not isinstance(value, str) or not NAME_PATTERN.match(value):
-        raise ConfigError(f"{where}: {value!r} is not a usable folder name (letters, digits, '.', '_', '-')")
+    if not isinstance(value, str) or not NAME_PATTERN.fullmatch(value):
+        raise ConfigError(f"{where}: {value!r} is not a usable folder name (1-100 letters, digits, '.', '_', '-', "
+                          "starting with a letter or digit)")
     return value
 
 
@@ -173,11 +219,17 @@ def _path(value: Any, base: Path, where: str) -> Path:
 def _defaults(doc: dict, inherited: dict, base: Path, where: str) -> dict:
     out = dict(inherited)
     if doc.get("frames") is not None:
-        out["frames"] = str(doc["frames"])
+        frames = doc["frames"]
+        if not isinstance(frames, str) or any(not c.isprintable() for c in frames):
+            raise ConfigError(f"{where}.frames: {frames!r} is not a frame range (write START:STOP:STEP, e.g. "
+                              "\"0:100:2\")")
+        out["frames"] = frames
     if doc.get("config") is not None:
         out["config"] = _path(doc["config"], base, f"{where}.config")
     if doc.get("format") is not None:
-        out["fmt"] = str(doc["format"])
+        if not isinstance(doc["format"], str):
+            raise ConfigError(f"{where}.format: {doc['format']!r} is not a format name")
+        out["fmt"] = doc["format"]
     return out
 
 
@@ -191,6 +243,8 @@ def _run(entry: Any, route: str, defaults: dict, base: Path, where: str, name: s
     own = _defaults(entry, defaults, base, where)
     if name is None:
         name = _name(entry.get("name", source.stem), f"{where}.name")
+        if name == TEACH_FOLDER:
+            raise ConfigError(f"{where}.name: {name!r} is the route's teach folder; give the repeat another 'name'")
     elif "name" in entry:
         raise ConfigError(f"{where}: a teach has no 'name' (it writes OUT/<route>/teach)")
     return RunSpec(route, name, source, own.get("frames"), own.get("config"), own.get("fmt"))
@@ -213,6 +267,7 @@ class RunOutcome:
     median_inliers: float | None = None
     seconds: float | None = None    # wall time of the run (as recorded in its run.json)
     error: str | None = None
+    changed: str | None = None      # why a run finished before was run again (what of its key changed)
 
     @property
     def localized_pct(self) -> float | None:
@@ -225,13 +280,78 @@ class RunOutcome:
         return self.status in DONE
 
 
-def outcome_from_folder(spec: RunSpec, folder: Path, status: str) -> RunOutcome:
+SUMMARY_NUMBERS = {"frames": int, "vertices": int, "localized": int, "median_inliers": float, "seconds": float}
+
+
+def checked_run(folder: Path) -> dict[str, Any] | None:
+    """``folder/run.json`` checked for what the batch reads from it: None when there is none; ``DataError``
+    (one line naming the file and the field) when it is not what vtr writes (edited by hand?)."""
+    p = Path(folder) / "run.json"
+    if not p.exists() and not p.is_symlink():
+        return None
+    hint = f"; remove {p} to run it again"
+    doc = read_run(folder)
+    if doc is None:
+        raise DataError(f"{p}: not a JSON object as vtr writes it{hint}")
+    status = doc.get("status", STATUS_FINISHED)
+    if status not in (STATUS_FINISHED, STATUS_FAILED):
+        raise DataError(f"{p}: status {status!r} is not {STATUS_FINISHED!r} or {STATUS_FAILED!r}{hint}")
+    summary = doc.get("summary", {})
+    if not isinstance(summary, dict):
+        raise DataError(f"{p}: 'summary' is {type(summary).__name__}, expected a mapping{hint}")
+    for key, kind in SUMMARY_NUMBERS.items():
+        v = summary.get(key)
+        ok = v is None or (not isinstance(v, bool) and isinstance(v, int | float) and (kind is float or
+                                                                                    isinstance(v, int)))
+        if not ok or (isinstance(v, float) and v != v and key != "median_inliers"):
+            raise DataError(f"{p}: 'summary.{key}' is {v!r}, expected {'an integer' if kind is int else 'a number'}"
+                            f"{hint}")
+    if doc.get("error") is not None and not isinstance(doc["error"], str):
+        raise DataError(f"{p}: 'error' is {type(doc['error']).__name__}, expected text{hint}")
+    return doc
+
+
+def outcome_from_folder(spec: RunSpec, folder: Path, status: str, changed: str | None = None) -> RunOutcome:
     """The outcome recorded in ``folder/run.json``."""
-    doc = read_run(folder) or {}
+    doc = checked_run(folder) or {}
     s = doc.get("summary") or {}
     return RunOutcome(spec.route, spec.name, spec.kind, status, frames=s.get("frames"), vertices=s.get("vertices"),
                       localized=s.get("localized"), median_inliers=s.get("median_inliers"), seconds=s.get("seconds"),
-                      error=doc.get("error"))
+                      error=doc.get("error"), changed=changed)
+
+
+def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What makes a run's result: its source (path, files, bytes), frames, format, config (without the thread
+    count: results are identical for every count), the vtr version; a repeat's teach key too."""
+    config = run_config(spec, None).to_dict()
+    config.get("features", {}).pop("threads", None)
+    src = spec.source.resolve()
+    files = [src] if src.is_file() else [f for f in src.rglob("*") if f.is_file()]
+    key: dict[str, Any] = {
+        "source": str(src), "source_files": len(files), "source_bytes": sum(f.stat().st_size for f in files),
+        "frames": spec.frames, "format": spec.fmt,
+        "config": hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest(),
+        "version": __version__}
+    if teach_key is not None:
+        key["teach"] = hashlib.sha256(json.dumps(teach_key, sort_keys=True).encode()).hexdigest()
+    return key
+
+
+def key_change(folder: Path, key: dict[str, Any]) -> str | None:
+    """None when ``folder``'s run was made with ``key``; else what changed (for the summary)."""
+    try:
+        old = json.loads((folder / KEY_NAME).read_text())
+    except (OSError, ValueError):
+        old = None
+    if not isinstance(old, dict):
+        return "no record of what made it"
+    diff = [k for k in key if old.get(k) != key[k]]
+    if not diff:
+        return None
+    names = {"source_files": "source", "source_bytes": "source", "teach": "its teach"}
+    what = sorted({names.get(k, k) for k in diff})
+    detail = f" ({old.get('frames')!r} -> {key['frames']!r})" if "frames" in diff else ""
+    return f"rerun: {', '.join(what)} changed{detail}"
 
 
 def run_config(spec: RunSpec, threads: int | None) -> Config:
@@ -253,19 +373,33 @@ def copy_map(src: Path, dst: Path) -> None:
         s.close()
 
 
+def prepare_run_folder(out: Path, spec: RunSpec) -> OutputFolder:
+    """The run's folder inside ``out`` without what an earlier attempt made (only the files vtr recorded
+    there; never through a symbolic link: ``OutputError``)."""
+    folder = spec.folder(out)
+    check_no_links(out, folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    check_no_links(out, folder)
+    own = OutputFolder(folder)
+    own.clear()
+    return own
+
+
 def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome | None = None,
-                on_start: Callable[[RunSpec, Path], None] | None = None) -> RunOutcome:
+                on_start: Callable[[RunSpec, Path], None] | None = None, key: dict[str, Any] | None = None,
+                changed: str | None = None) -> RunOutcome:
     """One teach or repeat (a Dask task: paths in, a small record out). Never raises for a run's own error:
     it is written to the run's run.json and returned."""
     from .pipeline import repeat_command, teach_command
 
     folder = spec.folder(Path(out))
-    if run_status(folder) == STATUS_FINISHED:       # a retry after the run had finished
+    doc = checked_run(folder)
+    if doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED and \
+            (key is None or key_change(folder, key) is None):   # a retry after the run had finished
         return outcome_from_folder(spec, folder, RESUMED)
     if teach is not None and not teach.ok:
         return RunOutcome(spec.route, spec.name, spec.kind, BLOCKED, error=f"teach of {spec.route} {teach.status}")
-    shutil.rmtree(folder, ignore_errors=True)       # what an interrupted or failed attempt left
-    folder.mkdir(parents=True)
+    own = prepare_run_folder(Path(out), spec)       # what an interrupted, failed or changed attempt made
     if on_start is not None:
         on_start(spec, folder)
     t0 = time.perf_counter()
@@ -273,18 +407,21 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
     try:
         config = run_config(spec, threads)
         _opencv_threads(config)
+        map_path = own.claim(MAP_NAME)
         if spec.is_teach:
-            teach_command(spec.source, folder / MAP_NAME, spec.frames, config, folder, spec.fmt)
+            teach_command(spec.source, map_path, spec.frames, config, folder, spec.fmt)
         else:
-            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME, folder / MAP_NAME)
-            repeat_command(spec.source, folder / MAP_NAME, folder, spec.frames, config, spec.fmt)
+            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME, map_path)
+            repeat_command(spec.source, map_path, folder, spec.frames, config, spec.fmt)
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
         RunLog(folder, spec.kind, config, [spec.source]).write(
             {"seconds": time.perf_counter() - t0, "traceback": traceback.format_exc(limit=8)},
             status=STATUS_FAILED, error=message)
-        return outcome_from_folder(spec, folder, FAILED)
-    return outcome_from_folder(spec, folder, FINISHED)
+        return outcome_from_folder(spec, folder, FAILED, changed)
+    if key is not None:
+        own.write_text(KEY_NAME, json.dumps(key, indent=1))
+    return outcome_from_folder(spec, folder, FINISHED, changed)
 
 
 def _opencv_threads(config: Config) -> None:
@@ -322,8 +459,8 @@ class BatchResult:
             inl = f"{o.median_inliers:.0f}" if o.median_inliers is not None else "-"
             sec = f"{o.seconds:.1f}" if o.seconds is not None else "-"
             frames = str(o.frames) if o.frames is not None else "-"
-            lines.append(f"{o.route:<14} {o.name:<16} {o.status:<9} {frames:>6} {loc:>9} {inl:>7} {sec:>7}  "
-                         f"{(o.error or '').splitlines()[0] if o.error else ''}")
+            note = (o.error or "").splitlines()[0] if o.error else (o.changed or "")
+            lines.append(f"{o.route:<14} {o.name:<16} {o.status:<9} {frames:>6} {loc:>9} {inl:>7} {sec:>7}  {note}")
         n = {s: sum(o.status == s for o in self.outcomes) for s in (FINISHED, RESUMED, FAILED, BLOCKED)}
         lines.append(f"{len(self.outcomes)} runs: {n[FINISHED]} finished, {n[RESUMED]} resumed (done before), "
                      f"{n[FAILED]} failed, {n[BLOCKED]} blocked; {self.seconds:.1f} s on {self.workers}")
@@ -334,6 +471,7 @@ SUMMARY_FIELDS = [f.name for f in fields(RunOutcome)] + ["localized_pct"]
 
 
 def write_summary_csv(path: Path, outcomes: list[RunOutcome]) -> None:
+    """summary.csv: one row per run, columns :data:`SUMMARY_FIELDS`."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(SUMMARY_FIELDS)
@@ -348,6 +486,8 @@ class BatchOptions:
     threads: int | None = None          # threads per run (default: local: cores // workers; remote: config)
     retries: int = DEFAULT_RETRIES
     fit: bool = False
+    dashboard: bool = False             # the local cluster's dashboard (loopback only), off by default
+    on_dashboard: Callable[[str], None] | None = None          # told the dashboard's address when it starts
     on_start: Callable[[RunSpec, Path], None] | None = None   # called in the worker before each run (tests)
     cluster_kwargs: dict[str, Any] = field(default_factory=dict)
 
@@ -361,16 +501,109 @@ def check_inputs(manifest: Manifest) -> None:
             raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.config}: no such config file")
 
 
+def check_workers(workers: int | None) -> int:
+    """The local cluster's size: 1 to ``MAX_WORKERS_PER_CORE`` x cores (more only thrash: each is a process
+    with its own memory); default every core."""
+    from ..parallel import available_cores
+
+    cores = available_cores()
+    if workers is None:
+        return cores
+    limit = MAX_WORKERS_PER_CORE * cores
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= limit:
+        raise ConfigError(f"--workers {workers!r}: expected 1 to {limit} ({MAX_WORKERS_PER_CORE} per core on "
+                          f"{cores} cores)")
+    return workers
+
+
+def check_scheduler(address: str | None) -> str | None:
+    """``--scheduler``: ``tls://HOST:PORT`` (or ``tcp://`` on a trusted network), checked before connecting."""
+    from urllib.parse import urlsplit
+
+    if address is None:
+        return None
+    msg = f"--scheduler {address!r}: expected tls://HOST:PORT or tcp://HOST:PORT"
+    if not isinstance(address, str) or any(not c.isprintable() or c.isspace() for c in address):
+        raise ConfigError(msg)
+    try:
+        parts = urlsplit(address)
+        port = parts.port
+    except ValueError:
+        raise ConfigError(f"{msg} (port not a number from 1 to 65535)") from None
+    if parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None or not 1 <= port <= 65535 \
+            or parts.path not in ("", "/") or parts.query or parts.fragment or parts.username:
+        raise ConfigError(msg)
+    return address
+
+
+class BatchLock:
+    """``OUT/.vtr-batch.lock`` held (``flock``, exclusive) while a batch writes ``OUT``; a second batch on the
+    same folder gets ``OutputError`` at once. The kernel releases it when the process ends, however."""
+
+    def __init__(self, out: Path):
+        self.path = Path(out) / LOCK_NAME
+        self.fd: int | None = None
+
+    def __enter__(self) -> BatchLock:
+        try:
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) |
+                              getattr(os, "O_CLOEXEC", 0), 0o644)
+        except OSError as err:
+            raise OutputError(f"{self.path}: cannot open the batch lock ({err.strerror or err})") from None
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self.fd)
+            self.fd = None
+            raise OutputError(f"--out {self.path.parent}: another vtr batch is writing this folder (it holds "
+                              f"{LOCK_NAME}); wait for it or choose another --out") from None
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
 def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None = None,
               progress: Callable[[RunOutcome, int, int], None] | None = None) -> BatchResult:
     """Run every teach and repeat of ``manifest`` into ``out`` on a Dask cluster; see the module doc."""
-    from ..parallel import available_cores
-
     opts = options or BatchOptions()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    runs = manifest.runs()
+    workers = check_batch(manifest, out, opts)
+    own = OutputFolder.prepare(out, names=[SUMMARY_CSV])
+    with BatchLock(out):
+        return _run_batch(manifest, out, own, opts, workers, progress)
+
+
+def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
+    """Everything checkable before a batch starts (inputs exist, ``--workers``, ``--scheduler``, ``out`` apart
+    from every source and config); returns the local cluster's size."""
+    from ..parallel import available_cores, resolve_threads
+
     check_inputs(manifest)
+    workers = check_workers(opts.workers) if opts.scheduler is None else (opts.workers or available_cores())
+    check_scheduler(opts.scheduler)
+    if opts.scheduler is None and opts.threads is not None:   # sizes that multiply: processes x threads
+        cores = available_cores()
+        threads = resolve_threads(opts.threads, "--threads")
+        if workers * threads > MAX_WORKERS_PER_CORE * cores:
+            raise ConfigError(f"--workers {workers} x --threads {opts.threads} is {workers * threads} threads on "
+                              f"{cores} cores; at most {MAX_WORKERS_PER_CORE * cores}")
+    check_apart(Path(out), [p for spec in manifest.runs() for p in (spec.source, spec.config)])
+    for route in manifest.routes:
+        if (Path(out) / route.name).exists():
+            check_no_links(Path(out), Path(out) / route.name / TEACH_FOLDER)
+    return workers
+
+
+def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOptions, workers: int,
+               progress: Callable[[RunOutcome, int, int], None] | None) -> BatchResult:
+    from ..parallel import available_cores
+
+    runs = manifest.runs()
+    for route in manifest.routes:
+        check_no_links(out, out / route.name)
     t0 = time.perf_counter()
     outcomes: dict[RunSpec, RunOutcome] = {}
     done = 0
@@ -382,13 +615,23 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
         if progress is not None:
             progress(outcome, done, len(runs))
 
-    pending = []
+    pending: list[tuple[RunSpec, dict[str, Any], str | None]] = []
+    resumed: list[tuple[RunSpec, RunOutcome]] = []     # every run.json is checked before anything is reported
+    teach_keys: dict[str, dict[str, Any]] = {}
     for spec in runs:
-        if run_status(spec.folder(out)) == STATUS_FINISHED:
-            report(spec, outcome_from_folder(spec, spec.folder(out), RESUMED))
+        key = run_key(spec, None if spec.is_teach else teach_keys[spec.route])
+        if spec.is_teach:
+            teach_keys[spec.route] = key
+        folder = spec.folder(out)
+        doc = checked_run(folder)
+        changed = key_change(folder, key) if doc is not None else None
+        if doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED and changed is None:
+            resumed.append((spec, outcome_from_folder(spec, folder, RESUMED)))
         else:
-            pending.append(spec)
-    workers = opts.workers or available_cores()
+            pending.append((spec, key, changed if doc is not None and
+                            doc.get("status", STATUS_FINISHED) == STATUS_FINISHED else None))
+    for spec, outcome in resumed:
+        report(spec, outcome)
     threads = opts.threads
     if threads is None and opts.scheduler is None:
         threads = max(1, available_cores() // workers)
@@ -398,11 +641,42 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
             _run_on(client, pending, outcomes, out, threads, opts, report)
     ordered = [outcomes[s] for s in runs]
     result = BatchResult(out, ordered, time.perf_counter() - t0, where)
-    result.summary_csv = out / SUMMARY_CSV
-    write_summary_csv(result.summary_csv, ordered)
+    result.summary_csv = own.write(SUMMARY_CSV, write_summary_csv, ordered)
     if opts.fit:
         result.fit = fit_repeats(manifest, out, ordered)
     return result
+
+
+def local_security():
+    """TLS with credentials made for this batch alone (a temporary CA-less key pair, never written to disk):
+    a process without them cannot connect to the local scheduler or its workers."""
+    try:
+        from distributed.security import Security
+
+        return Security.temporary()
+    except ImportError as err:  # pragma: no cover - cryptography is a dependency
+        raise ConfigError(f"the local Dask cluster needs the 'cryptography' package for TLS ({err})") from None
+
+
+def one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
+
+
+@contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """SIGINT ignored while the local workers are spawned: they inherit that (a Python process started with
+    SIGINT ignored installs no KeyboardInterrupt handler), so a Ctrl-C in the terminal, which reaches the
+    whole process group, interrupts only the batch, which closes the cluster in order; the workers print no
+    tracebacks. (A nanny restarts a dead worker from its own process, where SIGINT is ignored too.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 class _DaskClient:
@@ -417,14 +691,24 @@ class _DaskClient:
         from distributed import Client, LocalCluster
 
         if self.opts.scheduler:
-            self.client = Client(self.opts.scheduler)
+            try:        # tls:// takes its certificates from Dask's config (distributed.comm.tls.*)
+                self.client = Client(self.opts.scheduler, timeout=30)
+            except (OSError, TimeoutError, ValueError) as err:
+                raise ConfigError(f"--scheduler {self.opts.scheduler}: cannot connect ({one_line(err)})") from None
             return self.client
+        security = local_security()
         kwargs = {"n_workers": self.workers, "threads_per_worker": 1, "processes": True,
-                  "dashboard_address": ":0", "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
+                  "host": "127.0.0.1", "protocol": "tls://", "security": security,
+                  # the HTTP server (health, and the dashboard only when asked) on loopback, any free port
+                  "dashboard_address": "127.0.0.1:0", "scheduler_kwargs": {"dashboard": self.opts.dashboard},
+                  "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
         # a dead worker's task is given to another one this many times before it counts as failed
-        with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}):
+        with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}), \
+                _workers_ignore_ctrl_c():
             self.cluster = LocalCluster(**kwargs)
-        self.client = Client(self.cluster)
+        self.client = Client(self.cluster, security=security)
+        if self.opts.dashboard and self.opts.on_dashboard is not None:
+            self.opts.on_dashboard(str(self.cluster.dashboard_link))
         return self.client
 
     def __exit__(self, *exc) -> None:
@@ -433,19 +717,20 @@ class _DaskClient:
             self.cluster.close()
 
 
-def _run_on(client, pending: list[RunSpec], outcomes: dict, out: Path, threads: int | None, opts: BatchOptions,
-            report: Callable[[RunSpec, RunOutcome], None]) -> None:
+def _run_on(client, pending: list[tuple[RunSpec, dict[str, Any], str | None]], outcomes: dict, out: Path,
+            threads: int | None, opts: BatchOptions, report: Callable[[RunSpec, RunOutcome], None]) -> None:
     from distributed import as_completed
 
     futures: dict[Any, RunSpec] = {}
     teach_of: dict[str, Any] = {}
-    for spec in pending:                           # teaches come before their repeats (Manifest.runs order)
+    for spec, key, changed in pending:          # teaches come before their repeats (Manifest.runs order)
         teach: Any = None
         if not spec.is_teach:                      # its teach's future, or its outcome when resumed
             teach = teach_of.get(spec.route)
             if teach is None:
                 teach = next(o for s, o in outcomes.items() if s.route == spec.route and s.is_teach)
-        fut = client.submit(execute_run, spec, str(out), threads, teach, opts.on_start, retries=opts.retries,
+        fut = client.submit(execute_run, spec, str(out), threads, teach, opts.on_start, key, changed,
+                            retries=opts.retries,
                             key=f"{spec.route}/{spec.name}-{time.time_ns()}", pure=False)
         futures[fut] = spec
         if spec.is_teach:
@@ -484,9 +769,11 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     from perception_model.landmarks_file import FIT_FIELDS, read_landmarks
 
     files = list(repeat_landmark_files(manifest, out, outcomes))
-    folder = out / FIT_FOLDER
     if not files:
         return {"error": "no finished repeat to fit"}
+    check_no_links(out, out / FIT_FOLDER)
+    fit_folder = OutputFolder.prepare(out / FIT_FOLDER, names=["model.json", "fit.png"])
+    folder = fit_folder.path
 
     def chunks():
         for f in files:
@@ -497,10 +784,9 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
         result = fit_binned_stream(chunks, source=f"{len(files)} repeats under {out}")
     except PerceptionModelError as err:
         return {"error": str(err), "files": len(files)}
-    folder.mkdir(parents=True, exist_ok=True)
     data = {"files": [str(f) for f in files], "n_observations": result.n, "n_inliers": result.n_inliers}
-    result.model.save(folder / "model.json", fit=result.to_dict(), data=data)
-    plot_fit(result, folder / "fit.png")
+    fit_folder.write("model.json", result.model.save, fit=result.to_dict(), data=data)
+    fit_folder.write("fit.png", lambda p: plot_fit(result, p))
     return {"model": folder / "model.json", "plot": folder / "fit.png", "files": len(files),
             "observations": result.n, "constants": {c.name: c.estimate for c in result.intervals},
             "r2": result.r2, "log_loss": result.log_loss}

@@ -20,13 +20,20 @@ crossing is refined by bisection; a side that never crosses reports ``max_m`` (`
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from perception_model import frames
-from perception_model.constraint import PerceptionConstraint, inlier_moments, normal_tail, poisson_binomial_tail
+from perception_model.constraint import (
+    PerceptionConstraint,
+    check_bounds,
+    inlier_moments,
+    normal_tail,
+    poisson_binomial_tail,
+)
 from perception_model.errors import GeometryError, InputDataError
 from perception_model.map_landmarks import (
     MapConstraintTable,
@@ -44,6 +51,11 @@ from ..map import Map
 ENVELOPE_STEP_M = 0.25
 ENVELOPE_MAX_M = 20.0
 ENVELOPE_BISECTIONS = 6
+#: Domain of the scan: at most this many grid cells per side (max / step) and offsets up to this far; the grid is
+#: evaluated this many cells at a time, stopping at the first crossing (memory bounded whatever the grid).
+ENVELOPE_MAX_CELLS = 20_000
+ENVELOPE_LIMIT_M = 10_000.0
+ENVELOPE_CHUNK = 256
 DIRECTIONS = ("left", "right", "up", "down")
 
 
@@ -164,8 +176,8 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
                           up_map=LEVEL_CAMERA_UP_MAP, step_m: float = ENVELOPE_STEP_M,
                           max_m: float = ENVELOPE_MAX_M) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring)."""
-    if not (0.0 < step_m <= max_m):
-        raise InputDataError(f"envelope step {step_m} m must be in (0, max {max_m} m]")
+    check_envelope_grid(step_m, max_m)
+    check_bounds(l_min, c_bar)
     vertices, camera = _read(map_path)
     T_g_map = frames.T_g_map_from_up(up_map)
     R_map_g = T_g_map[:3, :3].T
@@ -183,12 +195,17 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
             if base < l_min:
                 dist[name], capped[name] = 0.0, False
                 continue
-            b = _bound(model, v, camera, centre + grid[:, None] * d_map, l_min, c_bar)
-            bad = np.flatnonzero(b < l_min)
-            if bad.size == 0:
+            first = None
+            for k in range(0, len(grid), ENVELOPE_CHUNK):      # chunks: memory bounded, stops at the crossing
+                g = grid[k:k + ENVELOPE_CHUNK]
+                bad = np.flatnonzero(_bound(model, v, camera, centre + g[:, None] * d_map, l_min, c_bar) < l_min)
+                if bad.size:
+                    first = float(g[bad[0]])
+                    break
+            if first is None:
                 dist[name], capped[name] = float(max_m), True
                 continue
-            hi = float(grid[bad[0]])
+            hi = first
             lo = hi - step_m
             for _ in range(ENVELOPE_BISECTIONS):
                 mid = 0.5 * (lo + hi)
@@ -201,11 +218,29 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
     return rows
 
 
+def check_envelope_grid(step_m: float, max_m: float) -> None:
+    """``InputDataError`` (one line naming ``--step``/``--max``) unless the scan grid is finite and at most
+    ``ENVELOPE_MAX_CELLS`` cells a side (``--step 1e-6`` is 2e7 cells: hours, and gigabytes before chunking)."""
+    for name, v in (("--step", step_m), ("--max", max_m)):
+        if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            raise InputDataError(f"envelope {name} {v!r}: expected a finite distance > 0 m")
+    if max_m > ENVELOPE_LIMIT_M:
+        raise InputDataError(f"envelope --max {max_m:g} m: at most {ENVELOPE_LIMIT_M:g} m")
+    if step_m > max_m:
+        raise InputDataError(f"envelope --step {step_m:g} m must be at most --max {max_m:g} m")
+    cells = max_m / step_m
+    if cells > ENVELOPE_MAX_CELLS:
+        raise InputDataError(f"envelope --max {max_m:g} / --step {step_m:g} is {cells:.3g} grid cells a side; at "
+                             f"most {ENVELOPE_MAX_CELLS} (raise --step to {max_m / ENVELOPE_MAX_CELLS:.3g} m or more: "
+                             "each crossing is refined by bisection anyway)")
+
+
 def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, title: str = "") -> tuple[Path, Path]:
     """``out_dir/envelope.csv`` (one row per vertex) and ``out_dir/envelope.png`` (plan view); returns both paths."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path = out_dir / "envelope.csv"
-    with csv_path.open("w", newline="") as fh:
+    from .outputs import OutputFolder
+
+    folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
+    with folder.open("envelope.csv") as fh:
         w = csv.writer(fh)
         w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
                     "down_m", "left_capped", "right_capped", "up_capped", "down_capped"])
@@ -213,9 +248,8 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
             w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
                         round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
                         *(int(r.capped[d]) for d in DIRECTIONS)])
-    png = out_dir / "envelope.png"
-    plot_envelope(rows, png, l_min=l_min, title=title)
-    return csv_path, png
+    png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
+    return out_dir / "envelope.csv", png
 
 
 def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: str = "") -> None:

@@ -32,6 +32,7 @@ from .evaluation import (
     integrity_of,
     localization_errors,
 )
+from .outputs import OutputFolder
 from .runlog import RunLog
 
 if TYPE_CHECKING:
@@ -42,6 +43,11 @@ if TYPE_CHECKING:
     from .repeat_run import RepeatLoop
 
 FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
+# the files each command writes into its --out (checked before work: vtr.app.outputs)
+RUN_FILES = ("config.yaml", "run.json")
+ODOMETRY_OUTPUTS = ("trajectory_tum.txt", "frames.csv", "trajectory.png", *RUN_FILES)
+TEACH_OUTPUTS = ("trajectory_tum.txt", "frames.csv", *RUN_FILES)
+REPEAT_OUTPUTS = ("localization.csv", "landmarks.csv", "state.csv", "trajectory_tum.txt", "report.png", *RUN_FILES)
 
 
 @dataclass(frozen=True)
@@ -116,12 +122,12 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
 
     with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
-        out.mkdir(parents=True, exist_ok=True)
+        folder = OutputFolder.prepare(out, [source_path], ODOMETRY_OUTPUTS)
         log = RunLog(out, "odometry", config, [source_path])
         results, poses, seconds = run_odometry(source, indices, config, progress)
         t_ns = np.array([r.t_ns for r in results], np.int64)
-        write_tum(out / "trajectory_tum.txt", t_ns, poses)
-        write_frames_csv(out / "frames.csv", results)
+        folder.write("trajectory_tum.txt", write_tum, t_ns, poses)
+        folder.write("frames.csv", write_frames_csv, results)
         drift, T_gt = None, None
         gt = source.ground_truth()
         if gt is not None:
@@ -131,8 +137,8 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
                 T_gt = inv_T(T_gt[0]) @ T_gt
                 drift = drift_metrics(poses[ie], T_gt)
         failures = np.array([r.kind == FrameKind.FAILURE for r in results])
-        plot_trajectory(out / "trajectory.png", poses, T_gt, failures,
-                        title=f"{source_path.name}: {len(results)} frames")
+        folder.write("trajectory.png", plot_trajectory, poses, T_gt, failures,
+                     title=f"{source_path.name}: {len(results)} frames")
         keyframes = sum(r.new_vertex for r in results)
         summary = OdometrySummary(len(results), keyframes, int(failures.sum()), seconds, drift,
                                   keyframe_note(keyframes, len(results), poses, config))
@@ -188,6 +194,7 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
 
     with open_source(source_path, source_options) as source:
         indices = parse_frame_range(frames, len(source), str(source_path))
+        folder = OutputFolder.prepare(out, [source_path], TEACH_OUTPUTS) if out is not None else None
         t0 = time.perf_counter()
         results = []
         with Map.create(map_path, source.camera, config.map) as m:
@@ -206,11 +213,10 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
         summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
-        if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
+        if out is not None and folder is not None:
             log = RunLog(out, "teach", config, [source_path])
-            write_tum(out / "trajectory_tum.txt", t_taught, T_taught)
-            write_frames_csv(out / "frames.csv", results)
+            folder.write("trajectory_tum.txt", write_tum, t_taught, T_taught)
+            folder.write("frames.csv", write_frames_csv, results)
             log.write({"frames": summary.frames, "vertices": n_vertices, "failures": failures,
                        "seconds": seconds, "map": str(map_path)})
     return summary
@@ -325,13 +331,13 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     with open_source(source_path, source_options) as source, Map.open(map_path, "a") as m:
         m.check_camera(source.camera)
         indices = parse_frame_range(frames, len(source), str(source_path))
-        out.mkdir(parents=True, exist_ok=True)
+        folder = OutputFolder.prepare(out, [source_path], REPEAT_OUTPUTS)
         log = RunLog(out, "repeat", config, [source_path, map_path])
         _check_path_to_follow(m)
         start = _start_hint(m, start_vertex, start_distance_m)
         repeat = Repeat(m, config, source=str(source_path), start_index=start, allow_partial=allow_partial)
-        with open(out / "localization.csv", "w", newline="") as loc_file, \
-                LandmarksWriter(out / "landmarks.csv") as lm_csv:
+        with folder.open("localization.csv") as loc_file, \
+                LandmarksWriter(folder.create("landmarks.csv")) as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
 
             def report(step: RepeatStep) -> None:
@@ -341,26 +347,26 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
 
             loop = run_repeat(repeat, frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"),
                               on_step=report)
-        summary = _write_repeat_outputs(out, loop, repeat, rate_hz, source, m)
+        summary = _write_repeat_outputs(folder, loop, repeat, rate_hz, source, m)
         log.write(summary.to_dict())
     return summary
 
 
-def _write_repeat_outputs(out: Path, loop: RepeatLoop, repeat: Repeat, rate_hz: float, source: FrameSource,
-                          m) -> RepeatSummary:
+def _write_repeat_outputs(folder: OutputFolder, loop: RepeatLoop, repeat: Repeat, rate_hz: float,
+                          source: FrameSource, m) -> RepeatSummary:
     """After the loop: state.csv, trajectory_tum.txt, report.png; the evaluation; the summary."""
     from ..navigation.repeat_state import write_state_csv
     from .report import plot_repeat
 
     t_smooth = time.perf_counter()
     state = loop.controller.output(rate_hz)
-    write_state_csv(out / "state.csv", state)
-    write_tum(out / "trajectory_tum.txt", loop.t_ns, loop.T_teach)
+    folder.write("state.csv", write_state_csv, state)
+    folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
     taught = repeat.chain.path
     errors = distance_to_polyline(loop.T_teach[:, :3, 3], taught.positions)
     errors[~loop.localized] = np.nan          # no path error where not localized
     locs = list(loop.localizations)
-    plot_repeat(out / "report.png", locs, taught, loop.T_teach, loop.t_ns, errors, state)
+    folder.write("report.png", plot_repeat, locs, taught, loop.T_teach, loop.t_ns, errors, state)
     ok = [loc for loc in locs if loc.success]
     gt_errors = _errors_against_ground_truth(source, m, ok)
     integrity = None

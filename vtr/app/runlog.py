@@ -55,9 +55,14 @@ class RunLog:
 
     def write(self, summary: dict[str, Any], status: str = STATUS_FINISHED, error: str | None = None) -> None:
         """Write ``run.json`` (atomically: a temporary file renamed) and ``config.yaml``. Commands call it
-        after every other output, so a run killed before the end has no run.json."""
+        after every other output (through
+        :class:`~vtr.app.outputs.OutputFolder`: never through a link), so a run killed before the end has no
+        run.json."""
+        from .outputs import OutputFolder
+
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.yaml").write_text(self.config.to_yaml())
+        folder = OutputFolder(self.out)
+        folder.write_text("config.yaml", self.config.to_yaml())
         doc = {
             "command": self.command,
             "status": status,
@@ -72,9 +77,7 @@ class RunLog:
         }
         if error is not None:
             doc["error"] = error
-        tmp = self.out / "run.json.tmp"
-        tmp.write_text(json.dumps(doc, indent=2, default=_jsonable))
-        tmp.replace(self.out / "run.json")
+        folder.write_text("run.json", json.dumps(doc, indent=2, default=_jsonable))  # a temporary file, renamed
 
 
 def read_run(out: Path) -> dict[str, Any] | None:

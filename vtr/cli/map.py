@@ -69,6 +69,20 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
                        "this map unless --allow-partial")
 
 
+@map_group.command("check")
+@map_argument
+def map_check_cmd(map_path: Path) -> None:
+    """Check MAP for damage: SQLite's integrity check, the runs table, every vertex's checksums (maps made by
+    this vtr) and data, the taught path (finite rigid poses, increasing times, existing runs) and every
+    temporal edge against its poses. Prints one line; exit 1 with the first damage found."""
+    from ..map import Map
+    from ..map.integrity import check_map
+
+    with Map.open(map_path, "r") as m:
+        report = check_map(m)
+    click.echo(report.line(map_path))
+
+
 @main.command("export-map")
 @map_argument
 @click.option("--ply", "ply_path", type=click.Path(path_type=Path), required=True,

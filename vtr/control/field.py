@@ -19,6 +19,8 @@ the vertex minimizing ``||rho|| + rotation_weight ||phi||`` of the relative came
 
 from __future__ import annotations
 
+import copy
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,7 +31,7 @@ from perception_model.horizon import HorizonEvaluation, HorizonEvaluator, TrunkL
 from perception_model.model import PerceptionModel
 
 from ..config import LocalizationConfig
-from ..errors import MapError
+from ..errors import EstimationError, MapError
 from ..geometry import inv_T
 from ..map import Map
 from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
@@ -96,6 +98,7 @@ class TaughtPathField:
                  c_bar: float = THESIS_C_BAR) -> None:
         if not vertices:
             raise MapError("the taught path is empty")
+        _check_bounds(l_min, c_bar)
         self.mount = mount or CameraMount()
         self.config = config or LocalizationConfig()
         self.T_g_map = np.asarray(T_g_map, float)
@@ -129,6 +132,52 @@ class TaughtPathField:
     def __len__(self) -> int:
         return len(self.vertex_ids)
 
+    @property
+    def l_min(self) -> float:
+        return self.evaluator.l_min
+
+    @property
+    def c_bar(self) -> float:
+        return self.evaluator.c_bar
+
+    def with_bounds(self, l_min: float, c_bar: float) -> TaughtPathField:
+        """The same field (landmarks shared, not copied) with the constraint ``mu - c_bar sigma - l_min``;
+        the MPC uses it so that its ``ControlConfig`` owns ``l_min`` and ``c_bar``."""
+        _check_bounds(l_min, c_bar)
+        out = copy.copy(self)
+        out.evaluator = copy.copy(self.evaluator)
+        out.evaluator.l_min, out.evaluator.c_bar = float(l_min), float(c_bar)
+        return out
+
+    def _index(self, value, what: str) -> int:
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or not 0 <= int(value) < len(self):
+            raise EstimationError(f"{what}: {value!r} is not a trunk index (0 to {len(self) - 1})")
+        return int(value)
+
+    def _horizon(self, positions, yaw, axes=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Positions (N, 3), yaw (N,) and axes (N, 3) checked: finite, shapes that fit, N >= 1."""
+        pos = np.asarray(positions, float) if not isinstance(positions, str) else np.array(np.nan)
+        if pos.ndim == 1:
+            pos = pos[None]
+        if pos.ndim != 2 or pos.shape[1] != 3 or len(pos) == 0:
+            raise EstimationError(f"positions: expected shape (N, 3) with N >= 1, got {np.shape(positions)}")
+        n = len(pos)
+        psi = np.asarray(yaw, float)
+        if psi.shape not in ((), (n,)):
+            raise EstimationError(f"yaw: expected shape ({n},) to match the positions, got {psi.shape}")
+        psi = np.broadcast_to(psi, (n,))
+        ax = None
+        if axes is not None:
+            ax = np.asarray(axes, float)
+            if ax.shape not in ((3,), (n, 3)):
+                raise EstimationError(f"axes: expected shape ({n}, 3), got {ax.shape}")
+            ax = np.broadcast_to(ax, (n, 3))
+            if not np.all(np.isfinite(ax)) or np.any(np.linalg.norm(ax, axis=1) == 0.0):
+                raise EstimationError("axes: must be finite and non-zero")
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(psi))):
+            raise EstimationError("positions and yaw must be finite (got NaN or inf)")
+        return pos, psi, ax
+
     # ----------------------------------------------------------------- vehicle <-> camera
     def camera_centres(self, positions: np.ndarray, yaw: np.ndarray) -> np.ndarray:
         """Camera centres (N, 3) in g of vehicles at ``positions`` (N, 3) with yaw ``yaw`` (N,)."""
@@ -145,7 +194,10 @@ class TaughtPathField:
     # ----------------------------------------------------------------- trunk selection
     def nearest_trunk(self, position: np.ndarray) -> int:
         """Index of the taught vertex whose vehicle position is nearest (to start a chain)."""
-        return int(np.argmin(np.linalg.norm(self.vehicle_position_g - np.asarray(position, float), axis=1)))
+        p = np.asarray(position, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise EstimationError(f"position: expected 3 finite numbers, got shape {p.shape}")
+        return int(np.argmin(np.linalg.norm(self.vehicle_position_g - p, axis=1)))
 
     def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
                       axes: np.ndarray | None = None, direction: int = FORWARD) -> np.ndarray:
@@ -154,11 +206,11 @@ class TaughtPathField:
 
         The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal).
         """
-        pos = np.atleast_2d(np.asarray(positions, float))
-        yaw = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
+        pos, yaw, axes = self._horizon(positions, yaw, axes)
+        previous = self._index(previous, "previous trunk")
         axes_pitch = None
         if axes is not None:
-            heading, axes_pitch = frames.heading_of_axis(np.broadcast_to(np.asarray(axes, float), (len(pos), 3)))
+            heading, axes_pitch = frames.heading_of_axis(axes)
             yaw = heading - self.mount.mount_yaw_rad
         c = self.config
         n = len(pos)
@@ -186,12 +238,15 @@ class TaughtPathField:
         nearest vertex to the first position). ``axes`` (N, 3) overrides the mount's optical axes
         (gimbal: also for the trunk selection); the yaw gradient then covers the lever arm only.
         """
-        pos = np.atleast_2d(np.asarray(positions, float))
-        psi = np.broadcast_to(np.asarray(yaw, float), (len(pos),))
+        pos, psi, axes = self._horizon(positions, yaw, axes)
         if trunk is None:
-            start = self.nearest_trunk(pos[0]) if previous is None else int(previous)
+            start = self.nearest_trunk(pos[0]) if previous is None else self._index(previous, "previous trunk")
             trunk = self.select_trunks(pos, psi, start, axes=axes)
-        trunk = np.asarray(trunk, dtype=np.int64)
+        t = np.asarray(trunk)
+        if t.dtype.kind not in "iu" or t.shape not in ((), (len(pos),)) or t.size == 0 \
+                or t.min() < 0 or t.max() >= len(self):
+            raise EstimationError(f"trunk: expected {len(pos)} trunk indices from 0 to {len(self) - 1}")
+        trunk = np.broadcast_to(t.astype(np.int64), (len(pos),))
         cam = self.camera_centres(pos, psi)
         if axes is None:
             ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
@@ -211,6 +266,13 @@ class TaughtPathField:
                 dyaw = dyaw + ev.dg_dyaw
         return FieldEvaluation(trunk, self.vertex_ids[trunk], ev.mu, ev.sigma, ev.g, ev.flag, dpos, dyaw,
                                ev.dg_daxis, ev)
+
+
+def _check_bounds(l_min: float, c_bar: float) -> None:
+    for name, v in (("l_min", l_min), ("c_bar", c_bar)):
+        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating) \
+                or not math.isfinite(float(v)) or v < 0:
+            raise EstimationError(f"{name} must be a finite number >= 0, got {v!r}")
 
 
 __all__ = ["CameraMount", "FieldEvaluation", "TaughtPathField", "TaughtVertex", "read_taught_vertices"]

@@ -27,6 +27,16 @@ QP always has a solution; slacks are reported every tick (``MpcSolution.max_slac
 whenever the hard problem is feasible. The hover terminal set also makes the controller brake
 in time: with a 1.5 s horizon it never plans faster than it can stop.
 
+**Errors.** Inputs are checked where they enter (``EstimationError``: a state of 10 finite numbers, a trunk
+index of the field, a reference of finite points, a finite non-zero camera axis). A start the bounds
+exclude (a speed above ``speed_max_mps`` on an axis, say) makes the QP infeasible. A QP that OSQP does not
+solve (``primal infeasible``, ``dual infeasible``, ...) raises ``MpcInfeasible`` (an ``EstimationError``)
+instead of returning its iterate: that iterate is not a command (an infeasible QP's ``x`` held jerks of
+2e9), and which fallback is safe (brake, hover, hand over to a pilot) depends on the vehicle, so the
+caller decides. ``maximum iterations reached`` returns
+the best iterate (finite, within the box bounds up to OSQP's tolerance) with that ``status``.
+``ControlConfig`` owns ``l_min`` and ``c_bar``: the field's constraint is rebuilt with them.
+
 QPs are solved by OSQP (sparse, warm-started; the constraint matrix keeps one sparsity pattern
 and only its values are updated). Each QP is posed relative to the current position and yaw (OSQP's
 tolerances are absolute: absolute map coordinates in the perception rows cost accuracy and speed).
@@ -51,6 +61,11 @@ from .flat_model import N_INPUT, N_STATE, discrete_model
 
 Mode = Literal["none", "fixed", "perception"]
 _NZ, _NW = N_STATE, N_INPUT
+ACCEPTED_STATUS = ("solved", "solved inaccurate", "maximum iterations reached")
+
+
+class MpcInfeasible(EstimationError):
+    """The tick's QP has no solution OSQP could find (infeasible start, inconsistent bounds): no command."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +85,10 @@ class TaughtPathReference:
     """The taught path (vehicle positions in g) as reference: arc length, points and headings."""
 
     def __init__(self, positions_g: np.ndarray) -> None:
-        self.path = ReferencePath(np.asarray(positions_g, float))
+        p = np.asarray(positions_g, float)
+        if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
+            raise EstimationError(f"reference: expected finite positions of shape (K, 3), got {p.shape}")
+        self.path = ReferencePath(p)
         d = self.path.directions
         self.heading = np.arctan2(d[:, 1], d[:, 0])
 
@@ -106,7 +124,15 @@ class PerceptionAwareMPC:
             raise EstimationError("the perception-aware MPC needs a TaughtPathField")
         if mode == "fixed" and not fixed_bound_m > 0.0:
             raise EstimationError(f"a fixed path-error bound must be positive, got {fixed_bound_m}")
+        if mode == "fixed" and not np.isfinite(fixed_bound_m):
+            raise EstimationError(f"a fixed path-error bound must be finite, got {fixed_bound_m}")
+        if field is not None:           # ControlConfig owns l_min and c_bar (the field's landmarks are shared)
+            field = field.with_bounds(c.l_min, c.c_bar)
         self.reference, self.mode, self.bound, self.field = reference, mode, float(fixed_bound_m), field
+        if camera_axis_g is not None:
+            axis = np.asarray(camera_axis_g, float)
+            if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
+                raise EstimationError(f"camera_axis_g: expected a finite non-zero 3-vector, got {axis!r}")
         self.camera_axis_g = None if camera_axis_g is None else np.asarray(camera_axis_g, float)
         n = self.n = int(c.horizon)
         self.Ad, self.Bd = discrete_model(c.dt_s)
@@ -223,6 +249,29 @@ class PerceptionAwareMPC:
         self.l[r:r + self.n_soft], self.u[r:r + self.n_soft] = 0.0, np.inf
 
     # ------------------------------------------------------------------ one tick
+    def _check_state(self, z0) -> np.ndarray:
+        """``z0`` as 10 finite floats ``(p, v, a, psi)``."""
+        try:
+            z = np.asarray(z0, float)
+        except (TypeError, ValueError):
+            raise EstimationError(f"MPC state: expected 10 numbers (p, v, a, psi), got {type(z0).__name__}") \
+                from None
+        if z.shape != (_NZ,):
+            raise EstimationError(f"MPC state: expected shape ({_NZ},) (p, v, a, psi), got {z.shape}")
+        if not np.all(np.isfinite(z)):
+            raise EstimationError(f"MPC state: not finite ({np.array2string(z, precision=3)})")
+        return z
+
+    def _why(self, z0: np.ndarray) -> str:
+        """What of the start state breaks the bounds (for the infeasibility message), or ''."""
+        c = self.cfg
+        v, a = float(np.abs(z0[3:6]).max()), float(np.abs(z0[6:9]).max())
+        if v > c.speed_max_mps:
+            return f": the start's speed {v:g} m/s on an axis is above speed_max_mps {c.speed_max_mps:g}"
+        if a > c.accel_max_mps2:
+            return f": the start's acceleration {a:g} m/s^2 on an axis is above accel_max_mps2 {c.accel_max_mps2:g}"
+        return ""
+
     def _initial_guess(self, z0: np.ndarray) -> np.ndarray:
         """Previous prediction (for linearization); at the first tick: hold position and yaw."""
         if self.z_prev is None:
@@ -232,7 +281,10 @@ class PerceptionAwareMPC:
     def solve(self, z0: np.ndarray, trunk: int | None = None) -> MpcSolution:
         """One QP from flat state ``z0`` (10,) in g; ``trunk`` is the current trunk index (perception mode)."""
         c, n = self.cfg, self.n
-        z0 = np.asarray(z0, float)
+        z0 = self._check_state(z0)
+        if self.mode == "perception" and trunk is not None:
+            assert self.field is not None
+            trunk = self.field._index(trunk, "trunk")
         # the QP works relative to the current position and yaw (small numbers: OSQP's tolerances are absolute)
         origin, yaw0 = z0[:3].copy(), float(z0[9])
         z0s = z0.copy()
@@ -292,8 +344,10 @@ class PerceptionAwareMPC:
         res = self.solver.solve(raise_error=False)  # status checked below (max_iter: best iterate)
         status = str(res.info.status)
         x = res.x
-        if x is None or not np.all(np.isfinite(x)):
-            raise EstimationError(f"MPC: OSQP returned no solution ({status})")
+        if status not in ACCEPTED_STATUS or x is None or not np.all(np.isfinite(x)):
+            self.z_prev = None          # the next tick linearizes about a hold, not about this iterate
+            raise MpcInfeasible(f"MPC: OSQP did not solve the tick's QP ({status}{self._why(z0)}); no command "
+                                "(the caller's fallback applies)")
         z_pred = x[: n * _NZ].reshape(n, _NZ).copy()
         z_pred[:, :3] += origin
         z_pred[:, 9] += yaw0
@@ -303,4 +357,4 @@ class PerceptionAwareMPC:
         return MpcSolution(w_pred[0].copy(), z_pred, w_pred, max(slack, 0.0), status, int(res.info.iter), trunks)
 
 
-__all__ = ["MpcSolution", "PerceptionAwareMPC", "TaughtPathReference"]
+__all__ = ["MpcInfeasible", "MpcSolution", "PerceptionAwareMPC", "TaughtPathReference"]

@@ -44,12 +44,13 @@ def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
     if name is not None:
         if name not in FORMATS:
             raise DataError(f"unknown format {name!r}; known: {', '.join([*FORMATS, *FORMAT_ALIASES])}")
+        _check_forced(path, name)
     else:
         name = next((n for n, (detect, _) in FORMATS.items() if detect(path)), None)
     if name is None:
         if path.is_dir() and not any(path.iterdir()):
             raise DataError(f"{path}: empty folder")
-        raise DataError(f"{path}: unknown layout (expected one of: {', '.join(FORMATS)})")
+        raise DataError(f"{path}: unknown layout (expected one of: {', '.join(FORMATS)}){_layout_hint(path)}")
     bag = opts.bag_kwargs()
     if name == "rosbag":
         return RosbagSource(path, **bag)  # type: ignore[arg-type]
@@ -57,6 +58,35 @@ def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
         flags = ", ".join("--" + k.replace("_", "-") for k in bag)
         raise DataError(f"{path}: {flags} apply to ROS bag sources only (this is a {name} source)")
     return FORMATS[name][1](path)
+
+
+FOLDER_FORMATS = ("kitti", "euroc", "stereo-pairs", "cloud")   # read a folder (a ROS bag may be a file)
+BAG_FILES = ("*.db3", "*.mcap")
+
+
+def _detected(path: Path) -> str | None:
+    return next((n for n, (detect, _) in FORMATS.items() if detect(path)), None)
+
+
+def _check_forced(path: Path, name: str) -> None:
+    """A forced ``--format`` that cannot fit ``path`` says so, and what ``path`` looks like instead."""
+    other = _detected(path)
+    if name in FOLDER_FORMATS and path.is_file():
+        hint = f"; it looks like a {other} source: drop --format or pass --format {other}" if other else ""
+        raise DataError(f"{path}: is a file, but --format {name} reads a folder{hint}")
+    if other is not None and other != name and not FORMATS[name][0](path):
+        raise DataError(f"{path}: not a {name} source; it looks like a {other} source: drop --format or pass "
+                        f"--format {other}")
+
+
+def _layout_hint(path: Path) -> str:
+    """Why a folder is no known layout, when it is nearly one (a ROS 2 bag folder without metadata.yaml)."""
+    if path.is_dir():
+        bags = sorted(p.name for pattern in BAG_FILES for p in path.glob(pattern))
+        if bags and not (path / "metadata.yaml").exists():
+            return (f"; it holds {bags[0]} but no metadata.yaml: a ROS 2 bag folder needs its metadata.yaml "
+                    f"(or open the file itself: {path / bags[0]})")
+    return ""
 
 
 __all__ = [

@@ -144,7 +144,62 @@ def stereo_camera_from_info(left: CameraInfoData, right: CameraInfoData, where: 
                         T_vehicle_sensor=np.eye(4) if T_vehicle_sensor is None else T_vehicle_sensor)
 
 
+#: coefficients each distortion model may have (ROS: plumb_bob 5, rational_polynomial 8, equidistant 4)
+DISTORTION_COUNTS = {"plumb_bob": (4, 5, 8), "radtan": (4, 5), "rational_polynomial": (8, 12, 14),
+                     "equidistant": (4,), "fisheye": (4,), "": (0, 4, 5, 8)}
+
+
+MIN_CORNER_SCALE, MAX_CORNER_SCALE = 0.05, 20.0   # distorted / undistorted radius at the image corners
+
+
+def check_distortion(info: CameraInfoData, where: str) -> None:
+    """``CalibrationError`` (one line) unless ``K``, ``R`` and ``D`` describe a real lens: finite, a proper
+    rotation, a coefficient count of the model, and a distortion that maps the image's field of view one to
+    one (the distorted radius grows with the true one out to the image corners; absurd coefficients fold
+    the image over, and rectifying with them gives garbage images, not an error)."""
+    model = info.distortion_model.lower()
+    K, R, D = np.asarray(info.K, float), np.asarray(info.R, float), np.asarray(info.D, float).ravel()
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(D))):
+        raise CalibrationError(f"{where}: CameraInfo K, R or D is not finite")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise CalibrationError(f"{where}: CameraInfo K has focal lengths {K[0, 0]:g}, {K[1, 1]:g} (must be > 0)")
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) <= 0:
+        raise CalibrationError(f"{where}: CameraInfo R is not a rotation")
+    counts = DISTORTION_COUNTS.get(model)
+    if counts is not None and len(D) and len(D) not in counts:
+        raise CalibrationError(f"{where}: distortion model {info.distortion_model!r} takes "
+                               f"{' or '.join(map(str, counts))} coefficients, CameraInfo D has {len(D)}")
+    if not np.any(D):
+        return
+    # normalized radius of the farthest image corner, sampled from the centre out
+    corners = np.array([[0, 0], [info.width, 0], [0, info.height], [info.width, info.height]], float)
+    r_max = float(np.max(np.hypot((corners[:, 0] - K[0, 2]) / K[0, 0], (corners[:, 1] - K[1, 2]) / K[1, 1])))
+    if model in ("equidistant", "fisheye"):
+        theta = np.arctan(np.linspace(0.0, r_max, 400))
+        k = np.zeros(4)
+        k[:len(D)] = D[:4]
+        t2 = theta**2
+        r_d = theta * (1 + k[0] * t2 + k[1] * t2**2 + k[2] * t2**3 + k[3] * t2**4)
+    else:
+        k = np.zeros(14)
+        k[:len(D)] = D[:14]
+        r = np.linspace(0.0, r_max, 400)
+        r2 = r**2
+        radial = (1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3) / (1 + k[5] * r2 + k[6] * r2**2 + k[7] * r2**3)
+        r_d = r * radial
+    scale = r_d[-1] / np.tan(theta[-1]) if model in ("equidistant", "fisheye") else radial[-1]
+    if np.isfinite(scale) and not MIN_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
+        raise CalibrationError(f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} scales the "
+                               f"image corners by {scale:.3g} (a lens stays within {MIN_CORNER_SCALE:g} to "
+                               f"{MAX_CORNER_SCALE:g}): not a real lens calibration")
+    if not np.all(np.isfinite(r_d)) or np.any(np.diff(r_d) <= 0):
+        raise CalibrationError(f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} is not one to "
+                               "one over the image (the distorted radius stops growing before the corners): not a "
+                               "real lens calibration")
+
+
 def _rectify_maps(info: CameraInfoData, where: str) -> tuple[np.ndarray, np.ndarray]:
+    check_distortion(info, where)
     size = (info.width, info.height)
     model = info.distortion_model.lower()
     if model == "equidistant":

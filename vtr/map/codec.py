@@ -90,9 +90,22 @@ def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
     return out
 
 
+MAX_LANDMARK_M = 1e6                 # no stereo pair triangulates a point this far (1000 km): damaged data
+
+
 def check_landmarks_in_front(points: np.ndarray, where: str) -> None:
-    """``MapError`` unless every landmark (finite row) lies in front of its camera (z > 0): stereo
+    """``MapError`` unless every landmark (finite row) lies in front of its camera (z > 0) and nearer than
+    ``MAX_LANDMARK_M``, and no row holds an infinity (a feature without a landmark is all NaN): stereo
     triangulation only yields such points, so another one means damaged or foreign data."""
+    inf = np.isinf(points).any(axis=1)
+    if inf.any():
+        k = int(np.argmax(inf))
+        raise MapError(f"{where}: landmark {k} of {len(points)} is infinite ({points[k].tolist()})")
+    far = np.abs(np.nan_to_num(points)).max(axis=1) > MAX_LANDMARK_M if len(points) else np.zeros(0, bool)
+    if far.any():
+        k = int(np.argmax(far))
+        raise MapError(f"{where}: landmark {k} of {len(points)} is {np.abs(points[k]).max():.3g} m away "
+                       f"(more than {MAX_LANDMARK_M:g} m)")
     z = points[:, 2]
     behind = np.isfinite(points).all(axis=1) & ~(z > 0)
     if behind.any():

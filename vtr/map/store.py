@@ -52,6 +52,7 @@ from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, Terminated, VtrError, interruption
 from ..geometry import inv_T, usable_covariance
+from . import integrity
 from .codec import decode_frame, encode_frame
 from .lock import MapLock
 from .path import TaughtPath
@@ -105,6 +106,25 @@ def abort_reason(exc: BaseException) -> str:
 
 def _utc_now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def _check_run_row(path: Path, r: tuple) -> None:
+    """``MapError`` (one line) when a row of the runs table is not what vtr writes (a damaged file)."""
+    rid, kind, privileged, source, created, state, reason = r[:7]
+    problem = None
+    if isinstance(rid, bool) or not isinstance(rid, int) or not 0 <= rid < 1 << 31:
+        problem = f"id {rid!r}"
+    elif kind not in RUN_KINDS:
+        problem = f"kind {kind!r}"
+    elif privileged not in (0, 1):
+        problem = f"privileged {privileged!r}"
+    elif not isinstance(source, str) or not isinstance(created, str) or not isinstance(reason, str):
+        problem = "a text field that is not text"
+    elif state not in (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED):
+        problem = f"state {state!r}"
+    if problem is not None:
+        raise MapError(f"{path}: the runs table is damaged (run {rid!r}: {problem}); the map file was changed "
+                       "after vtr wrote it")
 
 
 def _run_range(run: int) -> tuple[int, int]:
@@ -191,6 +211,7 @@ class Map:
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
         self._aborted = False           # this session aborted a run
+        self._checksums = integrity.META_KEY in self.meta   # verified on every read (vtr.map.integrity)
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
             # the open run (writing to it resumes it) until a new run begins
@@ -235,6 +256,7 @@ class Map:
             "created": _utc_now(),
             "vtr_version": __version__,
             "compress_level": str(level),
+            integrity.META_KEY: integrity.META_VALUE,   # every vertex has checksums (vtr.map.integrity)
         }
         tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}{CREATING_SUFFIX}")
         try:  # a private name; the mode is the usual 0o666 less the umask (mkstemp would make it 0o600)
@@ -248,7 +270,7 @@ class Map:
             lock = MapLock.writer(tmp, fd)
             conn = _connect(tmp, readonly=False)
             conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            conn.executescript("BEGIN IMMEDIATE;" + SCHEMA)
+            conn.executescript("BEGIN IMMEDIATE;" + SCHEMA + integrity.SCHEMA)
             conn.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", sorted(meta.items()))
             conn.execute("COMMIT")
             conn.close()
@@ -583,6 +605,9 @@ class Map:
         run = _check_int(run, "run", 0)
         self._check_open_run(run, "add_vertex")
         t_ns = _check_int(t_ns, "t_ns")
+        if not -(2**63) <= t_ns < 2**63:
+            raise MapError(f"t_ns: {t_ns} does not fit int64 nanoseconds (a time past the year 2262: a damaged "
+                           "timestamp in the source?)")
         T_wv = check_transform(T_world_vertex, "T_world_vertex")
         T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
                                "T_vehicle_sensor")
@@ -599,6 +624,9 @@ class Map:
                  encoded.n_landmarks, encoded.frame.index),
             )
             conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
+            if self._checksums:
+                integrity.write(conn, vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs),
+                                encoded.n_features, encoded.n_landmarks, encoded.frame.index, encoded.blob)
             if edge is not None and last is not None:
                 C, inliers = edge
                 T_world_prev = blob_matrix(conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?",
@@ -664,6 +692,8 @@ class Map:
                 "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.state, r.reason, "
                 "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
                 "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
+        for r in rows:
+            _check_run_row(self.path, r)
         return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
                         n_vertices=int(r[7]), state=self._seen_state(int(r[0]), r[5]), reason=r[6]) for r in rows]
 
@@ -718,6 +748,8 @@ class Map:
             self._run_row(conn, run)
             rows = conn.execute("SELECT id, T_world_vertex FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
                                 (lo, hi)).fetchall()
+            if self._checksums:
+                integrity.verify_rows(conn, str(self.path), lo, hi)
         return self._pose_arrays(rows)
 
     @staticmethod
@@ -733,6 +765,8 @@ class Map:
             self._run_row(conn, run)
             rows = conn.execute("SELECT id, t_ns FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
                                 (lo, hi)).fetchall()
+            if self._checksums:
+                integrity.verify_rows(conn, str(self.path), lo, hi)
         return (np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1] for r in rows], dtype=np.int64))
 
     def vertex(self, vid: int) -> VertexRecord:
@@ -754,7 +788,20 @@ class Map:
             self._cache_put(record)
             return record
 
+    def _read_vertex_uncached(self, vid: int) -> VertexRecord:
+        """Vertex ``vid`` read and decoded (checksums verified), without the cache (``vtr map check``)."""
+        with self._db() as conn:
+            row = conn.execute(
+                "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
+                "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (vid,)).fetchone()
+        if row is None:
+            raise MapError(f"{self.path}: vertex {vid} has no data (a damaged map)")
+        return self._decode_vertex(vid, row)
+
     def _decode_vertex(self, vid: int, row) -> VertexRecord:
+        if self._checksums:
+            with self._db() as conn:
+                integrity.verify_rows(conn, str(self.path), vid, vid, data=True)
         t_ns, T_wv, T_vs, frame_index, data = row
         frame = decode_frame(data, t_ns, frame_index, f"{self.path} vertex {vid}")
         return VertexRecord.of(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), frame)
@@ -819,8 +866,15 @@ class Map:
                 rows = conn.execute(
                     "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
                     "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
+                integrity.check_vertex_runs(conn, str(self.path))
+                if self._checksums:
+                    for (run,) in conn.execute("SELECT id FROM runs WHERE privileged = 1").fetchall():
+                        integrity.verify_rows(conn, str(self.path), *_run_range(int(run)))
             ids, T = self._pose_arrays(rows)
             path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
+            integrity.check_taught_path(str(self.path), path)
+            with self._db() as conn:
+                integrity.check_path_edges(conn, str(self.path), path)
             self._path_cache = (self._generation, path)
             return path
 

@@ -1,0 +1,248 @@
+"""The one rule for what a command writes into its output folder (``--out``, a batch's run folders).
+
+- A command writes only inside its output folder, and only files it made there: every name it writes
+  is first added to the folder's record (``.vtr-outputs``, one name a line), so a rerun, a batch's
+  resume or a cleanup removes exactly those (:meth:`OutputFolder.clear`) and nothing the user put there.
+- It never writes through a link it did not make: an entry at an output's name that is a symbolic
+  link, a folder, a file with other hard links or a file the record does not hold is refused before
+  any work starts (:meth:`OutputFolder.prepare`, one line naming the file). Whole files are written to
+  a new temporary name (``O_CREAT | O_EXCL | O_NOFOLLOW``) and renamed over the final name (a rename
+  replaces a name, it never follows a link); streamed files are created the same exclusive way.
+- It refuses an output folder that contains, or is inside, any of its inputs (``--out DATA`` with the
+  recording in ``DATA/route1/teach``).
+
+The checks of :mod:`vtr.io.outputs` (a writable ``--out``, never replacing a single output file
+without ``--force``) run before this one, in the CLI.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import stat
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import IO, Any
+
+from ..errors import OutputError
+
+RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
+TMP_TAG = ".vtr-tmp-"              # temporary names: .vtr-tmp-<hex>-<name>, renamed to <name> when complete
+SQLITE_SIDE_FILES = ("-wal", "-shm", "-journal")   # removed with a recorded map
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """``a`` is ``b`` or below it (both resolved)."""
+    return a == b or b in a.parents
+
+
+def check_apart(out: Path, inputs: Iterable[Path | None], option: str = "--out") -> None:
+    """``OutputError`` when output folder ``out`` contains, is, or is inside an input (symlinks resolved)."""
+    o = Path(out).resolve()
+    for inp in inputs:
+        if inp is None:
+            continue
+        i = Path(inp).resolve()
+        if _inside(i, o):
+            raise OutputError(f"{option} {out}: contains the input {inp} (an output folder must be apart from "
+                              "the data it reads; choose another folder)")
+        if _inside(o, i) and i.is_dir():
+            raise OutputError(f"{option} {out}: is inside the input {inp} (an output folder must be apart from "
+                              "the data it reads; choose another folder)")
+
+
+def check_no_links(base: Path, folder: Path, option: str = "--out") -> None:
+    """``OutputError`` when a folder between ``base`` (excluded) and ``folder`` (included) is a symbolic link
+    (or not a folder): a run folder inside an output folder is made by vtr, a link there is not."""
+    base, folder = Path(base), Path(folder)
+    rel = folder.relative_to(base)
+    p = base
+    for part in rel.parts:
+        p = p / part
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return
+        if stat.S_ISLNK(st.st_mode):
+            raise OutputError(f"{option} {base}: {p} is a symbolic link that vtr did not make (not writing through "
+                              "it); remove it or choose another folder")
+        if not stat.S_ISDIR(st.st_mode):
+            raise OutputError(f"{option} {base}: {p} exists and is not a folder")
+
+
+def _is_safe_name(name: str) -> bool:
+    return bool(name) and "/" not in name and "\0" not in name and name not in (".", "..")
+
+
+class OutputFolder:
+    """An output folder and the record of what vtr made in it; see the module doc."""
+
+    def __init__(self, path: Path, option: str = "--out"):
+        self.path = Path(path)
+        self.option = option
+        self.made = self._read_record()
+
+    # ------------------------------------------------------------------ opening
+
+    @classmethod
+    def prepare(cls, path: Path, inputs: Iterable[Path | None] = (), names: Iterable[str] = (),
+                option: str = "--out") -> OutputFolder:
+        """The folder ``path`` (created if needed) after checking it is apart from ``inputs`` and that
+        every output ``names`` can be written without touching what vtr did not make there."""
+        path = Path(path)
+        check_apart(path, inputs, option)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise OutputError(f"{option} {path}: exists and is not a folder") from None
+        except OSError as err:
+            raise OutputError(f"{option} {path}: cannot create the folder ({err.strerror})") from None
+        folder = cls(path, option)
+        for name in names:
+            folder.check_writable(name)
+        return folder
+
+    def _read_record(self) -> set[str]:
+        p = self.path / RECORD
+        try:
+            fd = os.open(p, os.O_RDONLY | _NOFOLLOW | _CLOEXEC)
+        except FileNotFoundError:
+            return set()
+        except OSError as err:
+            raise OutputError(f"{p}: cannot read the record of vtr's outputs ({err.strerror or err}; a symbolic "
+                              "link?); remove it or choose another folder") from None
+        with os.fdopen(fd, "rb") as f:
+            text = f.read(1 << 20).decode("utf-8", "replace")
+        return {line for line in text.splitlines() if _is_safe_name(line)}
+
+    def _record(self, name: str) -> None:
+        if name in self.made:
+            return
+        p = self.path / RECORD
+        try:
+            fd = os.open(p, os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW | _CLOEXEC, 0o644)
+        except OSError as err:
+            raise OutputError(f"{p}: cannot write the record of vtr's outputs ({err.strerror or err}; a symbolic "
+                              "link?)") from None
+        with os.fdopen(fd, "ab") as f:
+            f.write(f"{name}\n".encode())
+        self.made.add(name)
+
+    # ------------------------------------------------------------------ checks
+
+    def check_writable(self, name: str) -> None:
+        """``OutputError`` (one line naming the file) unless ``name`` is absent, or a plain file vtr made."""
+        if not _is_safe_name(name):
+            raise OutputError(f"{self.path}: {name!r} is not a file name")
+        p = self.path / name
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return
+        if stat.S_ISREG(st.st_mode) and name in self.made:
+            return                    # vtr's own earlier output: replaced by a rename, never written through
+        if stat.S_ISLNK(st.st_mode):
+            what = "is a symbolic link"
+        elif stat.S_ISDIR(st.st_mode):
+            what = "is a folder"
+        elif not stat.S_ISREG(st.st_mode):
+            what = "is not a regular file"
+        elif st.st_nlink > 1:
+            what = "has other hard links"
+        else:
+            what = f"was not made by vtr here (not in {RECORD})"
+        raise OutputError(f"{p}: {what}; not writing through or over it (remove it or choose another "
+                          f"{self.option})")
+
+    def _remove_own(self, name: str) -> None:
+        self.check_writable(name)
+        with _ignore_missing():
+            os.unlink(self.path / name)
+
+    # ------------------------------------------------------------------ writing
+
+    def write(self, name: str, writer: Callable[..., Any], *args: Any, **kwargs: Any) -> Path:
+        """Whole-file output: ``writer(tmp_path, *args, **kwargs)`` writes a new temporary file, renamed to
+        ``name`` when it returns (so ``name`` is the old content or the new one, never a half-written file,
+        and never a file a link pointed to). Returns the final path."""
+        self.check_writable(name)
+        tmp_name = f"{TMP_TAG}{secrets.token_hex(4)}-{name}"
+        tmp = self.path / tmp_name
+        self._record(tmp_name)
+        os.close(self._create(tmp))
+        try:
+            writer(tmp, *args, **kwargs)
+            st = os.lstat(tmp)
+            if not stat.S_ISREG(st.st_mode):
+                raise OutputError(f"{tmp}: replaced by something else while vtr wrote it")
+            self._record(name)
+            os.replace(tmp, self.path / name)
+        except BaseException:
+            with _ignore_missing():
+                os.unlink(tmp)
+            raise
+        return self.path / name
+
+    def write_text(self, name: str, text: str) -> Path:
+        return self.write(name, lambda p: Path(p).write_text(text))
+
+    def open(self, name: str, newline: str | None = "") -> IO[str]:
+        """A streamed text output, created exclusively (an earlier file of vtr's at that name is removed first)."""
+        return os.fdopen(self.create(name, keep_open=True), "w", newline=newline)
+
+    def create(self, name: str, keep_open: bool = False) -> Any:
+        """Create ``name`` empty and exclusively (``O_EXCL | O_NOFOLLOW``) for a writer that opens it by path;
+        returns the path (or, with ``keep_open``, the file descriptor)."""
+        self._remove_own(name)
+        self._record(name)
+        fd = self._create(self.path / name)
+        if keep_open:
+            return fd
+        os.close(fd)
+        return self.path / name
+
+    def claim(self, name: str) -> Path:
+        """Record ``name`` for a file the caller creates exclusively itself (a map: ``Map.create``)."""
+        self.check_writable(name)
+        self._record(name)
+        return self.path / name
+
+    def _create(self, p: Path) -> int:
+        try:
+            return os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o644)
+        except FileExistsError:
+            raise OutputError(f"{p}: appeared while vtr was writing (another process?); not writing over it") \
+                from None
+        except OSError as err:
+            raise OutputError(f"{p}: cannot create it ({err.strerror or err})") from None
+
+    # ------------------------------------------------------------------ cleanup
+
+    def clear(self) -> None:
+        """Remove every file vtr made here (as recorded; a map with its SQLite side files), then the record.
+        Nothing else is touched: entries that are links or folders are left alone."""
+        for name in sorted(self.made):
+            for n in (name, *(name + s for s in SQLITE_SIDE_FILES)):
+                p = self.path / n
+                try:
+                    st = os.lstat(p)
+                except FileNotFoundError:
+                    continue
+                if stat.S_ISREG(st.st_mode):
+                    with _ignore_missing():
+                        os.unlink(p)
+        with _ignore_missing():
+            st = os.lstat(self.path / RECORD)
+            if stat.S_ISREG(st.st_mode):
+                os.unlink(self.path / RECORD)
+        self.made = set()
+
+    def is_empty(self) -> bool:
+        return not any(self.path.iterdir())
+
+
+def _ignore_missing() -> contextlib.suppress:
+    return contextlib.suppress(FileNotFoundError)
