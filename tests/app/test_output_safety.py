@@ -92,7 +92,8 @@ def test_planted_symlinks_in_a_repeat_out_are_refused(kitti_clip, tmp_path, name
     out = tmp_path / "rep"
     out.mkdir()
     (out / name).symlink_to(victim)
-    r = vtr("repeat", kitti_clip, "--map", m, "--frames", "1:12:2", "--out", out)
+    # --force writes into a folder that holds files, and still never through a link it did not make
+    r = vtr("repeat", kitti_clip, "--map", m, "--frames", "1:12:2", "--out", out, "--force")
     one_error_line(r, str(out / name), "symbolic link")
     assert victim.read_text() == "do not touch"
 
@@ -103,21 +104,21 @@ def test_a_planted_tmp_link_and_hard_link_never_receive_output(kitti_clip, tmp_p
     out = tmp_path / "odo"
     out.mkdir()
     (out / "run.json.tmp").symlink_to(victim)                  # the old fixed temporary name
-    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6")
+    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6", "--force")
     assert r.returncode == 0, r.stderr
     assert victim.read_text() == "do not touch" and json.loads((out / "run.json").read_text())["status"] == "finished"
     # a rerun replaces vtr's own files (recorded) ...
-    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6")
+    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6", "--force")
     assert r.returncode == 0, r.stderr
     # ... and a hard link planted in place of one of them is replaced (renamed over), never written through
     (out / "frames.csv").unlink()
     os.link(victim, out / "frames.csv")
-    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6")
+    r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6", "--force")
     assert r.returncode == 0, r.stderr
     assert victim.read_text() == "do not touch" and (out / "frames.csv").read_text().startswith("t_ns")
     # a hard link at an output name vtr never wrote there is refused
     os.link(victim, out / "landmarks.csv")
-    r = vtr("repeat", kitti_clip, "--map", out / "none.vtrmap", "--out", out)
+    r = vtr("repeat", kitti_clip, "--map", out / "none.vtrmap", "--out", out, "--force")
     assert r.returncode == 1 and victim.read_text() == "do not touch"
 
 

@@ -181,7 +181,7 @@ def test_envelope_never_writes_through_a_planted_link(kitti_map, tmp_path):
     out = tmp_path / "env"
     out.mkdir()
     (out / "envelope.csv").symlink_to(victim)
-    r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "2"])
+    r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "2", "--force"])
     assert r.exit_code == 1 and "symbolic link" in r.stderr and victim.read_text() == "keep", r.output
 
 
