@@ -364,9 +364,12 @@ def _write_repeat_outputs(folder: OutputFolder, loop: RepeatLoop, repeat: Repeat
     folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
     taught = repeat.chain.path
     errors = distance_to_polyline(loop.T_teach[:, :3, 3], taught.positions)
-    errors[~loop.localized] = np.nan          # no path error where not localized
+    errors[~loop.localized] = np.nan          # no path error where not localized, nor beyond the route's ends
+    errors[repeat.chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
     locs = list(loop.localizations)
-    folder.write("report.png", plot_repeat, locs, taught, loop.T_teach, loop.t_ns, errors, state)
+    folder.write("report.png", plot_repeat, locs, taught, loop.T_teach, loop.t_ns, errors, state,
+                 localized=loop.localized, title=f"repeat of {source.path.name}",
+                 min_inliers=repeat.config.localization.min_inliers)
     ok = [loc for loc in locs if loc.success]
     gt_errors = _errors_against_ground_truth(source, m, ok)
     integrity = None

@@ -41,46 +41,93 @@ def plot_trajectory(path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = Non
     plt.close(fig)
 
 
+#: how localization.csv statuses are drawn in the repeat report: (label, marker, colour)
+STATUS_STYLE = {
+    "localized": ("localized", "o", "C0"),
+    "unconfirmed": ("place candidate, awaiting confirmation", "s", "0.55"),
+    "off_route": ("off the route (beyond an end)", "D", "C4"),
+}
+FAILURE_STYLE = ("not localized (see status in localization.csv)", "x", "C3")
+
+
+def _spans(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Index ranges [i, j) where ``mask`` is true."""
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(int), 0]))
+    return list(zip(edges[::2], edges[1::2], strict=True))
+
+
 def plot_repeat(path: Path, locs, taught: TaughtPath, T_teach: np.ndarray, t_ns: np.ndarray,
-                path_error_m: np.ndarray, state=None) -> None:
-    """Repeat report: inliers along the path (failures marked), path-tracking error over time, and the
-    taught and repeated paths in plan view (teach run's first camera frame: x right, z forward).
+                path_error_m: np.ndarray, state=None, *, localized: np.ndarray | None = None, title: str = "repeat",
+                min_inliers: int | None = None) -> None:
+    """Repeat report: localization inliers per keyframe by outcome, the error to the taught path over time and
+    the taught and repeated paths in plan view (teach run's first camera frame: x right, z forward), with
+    the stretches where the repeat held no localization shaded.
 
     ``state`` (optional, e.g. a :class:`vtr.navigation.repeat_state.StateTable`: ``t_ns``, ``lateral``, ``vertical``)
-    adds the smoothed signed lateral and vertical errors to the path-tracking panel."""
+    adds the smoothed signed lateral and vertical errors; ``localized`` (per frame) marks where the chain held a
+    localization; ``min_inliers`` draws the inlier count a success needs."""
     plt = _pyplot()
-    fig = plt.figure(figsize=(12, 7))
+    fig = plt.figure(figsize=(13, 7.5))
     ax1 = fig.add_subplot(2, 2, 1)
-    ax2 = fig.add_subplot(2, 2, 3)
+    ax2 = fig.add_subplot(2, 2, 3, sharex=ax1)
     ax3 = fig.add_subplot(1, 2, 2)
     t0 = t_ns[0] if len(t_ns) else 0
+    tf = (np.asarray(t_ns) - t0) * 1e-9
     tl = np.array([(loc.t_ns - t0) * 1e-9 for loc in locs])
     inl = np.array([loc.inliers for loc in locs])
-    ok = np.array([loc.success for loc in locs], bool)
+    status = np.array([getattr(loc.status, "value", "localized" if loc.success else "failed") for loc in locs])
+    lost = np.zeros(len(tf), bool) if localized is None else ~np.asarray(localized, bool)
+    for ax in (ax1, ax2):
+        for i, j in _spans(lost):
+            ax.axvspan(tf[i], tf[min(j, len(tf) - 1)], color="0.9", lw=0)
+    n_ok = int(np.sum(status == "localized"))
     if len(locs):
-        ax1.plot(tl, inl, ".-", color="C0", label="localization inliers")
-        ax1.plot(tl[~ok], np.zeros((~ok).sum()), "x", color="C3", label="failure")
-    ax1.set_ylabel("inliers")
-    ax1.set_xlabel("time [s]")
-    ax1.legend()
+        shown = np.zeros(len(locs), bool)
+        for key, (label, marker, colour) in STATUS_STYLE.items():
+            sel = status == key
+            shown |= sel
+            if sel.any():
+                ax1.plot(tl[sel], inl[sel], marker, color=colour, ms=4, ls="none", label=f"{label} ({sel.sum()})")
+        if (~shown).any():
+            label, marker, colour = FAILURE_STYLE
+            ax1.plot(tl[~shown], inl[~shown], marker, color=colour, ms=5, ls="none",
+                     label=f"{label} ({(~shown).sum()})")
+    if min_inliers is not None:
+        ax1.axhline(min_inliers, color="k", lw=0.8, ls="--", label=f"inliers a success needs ({min_inliers})")
+    ax1.set_ylabel("localization inliers per keyframe")
+    ax1.set_title("localization against the taught path (grey: not localized)", fontsize="medium")
+    ax1.legend(fontsize="x-small", loc="best")
     ax1.grid(True, alpha=0.3)
-    ax2.plot((t_ns - t0) * 1e-9, path_error_m, color="C2", label="distance (chain poses)")
+    err = np.asarray(path_error_m, float)
+    finite = [a for a in (err, *(() if state is None else (state.lateral, state.vertical))) if np.isfinite(a).any()]
+    peak = max((float(np.nanmax(np.abs(a))) for a in finite), default=0.0)
+    scale, unit = (1000.0, "mm") if peak < 1.0 else (1.0, "m")
+    ax2.plot(tf, scale * err, color="C2",
+             label="distance to the taught polyline (chain pose: odometry since the last localization)")
     if state is not None and len(state.t_ns):
         ts = (np.asarray(state.t_ns) - t0) * 1e-9
-        ax2.plot(ts, state.lateral, color="C1", lw=1, label="lateral, smoothed (+ left)")
-        ax2.plot(ts, state.vertical, color="C4", lw=1, label="vertical, smoothed (+ up)")
+        ax2.plot(ts, scale * np.asarray(state.lateral), color="C1", lw=1, label="lateral, smoothed (+ left)")
+        ax2.plot(ts, scale * np.asarray(state.vertical), color="C4", lw=1, label="vertical, smoothed (+ up)")
         ax2.axhline(0.0, color="k", lw=0.5)
-        ax2.legend(fontsize="small")
-    ax2.set_ylabel("error to taught path [m]")
-    ax2.set_xlabel("time [s]")
+    ax2.legend(fontsize="x-small")
+    ax2.set_ylabel(f"error to the taught path [{unit}]")
+    ax2.set_xlabel("time since the first frame [s]")
+    ax2.set_title("path-tracking error (the taught path is a polyline through its vertices: corners make kinks)",
+                  fontsize="small")
     ax2.grid(True, alpha=0.3)
-    ax3.plot(taught.positions[:, 0], taught.positions[:, 2], "o-", color="k", ms=3, label="taught (privileged) path")
-    ax3.plot(T_teach[:, 0, 3], T_teach[:, 2, 3], ".-", color="C0", ms=2, label="repeat")
-    ax3.set_xlabel("x [m]")
-    ax3.set_ylabel("z [m]")
+    ax3.plot(taught.positions[:, 0], taught.positions[:, 2], "o-", color="k", ms=3, label="taught path (teach run)")
+    if len(T_teach):
+        ax3.plot(T_teach[:, 0, 3], T_teach[:, 2, 3], "-", color="C0", lw=1, label="repeat (chain poses)")
+        if lost.any():
+            ax3.plot(T_teach[lost, 0, 3], T_teach[lost, 2, 3], ".", color="C3", ms=3,
+                     label="not localized (odometry only)")
+    ax3.set_xlabel("x, right of the first taught camera [m]")
+    ax3.set_ylabel("z, ahead of the first taught camera [m]")
+    ax3.set_title("plan view", fontsize="medium")
     ax3.set_aspect("equal", adjustable="datalim")
-    ax3.legend()
+    ax3.legend(fontsize="small")
     ax3.grid(True, alpha=0.3)
+    fig.suptitle(f"{title}: {len(tf)} frames, {len(locs)} keyframes, {n_ok} localized")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -165,11 +165,15 @@ class LocalizationChain:
 
     def beyond_end_m(self, trunk: int, T_leaf_trunk: np.ndarray) -> float:
         """How far (m) a leaf localized against ``trunk`` lies beyond the nearer end of the route (<= 0 inside)."""
-        p = (self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[:3, 3]
+        return float(self.beyond_ends_m((self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[None, :3, 3])[0])
+
+    def beyond_ends_m(self, positions_teach: np.ndarray) -> np.ndarray:
+        """How far (m) teach-frame camera positions (N, 3) lie beyond the nearer end of the route (<= 0 inside)."""
+        p = np.atleast_2d(np.asarray(positions_teach, float))
         P = self.path.positions
         if len(P) < 2:
-            return float(np.linalg.norm(p - P[0]))
-        return float(max((p - P[-1]) @ self._tangent(len(P) - 1), (p - P[0]) @ -self._tangent(0)))
+            return np.linalg.norm(p - P[0], axis=1)
+        return np.maximum((p - P[-1]) @ self._tangent(len(P) - 1), (p - P[0]) @ -self._tangent(0))
 
     def _tangent(self, i: int) -> np.ndarray:
         """Unit direction of the path at vertex i (over the vertices within a metre or two of it)."""
