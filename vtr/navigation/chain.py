@@ -354,13 +354,16 @@ class ChainLocalizer:
         return Attempt(pr.trunk, est, S.LOCALIZED, est.T_leaf_trunk)
 
     def _elsewhere(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
-        """Periodic check: does a place outside the trunk's window verify better than the tracked estimate?"""
+        """Periodic check: does a place outside the trunk's window look more like the leaf than every vertex in it,
+        and then verify with more inliers than the tracked estimate? (Only such places are verified.)"""
         ch = self.chain
         ch.checked()
         lo, hi = ch.window(trunk)
-        for cand in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices:
-            if lo <= cand < hi:
-                continue
+        scores = self.place.scores(kf.frame.features.descriptors)
+        inside = float(scores[lo:hi].max())
+        outside = np.r_[np.arange(0, lo), np.arange(hi, len(scores))]
+        rivals = outside[scores[outside] > inside]
+        for cand in rivals[np.argsort(-scores[rivals], kind="stable")][:self.config.place.candidates]:
             other = self._localize(kf, int(cand), None, False)
             if other.ok and other.inliers > est.inliers:
                 return True
