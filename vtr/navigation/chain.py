@@ -275,6 +275,9 @@ class LocalizationChain:
 
 SubmapFn = Callable[[int], TaughtSubmap]
 
+#: a place candidate verified with this many times ``min_inliers_unlocalized`` inliers ends the search
+CLEAR_VERIFICATION = 2
+
 
 @dataclass(frozen=True)
 class Attempt:
@@ -371,9 +374,10 @@ class ChainLocalizer:
 
     # -- searching ---------------------------------------------------------------------------------
 
-    def _candidates(self, kf: Keyframe) -> list[int]:
+    def _candidates(self, found: list[int]) -> list[int]:
+        """Taught vertices to verify: the user's hint (before the first success), the pending candidate's, then
+        place recognition's ``found``."""
         ch = self.chain
-        found = [int(i) for i in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices]
         extra = []
         if ch.start_index is not None and ch.state.branch < 0:
             extra.append(ch.start_index)                       # the user's hint, tried first
@@ -385,15 +389,47 @@ class ChainLocalizer:
                 out.append(i)
         return out
 
+    def _confirm(self, leaf_id: int, kf: Keyframe, places: list[int]) -> Attempt | None:
+        """The pending candidate carried to this leaf by odometry, the leaf localized guided by it against the
+        nearest taught vertex: a success when place recognition also proposes that part of the route for this
+        leaf and the estimate passes the gate of the prediction; None otherwise (search the places)."""
+        ch, c = self.chain, self.config.localization
+        pending = ch.state.candidate
+        if pending is None:
+            return None
+        w = max(c.trunk_window_back, c.trunk_window_forward)
+        lo, hi = trunk_window(pending.trunk, len(ch.path), w, w)
+        T_priv = ch.path.T_world_vertex
+        T_l_v = (inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk @ inv_T(T_priv[pending.trunk])
+                 @ T_priv[lo:hi])
+        trunk = select_trunk(T_l_v, lo, c.rotation_weight)
+        if not any(abs(trunk - p) <= c.neighbour_vertices + 1 for p in places):
+            return None
+        pred = ch.candidate_prediction(kf.T_world_kf, trunk)
+        assert pred is not None
+        est = self._localize(kf, trunk, pred[0], False)
+        if (est.T_leaf_trunk is None or ch.beyond_end_m(trunk, est.T_leaf_trunk) > c.off_route_distance_m
+                or not ch.consistent(est, *pred)):
+            return None
+        ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
+                     along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
+        return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+
     def _search(self, leaf_id: int, kf: Keyframe) -> Attempt:
         ch, c = self.chain, self.config.localization
+        places = [int(i) for i in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices]
+        confirmed = self._confirm(leaf_id, kf, places)
+        if confirmed is not None:
+            return confirmed
         best: tuple[int, LocalizationEstimate] | None = None
         tried: list[tuple[int, LocalizationEstimate]] = []
-        for cand in self._candidates(kf):
+        for cand in self._candidates(places):
             est = self._localize(kf, cand, None, False)
             tried.append((cand, est))
             if est.ok and (best is None or est.inliers > best[1].inliers):
                 best = (cand, est)
+            if est.ok and est.inliers >= CLEAR_VERIFICATION * c.min_inliers_unlocalized:
+                break                       # verified beyond doubt: the other places need no look
         pr = ch.prior(kf.T_world_kf) if ch.state.branch >= 0 else None
         T_chain = pr.T_leaf_trunk if pr is not None else np.eye(4)
         if best is None:
