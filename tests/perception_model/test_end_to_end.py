@@ -215,3 +215,23 @@ def test_envelope_on_a_taught_map(kitti_map, tmp_path):
         assert inside >= 30.0 > beyond
         checked += 1
     assert checked > 0
+
+
+def test_envelope_marks_where_the_model_extrapolates(kitti_map, tmp_path):
+    """A bound resting on landmarks seen beyond the model's valid angle range is marked extrapolated (CSV column and
+    a warning); a model valid for every angle marks nothing."""
+    import math
+
+    narrow, wide = tmp_path / "narrow.json", tmp_path / "wide.json"
+    base = PerceptionModel.thesis()
+    PerceptionModel(base.c1, base.c2, base.c3, base.angle_unit, math.radians(0.5), math.radians(5.0)).save(narrow)
+    PerceptionModel(base.c1, base.c2, base.c3, base.angle_unit, math.pi, math.pi).save(wide)
+    counts = {}
+    for name, model in (("narrow", narrow), ("wide", wide)):
+        out = tmp_path / name
+        r = _run(["envelope", model, "--map", kitti_map, "--out", out, "--step", "0.5", "--max", "20"])
+        assert r.exit_code == 0, r.output
+        rows = list(csv.DictReader((out / "envelope.csv").open()))
+        counts[name] = sum(int(row[f"{d}_extrapolated"]) for row in rows for d in ("left", "right", "up", "down"))
+        assert ("valid range" in r.stderr) == (counts[name] > 0)
+    assert counts["wide"] == 0 and counts["narrow"] > 0

@@ -108,6 +108,11 @@ __all__ = ["RepeatSummary", "fit_model", "render", "repeat", "teach", "up_in_map
 #: Defaults of the aerial mission (``vtr demo`` step 4): route length, repeat offsets, drift ramp.
 MISSION_LENGTH_M = 30.0
 MISSION_LATERAL_M = (0.0, 1.0, 2.0, 4.0, 8.0)
+#: repeats flown after the fit, not fitted on, on both sides of the envelope's boundary: the comparison then
+#: shows the envelope predicting failure as well as success
+MISSION_HELD_OUT_M = (16.0, 24.0)
+#: the envelope's scan limit in the mission: beyond the widest held-out repeat
+MISSION_ENVELOPE_MAX_M = 40.0
 MISSION_RAMP_M = 6.0
 MISSION_SCENE_SEED = 0
 
@@ -126,14 +131,16 @@ class MissionReport:
     def lines(self) -> list[str]:
         out = []
         for r in self.rows:
-            out.append(f"repeat {r['lateral_m']:+g} m: localized {r['successes']}/{r['localizations']}; envelope "
-                       f"says holds at {r['envelope_holds']} of them, of which {r['holds_and_localized']} localized")
+            out.append(f"repeat {r['lateral_m']:+g} m ({r['fitted']}): localized {r['successes']}/"
+                       f"{r['localizations']}; envelope says holds at {r['envelope_holds']} "
+                       f"({r['holds_and_localized']} localized), fails at {r['envelope_fails']} ({r['fails_and_not_localized']} not localized)")
         out.append(f"model {self.model_path.name}; envelope {self.envelope_csv}; report {self.report_html}")
         return out
 
 
 def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSION_LENGTH_M,
-                       lateral_m: tuple[float, ...] = MISSION_LATERAL_M, ramp_m: float = MISSION_RAMP_M,
+                       lateral_m: tuple[float, ...] = MISSION_LATERAL_M,
+                       held_out_m: tuple[float, ...] = MISSION_HELD_OUT_M, ramp_m: float = MISSION_RAMP_M,
                        l_min: float = 30.0, c_bar: float = 3.0,
                        progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> MissionReport:
     """Teach a straight aerial route, repeat it at lateral offsets (left), fit the model on the repeats'
@@ -146,23 +153,30 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     seq = render(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)
     map_path = teach(seq, out_dir / "route.vtrmap", config)
     reps = []
-    for dy in lateral_m:
+    for dy in (*lateral_m, *held_out_m):
         T_rep = syn.drifting_aerial_route(length_m - 1.0, 1.0, dy, 0.0, ramp_m, 0.5)
         rseq = render(out_dir / f"repeat_{dy:g}m" / "images", scene, T_rep, noise_seed=1,
                       progress=progress(f"repeat {dy:g} m") if progress else None)
         reps.append((dy, repeat(rseq, map_path, out_dir / f"repeat_{dy:g}m", config, skip_first_m=ramp_m)))
-    model = fit_model([r.landmarks_csv for _, r in reps])
+    model = fit_model([r.landmarks_csv for dy, r in reps if dy in lateral_m])   # the held-out repeats are not fitted
     model_path = out_dir / "model.json"
     model.save(model_path)
-    env = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_in_map(T_teach[0]))
+    env = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_in_map(T_teach[0]),
+                                max_m=MISSION_ENVELOPE_MAX_M)
     env_csv, env_png = write_envelope(env, out_dir / "envelope", l_min=l_min, title="synthetic aerial route")
     by_id = {r.vertex_id: r for r in env}
     rows = []
     for dy, rs in reps:
-        holds = [loc for loc in rs.localizations_list if loc.trunk_id in by_id
-                 and by_id[loc.trunk_id].distance_m["left" if dy >= 0 else "right"] >= abs(dy)]
-        rows.append({"lateral_m": dy, "localizations": rs.localizations, "successes": rs.successes,
+        side = "left" if dy >= 0 else "right"
+        # a capped envelope is at least as wide as the scan: beyond it nothing is predicted
+        judged = [loc for loc in rs.localizations_list if loc.trunk_id in by_id
+                  and not (by_id[loc.trunk_id].capped[side] and abs(dy) > by_id[loc.trunk_id].distance_m[side])]
+        holds = [loc for loc in judged if by_id[loc.trunk_id].distance_m[side] >= abs(dy)]
+        fails = [loc for loc in judged if loc not in holds]
+        rows.append({"lateral_m": dy, "fitted": "yes" if dy in lateral_m else "held out",
+                     "localizations": rs.localizations, "successes": rs.successes,
                      "envelope_holds": len(holds), "holds_and_localized": sum(loc.success for loc in holds),
+                     "envelope_fails": len(fails), "fails_and_not_localized": sum(not loc.success for loc in fails),
                      "median_inliers": float(np.median([loc.inliers for loc in rs.localizations_list]))
                      if rs.localizations_list else 0.0})
     html = out_dir / "report.html"
@@ -192,7 +206,9 @@ mu - 3 sigma &lt; L_min = {l_min:g} (camera as taught); median allowed left offs
 <h2>Repeats against the envelope</h2>
 <table border="1" cellpadding="4"><tr>{head}</tr>{body}</table>
 <p><i>envelope_holds</i>: localizations (after the drift ramp) whose offset lies inside their trunk's
-envelope; <i>holds_and_localized</i>: of those, the ones that localized.</p>
+envelope; <i>holds_and_localized</i>: of those, the ones that localized; <i>envelope_fails</i>: those outside
+it, <i>fails_and_not_localized</i>: of those, the ones that did not localize. Repeats marked <i>held out</i>
+were flown after the fit and not fitted on.</p>
 <img src="{env_png.relative_to(path.parent)}" width="100%">
 </body></html>
 """)

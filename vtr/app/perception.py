@@ -20,6 +20,7 @@ crossing is refined by bisection; a side that never crosses reports ``max_m`` (`
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,6 +165,38 @@ class EnvelopeRow:
     bound_taught: float  # mu - c_bar sigma at the vertex itself
     distance_m: dict[str, float]
     capped: dict[str, bool]
+    # the bound at that distance rests mostly (> EXTRAPOLATED_SHARE of the expected inliers) on landmarks seen at
+    # angles beyond the model's valid range (the angles it was fitted on): a prediction, not a measurement
+    extrapolated: dict[str, bool] = dataclasses.field(default_factory=dict)
+
+    @property
+    def any_extrapolated(self) -> bool:
+        return any(self.extrapolated.values())
+
+
+#: share of the expected inliers from landmarks outside the model's valid angle range above which a bound is
+#: marked extrapolated
+EXTRAPOLATED_SHARE = 0.5
+
+
+def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_map: np.ndarray,
+                       camera: StereoCamera, l_min: float, c_bar: float) -> float:
+    """Share of the expected inliers (sum of p over the in-view landmarks) of ``vertex`` seen from a camera at
+    ``position_map`` (taught attitude) that come from landmarks outside the model's valid range of parallax and
+    view angles."""
+    from perception_model.angles import parallax_angle, view_angle
+
+    pos = np.asarray(position_map, float)
+    R = vertex.T_map_camera[:3, :3]
+    p = moments_at(model, vertex, pos[None], R[None], camera, l_min=l_min, c_bar=c_bar)[0]
+    if p.size == 0 or p.sum() <= 0:
+        return 0.0
+    pts = vertex.points_map[camera.in_view((vertex.points_map - pos) @ R)]
+    centre = vertex.T_map_camera[:3, 3]
+    alpha = parallax_angle(pts - centre, pos - centre)
+    theta = view_angle(pts - centre, pos - centre, R[:, 2])
+    outside = (np.nan_to_num(alpha) > model.alpha_max) | (np.nan_to_num(theta) > model.theta_max)
+    return float(p[outside].sum() / p.sum())
 
 
 def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
@@ -214,7 +247,11 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
                 else:
                     lo = mid
             dist[name], capped[name] = lo, False
-        rows.append(EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped))
+        extrapolated = {name: dist[name] > 0 and extrapolated_share(model, v, centre + dist[name] * (R_map_g @ d_g),
+                                                                    camera, l_min, c_bar) > EXTRAPOLATED_SHARE
+                        for name, d_g in dirs_g.items()}
+        rows.append(EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped,
+                                extrapolated))
     return rows
 
 
@@ -243,11 +280,13 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
     with folder.open("envelope.csv") as fh:
         w = csv.writer(fh)
         w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
-                    "down_m", "left_capped", "right_capped", "up_capped", "down_capped"])
+                    "down_m", "left_capped", "right_capped", "up_capped", "down_capped", "left_extrapolated",
+                    "right_extrapolated", "up_extrapolated", "down_extrapolated"])
         for r in rows:
             w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
                         round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
-                        *(int(r.capped[d]) for d in DIRECTIONS)])
+                        *(int(r.capped[d]) for d in DIRECTIONS),
+                        *(int(r.extrapolated.get(d, False)) for d in DIRECTIONS)])
     png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
     return out_dir / "envelope.csv", png
 

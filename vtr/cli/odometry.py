@@ -114,8 +114,8 @@ def demo_cmd(out: Path, aerial: bool) -> None:
         click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
                    f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")
         return
-    click.echo("4/4 synthetic aerial mission: teach, repeats at 0/1/2/4/8 m to the left, model fitted on their "
-               "landmarks, localization envelope")
+    click.echo("4/4 synthetic aerial mission: teach, repeats at 0/1/2/4/8 m to the left (and 16/24 m held out), "
+               "model fitted on their landmarks, localization envelope")
     from ..app.mission import run_aerial_mission
 
     mission = run_aerial_mission(out / "aerial", config, progress=lambda name: frame_progress(f"render {name}"))

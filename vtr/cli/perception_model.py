@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -88,7 +89,15 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     for d in DIRECTIONS:
         vals = [r.distance_m[d] for r in rows]
         click.echo(f"{d:>5s}: min {min(vals):6.2f} m, median {sorted(vals)[len(vals) // 2]:6.2f} m, "
-                   f"{sum(r.capped[d] for r in rows)} of {len(rows)} vertices beyond {max_m:g} m")
+                   f"{sum(r.capped[d] for r in rows)} of {len(rows)} vertices beyond {max_m:g} m "
+                   "(capped: not a result)")
+    n_extra = sum(r.any_extrapolated for r in rows)
+    if n_extra:
+        click.echo(f"warning: at {n_extra} of {len(rows)} vertices the envelope rests on landmarks seen at angles "
+                   f"beyond the model's valid range (parallax <= {math.degrees(model.alpha_max):.1f} deg, view <= "
+                   f"{math.degrees(model.theta_max):.1f} deg): extrapolated (see the *_extrapolated columns of "
+                   "envelope.csv)",
+                   err=True)
     click.echo(f"wrote {csv_path} and {png}")
 
 

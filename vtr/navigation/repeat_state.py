@@ -169,6 +169,7 @@ class ControllerLog:
         self.vertex_localized: list[bool] = []   # the chain held a localization after the vertex's attempt
         self._lost_after = config.localization.lost_after_failures
         self._ever = False
+        self.unknown: str | None = None           # why the state of a never-localized run is unknown
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self.seconds = 0.0                    # time spent feeding the smoother and answering queries
@@ -225,12 +226,19 @@ class ControllerLog:
                              [(c.odometry_translation_sigma_per_m * d) ** 2] * 3])
 
     def finish(self) -> None:
-        """End of the run: vertices still waiting for a localization are fed with the chain's assumption."""
+        """End of the run: vertices still waiting for a localization are fed with the chain's assumption. When
+        that cannot be solved (a run that never localized, with odometry failures in it, leaves the knots after a
+        failure unconstrained) the state stays unknown: :meth:`states` reports NaN, not a failure of the run."""
         if self._pending:
             first = self._pending[0]
             sig = np.r_[[UNLOCALIZED_ROTATION_SIGMA_RAD] * 3, [UNLOCALIZED_TRANSLATION_SIGMA_M] * 3]
             first.T_teach_leaf, first.localization_covariance = first.T_teach_chain, np.diag(sig**2)
-            self._flush()
+            try:
+                self._flush()
+            except EstimationError as err:
+                if self._ever:
+                    raise
+                self.unknown = str(err)
 
     def _flush_localized(self) -> None:
         """The newest waiting vertex is the first one localized: move its localization to the first waiting
@@ -300,6 +308,11 @@ class ControllerLog:
         t0 = time.perf_counter()
         t_ns = np.asarray(t_ns, np.int64)
         n = len(t_ns)
+        if self.unknown is not None:
+            nan3, nan = np.full((n, 3), np.nan), np.full(n, np.nan)
+            trunks = self.trunk_index_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64)
+            return StateTable(t_ns, nan3, nan3.copy(), nan3.copy(), nan, self.path.ids[trunks], nan.copy(),
+                              nan.copy(), nan.copy(), np.zeros(n, bool))
         if n and self.smoother.num_keyframes == 0:
             raise DataError("no repeat vertex was processed: no state to report")
         trunks = self.trunk_index_at(t_ns)
