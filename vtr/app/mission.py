@@ -133,7 +133,8 @@ class MissionReport:
         for r in self.rows:
             out.append(f"repeat {r['lateral_m']:+g} m ({r['fitted']}): localized {r['successes']}/"
                        f"{r['localizations']}; envelope says holds at {r['envelope_holds']} "
-                       f"({r['holds_and_localized']} localized), fails at {r['envelope_fails']} ({r['fails_and_not_localized']} not localized)")
+                       f"({r['holds_and_localized']} localized), fails at {r['envelope_fails']} "
+                       f"({r['fails_and_not_localized']} not localized)")
         out.append(f"model {self.model_path.name}; envelope {self.envelope_csv}; report {self.report_html}")
         return out
 
