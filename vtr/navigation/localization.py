@@ -1,21 +1,8 @@
-"""Localization of repeat keyframes against the taught (privileged) path (docs/localization.md).
+"""Localization of one repeat keyframe (leaf) against a taught submap: matching, robust estimation and the
+checks an estimate must pass before it may count (docs/localization.md). The chain that decides which taught
+vertex a leaf is localized against, and what a localization is worth, is :mod:`vtr.navigation.chain`.
 
-The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
-
-    privileged (teach) path   o────o────b────o────o────t────o────o───▶
-                                        ▲                ▲
-                                 T_w_b  │                │  T_l_t  (estimated at each new leaf)
-                                        │                │
-    current (repeat) path          o────w────o────o────l
-                               w: twig (last localized repeat vertex), b: branch (its trunk),
-                               l: leaf (newest repeat vertex),  t: trunk (closest taught vertex)
-
-    prior      T_l_t = T_l_w @ T_w_b @ T_b_t
-               (odometry along the repeat path, last localization, the taught path)
-
-Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's
-first camera frame; those of repeat vertices in the repeat run's own first camera frame; the
-chain only ever composes transforms between adjacent frames, so the two worlds never mix.
+Poses are of the left rectified camera; ``T_leaf_trunk`` maps trunk-camera coordinates into the leaf camera.
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ written before it existed gets one built on open.
 from __future__ import annotations
 
 import io
+import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -182,7 +183,7 @@ class PlaceIndex:
         try:
             with np.load(io.BytesIO(data[len(INDEX_MAGIC):]), allow_pickle=False) as z:
                 out = cls(Vocabulary(z["top"], z["leaves"]), z["idf"], z["indptr"], z["word"], z["weight"])
-        except (ValueError, KeyError, OSError) as err:
+        except (ValueError, KeyError, OSError, zipfile.BadZipFile) as err:
             raise MapError(f"{where}: damaged place index ({err})") from None
         W, B = len(out.vocabulary), len(out.vocabulary.top)
         if (out.vocabulary.top.shape != (B, DESCRIPTOR_BYTES)

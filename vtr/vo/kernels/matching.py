@@ -168,16 +168,22 @@ def all_pairs_match(q_desc, t_desc, max_distance, ratio, mutual):
 
 
 @njit(cache=True, nogil=True)
+def _nearest_row(a, i, b, lo, hi):
+    """Index in ``lo .. hi-1`` of the row of ``b`` nearest to ``a[i]`` (Hamming; ties: lower index)."""
+    best, best_d = lo, 1 << 30
+    for j in range(lo, hi):
+        d = hamming(a, i, b, j)
+        if d < best_d:
+            best, best_d = j, d
+    return best
+
+
+@njit(cache=True, nogil=True)
 def nearest(a, b):
     """Index (N,) of the nearest row of ``b`` (K, 4) to each row of ``a`` (N, 4) (Hamming; ties: lower index)."""
     out = np.empty(a.shape[0], np.int64)
     for i in range(a.shape[0]):
-        best, best_d = 0, 1 << 30
-        for j in range(b.shape[0]):
-            d = hamming(a, i, b, j)
-            if d < best_d:
-                best, best_d = j, d
-        out[i] = best
+        out[i] = _nearest_row(a, i, b, 0, b.shape[0])
     return out
 
 
@@ -188,15 +194,6 @@ def nearest_in_tree(a, top, leaves, branching):
     ``t * branching ...``)."""
     out = np.empty(a.shape[0], np.int64)
     for i in range(a.shape[0]):
-        t, t_d = 0, 1 << 30
-        for j in range(top.shape[0]):
-            d = hamming(a, i, top, j)
-            if d < t_d:
-                t, t_d = j, d
-        best, best_d = t * branching, 1 << 30
-        for j in range(t * branching, (t + 1) * branching):
-            d = hamming(a, i, leaves, j)
-            if d < best_d:
-                best, best_d = j, d
-        out[i] = best
+        t = _nearest_row(a, i, top, 0, top.shape[0])
+        out[i] = _nearest_row(a, i, leaves, t * branching, (t + 1) * branching)
     return out

@@ -1,0 +1,63 @@
+"""Place recognition over the taught vertices: real ORB descriptors of the KITTI clip, the index stored and read
+back, damage refused, and each repeat frame's best candidates near where it was taken."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vtr.config import Config
+from vtr.errors import MapError
+from vtr.io import open_source
+from vtr.navigation.place import PlaceIndex, k_majority
+from vtr.vo.stereo import StereoProcessor
+
+
+@pytest.fixture(scope="module")
+def descriptors(kitti_clip):
+    cfg = Config()
+    with open_source(kitti_clip) as src:
+        sp = StereoProcessor(src.camera, cfg.features, cfg.stereo)
+        return [sp.process(im).features.descriptors for im in src.iter_frames(list(range(0, 51)))]
+
+
+@pytest.fixture(scope="module")
+def index(descriptors):
+    taught = descriptors[0::2]
+    return PlaceIndex.build(lambda: iter(taught), len(taught), Config().place)
+
+
+def test_repeat_frames_find_where_they_were_taken(index, descriptors):
+    """Odd frame 2k+1 lies between taught vertices k and k+1: the best candidate is one of them or a neighbour."""
+    for f in range(1, 51, 2):
+        best = int(index.query(descriptors[f], 3).indices[0])
+        assert abs(best - (f // 2 + 0.5)) <= 1.5, (f, best)
+
+
+def test_stored_index_reads_back_and_damage_is_refused(index, descriptors):
+    data = index.to_bytes()
+    again = PlaceIndex.from_bytes(data)
+    np.testing.assert_array_equal(again.scores(descriptors[7]), index.scores(descriptors[7]))
+    with pytest.raises(MapError, match="not a place index"):
+        PlaceIndex.from_bytes(b"XXXX" + data[4:])
+    with pytest.raises(MapError, match="damaged place index"):
+        PlaceIndex.from_bytes(data[: len(data) // 2])
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(2, 40), st.integers(0, 2**31 - 1))
+def test_k_majority_centres_are_binary_descriptors_of_the_right_count(k, seed):
+    rng = np.random.default_rng(seed)
+    X = rng.integers(0, 256, size=(200, 32), dtype=np.uint8)
+    centres = k_majority(X, k, 3, np.random.default_rng(seed))
+    assert centres.shape == (k, 32) and centres.dtype == np.uint8
+
+
+def test_a_place_from_another_scene_scores_lower_than_the_route(index, descriptors):
+    """Random descriptors (no place of the route) score below every real frame's best match."""
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 256, size=(2000, 32), dtype=np.uint8)
+    worst_real = min(float(index.query(descriptors[f], 1).scores[0]) for f in range(1, 51, 2))
+    assert float(index.query(noise, 1).scores[0]) < worst_real
