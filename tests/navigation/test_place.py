@@ -61,3 +61,29 @@ def test_a_place_from_another_scene_scores_lower_than_the_route(index, descripto
     noise = rng.integers(0, 256, size=(2000, 32), dtype=np.uint8)
     worst_real = min(float(index.query(descriptors[f], 1).scores[0]) for f in range(1, 51, 2))
     assert float(index.query(noise, 1).scores[0]) < worst_real
+
+
+def test_the_route_index_is_stored_at_teach_and_rebuilt_when_missing_or_damaged(kitti_clip, tmp_path):
+    """`vtr teach` stores the index; a map without one (taught before it existed) or with a damaged one gets one
+    rebuilt from its vertices, the same as the stored one."""
+    import sqlite3
+
+    from vtr.app.pipeline import teach_command
+    from vtr.map import Map
+    from vtr.navigation.place import place_key, route_place_index
+
+    path = tmp_path / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:20:2", Config())
+    with Map.open(path) as m:
+        key = place_key(m.reference_run())
+        stored = m.derived(key)
+        assert stored is not None
+        reference = PlaceIndex.from_bytes(stored)
+    con = sqlite3.connect(path)
+    con.execute("UPDATE derived SET data = ? WHERE key = ?", (b"VTRP\x01garbage", key))
+    con.commit()
+    con.close()
+    with Map.open(path, "a") as m:
+        rebuilt = route_place_index(m, Config().place)
+        np.testing.assert_array_equal(rebuilt.word, reference.word)
+        assert PlaceIndex.from_bytes(m.derived(key)).indptr.tolist() == reference.indptr.tolist()   # stored again

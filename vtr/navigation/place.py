@@ -213,8 +213,11 @@ def route_place_index(map_: Map, config: PlaceConfig, seed: int = 0) -> PlaceInd
     key = place_key(-1 if run is None else run)
     data = map_.derived(key)
     if data is not None:
-        index = PlaceIndex.from_bytes(data, f"{map_.path}: {key}")
-        if len(index) == len(path):
+        try:
+            index = PlaceIndex.from_bytes(data, f"{map_.path}: {key}")
+        except MapError:
+            index = None                  # damaged derived data: rebuilt from the vertices below
+        if index is not None and len(index) == len(path):
             return index
     index = PlaceIndex.build(lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids), len(path),
                              config, seed)
