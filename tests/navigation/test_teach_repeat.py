@@ -260,3 +260,21 @@ def test_teach_refuses_existing_map_and_empty_run(kitti_clip, kitti_map, tmp_pat
         teach = Teach(m, src.camera, Config())
         with pytest.raises(Exception, match="no keyframe"):
             teach.finish()
+
+
+def test_a_repeat_can_leave_the_map_untouched(kitti_clip, kitti_map, tmp_path):
+    """`vtr repeat --read-only-map`: the same localizations, and the map's bytes unchanged (no run appended)."""
+    path = _copy(kitti_map, tmp_path)
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    r = _vtr("repeat", kitti_clip, "--map", path, "--frames", "1:20:2", "--out", tmp_path / "ro", "--read-only-map")
+    assert r.returncode == 0, r.stderr
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == before
+    with Map.open(path) as m:
+        assert [run.kind for run in m.runs()] == ["teach"]
+    r = _vtr("repeat", kitti_clip, "--map", path, "--frames", "1:20:2", "--out", tmp_path / "rw")
+    assert r.returncode == 0, r.stderr
+    with Map.open(path) as m:
+        assert [run.kind for run in m.runs()] == ["teach", "repeat"]
+    ro = (tmp_path / "ro" / "localization.csv").read_text()
+    rw = (tmp_path / "rw" / "localization.csv").read_text()
+    assert ro == rw                                   # the same repeat, whether the map keeps it or not

@@ -312,23 +312,55 @@ def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    source_options: SourceOptions | str | None = None, progress: Callable | None = None,
                    rate_hz: float | None = None, allow_partial: bool = False, start_vertex: int | None = None,
-                   start_distance_m: float | None = None) -> RepeatSummary:
+                   start_distance_m: float | None = None, read_only_map: bool = False) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
     ``start_vertex`` (path index) or ``start_distance_m`` (along the taught path) is an optional hint of where
     the repeat starts; without it place recognition finds it.
 
     Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
-    finished once every frame is processed, or aborted with the reason on any exception."""
+    finished once every frame is processed, or aborted with the reason on any exception. With
+    ``read_only_map`` the map is left untouched: the repeat runs on a private copy in temporary space,
+    removed at the end (the outputs in ``out`` are the same)."""
+    import contextlib
+
+    from ..navigation.repeat_state import check_rate
+
+    rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
+    with contextlib.ExitStack() as stack:
+        work_map = _private_copy(map_path, stack, allow_partial) if read_only_map else map_path
+        return _repeat(source_path, map_path, work_map, out, frames, config, source_options, progress, rate_hz,
+                       allow_partial, start_vertex, start_distance_m)
+    raise AssertionError("unreachable")     # pragma: no cover (mypy: the with block always returns)
+
+
+def _private_copy(map_path: Path, stack, allow_partial: bool) -> Path:
+    """A copy of a closed map in a temporary folder that ``stack`` removes; the map itself is only read (and
+    checked first, so that its errors name it)."""
+    import shutil
+    import tempfile
+
+    from ..map import Map
+
+    with Map.open(map_path) as m:           # a map, readable, and not being written by another process
+        m.check_taught_route(allow_partial)
+    tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vtr-repeat-")))
+    copy = tmp / map_path.name
+    shutil.copyfile(map_path, copy)
+    return copy
+
+
+def _repeat(source_path: Path, map_path: Path, work_map: Path, out: Path, frames: str | None, config: Config,
+            source_options: SourceOptions | str | None, progress: Callable | None, rate_hz: float,
+            allow_partial: bool, start_vertex: int | None, start_distance_m: float | None) -> RepeatSummary:
+    """:func:`repeat_command` on ``work_map`` (the map itself, or its private copy)."""
     from perception_model.landmarks_file import LandmarksWriter
 
     from ..map import Map
     from ..navigation.repeat import Repeat
-    from ..navigation.repeat_state import check_rate
     from .repeat_run import run_repeat
 
-    rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
-    with open_source(source_path, source_options) as source, Map.open(map_path, "a") as m:
+    with open_source(source_path, source_options) as source, Map.open(work_map, "a") as m:
         m.check_camera(source.camera)
         indices = parse_frame_range(frames, len(source), str(source_path))
         folder = OutputFolder.prepare(out, [source_path], REPEAT_OUTPUTS)

@@ -74,17 +74,20 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
                    "needed: place recognition finds where on the route the repeat is.")
 @click.option("--start-distance", type=click.FloatRange(min=0.0), default=None, metavar="M",
               help="Optional hint: the repeat starts M metres along the taught path (as --start-vertex).")
+@click.option("--read-only-map", is_flag=True,
+              help="Leave MAP untouched: repeat on a private copy in temporary space (removed at the end) instead "
+                   "of appending the repeat run to MAP.")
 @config_option
 @source_options
 @threads_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str | None, rate_hz: float | None,
-               allow_partial: bool, start_vertex: int | None, start_distance: float | None,
+               allow_partial: bool, start_vertex: int | None, start_distance: float | None, read_only_map: bool,
                config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     The repeat may start anywhere on the route and travel it either way. Refuses a map whose teach run did
     not finish unless --allow-partial. The repeat is appended to MAP as a new run (the documented exception
-    to the output rule: MAP is an input that grows)."""
+    to the output rule: MAP is an input that grows), unless --read-only-map."""
     from ..app.pipeline import repeat_command
 
     note_outputs(map_path)
@@ -92,7 +95,7 @@ def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str
     config = load_config(config_path, threads)
     summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                              rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
-                             start_distance_m=start_distance)
+                             start_distance_m=start_distance, read_only_map=read_only_map)
     for line in summary.lines():
         click.echo(line)
     click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")
