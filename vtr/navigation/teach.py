@@ -49,7 +49,10 @@ class Teach:
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
         self.map.finish_run()
-        route_place_index(self.map, self._place, self._seed)   # where-am-I index of the route, stored in the map
+        try:
+            route_place_index(self.map, self._place, self._seed)   # where-am-I index of the route, stored in the map
+        except MapError:
+            pass        # derived data (e.g. no room to store it): the first repeat builds it from the vertices
         return self.vertices
 
     def abort(self, exc: BaseException) -> int:
