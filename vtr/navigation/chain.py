@@ -368,7 +368,14 @@ class ChainLocalizer:
         rivals = outside[scores[outside] > inside]
         for cand in rivals[np.argsort(-scores[rivals], kind="stable")][:self.config.place.candidates]:
             other = self._localize(kf, int(cand), None, False)
-            if other.ok and other.inliers > est.inliers:
+            if not other.ok or other.inliers <= est.inliers:
+                continue
+            assert other.T_leaf_trunk is not None
+            # the rival as a pose against the tracked trunk: the same place (a route that passes it again) is no
+            # conflict, only another one is
+            T_priv = ch.path.T_world_vertex
+            T_as_trunk = other.T_leaf_trunk @ inv_T(T_priv[int(cand)]) @ T_priv[trunk]
+            if not ch.consistent(est, T_as_trunk, other.covariance):
                 return True
         return False
 
