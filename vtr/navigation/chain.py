@@ -164,16 +164,33 @@ class LocalizationChain:
         return float(self._arc[trunk] + (p - self.path.positions[trunk]) @ self._tangent(trunk))
 
     def beyond_end_m(self, trunk: int, T_leaf_trunk: np.ndarray) -> float:
-        """How far (m) a leaf localized against ``trunk`` lies beyond the nearer end of the route (<= 0 inside)."""
-        return float(self.beyond_ends_m((self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[None, :3, 3])[0])
+        """How far (m) a leaf localized against ``trunk`` lies beyond the end of the route that trunk is (the
+        first or the last taught vertex; -inf for any other trunk: the trunk is the vertex nearest the leaf,
+        so a leaf past an end has that end as its trunk, and a route that closes on itself has no end there)."""
+        p = (self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk))[None, :3, 3]
+        return float(self._beyond(p, np.array([trunk]))[0])
 
     def beyond_ends_m(self, positions_teach: np.ndarray) -> np.ndarray:
-        """How far (m) teach-frame camera positions (N, 3) lie beyond the nearer end of the route (<= 0 inside)."""
+        """How far (m) teach-frame camera positions (N, 3) lie beyond an end of the route whose end vertex is their
+        nearest taught vertex (-inf elsewhere)."""
         p = np.atleast_2d(np.asarray(positions_teach, float))
+        if len(p) == 0:
+            return np.zeros(0)
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(self.path.positions).query(p)
+        return self._beyond(p, np.asarray(nearest, np.int64))
+
+    def _beyond(self, p: np.ndarray, trunk: np.ndarray) -> np.ndarray:
         P = self.path.positions
-        if len(P) < 2:
+        out = np.full(len(p), -np.inf)
+        last = len(P) - 1
+        if last == 0:
             return np.linalg.norm(p - P[0], axis=1)
-        return np.maximum((p - P[-1]) @ self._tangent(len(P) - 1), (p - P[0]) @ -self._tangent(0))
+        at_end, at_start = trunk == last, trunk == 0
+        out[at_end] = (p[at_end] - P[-1]) @ self._tangent(last)
+        out[at_start] = (p[at_start] - P[0]) @ -self._tangent(0)
+        return out
 
     def _tangent(self, i: int) -> np.ndarray:
         """Unit direction of the path at vertex i (over the vertices within a metre or two of it)."""
@@ -277,6 +294,9 @@ SubmapFn = Callable[[int], TaughtSubmap]
 
 #: a place candidate verified with this many times ``min_inliers_unlocalized`` inliers ends the search
 CLEAR_VERIFICATION = 2
+#: a candidate is confirmed only where place recognition scores the leaf at least this share of its best score
+#: (a route that passes a place several times scores every pass alike: the best is any of them)
+CONFIRM_SCORE_RATIO = 0.8
 
 
 @dataclass(frozen=True)
@@ -396,10 +416,10 @@ class ChainLocalizer:
                 out.append(i)
         return out
 
-    def _confirm(self, leaf_id: int, kf: Keyframe, places: list[int]) -> Attempt | None:
+    def _confirm(self, leaf_id: int, kf: Keyframe, scores: np.ndarray) -> Attempt | None:
         """The pending candidate carried to this leaf by odometry, the leaf localized guided by it against the
-        nearest taught vertex: a success when place recognition also proposes that part of the route for this
-        leaf and the estimate passes the gate of the prediction; None otherwise (search the places)."""
+        nearest taught vertex: a success when place recognition also scores that part of the route close to its
+        best for this leaf and the estimate passes the gate of the prediction; None otherwise (search the places)."""
         ch, c = self.chain, self.config.localization
         pending = ch.state.candidate
         if pending is None:
@@ -410,7 +430,8 @@ class ChainLocalizer:
         T_l_v = (inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk @ inv_T(T_priv[pending.trunk])
                  @ T_priv[lo:hi])
         trunk = select_trunk(T_l_v, lo, c.rotation_weight)
-        if not any(abs(trunk - p) <= c.neighbour_vertices + 1 for p in places):
+        near = scores[max(0, trunk - c.neighbour_vertices - 1):trunk + c.neighbour_vertices + 2]
+        if near.max() < CONFIRM_SCORE_RATIO * scores.max():     # place recognition sees that part of the route too
             return None
         pred = ch.candidate_prediction(kf.T_world_kf, trunk)
         assert pred is not None
@@ -424,8 +445,10 @@ class ChainLocalizer:
 
     def _search(self, leaf_id: int, kf: Keyframe) -> Attempt:
         ch, c = self.chain, self.config.localization
-        places = [int(i) for i in self.place.query(kf.frame.features.descriptors, self.config.place.candidates).indices]
-        confirmed = self._confirm(leaf_id, kf, places)
+        scores = self.place.scores(kf.frame.features.descriptors)
+        k = min(self.config.place.candidates, len(scores))
+        places = [int(i) for i in np.argsort(-scores, kind="stable")[:k]]
+        confirmed = self._confirm(leaf_id, kf, scores)
         if confirmed is not None:
             return confirmed
         best: tuple[int, LocalizationEstimate] | None = None

@@ -127,7 +127,9 @@ class PlaceIndex:
         vocabulary = Vocabulary(*train_vocabulary(np.concatenate(sample), config.branching,
                                                   config.training_iterations, seed))
         W, V = len(vocabulary), len(sample)
-        words = [np.unique(vocabulary.words_of(d), return_counts=True) for d in descriptor_sets()]
+        compact = np.int16 if len(vocabulary) <= np.iinfo(np.int16).max else np.int32   # memory: one row a vertex
+        words = [tuple(a.astype(compact) for a in np.unique(vocabulary.words_of(d), return_counts=True))
+                 for d in descriptor_sets()]
         if len(words) != V:
             raise MapError(f"place index: the taught vertices changed while indexing ({V} then {len(words)})")
         df = np.bincount(np.concatenate([w for w, _ in words]), minlength=W) if V else np.zeros(W)
