@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from vtr.app.evaluation import integrity_of
-from vtr.app.pipeline import repeat_command, teach_command
+from vtr.app.pipeline import read_localization_csv, repeat_command, teach_command
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.io.kitti import write_reordered_clip
@@ -61,14 +61,7 @@ def run_case(work: Path, name: str, clip_name: str, teach_frames: str, rep_clip:
     teach_command(clip, map_path, teach_frames, Config())
     summary = repeat_command(rep_clip, map_path, work / slug, rep_frames, Config())
     rows = list(csv.DictReader(open(work / slug / "localization.csv")))
-    from vtr.geometry import tum_to_T
-    from vtr.navigation.localization import Localization, LocalizationStatus
-
-    locs = [Localization(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"]), -1, -1, r["success"] == "1",
-                         int(r["matches"]), int(r["inliers"]),
-                         tum_to_T(np.array([float(r[k]) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")])),
-                         np.diag([float(r[k]) for k in ("var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z")]),
-                         0, 0.0, None, LocalizationStatus(r["status"])) for r in rows]
+    locs = read_localization_csv(work / slug / "localization.csv")
     with Map.open(map_path) as m, open_source(rep_clip) as rep, open_source(clip) as teach:
         trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
         integ = integrity_of(locs, trunk_t, rep.ground_truth(), teach.ground_truth())

@@ -12,13 +12,11 @@ import numpy as np
 import pytest
 
 from vtr.app.evaluation import integrity_of
-from vtr.app.pipeline import repeat_command, teach_command
+from vtr.app.pipeline import read_localization_csv, repeat_command, teach_command
 from vtr.config import Config
-from vtr.geometry import tum_to_T
 from vtr.io import open_source
 from vtr.io.kitti import write_reordered_clip
 from vtr.map import Map
-from vtr.navigation.localization import Localization, LocalizationStatus
 
 FIRST_WITHIN = 3
 RATE_AFTER = 0.90
@@ -43,11 +41,7 @@ def _repeat(map_path: Path, teach_clip: Path, clip: Path, frames: str, tmp_path:
     rows = list(csv.DictReader(open(out / "localization.csv")))
     with Map.open(local) as m, open_source(clip) as rep, open_source(teach_clip) as teach:
         trunk_t = np.array([m.vertex(int(r["trunk_id"])).t_ns for r in rows], np.int64)
-        locs = [Localization(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"]), -1, -1, r["success"] == "1",
-                             int(r["matches"]), int(r["inliers"]),
-                             tum_to_T(np.array([float(r[k]) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")])),
-                             np.diag([float(r[k]) for k in ("var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z")]),
-                             0, 0.0, None, LocalizationStatus(r["status"])) for r in rows]
+        locs = read_localization_csv(out / "localization.csv")
         integrity = integrity_of(locs, trunk_t, rep.ground_truth(), teach.ground_truth())
     return summary, rows, integrity
 

@@ -294,6 +294,24 @@ class LocalizationWriter:
         self._file.flush()              # a row per keyframe, readable while the repeat runs
 
 
+def read_localization_csv(path: Path) -> list[Localization]:
+    """The attempts of a ``localization.csv`` written by :class:`LocalizationWriter`, as ``Localization`` records
+    (the covariance is its diagonal, the landmark records are in ``landmarks.csv``)."""
+    from ..geometry import tum_to_T
+    from ..navigation.localization import Localization, LocalizationStatus
+
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if rows and tuple(rows[0]) != LOCALIZATION_CSV_HEADER:
+        raise DataError(f"{path}: not a localization.csv (header {LOCALIZATION_CSV_HEADER})")
+    return [Localization(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"]), int(r["twig_id"]),
+                         int(r["branch_id"]), r["success"] == "1", int(r["matches"]), int(r["inliers"]),
+                         tum_to_T(np.array([float(r[k]) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")])),
+                         np.diag([float(r[k]) for k in ("var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z")]),
+                         int(r["consecutive_failures"]), float(r["distance_since_success_m"]), None,
+                         LocalizationStatus(r["status"]), int(r["direction"])) for r in rows]
+
+
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
     """``landmarks.csv`` (``perception_model``'s format and writer) of the successful localizations."""
     from perception_model.landmarks_file import LandmarksWriter

@@ -202,17 +202,30 @@ class LocalizationChain:
 
     # -- prediction and gates ----------------------------------------------------------------------
 
+    def rebased(self, T_leaf_vertex: np.ndarray, vertex: int, others) -> np.ndarray:
+        """A leaf pose against taught ``vertex`` re-expressed against taught vertices ``others`` (a path index, or a
+        slice: a stack) along the taught path: ``T_leaf_vertex @ inv(T_world_vertex) @ T_world_others``."""
+        T = self.path.T_world_vertex
+        return T_leaf_vertex @ inv_T(T[vertex]) @ T[others]
+
+    def nearest_trunk(self, T_leaf_vertex: np.ndarray, vertex: int, lo: int | None = None,
+                      hi: int | None = None) -> tuple[int, np.ndarray]:
+        """The trunk (the trunk rule) of a leaf at ``T_leaf_vertex`` from taught ``vertex``, searched in path indices
+        ``lo .. hi-1`` (default: the wider side of the trunk window, on both sides of ``vertex``), with its
+        ``T_leaf_trunk``."""
+        if lo is None or hi is None:
+            w = max(self.config.trunk_window_back, self.config.trunk_window_forward)
+            lo, hi = trunk_window(vertex, len(self.path), w, w)
+        T_l_v = self.rebased(T_leaf_vertex, vertex, slice(lo, hi))
+        trunk = select_trunk(T_l_v, lo, self.config.rotation_weight)
+        return trunk, T_l_v[trunk - lo]
+
     def prior(self, T_world_leaf: np.ndarray) -> Prior:
         """Trunk and ``T_leaf_trunk`` of a leaf at repeat-odometry pose ``T_world_leaf`` through the twig and the
         branch, with the covariance of the last localization moved to the leaf plus odometry drift."""
         s = self.state
         T_l_w = inv_T(T_world_leaf) @ s.T_world_twig
-        T_l_b = T_l_w @ s.T_twig_branch
-        lo, hi = self.window(s.trunk)
-        T_priv = self.path.T_world_vertex
-        T_l_v = T_l_b @ inv_T(T_priv[max(s.branch, 0)]) @ T_priv[lo:hi]
-        trunk = select_trunk(T_l_v, lo, self.config.rotation_weight)
-        T_l_t = T_l_v[trunk - lo]
+        trunk, T_l_t = self.nearest_trunk(T_l_w @ s.T_twig_branch, max(s.branch, 0), *self.window(s.trunk))
         A = adjoint(T_l_w)
         distance = float(np.linalg.norm((T_l_w)[:3, 3]))
         P = A @ s.twig_covariance @ A.T + self.drift_covariance(distance)
@@ -236,8 +249,7 @@ class LocalizationChain:
         if cand is None:
             return None
         T_l_c = inv_T(T_world_leaf) @ cand.T_world_leaf
-        T_priv = self.path.T_world_vertex
-        T_pred = T_l_c @ cand.T_leaf_trunk @ inv_T(T_priv[cand.trunk]) @ T_priv[trunk]
+        T_pred = self.rebased(T_l_c @ cand.T_leaf_trunk, cand.trunk, trunk)
         A = adjoint(T_l_c)
         return T_pred, A @ cand.covariance @ A.T + self.drift_covariance(float(np.linalg.norm(T_l_c[:3, 3])))
 
@@ -393,8 +405,7 @@ class ChainLocalizer:
             assert other.T_leaf_trunk is not None
             # the rival as a pose against the tracked trunk: the same place (a route that passes it again) is no
             # conflict, only another one is
-            T_priv = ch.path.T_world_vertex
-            T_as_trunk = other.T_leaf_trunk @ inv_T(T_priv[int(cand)]) @ T_priv[trunk]
+            T_as_trunk = ch.rebased(other.T_leaf_trunk, int(cand), trunk)
             if not ch.consistent(est, T_as_trunk, other.covariance):
                 return True
         return False
@@ -424,12 +435,7 @@ class ChainLocalizer:
         pending = ch.state.candidate
         if pending is None:
             return None
-        w = max(c.trunk_window_back, c.trunk_window_forward)
-        lo, hi = trunk_window(pending.trunk, len(ch.path), w, w)
-        T_priv = ch.path.T_world_vertex
-        T_l_v = (inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk @ inv_T(T_priv[pending.trunk])
-                 @ T_priv[lo:hi])
-        trunk = select_trunk(T_l_v, lo, c.rotation_weight)
+        trunk, _ = ch.nearest_trunk(inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk, pending.trunk)
         near = scores[max(0, trunk - c.neighbour_vertices - 1):trunk + c.neighbour_vertices + 2]
         if near.max() < CONFIRM_SCORE_RATIO * scores.max():     # place recognition sees that part of the route too
             return None
@@ -460,9 +466,9 @@ class ChainLocalizer:
                 best = (cand, est)
             if est.ok and est.inliers >= CLEAR_VERIFICATION * c.min_inliers_unlocalized:
                 break                       # verified beyond doubt: the other places need no look
-        pr = ch.prior(kf.T_world_kf) if ch.state.branch >= 0 else None
-        T_chain = pr.T_leaf_trunk if pr is not None else np.eye(4)
         if best is None:
+            pr = ch.prior(kf.T_world_kf) if ch.state.branch >= 0 else None
+            T_chain = pr.T_leaf_trunk if pr is not None else np.eye(4)
             # nothing verified; past an end of the route by odometry since the last localization: off the route
             off = pr is not None and ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m
             if not tried:
@@ -489,15 +495,10 @@ class ChainLocalizer:
     def _nearest_trunk(self, kf: Keyframe, cand: int, est: LocalizationEstimate) -> tuple[int, LocalizationEstimate]:
         """Re-localize against the taught vertex nearest to a verified candidate's estimate, guided by it."""
         assert est.T_leaf_trunk is not None
-        ch = self.chain
-        w = max(ch.config.trunk_window_back, ch.config.trunk_window_forward)
-        lo, hi = trunk_window(cand, len(ch.path), w, w)
-        T_priv = ch.path.T_world_vertex
-        T_l_v = est.T_leaf_trunk @ inv_T(T_priv[cand]) @ T_priv[lo:hi]
-        trunk = select_trunk(T_l_v, lo, ch.config.rotation_weight)
+        trunk, T_prior = self.chain.nearest_trunk(est.T_leaf_trunk, cand)
         if trunk == cand:
             return cand, est
-        again = self._localize(kf, trunk, T_l_v[trunk - lo], False)
+        again = self._localize(kf, trunk, T_prior, False)
         if again.ok and again.inliers >= est.inliers // 2:
             return trunk, again
         return cand, est
