@@ -25,7 +25,7 @@ from pathlib import Path
 from machine_load import second_core_available  # tools/machine_load.py
 
 from vtr.app.batch import BatchOptions, load_manifest, run_batch
-from vtr.app.runlog import run_status
+from vtr.app.runfiles.run_json import run_status
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
 
 OUTPUTS = ("localization.csv", "landmarks.csv", "trajectory_tum.txt", "state.csv", "frames.csv")

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from vtr.app.evaluation import integrity_of
-from vtr.app.pipeline import read_localization_csv, repeat_command, teach_command
+from vtr.app.pipeline import repeat_command, teach_command
+from vtr.app.runfiles.localization_csv import read_localization_csv
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.io.kitti import write_reordered_clip

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from vtr.app.batch import BLOCKED, FAILED, FINISHED, RESUMED, BatchOptions, load_manifest, run_batch
-from vtr.app.runlog import run_status
+from vtr.app.runfiles.run_json import run_status
 from vtr.errors import ConfigError
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
 

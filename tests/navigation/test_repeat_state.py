@@ -11,6 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from vtr.app.pipeline import repeat_command, teach_command
+from vtr.app.runfiles.state_csv import SCHEMA as STATE_CSV
+from vtr.app.runfiles.state_csv import read_state_csv
 from vtr.cli import main
 from vtr.config import Config
 from vtr.errors import ConfigError
@@ -20,13 +22,7 @@ from vtr.map import Map, TaughtPath
 from vtr.navigation.chain import LocalizationChain
 from vtr.navigation.localization import Localization
 from vtr.navigation.repeat import RepeatStep
-from vtr.navigation.repeat_state import (
-    STATE_CSV_HEADER,
-    VEHICLE_FROM_LEVEL_CAMERA,
-    ControllerLog,
-    output_times,
-    read_state_csv,
-)
+from vtr.navigation.repeat_state import VEHICLE_FROM_LEVEL_CAMERA, ControllerLog, output_times
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
 RATE_HZ = 50.0
@@ -51,7 +47,7 @@ def _columns(path):
 def test_state_csv_layout(kitti_run):
     d, summary = kitti_run
     out = d / "out"
-    assert tuple(_columns(out)) == STATE_CSV_HEADER
+    assert tuple(_columns(out)) == STATE_CSV.header
     s = read_state_csv(out / "state.csv")
     t_frames, _ = read_tum(out / "trajectory_tum.txt")
     span_s = (t_frames[-1] - t_frames[0]) * 1e-9

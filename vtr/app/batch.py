@@ -62,7 +62,7 @@ from .. import __version__
 from ..config import Config
 from ..errors import ConfigError, DataError, OutputError
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
-from .runlog import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
+from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
 
 MAP_NAME = "route.vtrmap"          # the taught map inside OUT/<route>/teach/ (each repeat holds a copy)
 TEACH_FOLDER = "teach"

@@ -4,7 +4,6 @@ with a progress bar, save, summarize). The library never prints; progress goes t
 
 from __future__ import annotations
 
-import csv
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -33,7 +32,9 @@ from .evaluation import (
     localization_errors,
 )
 from .outputs import OutputFolder
-from .runlog import RunLog
+from .runfiles import ODOMETRY_OUTPUTS, REPEAT_OUTPUTS, TEACH_OUTPUTS
+from .runfiles.frames_csv import write_frames_csv
+from .runfiles.run_json import RunLog
 
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
@@ -41,14 +42,6 @@ if TYPE_CHECKING:
     from ..navigation.localization import Localization
     from ..navigation.repeat import Repeat, RepeatStep
     from .repeat_run import RepeatLoop
-
-FRAMES_CSV_HEADER = ("t_ns", "result", "matches", "inliers", "keyframe_id")
-# the files each command writes into its --out (checked before work: vtr.app.outputs)
-RUN_FILES = ("config.yaml", "run.json")
-ODOMETRY_OUTPUTS = ("trajectory_tum.txt", "frames.csv", "trajectory.png", *RUN_FILES)
-TEACH_OUTPUTS = ("trajectory_tum.txt", "frames.csv", *RUN_FILES)
-REPEAT_OUTPUTS = ("localization.csv", "landmarks.csv", "state.csv", "trajectory_tum.txt", "report.png", *RUN_FILES)
-
 
 @dataclass(frozen=True)
 class OdometrySummary:
@@ -104,14 +97,6 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
         with held_signals():                    # Ctrl-C lands between frames
             records.append(vo.process_frame(frame).record())
     return records, vo.final_poses(), time.perf_counter() - t0
-
-
-def write_frames_csv(path: Path, records: list[FrameRecord]) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(FRAMES_CSV_HEADER)
-        for r in records:
-            w.writerow([r.t_ns, r.kind.value, r.matches, r.inliers, r.vertex_id])
 
 
 def odometry_command(source_path: Path, out: Path, frames: str | None, config: Config,
@@ -224,12 +209,6 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
 
 # --------------------------------------------------------------------------------------- repeat
 
-LOCALIZATION_CSV_HEADER = ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers",
-                           "x", "y", "z", "qx", "qy", "qz", "qw",
-                           "var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z",
-                           "consecutive_failures", "distance_since_success_m", "status", "direction")
-
-
 @dataclass(frozen=True)
 class RepeatSummary:
     frames: int
@@ -272,44 +251,6 @@ class RepeatSummary:
                    + (f"median {self.state['median_abs_lateral_m']:.3f} m" if self.state['median_abs_lateral_m']
                       is not None else "none (never localized)")
                    + f", smoother {self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
-
-
-class LocalizationWriter:
-    """Appends one ``localization.csv`` row per localization attempt."""
-
-    def __init__(self, file):
-        self._file = file
-        self._csv = csv.writer(file)
-        self._csv.writerow(LOCALIZATION_CSV_HEADER)
-
-    def write(self, loc: Localization) -> None:
-        from ..geometry import T_to_tum
-
-        pose = T_to_tum(loc.T_leaf_trunk)
-        var = np.diag(loc.covariance)
-        self._csv.writerow([loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, int(loc.success),
-                            loc.matches, loc.inliers, *(f"{v:.9f}" for v in pose), *(f"{v:.6e}" for v in var),
-                            loc.consecutive_failures, f"{loc.distance_since_success_m:.3f}", loc.status.value,
-                            loc.direction])
-        self._file.flush()              # a row per keyframe, readable while the repeat runs
-
-
-def read_localization_csv(path: Path) -> list[Localization]:
-    """The attempts of a ``localization.csv`` written by :class:`LocalizationWriter`, as ``Localization`` records
-    (the covariance is its diagonal, the landmark records are in ``landmarks.csv``)."""
-    from ..geometry import tum_to_T
-    from ..navigation.localization import Localization, LocalizationStatus
-
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if rows and tuple(rows[0]) != LOCALIZATION_CSV_HEADER:
-        raise DataError(f"{path}: not a localization.csv (header {LOCALIZATION_CSV_HEADER})")
-    return [Localization(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"]), int(r["twig_id"]),
-                         int(r["branch_id"]), r["success"] == "1", int(r["matches"]), int(r["inliers"]),
-                         tum_to_T(np.array([float(r[k]) for k in ("x", "y", "z", "qx", "qy", "qz", "qw")])),
-                         np.diag([float(r[k]) for k in ("var_rx", "var_ry", "var_rz", "var_x", "var_y", "var_z")]),
-                         int(r["consecutive_failures"]), float(r["distance_since_success_m"]), None,
-                         LocalizationStatus(r["status"]), int(r["direction"])) for r in rows]
 
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
@@ -377,6 +318,7 @@ def _repeat(source_path: Path, map_path: Path, work_map: Path, out: Path, frames
     from ..map import Map
     from ..navigation.repeat import Repeat
     from .repeat_run import run_repeat
+    from .runfiles.localization_csv import LocalizationWriter
 
     with open_source(source_path, source_options) as source, Map.open(work_map, "a") as m:
         m.check_camera(source.camera)
@@ -405,8 +347,8 @@ def _repeat(source_path: Path, map_path: Path, work_map: Path, out: Path, frames
 def _write_repeat_outputs(folder: OutputFolder, loop: RepeatLoop, repeat: Repeat, rate_hz: float,
                           source: FrameSource, m) -> RepeatSummary:
     """After the loop: state.csv, trajectory_tum.txt, report.png; the evaluation; the summary."""
-    from ..navigation.repeat_state import write_state_csv
     from .report import plot_repeat
+    from .runfiles.state_csv import write_state_csv
 
     t_smooth = time.perf_counter()
     state = loop.controller.output(rate_hz)

@@ -56,7 +56,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -78,10 +77,6 @@ VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
 # information spans more than ~1e7 (odometry rotation variances are ~1e-8 rad^2) indeterminate.
 UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
 UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
-
-STATE_CSV_HEADER = ("t_ns", "px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az", "yaw", "trunk_id",
-                    "lateral_m", "vertical_m", "along_track_m", "localized")
-
 
 def check_rate(rate_hz: float) -> float:
     """The state output rate (Hz) as a float; ConfigError unless inside the domain of smoothing.rate_hz."""
@@ -107,7 +102,8 @@ def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class StateTable:
-    """Controller states at a list of times (arrays over the rows; see :data:`STATE_CSV_HEADER`).
+    """Controller states at a list of times (arrays over the rows; written as ``state.csv`` by
+    :mod:`vtr.app.runfiles.state_csv`).
 
     ``position``, ``velocity``, ``acceleration`` (N, 3) of the vehicle origin in o (m, m/s, m/s²), ``yaw``
     (N,) rad, ``trunk_id`` (N,) map ids, ``lateral``/``vertical``/``along_track`` (N,) m.
@@ -341,42 +337,11 @@ class ControllerLog:
         return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
 
 
-def write_state_csv(path: Path, table: StateTable) -> None:
-    """``state.csv``: one row per time, columns :data:`STATE_CSV_HEADER` (SI units, yaw in rad)."""
-    lines = [",".join(STATE_CSV_HEADER)]
-    loc = np.ones(len(table), bool) if table.localized is None else table.localized
-    for j in range(len(table)):
-        p, v, a = table.position[j], table.velocity[j], table.acceleration[j]
-        lines.append(f"{table.t_ns[j]},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{v[0]:.6f},{v[1]:.6f},{v[2]:.6f},"
-                     f"{a[0]:.6f},{a[1]:.6f},{a[2]:.6f},{table.yaw[j]:.8f},{table.trunk_id[j]},"
-                     f"{table.lateral[j]:.6f},{table.vertical[j]:.6f},{table.along_track[j]:.6f},"
-                     f"{int(loc[j])}")
-    tmp = Path(path).with_suffix(".csv.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-
-
-def read_state_csv(path: Path) -> StateTable:
-    """Read a ``state.csv`` written by :func:`write_state_csv`."""
-    text = Path(path).read_text().splitlines()
-    if not text or tuple(text[0].split(",")) != STATE_CSV_HEADER:
-        raise DataError(f"{path}: not a state.csv (header {STATE_CSV_HEADER})")
-    rows = [line.split(",") for line in text[1:] if line]
-    t = np.array([int(r[0]) for r in rows], np.int64)
-    trunk = np.array([int(r[11]) for r in rows], np.int64)
-    f = np.array([[float(x) for i, x in enumerate(r) if i not in (0, 11, 15)] for r in rows], float).reshape(-1, 13)
-    localized = np.array([r[15] == "1" for r in rows], bool)
-    return StateTable(t, f[:, 0:3], f[:, 3:6], f[:, 6:9], f[:, 9], trunk, f[:, 10], f[:, 11], f[:, 12], localized)
-
-
 __all__ = [
-    "STATE_CSV_HEADER",
     "VEHICLE_FROM_LEVEL_CAMERA",
     "ControllerLog",
     "StateTable",
     "check_rate",
     "output_times",
-    "read_state_csv",
     "vehicle_from_sensor",
-    "write_state_csv",
 ]

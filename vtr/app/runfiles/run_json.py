@@ -11,7 +11,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from ..config import Config
+from ...config import Config
 
 STATUS_FINISHED = "finished"   # every output written; run.json is written last, so its presence means this
 STATUS_FAILED = "failed"       # the run stopped on an error (``error`` holds it); its outputs are incomplete
@@ -58,7 +58,7 @@ class RunLog:
         after every other output (through
         :class:`~vtr.app.outputs.OutputFolder`: never through a link), so a run killed before the end has no
         run.json."""
-        from .outputs import OutputFolder
+        from ..outputs import OutputFolder
 
         self.out.mkdir(parents=True, exist_ok=True)
         folder = OutputFolder(self.out)

@@ -1,0 +1,53 @@
+"""``state.csv`` (``vtr repeat``): the controller state at a fixed rate, one row per time (SI units, yaw in rad).
+
+Columns (:data:`SCHEMA`): ``t_ns``; ``px py pz``, ``vx vy vz``, ``ax ay az`` (vehicle origin in the gravity-aligned
+trunk frame o: m, m/s, m/s²); ``yaw`` (rad); ``trunk_id``; ``lateral_m``, ``vertical_m`` (errors to the taught path,
+empty of meaning — NaN — where the repeat is not localized), ``along_track_m`` (arc length from the start of the
+taught path); ``localized`` (0/1: the chain held a localization).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ...io.csv_table import Column, CsvSchema
+from ...navigation.repeat_state import StateTable
+
+_XYZ = ("x", "y", "z")
+SCHEMA = CsvSchema("state.csv", (
+    Column("t_ns", "int", unit="ns"),
+    *(Column(f"p{a}", "float", ".6f", "m") for a in _XYZ),
+    *(Column(f"v{a}", "float", ".6f", "m/s") for a in _XYZ),
+    *(Column(f"a{a}", "float", ".6f", "m/s^2") for a in _XYZ),
+    Column("yaw", "float", ".8f", "rad"),
+    Column("trunk_id", "int"),
+    Column("lateral_m", "float", ".6f", "m"),
+    Column("vertical_m", "float", ".6f", "m"),
+    Column("along_track_m", "float", ".6f", "m"),
+    Column("localized", "bool"),
+), line_end="\n")
+
+
+def write_state_csv(path: Path, table: StateTable) -> None:
+    """The file at ``path``: one row per time of ``table``."""
+    localized = np.ones(len(table), bool) if table.localized is None else table.localized
+    SCHEMA.write(path, ((table.t_ns[j], *table.position[j], *table.velocity[j], *table.acceleration[j],
+                         table.yaw[j], table.trunk_id[j], table.lateral[j], table.vertical[j], table.along_track[j],
+                         localized[j]) for j in range(len(table))))
+
+
+def read_state_csv(path: Path) -> StateTable:
+    """The table of a ``state.csv`` written by :func:`write_state_csv`."""
+    c = SCHEMA.read(path)
+
+    def xyz(prefix: str) -> np.ndarray:
+        return np.column_stack([c[f"{prefix}{a}"] for a in _XYZ]).reshape(-1, 3)
+
+    return StateTable(t_ns=c["t_ns"], position=xyz("p"), velocity=xyz("v"), acceleration=xyz("a"), yaw=c["yaw"],
+                      trunk_id=c["trunk_id"], lateral=c["lateral_m"], vertical=c["vertical_m"],
+                      along_track=c["along_track_m"], localized=c["localized"])
+
+
+__all__ = ["SCHEMA", "read_state_csv", "write_state_csv"]
