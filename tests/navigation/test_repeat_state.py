@@ -22,7 +22,7 @@ from vtr.map import Map, TaughtPath
 from vtr.navigation.chain import LocalizationChain
 from vtr.navigation.localization import Localization
 from vtr.navigation.repeat import RepeatStep
-from vtr.navigation.repeat_state import VEHICLE_FROM_LEVEL_CAMERA, ControllerLog, output_times
+from vtr.navigation.repeat_state import VEHICLE_FROM_LEVEL_CAMERA, RepeatStateEstimator, output_times
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
 RATE_HZ = 50.0
@@ -78,7 +78,7 @@ def test_state_matches_localized_poses(kitti_run):
     loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
     with Map.open(d / "route.vtrmap") as m:
         taught = m.taught_path()
-        clog = ControllerLog(Config(), LocalizationChain(taught, Config()), m.camera.T_vehicle_sensor)
+        clog = RepeatStateEstimator.for_route(taught, Config(), m.camera.T_vehicle_sensor)
     ids = taught.ids
     index = {int(v): i for i, v in enumerate(ids)}
     offsets = []
@@ -153,7 +153,7 @@ def test_level_camera_frame_o():
     c, s = np.cos(yaw), np.sin(yaw)
     R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
     T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
-    clog = ControllerLog(Config(), _chain(np.array([0, 1]), T_priv), np.eye(4))
+    clog = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, Config(), np.eye(4))
     for k in range(2):
         T_wt, T_o_t = clog.trunk_frame(k)
         C_world_o = T_wt[:3, :3] @ T_o_t[:3, :3].T
@@ -194,7 +194,7 @@ def _synthetic_steps(n: int, failed: set[int]):
 def test_anchored_at_first_localization(T_vehicle_sensor):
     """The first three localizations fail: the vertices wait and are placed by the first success."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})
-    clog = ControllerLog(Config(), _chain(ids, T_priv), T_vehicle_sensor)
+    clog = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), T_vehicle_sensor)
     for step in steps:
         clog.add(step)
     clog.finish()
@@ -210,7 +210,7 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
 
 def test_never_localized_uses_chain_assumption():
     ids, T_priv, steps = _synthetic_steps(10, failed=set(range(10)))
-    clog = ControllerLog(Config(), _chain(ids, T_priv), np.eye(4))
+    clog = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), np.eye(4))
     for step in steps:
         clog.add(step)
     clog.finish()

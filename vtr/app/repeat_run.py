@@ -19,7 +19,7 @@ import numpy as np
 
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat, RepeatStep
-from ..navigation.repeat_state import ControllerLog
+from ..navigation.repeat_state import RepeatStateEstimator
 from ..signals import held_signals
 from ..types import StereoFrame
 
@@ -34,7 +34,7 @@ class RepeatLoop:
     T_teach: np.ndarray
     localized: np.ndarray
     localizations: tuple[Localization, ...]
-    controller: ControllerLog
+    controller: RepeatStateEstimator
     seconds: float
     localization_seconds: float
 
@@ -44,7 +44,7 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
     """Run the repeat over ``frames`` (stereo frames, e.g. ``repeat.odometry.stereo.frames(images)``) and finish
     its run in the map. ``on_step`` receives every step in order (e.g. writes its report rows); with
     ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route)."""
-    clog = ControllerLog(repeat.config, repeat.chain, repeat.camera.T_vehicle_sensor)
+    clog = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor)
     t_ns: list[int] = []
     T_teach: list[np.ndarray] = []
     localized: list[bool] = []

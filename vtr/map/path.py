@@ -94,3 +94,10 @@ class TaughtPath:
         T = self.T_world_vertex if T_sensor_body is None else self.T_world_vertex @ T_sensor_body
         step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
         return np.concatenate([[0.0], np.cumsum(step)])
+
+    def T_world_localized(self, vertex_id: int, T_leaf_vertex: np.ndarray) -> np.ndarray:
+        """World pose of a leaf camera localized against path vertex ``vertex_id`` (map id):
+        ``T_world_vertex @ inv(T_leaf_vertex)``."""
+        from ..geometry import inv_T
+
+        return self.T_world_vertex[self.index(vertex_id)] @ inv_T(T_leaf_vertex)

@@ -152,8 +152,8 @@ class LocalizationChain:
 
     def T_teach_localized(self, trunk_id: int, T_leaf_trunk: np.ndarray) -> np.ndarray:
         """Teach-frame pose of a leaf localized against taught vertex ``trunk_id``:
-        ``T_teach_trunk @ inv(T_leaf_trunk)``."""
-        return self.path.T_world_vertex[self.path.index(trunk_id)] @ inv_T(T_leaf_trunk)
+        ``T_teach_trunk @ inv(T_leaf_trunk)`` (:meth:`TaughtPath.T_world_localized`)."""
+        return self.path.T_world_localized(trunk_id, T_leaf_trunk)
 
     # -- geometry on the route ---------------------------------------------------------------------
 

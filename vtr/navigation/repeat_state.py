@@ -1,7 +1,7 @@
 """Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
 queried at a fixed rate in the gravity-aligned trunk frame o (docs/smoother.md; thesis §6.3.4).
 
-**Feeding the smoother** (:meth:`ControllerLog.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
+**Feeding the smoother** (:meth:`RepeatStateEstimator.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
 smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
 per repeat *vertex* (keyframe), not per frame:
 
@@ -9,7 +9,7 @@ per repeat *vertex* (keyframe), not per frame:
   (repeat world), with the odometry covariance of the leaf (the same measurement and covariance as the
   map's temporal edge);
 * at a successfully localized vertex, an absolute pose in the teach world,
-  ``T_teach_leaf = T_teach_trunk @ inv(T_leaf_trunk)`` (``LocalizationChain.T_teach_localized``; =
+  ``T_teach_leaf = T_teach_trunk @ inv(T_leaf_trunk)`` (``TaughtPath.T_world_localized``; =
   ``RepeatStep.T_teach_frame`` there), with the
   localization covariance. Privileged poses are taken as exact (the repeat is expressed relative to the
   taught path, as the chain does).
@@ -42,7 +42,7 @@ there: ``C_g_world = C_vehicle_sensor``; for a level first camera, up is ``-y`` 
 **Output.** ``state.csv`` is written after the run from the smoother's knots (each as final when it left
 the ``lag_s`` window, the newest ones jointly): a fixed-lag *smoothed* state at ``rate_hz`` from the first
 to the last frame, the WNOA posterior mean between knots, extrapolated after the last one. A controller at
-run time calls :meth:`ControllerLog.state_at` instead, which extrapolates from the newest knot.
+run time calls :meth:`RepeatStateEstimator.controller_state_at` instead, which extrapolates from the newest knot.
 
 **Trunk.** The state at time t is expressed at the chain's trunk of the latest vertex at or before t (the
 trunk a controller would hold at t), so p jumps when the trunk moves on; lateral/vertical errors do not.
@@ -56,16 +56,20 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import Config, check_setting
+from ..config import Config, SmoothingConfig, check_setting
 from ..conventions import NS_PER_S
 from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
-from .chain import LocalizationChain
+from ..map import TaughtPath
+
+if TYPE_CHECKING:
+    from .repeat import RepeatStep
 
 # T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
 VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
@@ -134,22 +138,26 @@ class _Vertex:
     T_teach_chain: np.ndarray         # the chain's estimate (used only if the run never localizes)
 
 
-class ControllerLog:
-    """Feeds a :class:`~vtr.state.smoothing.TrajectorySmoother` from repeat steps; controller states at any time.
+class RepeatStateEstimator:
+    """The controller-facing state of a repeat: feeds a :class:`~vtr.state.smoothing.TrajectorySmoother` from
+    repeat steps and answers controller states at any time.
 
     Args:
-        config: ``smoothing`` (Qc, lag), ``localization`` (path window) and ``odometry.failure_variance``
-            (used for an odometry covariance that is unusable) are read.
-        chain: the repeat's localization chain: its taught path (ids, camera poses in the teach world), its
-            trunk-search window and its teach-frame pose of a localized leaf are used; nothing else.
+        path: the taught path the repeat follows (ids, camera poses in the teach world).
+        smoothing: the smoother's settings (Qc, lag) and the odometry drift per metre.
         T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
+        trunk_window: ``(back, forward)`` taught vertices around the trunk that make the reference path.
+        lost_after_failures: localization failures in a row after which the repeat is no longer localized.
+        unknown_variance: the variance (per axis) given to an odometry covariance that is unusable.
     """
 
-    def __init__(self, config: Config, chain: LocalizationChain, T_vehicle_sensor: np.ndarray):
-        self.config = config
-        self.chain = chain
-        self.path = chain.path
-        self.smoother = TrajectorySmoother(config.smoothing)
+    def __init__(self, path: TaughtPath, smoothing: SmoothingConfig, T_vehicle_sensor: np.ndarray, *,
+                 trunk_window: tuple[int, int], lost_after_failures: int, unknown_variance: float):
+        self.path = path
+        self.smoothing = smoothing
+        self.smoother = TrajectorySmoother(smoothing)
+        self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
+        self.unknown_variance = float(unknown_variance)
         self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
         self.C_g_world = self.T_vehicle_sensor[:3, :3]
@@ -163,16 +171,26 @@ class ControllerLog:
         self.vertex_t_ns: list[int] = []
         self.vertex_trunk: list[int] = []     # index along the privileged path
         self.vertex_localized: list[bool] = []   # the chain held a localization after the vertex's attempt
-        self._lost_after = config.localization.lost_after_failures
+        self._lost_after = int(lost_after_failures)
         self._ever = False
         self.unknown: str | None = None           # why the state of a never-localized run is unknown
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self.seconds = 0.0                    # time spent feeding the smoother and answering queries
 
+    @classmethod
+    def for_route(cls, path: TaughtPath, config: Config, T_vehicle_sensor: np.ndarray) -> RepeatStateEstimator:
+        """The estimator of a repeat along ``path`` with the settings of ``config`` (``smoothing``, the
+        localization's trunk window and ``lost_after_failures``, ``odometry.failure_variance``)."""
+        loc = config.localization
+        return cls(path, config.smoothing, T_vehicle_sensor,
+                   trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
+                   lost_after_failures=loc.lost_after_failures,
+                   unknown_variance=config.odometry.failure_variance)
+
     # -- feeding ------------------------------------------------------------------------------------
 
-    def add(self, step) -> None:
+    def add(self, step: RepeatStep) -> None:
         """Take one :class:`~vtr.navigation.repeat.RepeatStep`; a new vertex becomes a smoother knot (or waits for
         the first successful localization)."""
         t0 = time.perf_counter()
@@ -185,13 +203,13 @@ class ControllerLog:
             rel_cov = None
             previous = self._pending[-1] if self._pending else self._last
             if previous is not None:
-                rel_cov = usable_covariance(r.covariance, self.config.odometry.failure_variance)
+                rel_cov = usable_covariance(r.covariance, self.unknown_variance)
                 rel_cov = rel_cov + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
             if loc is not None and loc.success:
                 loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
-                    T_teach_leaf = self.chain.T_teach_localized(loc.trunk_id, loc.T_leaf_trunk)
+                    T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
@@ -216,7 +234,7 @@ class ControllerLog:
 
     def _drift_covariance(self, T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
         """Odometry drift between two vertices, growing with the distance travelled ([rot, trans])."""
-        c = self.config.smoothing
+        c = self.smoothing
         d = float(np.linalg.norm(T_world_b[:3, 3] - T_world_a[:3, 3]))
         return np.diag(np.r_[[(c.odometry_rotation_sigma_per_m * d) ** 2] * 3,
                              [(c.odometry_translation_sigma_per_m * d) ** 2] * 3])
@@ -278,8 +296,7 @@ class ControllerLog:
         """``T_o_t``, the reference path in o around trunk k, and the arc length at the path's first point."""
         if k not in self._trunk_cache:
             T_wt, T_o_t = self.trunk_frame(k)
-            loc = self.chain.config
-            lo, hi = self.path.window(k, loc.trunk_window_back, loc.trunk_window_forward)
+            lo, hi = self.path.window(k, *self.trunk_window)
             try:
                 path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
             except EstimationError:       # fewer than two distinct taught vertices
@@ -292,7 +309,7 @@ class ControllerLog:
         i = np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), np.asarray(t_ns, np.int64), side="right") - 1
         return np.asarray(self.vertex_trunk, np.int64)[np.maximum(i, 0)]
 
-    def state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
+    def controller_state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
         """Controller state (vehicle in o at the trunk) at ``t_ns``; no covariance (see the smoother for it)."""
         k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else trunk_index
         T_o_t, _, _ = self._trunk(k)
@@ -315,7 +332,7 @@ class ControllerLog:
         P, Vel, A = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
         yaw = np.zeros(n)
         for j in range(n):
-            cs = self.state_at(int(t_ns[j]), int(trunks[j]))
+            cs = self.controller_state_at(int(t_ns[j]), int(trunks[j]))
             P[j], Vel[j], A[j], yaw[j] = cs.position, cs.velocity, cs.acceleration, cs.yaw
         lat, ver, along = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
         for k in np.unique(trunks):
@@ -339,7 +356,7 @@ class ControllerLog:
 
 __all__ = [
     "VEHICLE_FROM_LEVEL_CAMERA",
-    "ControllerLog",
+    "RepeatStateEstimator",
     "StateTable",
     "check_rate",
     "output_times",
