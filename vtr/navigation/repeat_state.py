@@ -1,8 +1,8 @@
 """Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
 queried at a fixed rate in the gravity-aligned trunk frame o (docs/smoother.md; thesis §6.3.4).
 
-**Feeding the smoother** (:meth:`RepeatStateEstimator.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a time). The
-smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
+**Feeding the smoother** (:meth:`RepeatStateEstimator.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a
+time). The smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
 per repeat *vertex* (keyframe), not per frame:
 
 * a relative pose from repeat odometry between consecutive vertices, ``inv(T_world_prev) @ T_world_leaf``
@@ -64,9 +64,9 @@ from ..config import Config, SmoothingConfig, check_setting
 from ..conventions import NS_PER_S
 from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
+from ..map import TaughtPath
 from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
 from ..state.smoothing import TrajectorySmoother, adjoint
-from ..map import TaughtPath
 
 if TYPE_CHECKING:
     from .repeat import RepeatStep
