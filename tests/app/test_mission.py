@@ -17,10 +17,10 @@ def test_tiny_aerial_mission(tmp_path):
         for k in ("left_m", "right_m", "up_m", "down_m"):
             assert float(r[k]) >= 0.0
     on_path = rep.rows[0]
-    assert on_path["successes"] == on_path["localizations"] > 0  # the on-path repeat localizes everywhere
+    assert on_path.successes == on_path.localizations > 0  # the on-path repeat localizes everywhere
     # where the envelope says localization holds, the repeats localized
     for r in rep.rows:
-        assert r["holds_and_localized"] == r["envelope_holds"], r
+        assert r.holds_and_localized == r.envelope_holds, r
     assert "Repeats against the envelope" in rep.report_html.read_text()
 
 
@@ -30,6 +30,6 @@ def test_the_envelope_predicts_a_failure_and_it_is_seen(tmp_path):
     rep = run_aerial_mission(tmp_path / "m", Config(), length_m=9.0, lateral_m=(0.0, 3.0), held_out_m=(30.0,),
                              ramp_m=2.0)
     far = rep.rows[-1]
-    assert far["fitted"] == "held out" and far["envelope_fails"] > 0, far
-    assert far["fails_and_not_localized"] == far["envelope_fails"], far
-    assert rep.rows[0]["holds_and_localized"] == rep.rows[0]["envelope_holds"] > 0
+    assert far.fitted == "held out" and far.envelope_fails > 0, far
+    assert far.fails_and_not_localized == far.envelope_fails, far
+    assert rep.rows[0].holds_and_localized == rep.rows[0].envelope_holds > 0

@@ -12,6 +12,7 @@ Frames: the synthetic world is ENU; the map frame is the teach run's first camer
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import shutil
 from collections.abc import Callable
@@ -36,8 +37,8 @@ SYNTHETIC_SPEED_MPS = 4.0
 
 
 @dataclass(frozen=True)
-class RepeatSummary:
-    """One repeat: where its landmarks.csv is and how localization went."""
+class MissionRepeat:
+    """One repeat of the mission: where its landmarks.csv is and how localization went."""
 
     name: str
     landmarks_csv: Path
@@ -80,7 +81,7 @@ def teach(seq_dir: Path, map_path: Path, config: Config) -> Path:
 
 
 def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0,
-           spacing_m: float = 1.0) -> RepeatSummary:
+           spacing_m: float = 1.0) -> MissionRepeat:
     """Repeat ``seq_dir`` against the map; ``out_dir/landmarks.csv`` holds the localizations after ``skip_first_m``."""
     with open_source(seq_dir) as src, Map.open(map_path, "a") as m:
         rp = Repeat(m, config, str(seq_dir))
@@ -90,7 +91,8 @@ def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip
     out_dir.mkdir(parents=True, exist_ok=True)
     write_landmarks_csv(out_dir / "landmarks.csv", kept)
     ok = sum(1 for loc in kept if loc.success)
-    return RepeatSummary(out_dir.name, out_dir / "landmarks.csv", len(kept), ok, tuple(kept))
+    return MissionRepeat(name=out_dir.name, landmarks_csv=out_dir / "landmarks.csv", localizations=len(kept),
+                         successes=ok, localizations_list=tuple(kept))
 
 
 def fit_model(landmark_files: list[Path], method: str = "mle") -> PerceptionModel:
@@ -101,7 +103,7 @@ def fit_model(landmark_files: list[Path], method: str = "mle") -> PerceptionMode
     return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), method=method).model  # type: ignore[arg-type]
 
 
-__all__ = ["RepeatSummary", "fit_model", "render", "repeat", "teach", "up_in_map"]
+__all__ = ["MissionRepeat", "fit_model", "render", "repeat", "teach", "up_in_map"]
 
 
 # --------------------------------------------------------------------------- the whole mission
@@ -118,6 +120,24 @@ MISSION_SCENE_SEED = 0
 
 
 @dataclass(frozen=True)
+class EnvelopeCheck:
+    """One repeat of the mission against the envelope (the columns of the report's table, in order): its offset
+    (m, left), whether it was fitted on, localizations and successes after the drift ramp, those the envelope says
+    hold (offset inside their trunk's envelope) and how many of them localized, those it says fail and how many of
+    them did not localize, and the median inliers."""
+
+    lateral_m: float
+    fitted: str                       # "yes" or "held out"
+    localizations: int
+    successes: int
+    envelope_holds: int
+    holds_and_localized: int
+    envelope_fails: int
+    fails_and_not_localized: int
+    median_inliers: float
+
+
+@dataclass(frozen=True)
 class MissionReport:
     """What the aerial mission produced (paths) and how the envelope compared with the repeats."""
 
@@ -126,17 +146,7 @@ class MissionReport:
     model_path: Path
     envelope_csv: Path
     report_html: Path
-    rows: list[dict]  # one per repeat: lateral_m, localizations, successes, predicted_ok, agree...
-
-    def lines(self) -> list[str]:
-        out = []
-        for r in self.rows:
-            out.append(f"repeat {r['lateral_m']:+g} m ({r['fitted']}): localized {r['successes']}/"
-                       f"{r['localizations']}; envelope says holds at {r['envelope_holds']} "
-                       f"({r['holds_and_localized']} localized), fails at {r['envelope_fails']} "
-                       f"({r['fails_and_not_localized']} not localized)")
-        out.append(f"model {self.model_path.name}; envelope {self.envelope_csv}; report {self.report_html}")
-        return out
+    rows: tuple[EnvelopeCheck, ...]   # one per repeat, in the order flown
 
 
 def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSION_LENGTH_M,
@@ -166,7 +176,7 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
                                 max_m=MISSION_ENVELOPE_MAX_M)
     env_csv, env_png = write_envelope(env, out_dir / "envelope", l_min=l_min, title="synthetic aerial route")
     by_id = {r.vertex_id: r for r in env}
-    rows = []
+    rows: list[EnvelopeCheck] = []
     for dy, rs in reps:
         side = "left" if dy >= 0 else "right"
         # a capped envelope is at least as wide as the scan: beyond it nothing is predicted
@@ -174,19 +184,21 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
                   and not (by_id[loc.trunk_id].capped[side] and abs(dy) > by_id[loc.trunk_id].distance_m[side])]
         holds = [loc for loc in judged if by_id[loc.trunk_id].distance_m[side] >= abs(dy)]
         fails = [loc for loc in judged if loc not in holds]
-        rows.append({"lateral_m": dy, "fitted": "yes" if dy in lateral_m else "held out",
-                     "localizations": rs.localizations, "successes": rs.successes,
-                     "envelope_holds": len(holds), "holds_and_localized": sum(loc.success for loc in holds),
-                     "envelope_fails": len(fails), "fails_and_not_localized": sum(not loc.success for loc in fails),
-                     "median_inliers": float(np.median([loc.inliers for loc in rs.localizations_list]))
-                     if rs.localizations_list else 0.0})
+        rows.append(EnvelopeCheck(
+            lateral_m=dy, fitted="yes" if dy in lateral_m else "held out", localizations=rs.localizations,
+            successes=rs.successes, envelope_holds=len(holds), holds_and_localized=sum(loc.success for loc in holds),
+            envelope_fails=len(fails), fails_and_not_localized=sum(not loc.success for loc in fails),
+            median_inliers=float(np.median([loc.inliers for loc in rs.localizations_list]))
+            if rs.localizations_list else 0.0))
     html = out_dir / "report.html"
     _write_report(html, rows, env, env_png, model, l_min)
-    return MissionReport(out_dir, map_path, model_path, env_csv, html, rows)
+    return MissionReport(out_dir=out_dir, map_path=map_path, model_path=model_path, envelope_csv=env_csv,
+                         report_html=html, rows=tuple(rows))
 
 
-def _write_report(path: Path, rows: list[dict], env: list, env_png: Path, model: PerceptionModel,
+def _write_report(path: Path, checks: list[EnvelopeCheck], env: list, env_png: Path, model: PerceptionModel,
                   l_min: float) -> None:
+    rows = [dataclasses.asdict(c) for c in checks]
     left = [e.distance_m["left"] for e in env]
     n_capped = sum(e.capped["left"] for e in env)
     capped_note = (f" ({n_capped} of {len(env)} vertices capped at the scan limit {max(left):g} m: there the "
@@ -215,4 +227,4 @@ were flown after the fit and not fitted on.</p>
 """)
 
 
-__all__ += ["MissionReport", "run_aerial_mission"]
+__all__ += ["EnvelopeCheck", "MissionReport", "run_aerial_mission"]

@@ -40,7 +40,8 @@ if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
 
     from ..navigation.localization import Localization
-    from ..navigation.repeat import Repeat, RepeatStep
+    from ..navigation.repeat import RepeatStep
+    from ..navigation.repeat_state import StateTable
     from .repeat_run import RepeatLoop
 
 @dataclass(frozen=True)
@@ -62,15 +63,6 @@ class OdometrySummary:
         if self.drift is not None:
             d["drift"] = self.drift.to_dict()
         return d
-
-    def lines(self) -> list[str]:
-        out = [f"frames {self.frames}  keyframes {self.keyframes}  failures {self.failures}  "
-               f"{self.fps:.1f} frames/s"]
-        if self.note:
-            out.append(self.note)
-        if self.drift is not None:
-            out.append(f"drift vs ground truth: {self.drift}")
-        return out
 
 
 def iterate(items: Iterable, total: int, progress: Callable | None, desc: str):
@@ -125,8 +117,9 @@ def odometry_command(source_path: Path, out: Path, frames: str | None, config: C
         folder.write("trajectory.png", plot_trajectory, poses, T_gt, failures,
                      title=f"{source_path.name}: {len(results)} frames")
         keyframes = sum(r.new_vertex for r in results)
-        summary = OdometrySummary(len(results), keyframes, int(failures.sum()), seconds, drift,
-                                  keyframe_note(keyframes, len(results), poses, config))
+        summary = OdometrySummary(frames=len(results), keyframes=keyframes, failures=int(failures.sum()),
+                                  seconds=seconds, drift=drift,
+                                  note=keyframe_note(keyframes, len(results), poses, config))
         log.write(summary.to_dict())
     if not results:
         raise DataError(f"{source_path}: no frames processed")
@@ -161,11 +154,6 @@ class TeachSummary:
     seconds: float
     map_path: Path
 
-    def lines(self) -> list[str]:
-        fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
-        return [f"teach: frames {self.frames}  vertices {self.vertices}  failures {self.failures}  "
-                f"{fps:.1f} frames/s  -> {self.map_path}"]
-
 
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
                   source_options: SourceOptions | str | None = None,
@@ -197,7 +185,8 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
             _, T_taught = m.poses(teach.run)
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
-        summary = TeachSummary(len(results), n_vertices, failures, seconds, map_path)
+        summary = TeachSummary(frames=len(results), vertices=n_vertices, failures=failures, seconds=seconds,
+                               map_path=map_path)
         if out is not None and folder is not None:
             log = RunLog(out, "teach", config, [source_path])
             folder.write("trajectory_tum.txt", write_tum, t_taught, T_taught)
@@ -238,20 +227,6 @@ class RepeatSummary:
                 "state": self.state, "statuses": self.statuses,
                 "integrity": self.integrity.to_dict() if self.integrity else None}
 
-    def lines(self) -> list[str]:
-        fps = self.frames / self.seconds if self.seconds > 0 else float("nan")
-        return [f"repeat: frames {self.frames}  vertices {self.vertices}  localized {self.localized} "
-                f"({100 * self.success_rate:.1f} %)  median inliers {self.median_inliers:.0f}  {fps:.1f} frames/s",
-                *([", ".join(f"{k} {v}" for k, v in self.statuses.items())] if self.statuses else []),
-                (f"path-tracking error to the taught path (localized frames): median {self.path_error_m:.3f} m"
-                 if np.isfinite(self.path_error_m) else "path-tracking error: none (never localized)"),
-                *([str(self.errors)] if self.errors is not None else []),
-                *([str(self.integrity)] if self.integrity is not None else []),
-                *([f"state.csv: {self.state['rows']} rows at {self.state['rate_hz']:g} Hz, smoothed lateral error "
-                   + (f"median {self.state['median_abs_lateral_m']:.3f} m" if self.state['median_abs_lateral_m']
-                      is not None else "none (never localized)")
-                   + f", smoother {self.state['smoother_ms_per_frame']:.1f} ms/frame"] if self.state else [])]
-
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
     """``landmarks.csv`` (``perception_model``'s format and writer) of the successful localizations."""
@@ -280,107 +255,157 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
     finished once every frame is processed, or aborted with the reason on any exception. With
     ``read_only_map`` the map is left untouched: the repeat runs on a private copy in temporary space,
-    removed at the end (the outputs in ``out`` are the same)."""
-    import contextlib
-
+    removed at the end (the outputs in ``out`` are the same). The steps are :class:`RepeatRun`'s."""
     from ..navigation.repeat_state import check_rate
 
     rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
-    with contextlib.ExitStack() as stack:
-        work_map = _private_copy(map_path, stack, allow_partial) if read_only_map else map_path
-        return _repeat(source_path, map_path, work_map, out, frames, config, source_options, progress, rate_hz,
-                       allow_partial, start_vertex, start_distance_m)
-    raise AssertionError("unreachable")     # pragma: no cover (mypy: the with block always returns)
+    return RepeatRun(source_path, map_path, out, frames, config, source_options=source_options, progress=progress,
+                     rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
+                     start_distance_m=start_distance_m, read_only_map=read_only_map).run()
 
 
-def _private_copy(map_path: Path, stack, allow_partial: bool) -> Path:
-    """A copy of a closed map in a temporary folder that ``stack`` removes; the map itself is only read (and
-    checked first, so that its errors name it)."""
-    import shutil
-    import tempfile
+@dataclass(frozen=True)
+class RepeatEvaluation:
+    """A repeat judged after its loop: the path-tracking error of each frame (m; NaN where not localized or beyond
+    the route's ends), the localization errors and integrity against ground truth (when the source's ground truth
+    covers teach and repeat), and the attempts by status."""
 
-    from ..map import Map
-
-    with Map.open(map_path) as m:           # a map, readable, and not being written by another process
-        m.check_taught_route(allow_partial)
-    tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vtr-repeat-")))
-    copy = tmp / map_path.name
-    shutil.copyfile(map_path, copy)
-    return copy
+    path_errors_m: np.ndarray
+    errors: LocalizationErrors | None
+    integrity: Integrity | None
+    statuses: dict[str, int]
 
 
-def _repeat(source_path: Path, map_path: Path, work_map: Path, out: Path, frames: str | None, config: Config,
-            source_options: SourceOptions | str | None, progress: Callable | None, rate_hz: float,
-            allow_partial: bool, start_vertex: int | None, start_distance_m: float | None) -> RepeatSummary:
-    """:func:`repeat_command` on ``work_map`` (the map itself, or its private copy)."""
-    from perception_model.landmarks_file import LandmarksWriter
+class RepeatRun:
+    """``vtr repeat`` as named steps (:meth:`run`): open the source, the map and the outputs; loop every frame
+    through the one repeat loop (:func:`~vtr.app.repeat_run.run_repeat`: the run finished in the map at its end),
+    streaming ``localization.csv`` and ``landmarks.csv``; evaluate; write ``state.csv``, ``trajectory_tum.txt`` and
+    ``report.png``; summarize; ``run.json`` last."""
 
-    from ..map import Map
-    from ..navigation.repeat import Repeat
-    from .repeat_run import run_repeat
-    from .runfiles.localization_csv import LocalizationWriter
+    def __init__(self, source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config, *,
+                 source_options: SourceOptions | str | None = None, progress: Callable | None = None,
+                 rate_hz: float, allow_partial: bool = False, start_vertex: int | None = None,
+                 start_distance_m: float | None = None, read_only_map: bool = False):
+        self.source_path, self.map_path, self.out, self.frames = Path(source_path), Path(map_path), Path(out), frames
+        self.config, self.source_options, self.progress, self.rate_hz = config, source_options, progress, rate_hz
+        self.allow_partial, self.read_only_map = allow_partial, read_only_map
+        self.start_vertex, self.start_distance_m = start_vertex, start_distance_m
 
-    with open_source(source_path, source_options) as source, Map.open(work_map, "a") as m:
-        m.check_camera(source.camera)
-        indices = parse_frame_range(frames, len(source), str(source_path))
-        folder = OutputFolder.prepare(out, [source_path], REPEAT_OUTPUTS)
-        log = RunLog(out, "repeat", config, [source_path, map_path])
+    def run(self) -> RepeatSummary:
+        import contextlib
+
+        with contextlib.ExitStack() as stack:
+            self.open(stack)
+            loop = self.loop()
+            t_after = time.perf_counter()
+            evaluation = self.evaluate(loop)
+            state = self.write(loop, evaluation)
+            summary = self.summarize(loop, evaluation, state, time.perf_counter() - t_after)
+            self.log.write(summary.to_dict())
+        return summary
+
+    # -- the steps ----------------------------------------------------------------------------------------------
+
+    def open(self, stack) -> None:
+        """The source, the map (or its private copy) and the output folder, checked before any work; the
+        :class:`~vtr.navigation.repeat.Repeat` at the start hint."""
+        from ..map import Map
+        from ..navigation.repeat import Repeat
+
+        work_map = self._private_copy(stack) if self.read_only_map else self.map_path
+        self.source = stack.enter_context(open_source(self.source_path, self.source_options))
+        self.map = m = stack.enter_context(Map.open(work_map, "a"))
+        m.check_camera(self.source.camera)
+        self.indices = parse_frame_range(self.frames, len(self.source), str(self.source_path))
+        self.folder = OutputFolder.prepare(self.out, [self.source_path], REPEAT_OUTPUTS)
+        self.log = RunLog(self.out, "repeat", self.config, [self.source_path, self.map_path])
         _check_path_to_follow(m)
-        start = _start_hint(m, start_vertex, start_distance_m)
-        repeat = Repeat(m, config, source=str(source_path), start_index=start, allow_partial=allow_partial)
-        with folder.open("localization.csv") as loc_file, \
-                LandmarksWriter(folder.create("landmarks.csv")) as lm_csv:
+        start = _start_hint(m, self.start_vertex, self.start_distance_m)
+        self.repeat = Repeat(m, self.config, source=str(self.source_path), start_index=start,
+                             allow_partial=self.allow_partial)
+
+    def loop(self) -> RepeatLoop:
+        """Every frame through the repeat loop; a row of ``localization.csv`` and the rows of ``landmarks.csv`` (the
+        input of ``perception-model fit``) per localization attempt as it comes."""
+        from perception_model.landmarks_file import LandmarksWriter
+
+        from .repeat_run import run_repeat
+        from .runfiles.localization_csv import LocalizationWriter
+
+        with self.folder.open("localization.csv") as loc_file, \
+                LandmarksWriter(self.folder.create("landmarks.csv")) as lm_csv:
             loc_csv = LocalizationWriter(loc_file)
 
             def report(step: RepeatStep) -> None:
                 if step.localization is not None:
                     loc_csv.write(step.localization)
-                    append_landmarks(lm_csv, step.localization)  # the input of `perception-model fit`
+                    append_landmarks(lm_csv, step.localization)
 
-            loop = run_repeat(repeat, frames_of(source, indices, repeat.odometry.stereo, progress, "repeat"),
-                              on_step=report)
-        summary = _write_repeat_outputs(folder, loop, repeat, rate_hz, source, m)
-        log.write(summary.to_dict())
-    return summary
+            frames = frames_of(self.source, self.indices, self.repeat.odometry.stereo, self.progress, "repeat")
+            return run_repeat(self.repeat, frames, on_step=report)
 
+    def evaluate(self, loop: RepeatLoop) -> RepeatEvaluation:
+        """Path-tracking errors, and errors and integrity against ground truth where the source has it."""
+        chain, m, source = self.repeat.chain, self.map, self.source
+        errors = distance_to_polyline(loop.T_teach[:, :3, 3], chain.path.positions)
+        errors[~loop.localized] = np.nan          # no path error where not localized, nor beyond the route's ends
+        errors[chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
+        locs = list(loop.localizations)
+        gt_errors = _errors_against_ground_truth(source, m, [loc for loc in locs if loc.success])
+        integrity = None
+        if locs and _same_source(source, m):
+            gt = source.ground_truth()
+            integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
+        statuses: dict[str, int] = {}
+        for loc in locs:
+            statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
+        return RepeatEvaluation(path_errors_m=errors, errors=gt_errors, integrity=integrity, statuses=statuses)
 
-def _write_repeat_outputs(folder: OutputFolder, loop: RepeatLoop, repeat: Repeat, rate_hz: float,
-                          source: FrameSource, m) -> RepeatSummary:
-    """After the loop: state.csv, trajectory_tum.txt, report.png; the evaluation; the summary."""
-    from .report import plot_repeat
-    from .runfiles.state_csv import write_state_csv
+    def write(self, loop: RepeatLoop, evaluation: RepeatEvaluation) -> StateTable:
+        """``state.csv`` (the smoothed state at the output rate), ``trajectory_tum.txt``, ``report.png``."""
+        from .report import plot_repeat
+        from .runfiles.state_csv import write_state_csv
 
-    t_smooth = time.perf_counter()
-    state = loop.controller.output(rate_hz)
-    folder.write("state.csv", write_state_csv, state)
-    folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
-    taught = repeat.chain.path
-    errors = distance_to_polyline(loop.T_teach[:, :3, 3], taught.positions)
-    errors[~loop.localized] = np.nan          # no path error where not localized, nor beyond the route's ends
-    errors[repeat.chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
-    locs = list(loop.localizations)
-    folder.write("report.png", plot_repeat, locs, taught, loop.T_teach, loop.t_ns, errors, state,
-                 localized=loop.localized, title=f"repeat of {source.path.name}",
-                 min_inliers=repeat.config.localization.min_inliers)
-    ok = [loc for loc in locs if loc.success]
-    gt_errors = _errors_against_ground_truth(source, m, ok)
-    integrity = None
-    if locs and _same_source(source, m):
-        gt = source.ground_truth()
-        integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
-    statuses: dict[str, int] = {}
-    for loc in locs:
-        statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
-    lateral, vertical = np.abs(state.lateral), np.abs(state.vertical)
-    state_info = {"rate_hz": rate_hz, "rows": len(state),
-                  "smoother_ms_per_frame": 1000 * loop.controller.seconds / max(len(loop.t_ns), 1),
-                  "median_abs_lateral_m": float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
-                  "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None}
-    seconds = loop.seconds + time.perf_counter() - t_smooth
-    return RepeatSummary(len(loop.t_ns), len(locs), len(ok), seconds, loop.localization_seconds,
-                         float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                         float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
-                         gt_errors, state_info, statuses, integrity)
+        state = loop.controller.output(self.rate_hz)
+        self.folder.write("state.csv", write_state_csv, state)
+        self.folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
+        self.folder.write("report.png", plot_repeat, list(loop.localizations), self.repeat.chain.path, loop.T_teach,
+                          loop.t_ns, evaluation.path_errors_m, state, localized=loop.localized,
+                          title=f"repeat of {self.source.path.name}",
+                          min_inliers=self.config.localization.min_inliers)
+        return state
+
+    def summarize(self, loop: RepeatLoop, evaluation: RepeatEvaluation, state: StateTable,
+                  seconds_after_loop: float) -> RepeatSummary:
+        """The run's record (run.json's summary; the command line prints it)."""
+        ok = [loc for loc in loop.localizations if loc.success]
+        lateral, vertical = np.abs(state.lateral), np.abs(state.vertical)
+        state_info = {"rate_hz": self.rate_hz, "rows": len(state),
+                      "smoother_ms_per_frame": 1000 * loop.controller.seconds / max(len(loop.t_ns), 1),
+                      "median_abs_lateral_m": float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
+                      "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None}
+        errors = evaluation.path_errors_m
+        return RepeatSummary(frames=len(loop.t_ns), vertices=len(loop.localizations), localized=len(ok),
+                             seconds=loop.seconds + seconds_after_loop, localization_seconds=loop.localization_seconds,
+                             median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
+                             path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
+                             errors=evaluation.errors, state=state_info, statuses=evaluation.statuses,
+                             integrity=evaluation.integrity)
+
+    def _private_copy(self, stack) -> Path:
+        """A copy of the closed map in a temporary folder that ``stack`` removes; the map itself is only read (and
+        checked first, so that its errors name it)."""
+        import shutil
+        import tempfile
+
+        from ..map import Map
+
+        with Map.open(self.map_path) as m:      # a map, readable, and not being written by another process
+            m.check_taught_route(self.allow_partial)
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vtr-repeat-")))
+        copy = tmp / self.map_path.name
+        shutil.copyfile(self.map_path, copy)
+        return copy
 
 
 def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> int | None:

@@ -21,6 +21,7 @@ from .common import (
     source_options,
     threads_option,
 )
+from .summaries import mission_lines, odometry_lines, repeat_lines, teach_lines
 
 if TYPE_CHECKING:
     from ..io.base import SourceOptions
@@ -58,7 +59,7 @@ def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, confi
     check_out_dir(out, force)
     config = load_config(config_path, threads)
     summary = odometry_command(source, out, frames, config, source_options, progress_bar())
-    for line in summary.lines():
+    for line in odometry_lines(summary):
         click.echo(line)
     click.echo(f"wrote {out}/trajectory_tum.txt, frames.csv, trajectory.png, run.json")
 
@@ -102,13 +103,13 @@ def demo_cmd(out: Path, aerial: bool) -> None:
         stale.unlink()
     click.echo(f"vtr demo on {clip}")
     click.echo("1/4 stereo odometry over all frames")
-    for line in odometry_command(clip, out / "odometry", None, config, None, progress_bar()).lines():
+    for line in odometry_lines(odometry_command(clip, out / "odometry", None, config, None, progress_bar())):
         click.echo("    " + line)
     click.echo("2/4 teach on the even frames")
-    for line in teach_command(clip, map_path, "0::2", config, out / "teach", None, progress_bar()).lines():
+    for line in teach_lines(teach_command(clip, map_path, "0::2", config, out / "teach", None, progress_bar())):
         click.echo("    " + line)
     click.echo("3/4 repeat on the odd frames, localizing against the taught path")
-    for line in repeat_command(clip, map_path, out / "repeat", "1::2", config, None, progress_bar()).lines():
+    for line in repeat_lines(repeat_command(clip, map_path, out / "repeat", "1::2", config, None, progress_bar())):
         click.echo("    " + line)
     if not aerial:
         click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
@@ -119,7 +120,7 @@ def demo_cmd(out: Path, aerial: bool) -> None:
     from ..app.mission import run_aerial_mission
 
     mission = run_aerial_mission(out / "aerial", config, progress=lambda name: frame_progress(f"render {name}"))
-    for line in mission.lines():
+    for line in mission_lines(mission):
         click.echo("    " + line)
     click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png, {mission.report_html}; "
                f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")

@@ -20,6 +20,7 @@ from .common import (
     source_options,
     threads_option,
 )
+from .summaries import repeat_lines, teach_lines
 
 if TYPE_CHECKING:
     from ..io.base import SourceOptions
@@ -54,7 +55,7 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
         check_out_dir(out, force)
     config = load_config(config_path, threads)
     summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar())
-    for line in summary.lines():
+    for line in teach_lines(summary):
         click.echo(line)
 
 
@@ -96,6 +97,6 @@ def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str
     summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                              rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
                              start_distance_m=start_distance, read_only_map=read_only_map)
-    for line in summary.lines():
+    for line in repeat_lines(summary):
         click.echo(line)
     click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")

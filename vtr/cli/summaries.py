@@ -1,0 +1,60 @@
+"""The text of each command's summary: the library returns records (``vtr.app``), the command line turns them
+into the lines it prints. Nothing numerical is imported at import time (the records are only type hints)."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..app.mission import MissionReport
+    from ..app.pipeline import OdometrySummary, RepeatSummary, TeachSummary
+
+
+def _fps(frames: int, seconds: float) -> float:
+    return frames / seconds if seconds > 0 else float("nan")
+
+
+def odometry_lines(s: OdometrySummary) -> list[str]:
+    out = [f"frames {s.frames}  keyframes {s.keyframes}  failures {s.failures}  {s.fps:.1f} frames/s"]
+    if s.note:
+        out.append(s.note)
+    if s.drift is not None:
+        out.append(f"drift vs ground truth: {s.drift}")
+    return out
+
+
+def teach_lines(s: TeachSummary) -> list[str]:
+    return [f"teach: frames {s.frames}  vertices {s.vertices}  failures {s.failures}  "
+            f"{_fps(s.frames, s.seconds):.1f} frames/s  -> {s.map_path}"]
+
+
+def repeat_lines(s: RepeatSummary) -> list[str]:
+    out = [f"repeat: frames {s.frames}  vertices {s.vertices}  localized {s.localized} "
+           f"({100 * s.success_rate:.1f} %)  median inliers {s.median_inliers:.0f}  "
+           f"{_fps(s.frames, s.seconds):.1f} frames/s"]
+    if s.statuses:
+        out.append(", ".join(f"{k} {v}" for k, v in s.statuses.items()))
+    out.append(f"path-tracking error to the taught path (localized frames): median {s.path_error_m:.3f} m"
+               if math.isfinite(s.path_error_m) else "path-tracking error: none (never localized)")
+    if s.errors is not None:
+        out.append(str(s.errors))
+    if s.integrity is not None:
+        out.append(str(s.integrity))
+    if s.state:
+        lateral = s.state["median_abs_lateral_m"]
+        out.append(f"state.csv: {s.state['rows']} rows at {s.state['rate_hz']:g} Hz, smoothed lateral error "
+                   + (f"median {lateral:.3f} m" if lateral is not None else "none (never localized)")
+                   + f", smoother {s.state['smoother_ms_per_frame']:.1f} ms/frame")
+    return out
+
+
+def mission_lines(m: MissionReport) -> list[str]:
+    out = [f"repeat {r.lateral_m:+g} m ({r.fitted}): localized {r.successes}/{r.localizations}; envelope says holds "
+           f"at {r.envelope_holds} ({r.holds_and_localized} localized), fails at {r.envelope_fails} "
+           f"({r.fails_and_not_localized} not localized)" for r in m.rows]
+    out.append(f"model {m.model_path.name}; envelope {m.envelope_csv}; report {m.report_html}")
+    return out
+
+
+__all__ = ["mission_lines", "odometry_lines", "repeat_lines", "teach_lines"]
