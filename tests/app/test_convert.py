@@ -111,7 +111,7 @@ def test_bad_arguments(tmp_path):
         convert(src, tmp_path / "a" / "b" / "c", to="kitti")
     runner = CliRunner()
     r = runner.invoke(main, ["convert", str(KITTI), str(tmp_path / "o"), "--frames", "60:70"])
-    assert r.exit_code == 1 and "vtr: error: --frames '60:70': START 60 outside" in r.output
+    assert r.exit_code == 1 and "vtr: error: frames '60:70': START 60 outside" in r.output
     r = runner.invoke(main, ["convert", str(tmp_path / "missing"), str(tmp_path / "o")])
     assert r.exit_code == 1 and "no such file or folder" in r.output
     r = runner.invoke(main, ["convert", str(KITTI), str(tmp_path / "o"), "--left-topic", "/x"])

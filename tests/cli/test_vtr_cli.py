@@ -105,7 +105,7 @@ def test_empty_folder_and_unknown_layout(tmp_path):
 
 @pytest.mark.parametrize("spec", ["60:70", "0:5:0", "a:b"])
 def test_frames_outside_source(kitti_clip, tmp_path, spec):
-    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--frames", spec), "--frames")
+    _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--frames", spec), f"frames '{spec}'")
 
 
 @pytest.mark.parametrize("text, named", [("odometry:\n  no_such_key: 3\n", "no_such_key"),

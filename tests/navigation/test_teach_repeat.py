@@ -247,7 +247,7 @@ def test_repeat_bad_input(kitti_clip, euroc_micro, kitti_map, tmp_path):
                     "missing.vtrmap")
     _one_line_error(_vtr("repeat", euroc_micro, "--map", path, "--out", tmp_path / "o"), "camera")
     _one_line_error(_vtr("repeat", kitti_clip, "--map", path, "--out", tmp_path / "o", "--frames", "60:70"),
-                    "--frames")
+                    "frames '60:70'")
     with Map.open(path) as m:
         assert [r.kind for r in m.runs()] == ["teach"]
     assert path.stat().st_size == size

@@ -6,6 +6,7 @@ import pytest
 from vtr.app.evaluation import drift_metrics
 from vtr.app.pipeline import run_odometry
 from vtr.config import Config
+from vtr.errors import ConfigError
 from vtr.io import open_source
 from vtr.types import FrameKind
 
@@ -61,7 +62,7 @@ def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_ru
             finalized += vo.process(images).finalized
         finalized += vo.flush()
         assert len(vo._keyframe_poses) == 0      # every keyframe's pose was handed out and dropped
-    with pytest.raises(RuntimeError, match="keep_history"):
+    with pytest.raises(ConfigError, match="keep_history"):
         vo.final_poses()
     poses = kitti_run[1]
     assert len(finalized) == len(poses)                    # every KITTI frame is a keyframe

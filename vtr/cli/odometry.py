@@ -71,10 +71,11 @@ def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, confi
 @click.option("--force", is_flag=True, help="Replace OUT_FILE if it exists.")
 def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool) -> None:
     """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
+    from ..errors import DataError
     from ..io.trajectory import read_tum, write_trajectory
 
     if not tum_file.is_file():
-        raise FileNotFoundError(f"{tum_file}: no such file")
+        raise DataError(f"{tum_file}: no such file")
     check_out_file(out_file, force)
     t_ns, T = read_tum(tum_file)
     write_trajectory(out_file, t_ns, T, fmt)

@@ -108,25 +108,26 @@ class FrameSource(ABC, Sequence):
 def parse_frame_range(spec: str | None, n: int, source: str = "source") -> list[int]:
     """Indices selected by ``START:STOP:STEP`` (Python slice semantics) over ``n`` frames.
 
-    Raises ``DataError`` when the selection is malformed or falls outside the source.
+    Raises ``DataError`` when the selection is malformed or falls outside the source (the message names it as
+    ``frames '<spec>'``: the command line's ``--frames`` and a batch manifest's ``frames`` alike).
     """
     if not spec:
         return list(range(n))
     parts = spec.split(":")
     if len(parts) > 3:
-        raise DataError(f"--frames {spec!r}: expected START:STOP:STEP")
+        raise DataError(f"frames {spec!r}: expected START:STOP:STEP")
     try:
         vals = [int(p) if p.strip() else None for p in parts] + [None] * (3 - len(parts))
     except ValueError as err:
-        raise DataError(f"--frames {spec!r}: not integers") from err
+        raise DataError(f"frames {spec!r}: not integers") from err
     start, stop, step = vals
     if step is not None and step <= 0:
-        raise DataError(f"--frames {spec!r}: STEP must be positive")
+        raise DataError(f"frames {spec!r}: STEP must be positive")
     if start is not None and not 0 <= start < n:
-        raise DataError(f"--frames {spec!r}: START {start} outside {source} with {n} frames")
+        raise DataError(f"frames {spec!r}: START {start} outside {source} with {n} frames")
     if stop is not None and not 0 <= stop <= n:
-        raise DataError(f"--frames {spec!r}: STOP {stop} outside {source} with {n} frames")
+        raise DataError(f"frames {spec!r}: STOP {stop} outside {source} with {n} frames")
     idx = list(range(n))[slice(start, stop, step)]
     if not idx:
-        raise DataError(f"--frames {spec!r}: selects no frame of {source} ({n} frames)")
+        raise DataError(f"frames {spec!r}: selects no frame of {source} ({n} frames)")
     return idx

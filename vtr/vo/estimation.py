@@ -20,6 +20,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import OdometryConfig
+from ..errors import EstimationError
 from ..geometry import exp_se3
 from .kernels import bundle as kb
 
@@ -180,7 +181,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
 
     Y, e, w, cost, min_depth = evaluate(T, X)
     if not min_depth > 0:
-        raise ValueError("bundle_adjust: a landmark starts behind its camera")
+        raise EstimationError("bundle_adjust: a landmark starts behind its camera")
     lam = 1e-4
     S = np.eye(6 * K)
     for _ in range(iterations):

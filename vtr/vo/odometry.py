@@ -24,6 +24,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import Config, OdometryConfig
+from ..errors import ConfigError, EstimationError
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
@@ -103,6 +104,7 @@ class StereoOdometry:
         self.config = config or Config()
         self.config.validate()
         self.keep_history = keep_history
+        self.skipped_window_adjustments = 0    # window adjustments not run (a landmark behind a camera)
         self.camera = camera
         self.timer = StageTimer()
         self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo, self.timer)
@@ -175,7 +177,7 @@ class StereoOdometry:
         """Poses (N, 4, 4) of every frame processed (in order), in the first camera frame, with
         keyframes as refined by the windowed bundle adjustment."""
         if not self.keep_history:
-            raise RuntimeError("final_poses: this odometry was created with keep_history=False")
+            raise ConfigError("final_poses: this odometry was created with keep_history=False")
         return np.array([self._keyframe_poses[k] @ T for k, T in self._frame_refs]).reshape(-1, 4, 4)
 
     def _remember(self, keyframe_id: int, T_kf_frame: np.ndarray) -> None:
@@ -297,7 +299,8 @@ class StereoOdometry:
         try:
             res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z), weights,
                                 self.camera, self.config.stereo.pixel_sigma, cfg.huber_px, cfg.window_iterations)
-        except ValueError:
+        except EstimationError:     # a landmark behind a camera: the window keeps its tracked poses (counted)
+            self.skipped_window_adjustments += 1
             return
         for s, kf in enumerate(kfs):
             kf.T_cam_world = res.T_cam_world[s]
