@@ -179,12 +179,15 @@ def _synthetic_steps(n: int, failed: set[int]):
         trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
         kf = Keyframe(j, None, T_w, cov, 100)
-        odo = OdometryResult(t, j, FrameKind.CREATE_VERTEX, 100, 100, max(j - 1, 0), np.eye(4), T_w,
-                             cov if j else np.zeros((6, 6)), kf)
+        odo = OdometryResult(t_ns=t, index=j, kind=FrameKind.CREATE_VERTEX, matches=100, inliers=100,
+                             keyframe_id=max(j - 1, 0), T_keyframe_frame=np.eye(4), T_world_frame=T_w,
+                             covariance=cov if j else np.zeros((6, 6)), new_keyframe=kf)
         ok = j not in failed
         T_l_t = inv_T(T_teach) @ T_priv[trunk]
-        loc = Localization(t, 1000 + j, trunk, -1, -1, ok, 50, 50 if ok else 0, T_l_t,
-                           np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan), 0, 0.0)
+        loc = Localization(t_ns=t, leaf_id=1000 + j, trunk_id=trunk, twig_id=-1, branch_id=-1, success=ok, matches=50,
+                           inliers=50 if ok else 0, T_leaf_trunk=T_l_t,
+                           covariance=np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan),
+                           consecutive_failures=0, distance_since_success_m=0.0)
         T_chain = T_teach if not failed.issuperset(range(j + 1)) else T_w     # the chain's assumption until then
         steps.append(RepeatStep(odo, loc, 1000 + j, T_chain))
     return np.arange(n), T_priv, steps

@@ -203,10 +203,11 @@ def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covari
     first = int(np.argmax(correct)) if correct.any() else None
     after = float(correct[first:].mean()) if first is not None else 0.0
     nees_a = np.array(nees)
-    return Integrity(n, int(success.sum()), int(correct.sum()), int(success.sum() - correct.sum()), first, after,
-                     float(np.median(errors)) if errors else float("nan"),
-                     float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
-                     float(np.median(nees_a)) if len(nees_a) else float("nan"))
+    return Integrity(attempts=n, successes=int(success.sum()), correct=int(correct.sum()),
+                     wrong=int(success.sum() - correct.sum()), first_correct=first, rate_after=after,
+                     median_error_m=float(np.median(errors)) if errors else float("nan"),
+                     covered=float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
+                     median_nees=float(np.median(nees_a)) if len(nees_a) else float("nan"))
 
 
 def true_leaf_trunk(leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray, gt_repeat_t_ns: np.ndarray,

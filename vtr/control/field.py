@@ -264,8 +264,8 @@ class TaughtPathField:
             dyaw = np.einsum("nk,nk->n", dpos, dcam_dyaw)
             if ev.dg_dyaw is not None:
                 dyaw = dyaw + ev.dg_dyaw
-        return FieldEvaluation(trunk, self.vertex_ids[trunk], ev.mu, ev.sigma, ev.g, ev.flag, dpos, dyaw,
-                               ev.dg_daxis, ev)
+        return FieldEvaluation(trunk=trunk, vertex_id=self.vertex_ids[trunk], mu=ev.mu, sigma=ev.sigma, g=ev.g,
+                               flag=ev.flag, dg_dpos=dpos, dg_dyaw=dyaw, dg_daxis=ev.dg_daxis, raw=ev)
 
 
 def _check_bounds(l_min: float, c_bar: float) -> None:

@@ -274,9 +274,12 @@ class LocalizationChain:
         direction = s.direction
         if ref is not None and abs(along - ref) >= c.direction_min_step_m:
             direction = FORWARD if along > ref else BACKWARD
-        self.state = ChainState(True, trunk, trunk, leaf_id, np.array(T_world_leaf, float),
-                                np.array(T_leaf_trunk, float), np.array(covariance, float), 0, 0.0, direction,
-                                np.array(T_world_leaf[:3, 3], float), None, s.leaves_since_check + 1, along)
+        self.state = ChainState(tracking=True, trunk=trunk, branch=trunk, twig_id=leaf_id,
+                                T_world_twig=np.array(T_world_leaf, float), T_twig_branch=np.array(T_leaf_trunk, float),
+                                twig_covariance=np.array(covariance, float), consecutive_failures=0,
+                                distance_since_success_m=0.0, direction=direction,
+                                last_position=np.array(T_world_leaf[:3, 3], float), candidate=None,
+                                leaves_since_check=s.leaves_since_check + 1, along_track_m=along)
 
     def failed(self, T_world_leaf: np.ndarray, trunk: int | None, *, lost: bool,
                candidate: Candidate | None = None) -> None:

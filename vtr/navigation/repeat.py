@@ -198,9 +198,12 @@ class Repeat:
                                      sub.trunk_features(est.matched), sub.trunk_features(est.matched[est.inlier]),
                                      t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
         s = c.state
-        return Localization(kf.t_ns, leaf_id, trunk_id, twig, branch, attempt.success, est.matches, est.inliers,
-                            attempt.T_report, covariance, s.consecutive_failures, s.distance_since_success_m, record,
-                            attempt.status, s.direction)
+        return Localization(t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id, twig_id=twig, branch_id=branch,
+                            success=attempt.success, matches=est.matches, inliers=est.inliers,
+                            T_leaf_trunk=attempt.T_report, covariance=covariance,
+                            consecutive_failures=s.consecutive_failures,
+                            distance_since_success_m=s.distance_since_success_m, landmarks=record,
+                            status=attempt.status, direction=s.direction)
 
     def _submap(self, trunk: int) -> TaughtSubmap:
         """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap (the submaps of

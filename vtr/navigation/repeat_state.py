@@ -324,8 +324,9 @@ class RepeatStateEstimator:
         if self.unknown is not None:
             nan3, nan = np.full((n, 3), np.nan), np.full(n, np.nan)
             trunks = self.trunk_index_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64)
-            return StateTable(t_ns, nan3, nan3.copy(), nan3.copy(), nan, self.path.ids[trunks], nan.copy(),
-                              nan.copy(), nan.copy(), np.zeros(n, bool))
+            return StateTable(t_ns=t_ns, position=nan3, velocity=nan3.copy(), acceleration=nan3.copy(), yaw=nan,
+                              trunk_id=self.path.ids[trunks], lateral=nan.copy(), vertical=nan.copy(),
+                              along_track=nan.copy(), localized=np.zeros(n, bool))
         if n and self.smoother.num_keyframes == 0:
             raise DataError("no repeat vertex was processed: no state to report")
         trunks = self.trunk_index_at(t_ns)
@@ -345,7 +346,8 @@ class RepeatStateEstimator:
         localized = np.asarray(self.vertex_localized, bool)[np.maximum(i, 0)] & (i >= 0)
         lat[~localized] = ver[~localized] = np.nan        # no path error where the repeat is not localized
         self.seconds += time.perf_counter() - t0
-        return StateTable(t_ns, P, Vel, A, yaw, self.path.ids[trunks], lat, ver, along, localized)
+        return StateTable(t_ns=t_ns, position=P, velocity=Vel, acceleration=A, yaw=yaw, trunk_id=self.path.ids[trunks],
+                          lateral=lat, vertical=ver, along_track=along, localized=localized)
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""

@@ -158,8 +158,9 @@ class StereoOdometry:
                 or np.degrees(rotation_angle(T_step[:3, :3])) > cfg.still_rotation_deg
             kind = FrameKind.CREATE_CANDIDATE if moved else FrameKind.DO_NOTHING
         self._remember(new_kf.id if new_kf else ref.id, np.eye(4) if new_kf else T_kf_frame)
-        return OdometryResult(frame.t_ns, frame.index, kind, n_matches, n_inliers, ref.id, T_kf_frame,
-                              T_world_frame, cov, new_kf, finalized)
+        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=kind, matches=n_matches, inliers=n_inliers,
+                              keyframe_id=ref.id, T_keyframe_frame=T_kf_frame, T_world_frame=T_world_frame,
+                              covariance=cov, new_keyframe=new_kf, finalized=finalized)
 
     def window_poses(self) -> dict[int, np.ndarray]:
         """Current ``T_world_kf`` (copies) of the keyframes in the window, by keyframe id: later keyframes' bundle
@@ -196,8 +197,9 @@ class StereoOdometry:
         self._T_cw_last, self._t_last = T_cw, frame.t_ns
         self._remember(kf.id, np.eye(4))
         new = self._public(kf)
-        return OdometryResult(frame.t_ns, frame.index, FrameKind.CREATE_VERTEX, 0, 0, kf.id, np.eye(4),
-                              inv_T(T_cw), new.edge_covariance, new)
+        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=FrameKind.CREATE_VERTEX, matches=0, inliers=0,
+                              keyframe_id=kf.id, T_keyframe_frame=np.eye(4), T_world_frame=inv_T(T_cw),
+                              covariance=new.edge_covariance, new_keyframe=new)
 
     def _new_window_keyframe(self, frame: StereoFrame, T_cw: np.ndarray, cov: np.ndarray, inliers: int,
                              lm_ids: np.ndarray, feat_idx: np.ndarray) -> _WindowKeyframe:
@@ -339,8 +341,9 @@ class StereoOdometry:
         unknown = np.eye(6) * self.config.odometry.failure_variance
         res = self._start(frame, T_pred, unknown)
         T_kf_frame = ref.T_cam_world @ inv_T(T_pred)
-        return OdometryResult(frame.t_ns, frame.index, FrameKind.FAILURE, 0, 0, ref.id, T_kf_frame,
-                              res.T_world_frame, unknown, res.new_keyframe, finalized)
+        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=FrameKind.FAILURE, matches=0, inliers=0,
+                              keyframe_id=ref.id, T_keyframe_frame=T_kf_frame, T_world_frame=res.T_world_frame,
+                              covariance=unknown, new_keyframe=res.new_keyframe, finalized=finalized)
 
     def _track(self, frame: StereoFrame, T_pred: np.ndarray, radius: float) -> _Track | None:
         """Match to the local map, RANSAC, refine ``T_cam_world``; None when too few inliers."""
