@@ -3,9 +3,10 @@
 Every file is compared byte for byte, except the three that hold the time of the run:
 
 - ``run.json``: compared after removing the clock (``start``, ``end``, and timings: ``seconds``, ``fps``,
-  ``*_ms_*``) and writing both folders' paths as ``<out>``;
-- a map (``*.vtrmap``): compared row by row in every table, without the creation times, the folders' paths
-  written as ``<out>``;
+  ``*_ms_*``) and the command line (``argv``), with both folders' paths written as ``<out>`` and the paths of
+  the package's shipped data (``.../datasets/``) as ``<repo>/datasets/`` (a checkout elsewhere is the same run);
+- a map (``*.vtrmap``): compared row by row in every table, without the creation times, paths written as in
+  ``run.json``;
 - ``.vtr-outputs`` (the output folder's marker, which holds the run's time): skipped.
 
 Prints one line per file that differs and a summary; exit 1 when anything differs.
@@ -17,21 +18,30 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sqlite3
 import sys
 from pathlib import Path
 
 CLOCK_KEYS = {"start", "end", "created", "seconds", "fps"}
+# where a run happened, not what it did: the command line (``vtr`` or ``python -m vtr``)
+PLACE_KEYS = {"argv"}
+# the package's shipped data, wherever the checkout is (``/work/main/datasets/...``, a worktree's copy)
+_SHIPPED = re.compile(r"/[^\s\"']*?/datasets/")
+
+
+def _place_free(text: str, root: str) -> str:
+    return _SHIPPED.sub("<repo>/datasets/", text.replace(root, "<out>"))
 
 
 def _without_clock(value, a: str, b: str):
     if isinstance(value, dict):
         return {k: _without_clock(v, a, b) for k, v in value.items()
-                if k not in CLOCK_KEYS and "_ms_" not in k and not k.endswith("_seconds")}
+                if k not in CLOCK_KEYS | PLACE_KEYS and "_ms_" not in k and not k.endswith("_seconds")}
     if isinstance(value, list):
         return [_without_clock(v, a, b) for v in value]
     if isinstance(value, str):
-        return value.replace(a, "<out>").replace(b, "<out>")
+        return _place_free(_place_free(value, a), b)
     return value
 
 
@@ -46,7 +56,7 @@ def _map_rows(path: Path, root: Path) -> dict[str, list[tuple]]:
             found = con.execute(f"SELECT {', '.join(keep)} FROM {table} ORDER BY 1").fetchall()
             if table == "meta":             # the map's creation time is a meta row
                 found = [r for r in found if r[0] != "created"]
-            rows[table] = [tuple(v.replace(str(root), "<out>") if isinstance(v, str) else v for v in r)
+            rows[table] = [tuple(_place_free(v, str(root)) if isinstance(v, str) else v for v in r)
                            for r in found]     # a run's source is a path inside the folder
         return rows
     finally:
