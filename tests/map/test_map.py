@@ -5,6 +5,7 @@ Vertices are small synthetic keyframes built from numpy (no images).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import signal
@@ -20,6 +21,7 @@ import pytest
 from vtr.camera import StereoCamera
 from vtr.config import MapConfig
 from vtr.errors import MapError, VtrError
+from vtr.geometry import usable_covariance
 from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from vtr.types import Features, StereoFrame
 
@@ -628,7 +630,8 @@ def test_add_keyframe_writes_vertex_and_edge_together(tmp_path):
         unknown = Keyframe(4, make_frame(rng, 10, index=15), pose(2.0), np.full((6, 6), np.nan), 0)
         with pytest.raises(MapError, match="NaN"):
             m.add_keyframe(run, unknown)
-        assert m.add_keyframe(run, unknown, unknown_variance=100.0).index == 4   # not estimated: stored as unknown
+        usable = dataclasses.replace(unknown, edge_covariance=usable_covariance(unknown.edge_covariance, 100.0))
+        assert m.add_keyframe(run, usable).index == 4   # not estimated: odometry makes it unknown
     with Map.open(path) as m:
         edges = m.edges(run=0)
         assert [(e.from_id, e.to_id, e.kind, e.inliers) for e in edges] == [(0, 1, "temporal", 61),

@@ -364,8 +364,8 @@ def test_relative_measurements_and_fixed_lag():
     for k in range(1, n):
         rel = np.linalg.inv(truth[k - 1]) @ truth[k] @ exp_se3(rng.normal(0, 1e-3, 6))
         if k % 10 == 0:   # a localization every second, odometry in between
-            sm.add_keyframe(k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov,
-                            T_prev_cur=rel, relative_covariance=cov)
+            sm.add_knot(k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov,
+                        T_prev_cur=rel, relative_covariance=cov)
         else:
             sm.add_relative_pose(k * HELIX_KEYFRAME_NS, rel, cov)
     knots = sm.knots()
@@ -444,8 +444,8 @@ def _bad_cases(cov):
         "asymmetric covariance": lambda s: s.add_pose(t, T, asym),
         "NaN covariance": lambda s: s.add_pose(t, T, nan_cov),
         "singular covariance": lambda s: s.add_pose(t, T, np.zeros((6, 6))),
-        "no measurement": lambda s: s.add_keyframe(t),
-        "pose without covariance": lambda s: s.add_keyframe(t, T_world_sensor=T),
+        "no measurement": lambda s: s.add_knot(t),
+        "pose without covariance": lambda s: s.add_knot(t, T_world_sensor=T),
         "query before first": lambda s: s.state_at(-1),
         "query with float time": lambda s: s.state_at(0.5),
     }

@@ -47,7 +47,7 @@ from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, Terminated, interruption
-from ..geometry import inv_T, usable_covariance
+from ..geometry import inv_T
 from . import integrity
 from .codec import decode_frame, encode_frame
 from .database import Connection, MapFile
@@ -384,22 +384,18 @@ class Map:
         return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
 
     def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True, unknown_variance: float | None = None) -> VertexRecord:
+                     link_previous: bool = True) -> VertexRecord:
         """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
 
         The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
-        keyframe's ``edge_covariance`` and ``edge_inliers``. With ``unknown_variance`` the covariance is
-        first made usable (:func:`vtr.geometry.usable_covariance`: an estimate without information becomes
-        ``unknown_variance * I``); without it, it must already be a valid covariance (else ``MapError``).
+        keyframe's ``edge_covariance`` and ``edge_inliers``; the covariance must be a valid one (else
+        ``MapError``): odometry makes it usable where it produces the keyframe (``vtr.vo``).
         The edge is written when the run already has a vertex and ``link_previous`` is true (pass false
         for the first keyframe of a new odometry session, e.g. after resuming a teach).
         """
         edge = None
         if link_previous:
-            C = keyframe.edge_covariance
-            if unknown_variance is not None:
-                C = usable_covariance(C, unknown_variance)
-            edge = (check_covariance(C, "temporal edge covariance"),
+            edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
                     _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
         return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
                                 edge)

@@ -456,13 +456,13 @@ class TrajectorySmoother:
 
     def add_pose(self, t_ns: int, T_world_sensor: np.ndarray, covariance: np.ndarray) -> None:
         """Add a keyframe at ``t_ns`` with an absolute pose measurement ``T_world_sensor`` (6x6 covariance)."""
-        self.add_keyframe(t_ns, T_world_sensor=T_world_sensor, covariance=covariance)
+        self.add_knot(t_ns, T_world_sensor=T_world_sensor, covariance=covariance)
 
     def add_relative_pose(self, t_ns: int, T_prev_cur: np.ndarray, covariance: np.ndarray) -> None:
         """Add a keyframe at ``t_ns`` measured by odometry ``T_prev_cur`` from the previous keyframe."""
-        self.add_keyframe(t_ns, T_prev_cur=T_prev_cur, relative_covariance=covariance)
+        self.add_knot(t_ns, T_prev_cur=T_prev_cur, relative_covariance=covariance)
 
-    def add_keyframe(
+    def add_knot(
         self,
         t_ns: int,
         *,
@@ -494,11 +494,11 @@ class TrajectorySmoother:
             if t_ns < last:
                 raise EstimationError(f"t_ns={t_ns}: out of order (last keyframe at {last})")
         if T_world_sensor is None and T_prev_cur is None:
-            raise EstimationError("add_keyframe: needs T_world_sensor and/or T_prev_cur")
+            raise EstimationError("add_knot: needs T_world_sensor and/or T_prev_cur")
         if (T_world_sensor is None) != (covariance is None):
-            raise EstimationError("add_keyframe: T_world_sensor and covariance go together")
+            raise EstimationError("add_knot: T_world_sensor and covariance go together")
         if (T_prev_cur is None) != (relative_covariance is None):
-            raise EstimationError("add_keyframe: T_prev_cur and relative_covariance go together")
+            raise EstimationError("add_knot: T_prev_cur and relative_covariance go together")
         if c.n == 0 and T_world_sensor is None:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import Config, OdometryConfig
-from ..geometry import exp_se3, inv_T, log_se3, rotation_angle
+from ..geometry import exp_se3, inv_T, log_se3, rotation_angle, usable_covariance
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from .estimation import bundle_adjust, odometry_row_weights, ransac_pnp, triangulate_bearings
@@ -195,7 +195,7 @@ class StereoOdometry:
         self._remember(kf.id, np.eye(4))
         new = self._public(kf)
         return OdometryResult(frame.t_ns, frame.index, FrameKind.CREATE_VERTEX, 0, 0, kf.id, np.eye(4),
-                              inv_T(T_cw), new.edge_covariance, new)
+                              inv_T(T_cw), kf.edge_covariance, new)
 
     def _new_window_keyframe(self, frame: StereoFrame, T_cw: np.ndarray, cov: np.ndarray, inliers: int,
                              lm_ids: np.ndarray, feat_idx: np.ndarray) -> _WindowKeyframe:
@@ -225,8 +225,10 @@ class StereoOdometry:
         return self._public(kf), tuple(finalized)
 
     def _public(self, kf: _WindowKeyframe) -> Keyframe:
-        return Keyframe(kf.id, self._refined_frame(kf), self._keyframe_poses[kf.id], kf.edge_covariance,
-                        kf.edge_inliers)
+        """The keyframe as the map takes it: its edge covariance made usable (an estimate without
+        information, e.g. the zeros of a run's first keyframe, becomes ``odometry.failure_variance * I``)."""
+        C = usable_covariance(kf.edge_covariance, self.config.odometry.failure_variance)
+        return Keyframe(kf.id, self._refined_frame(kf), self._keyframe_poses[kf.id], C, kf.edge_inliers)
 
     def _refined_frame(self, kf: _WindowKeyframe) -> StereoFrame:
         """The keyframe's stereo frame with its landmarks where the windowed bundle adjustment put them
