@@ -9,6 +9,10 @@ may import from its own subpackage or from a layer to its left, never to its rig
 Every import is checked, including those inside functions and under ``TYPE_CHECKING`` (read with ``ast``
 from the source, nothing is imported). ``perception_model`` is a separate package and imports nothing
 from ``vtr``.
+
+Owners of outside libraries: only the map's file layer (``vtr.map.database``) imports ``sqlite3``, in
+``vtr`` and ``perception_model`` (tests and tools may open map files directly); the WNOA algebra
+(``vtr.state.wnoa``) imports no GTSAM.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ RANK = {name: i for i, name in enumerate(LAYERS)}
 BOTTOM_MODULES = {"vtr", "vtr.errors", "vtr.conventions", "vtr.config", "vtr.geometry", "vtr.camera", "vtr.timing",
                   "vtr.types", "vtr.parallel", "vtr.signals"}
 ENTRY_POINTS = {"vtr.__main__": "cli"}   # ``python -m vtr`` runs the command line
+SQLITE_OWNER = "vtr.map.database"       # the one module that talks to SQLite
+GTSAM_FREE = ("vtr.state.wnoa",)        # pure numpy algebra
 
 
 def module_name(path: Path) -> str:
@@ -96,3 +102,22 @@ def test_perception_model_imports_nothing_from_vtr():
            for line, target in imports(path)
            if target == "vtr" or target.startswith("vtr.")]
     assert not bad, "perception_model imports vtr:\n" + "\n".join(bad)
+
+
+def test_only_the_map_file_layer_imports_sqlite3():
+    bad = [f"{path.relative_to(ROOT)}:{line}: {module_name(path)} imports {target}"
+           for package in ("vtr", "perception_model")
+           for path in sources(package)
+           if module_name(path) != SQLITE_OWNER
+           for line, target in imports(path)
+           if target == "sqlite3" or target.startswith("sqlite3.")]
+    assert not bad, f"only {SQLITE_OWNER} may import sqlite3 (use the map API):\n" + "\n".join(bad)
+
+
+def test_wnoa_algebra_imports_no_gtsam():
+    bad = [f"{path.relative_to(ROOT)}:{line}: {target}"
+           for path in sources("vtr")
+           if module_name(path) in GTSAM_FREE
+           for line, target in imports(path)
+           if target == "gtsam" or target.startswith("gtsam.")]
+    assert not bad, "the WNOA algebra is numpy only:\n" + "\n".join(bad)

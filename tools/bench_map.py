@@ -113,7 +113,7 @@ def walk(path: Path) -> dict:
         taught = m.taught_path()
         ids, T = taught.ids, taught.T_world_vertex
         t_poses = time.perf_counter() - t0
-        m.nearest_vertices(T[0, :3, 3], 1)  # warm-up: imports scipy, builds the k-d tree
+        taught.nearest(T[0, :3, 3], 1)  # warm-up: imports scipy, builds the k-d tree
         m.vertex(int(ids[0]))
         warm = rss_kb()["VmRSS"]
         rss = {}
@@ -122,9 +122,10 @@ def walk(path: Path) -> dict:
         t_start = time.perf_counter()
         for step, T_v in enumerate(T):
             t0 = time.perf_counter()
-            trunk = int(m.nearest_vertices(T_v[:3, 3] + [0.3, 0.0, 0.1], 1)[0])
+            trunk = int(taught.nearest(T_v[:3, 3] + [0.3, 0.0, 0.1], 1)[0])
             t1 = time.perf_counter()
-            for vid in m.window(trunk, WINDOW_BACK, WINDOW_FORWARD):
+            lo, hi = taught.window(trunk, WINDOW_BACK, WINDOW_FORWARD)
+            for vid in taught.ids[lo:hi].tolist():
                 v = m.vertex(vid)
                 reads += v.n_features
             t2 = time.perf_counter()

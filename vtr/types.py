@@ -85,7 +85,8 @@ class Keyframe:
     """A keyframe from odometry: its stereo frame, camera pose in the run's world and what odometry measured.
 
     ``edge_covariance`` (6x6, [rot, trans], GTSAM tangent order) and ``edge_inliers`` describe the
-    odometry estimate of this keyframe's pose; the map's temporal edge from the run's previous vertex
+    odometry estimate of this keyframe's pose (the covariance already usable: an estimate without
+    information is ``odometry.failure_variance * I``); the map's temporal edge from the run's previous vertex
     (:meth:`vtr.map.Map.add_keyframe`, the one way a keyframe reaches the map) takes them, with the
     relative transform from the two stored poses.
     """

@@ -88,7 +88,7 @@ def test_readers_write_nothing_beside_a_read_only_map(small_map, tmp_path):
         assert r.exit_code == 0, r.output
         m = open_map(small_map)
         try:
-            assert m.mode == "r" and len(m.nearest_vertices(np.zeros(3), 2)) == 2
+            assert m.mode == "r" and len(m.taught_path().nearest(np.zeros(3), 2)) == 2
         finally:
             m.close()
         assert sorted(p.name for p in folder.iterdir()) == ["route.vtrmap"]

@@ -23,8 +23,9 @@ from test_map import CAMERA, cov, make_frame, pose
 from vtr.cli import main
 from vtr.errors import MapError, Terminated
 from vtr.map import Map
+from vtr.map.database import connect
 from vtr.map.records import REASON_MAX_CHARS
-from vtr.map.store import INTERRUPTED_REASON, _connect
+from vtr.map.store import INTERRUPTED_REASON
 from vtr.types import Keyframe
 
 SUBPROCESS_TIMEOUT_S = 60
@@ -64,12 +65,12 @@ def test_orderly_close_finishes_and_exception_aborts_with_reason(tmp_path):
         with pytest.raises(MapError, match="no open run"):
             add_vertices(m, 1, 1)
         with pytest.raises(sqlite3.IntegrityError, match="cannot be reopened"):
-            m._conn.execute("UPDATE runs SET state = 'finished', reason = '' WHERE id = 1")
+            m.file.conn.execute("UPDATE runs SET state = 'finished', reason = '' WHERE id = 1")
         with pytest.raises(sqlite3.IntegrityError, match="finished or aborted run"):
-            m._conn.execute("INSERT INTO vertices VALUES ((1 << 32) | 9, 1, 9, 0, zeroblob(128), zeroblob(128), "
+            m.file.conn.execute("INSERT INTO vertices VALUES ((1 << 32) | 9, 1, 9, 0, zeroblob(128), zeroblob(128), "
                             "0, 0, 0)")
         with pytest.raises(sqlite3.IntegrityError):   # aborted needs a reason, finished has none
-            m._conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) "
+            m.file.conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) "
                             "VALUES (9, 'teach', 1, '', '', 'aborted')")
         m.abort_run("x" * 2000)   # no open run: nothing happens
     assert len(states(path)) == 4
@@ -223,7 +224,7 @@ def test_opens_read_only_from_read_only_folder_and_media(tmp_path):
     assert con.execute("PRAGMA journal_mode = WAL").fetchone()[0] == "wal"
     con.close()
     assert not os.path.exists(f"{wal_mode}-wal")
-    con = _connect(wal_mode, readonly=True, immutable=True)
+    con = connect(wal_mode, readonly=True, immutable=True)
     assert con.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 3
     con.close()
     assert not os.path.exists(f"{wal_mode}-shm") and not os.path.exists(f"{wal_mode}-wal")
@@ -261,13 +262,13 @@ def test_read_only_folder_refuses_writing_but_reads(tmp_path):
 def test_unfolded_log_on_read_only_media_is_a_clear_error(tmp_path, monkeypatch):
     """When mode=ro cannot open and a -wal with data lies beside the map, immutable=1 would silently
     drop its data: refuse with one line instead."""
-    import vtr.map.store as store
+    import vtr.map.database as database
 
     path = tmp_path / "route.vtrmap"
     with Map.create(path, CAMERA) as m:
         add_vertices(m, m.begin_run("teach"), 2)
     (tmp_path / "route.vtrmap-wal").write_bytes(b"\0" * 4096)
-    real = store._connect
+    real = database.connect
 
     def ro_fails(p, readonly, immutable=False):
         conn = real(p, readonly, immutable)
@@ -278,7 +279,7 @@ def test_unfolded_log_on_read_only_media_is_a_clear_error(tmp_path, monkeypatch)
             return _Failing(conn)
         return conn
 
-    monkeypatch.setattr(store, "_connect", ro_fails)
+    monkeypatch.setattr(database, "connect", ro_fails)
     with pytest.raises(MapError, match=r"route.vtrmap: cannot open read-only .* route.vtrmap-wal holds data"):
         Map.open(path)
 

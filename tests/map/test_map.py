@@ -5,6 +5,7 @@ Vertices are small synthetic keyframes built from numpy (no images).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import signal
@@ -20,6 +21,7 @@ import pytest
 from vtr.camera import StereoCamera
 from vtr.config import MapConfig
 from vtr.errors import MapError, VtrError
+from vtr.geometry import usable_covariance
 from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from vtr.types import Features, StereoFrame
 
@@ -172,14 +174,14 @@ def test_reopened_in_a_new_process(tmp_path):
     path = tmp_path / "teach.vtrmap"
     write_teach(path)
     with Map.open(path) as m:
-        expected = [digest(m.vertex(int(v))) for v in m.privileged_path()]
+        expected = [digest(m.vertex(int(v))) for v in m.taught_path().ids]
     code = textwrap.dedent(f"""
         import hashlib, sys
         sys.path.insert(0, {os.path.dirname(__file__)!r})
         from test_map import digest
         from vtr.map import Map
         with Map.open(sys.argv[1]) as m:
-            for v in m.privileged_path():
+            for v in m.taught_path().ids:
                 print(digest(m.vertex(int(v))))
     """)
     r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
@@ -237,7 +239,7 @@ def test_sigkill_mid_teach_keeps_every_committed_vertex(tmp_path):
         assert len(m.edges(run=0)) in (len(stored) - 1, len(stored) - 2)
         [info] = m.runs()
         assert info.kind == "teach" and not info.finished
-        assert m.privileged_path().tolist() == stored.tolist()
+        assert m.taught_path().ids.tolist() == stored.tolist()
     # reopened for appending, the interrupted teach is the open run and continues
     with Map.open(path, "a") as m:
         assert m.open_run == 0
@@ -318,9 +320,7 @@ def test_empty_map_opens_and_has_no_taught_path(tmp_path):
         assert m.runs() == [] and m.edges() == []
         assert m.stats()["vertices"] == 0 and m.landmarks()[0].shape == (0, 3)
         with pytest.raises(MapError, match="map has no taught run"):
-            m.privileged_path()
-        with pytest.raises(MapError, match="map has no taught run"):
-            m.nearest_vertices(np.zeros(3), 1)
+            m.taught_path()
     with Map.open(path, "a") as m:
         m.begin_run("repeat")  # a repeat alone is no taught path either
         with pytest.raises(MapError, match="map has no taught run"):
@@ -353,7 +353,7 @@ def test_read_only_refuses_every_write(tmp_path):
             with pytest.raises(MapError, match="read-only"):
                 attempt()
         with pytest.raises(sqlite3.OperationalError):  # even raw SQL on its connection is refused
-            m._conn.execute("INSERT INTO runs VALUES (9, 'repeat', 0, '', '', 0)")
+            m.file.conn.execute("INSERT INTO runs VALUES (9, 'repeat', 0, '', '', 0)")
     assert path.read_bytes() == before
     m.close()  # closing twice is harmless
     with pytest.raises(MapError, match="closed"):
@@ -444,7 +444,7 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
             m.add_vertex(0, 0, pose(0.0), make_frame(rng, 5))
         rep = m.begin_run("repeat", source="repeat 1")
         assert rep == 1 and not m.run(rep).privileged
-        teach_ids = m.privileged_path()
+        teach_ids = m.taught_path().ids
         prev = None
         for i in range(4):
             v = m.add_vertex(rep, 10**10 + i, pose(i + 0.1, y=0.3), make_frame(rng, 20, index=i))
@@ -466,12 +466,12 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
                     "UPDATE edges SET inliers = 0", "UPDATE runs SET state = 'running' WHERE id = 0",
                     "INSERT INTO vertices VALUES (7, 0, 7, 0, zeroblob(128), zeroblob(128), 0, 0, 0)"):
             with pytest.raises(sqlite3.IntegrityError):
-                m._conn.execute(sql)
+                m.file.conn.execute(sql)
         assert len(m.edges(run=rep, kind="spatial")) == 4 and len(m.edges(run=0, kind="spatial")) == 4
     assert run_rows_digest(path, 0) == before
     with Map.open(path) as m:
         assert [(r.kind, r.n_vertices, r.finished) for r in m.runs()] == [("teach", 6, True), ("repeat", 4, True)]
-        assert m.privileged_path().tolist() == [vertex_id(0, i) for i in range(6)]
+        assert m.taught_path().ids.tolist() == [vertex_id(0, i) for i in range(6)]
 
 
 # ------------------------------------------------------------------ queries
@@ -496,8 +496,8 @@ def test_window_nearest_and_poses_without_features(tmp_path):
                 reads.append(arg1)
             return sqlite3.SQLITE_OK
 
-        m._conn.set_authorizer(authorizer)
-        path_ids = m.privileged_path()
+        m.file.conn.set_authorizer(authorizer)
+        path_ids = m.taught_path().ids
         assert path_ids.tolist() == [vertex_id(0, i) for i in range(n)]
         taught = m.taught_path()
         ids, T = taught.ids, taught.T_world_vertex
@@ -505,21 +505,26 @@ def test_window_nearest_and_poses_without_features(tmp_path):
         assert taught.index(vertex_id(0, 7)) == 7 and taught.window(2, 10, 3) == (0, 6)
         assert taught.segment(3, 5).ids.tolist() == [vertex_id(0, 3), vertex_id(0, 4)]
         assert np.allclose(taught.arc_length_m()[-1], np.sum(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)))
-        assert m.window(vertex_id(0, 20), 10, 20) == [vertex_id(0, i) for i in range(10, 40)]
-        assert m.window(vertex_id(0, 2), 10, 3) == [vertex_id(0, i) for i in range(0, 6)]
-        assert m.window(vertex_id(0, 38), 1, 20) == [vertex_id(0, i) for i in range(37, 40)]
-        assert m.window(vertex_id(0, 5), 0, 0) == [vertex_id(0, 5)]
+
+        def window(center_id, back, forward):
+            lo, hi = taught.window(taught.index(center_id), back, forward)
+            return taught.ids[lo:hi].tolist()
+
+        assert window(vertex_id(0, 20), 10, 20) == [vertex_id(0, i) for i in range(10, 40)]
+        assert window(vertex_id(0, 2), 10, 3) == [vertex_id(0, i) for i in range(0, 6)]
+        assert window(vertex_id(0, 38), 1, 20) == [vertex_id(0, i) for i in range(37, 40)]
+        assert window(vertex_id(0, 5), 0, 0) == [vertex_id(0, 5)]
         with pytest.raises(MapError, match="not on the privileged path"):
-            m.window(vertex_id(1, 0), 1, 1)
+            taught.index(vertex_id(1, 0))
         centres = T[:, :3, 3]
         for q in rng.uniform([-2, -2, -1], [xs[-1] + 2, 2, 1], (25, 3)):
-            got = m.nearest_vertices(q, 3)
+            got = ids[taught.nearest(q, 3)]
             order = np.argsort(np.linalg.norm(centres - q, axis=1), kind="stable")[:3]
             assert got.tolist() == ids[order].tolist()
-        assert len(m.nearest_vertices(centres[5], 100)) == n
-        assert m.nearest_vertices(centres[5], 1).tolist() == [vertex_id(0, 5)]
+        assert len(taught.nearest(centres[5], 100)) == n
+        assert ids[taught.nearest(centres[5], 1)].tolist() == [vertex_id(0, 5)]
         with pytest.raises(MapError, match="position"):
-            m.nearest_vertices([np.nan, 0, 0], 1)
+            taught.nearest([np.nan, 0, 0], 1)
         m.poses(0)
         m.stats()
         m.runs()
@@ -625,7 +630,8 @@ def test_add_keyframe_writes_vertex_and_edge_together(tmp_path):
         unknown = Keyframe(4, make_frame(rng, 10, index=15), pose(2.0), np.full((6, 6), np.nan), 0)
         with pytest.raises(MapError, match="NaN"):
             m.add_keyframe(run, unknown)
-        assert m.add_keyframe(run, unknown, unknown_variance=100.0).index == 4   # not estimated: stored as unknown
+        usable = dataclasses.replace(unknown, edge_covariance=usable_covariance(unknown.edge_covariance, 100.0))
+        assert m.add_keyframe(run, usable).index == 4   # not estimated: odometry makes it unknown
     with Map.open(path) as m:
         edges = m.edges(run=0)
         assert [(e.from_id, e.to_id, e.kind, e.inliers) for e in edges] == [(0, 1, "temporal", 61),

@@ -43,7 +43,7 @@ def test_repeat_recovers_lateral_offset(taught, lateral):
     path = root / f"map{lateral:g}.vtrmap"
     path.write_bytes((root / "route.vtrmap").read_bytes())
     with open_source(rep_dir) as src, Map.open(path, "a") as m:
-        teach_t = {int(i): m.vertex(int(i)).t_ns for i in m.privileged_path()}
+        teach_t = {int(i): m.vertex(int(i)).t_ns for i in m.taught_path().ids}
         rp = Repeat(m, Config(), str(rep_dir))
         locs = [s.localization for s in (rp.process(im) for im in src) if s.localization is not None]
     teach_t_ns = syn.route_times(T_teach, 4.0)

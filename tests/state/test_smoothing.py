@@ -13,18 +13,25 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-import vtr.state.smoothing as sm_mod
 from vtr.config import SmoothingConfig
 from vtr.conventions import NS_PER_S as NS
 from vtr.errors import EstimationError
 from vtr.geometry import exp_se3, log_se3
 from vtr.state.smoothing import (
+    Segment,
     TrajectorySmoother,
     TrajectoryState,
-    _hermite_matrix,
-    _Segment,
+    d_jr_inv_times,
+    d_jr_times,
+    expmap,
     extrapolation_jacobian,
     interpolation_jacobian,
+    jr,
+    jr_inv,
+)
+from vtr.state.wnoa import (
+    hermite_matrix,
+    local_variable,
     wnoa_conditional_Q,
     wnoa_interpolation_matrices,
     wnoa_Phi,
@@ -94,7 +101,7 @@ def helix_run():
 def test_hermite_equals_wnoa_interpolation_matrices(frac, dt):
     tau = frac * dt
     Lam, Psi = wnoa_interpolation_matrices(tau, dt)
-    H = _hermite_matrix(tau, dt)
+    H = hermite_matrix(tau, dt)
     # weights of (dt v1, xi21, dt g21) -> (Lam01 v1 + Psi00 xi21 + Psi01 g21, Lam11 v1 + Psi10 xi21 + Psi11 g21)
     np.testing.assert_allclose(H[0] * [dt, 1, dt], [Lam[0, 1], Psi[0, 0], Psi[0, 1]], atol=1e-9)
     np.testing.assert_allclose(H[1] * [dt, 1, dt], [Lam[1, 1], Psi[1, 0], Psi[1, 1]], atol=1e-9)
@@ -117,12 +124,9 @@ def test_interpolation_matches_gtsam(frac):
     T1, v1, T2, v2, dt = _random_segment(rng)
     q = np.array([0.1, 0.2, 0.3, 1.0, 2.0, 3.0])
     tau = frac * dt
-    cfg = SmoothingConfig(qc_rotation=0.1, qc_translation=1.0)
-    sm = TrajectorySmoother(cfg)
-    sm._cache.n = 0  # use the query code on hand-made knots
-    seg = _Segment(T1, v1, T2, v2, dt)
-    xi, dxi, _ = TrajectorySmoother._local(seg, tau)
-    E_xi, Jr = sm_mod._exp(xi)
+    seg = Segment(T1, v1, T2, v2, dt)
+    xi, dxi, _ = local_variable(tau, seg.dt, seg.M)
+    E_xi, Jr = expmap(xi)
     vals = gtsam.Values()
     vals.insert(X(0), gtsam.Pose3(T1))
     vals.insert(V(0), v1)
@@ -139,9 +143,9 @@ def test_interpolation_matches_gtsam(frac):
 
 
 def _interp_state(T1, v1, T2, v2, dt, tau):
-    seg = _Segment(T1, v1, T2, v2, dt)
-    xi, dxi, _ = TrajectorySmoother._local(seg, tau)
-    E_xi, Jr = sm_mod._exp(xi)
+    seg = Segment(T1, v1, T2, v2, dt)
+    xi, dxi, _ = local_variable(tau, seg.dt, seg.M)
+    E_xi, Jr = expmap(xi)
     return T1 @ E_xi, Jr @ dxi
 
 
@@ -166,9 +170,9 @@ def test_interpolation_jacobian_numerical(frac):
     rng = np.random.default_rng(11)
     T1, v1, T2, v2, dt = _random_segment(rng, dt=0.3)
     tau = frac * dt
-    seg = _Segment(T1, v1, T2, v2, dt)
-    xi, dxi, _ = TrajectorySmoother._local(seg, tau)
-    E_xi, Jr = sm_mod._exp(xi)
+    seg = Segment(T1, v1, T2, v2, dt)
+    xi, dxi, _ = local_variable(tau, seg.dt, seg.M)
+    E_xi, Jr = expmap(xi)
     A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr)
     T0, w0 = _interp_state(T1, v1, T2, v2, dt, tau)
     def perturbed(j, d):
@@ -197,7 +201,7 @@ def test_jr_derivatives_numerical():
     rng = np.random.default_rng(2)
     xi, w = rng.normal(size=6), rng.normal(size=6)
     h = 1e-4
-    for fn, jac in ((sm_mod._jr, sm_mod._d_jr_times), (sm_mod._jr_inv, sm_mod._d_jr_inv_times)):
+    for fn, jac in ((jr, d_jr_times), (jr_inv, d_jr_inv_times)):
         num = np.stack(
             [(fn(xi + h * e) @ w - fn(xi - h * e) @ w) / (2 * h) for e in np.eye(6)], axis=1
         )
@@ -333,7 +337,7 @@ def test_covariance_matches_batch_marginals():
     for t, M in zip(times, meas, strict=True):
         sm.add_pose(t, M, cov)
     sm.refine(5)
-    vel_sig = sm._velocity_prior_sigmas
+    vel_sig = sm.velocity_prior_sigmas
     worst = {}
     for t_q, kind in ((times[-2] + 37_000_000, "interpolated"), (times[-1], "knot"),
                       (times[-1] + 300_000_000, "extrapolated")):
@@ -364,8 +368,8 @@ def test_relative_measurements_and_fixed_lag():
     for k in range(1, n):
         rel = np.linalg.inv(truth[k - 1]) @ truth[k] @ exp_se3(rng.normal(0, 1e-3, 6))
         if k % 10 == 0:   # a localization every second, odometry in between
-            sm.add_keyframe(k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov,
-                            T_prev_cur=rel, relative_covariance=cov)
+            sm.add_knot(k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov,
+                        T_prev_cur=rel, relative_covariance=cov)
         else:
             sm.add_relative_pose(k * HELIX_KEYFRAME_NS, rel, cov)
     knots = sm.knots()
@@ -444,8 +448,8 @@ def _bad_cases(cov):
         "asymmetric covariance": lambda s: s.add_pose(t, T, asym),
         "NaN covariance": lambda s: s.add_pose(t, T, nan_cov),
         "singular covariance": lambda s: s.add_pose(t, T, np.zeros((6, 6))),
-        "no measurement": lambda s: s.add_keyframe(t),
-        "pose without covariance": lambda s: s.add_keyframe(t, T_world_sensor=T),
+        "no measurement": lambda s: s.add_knot(t),
+        "pose without covariance": lambda s: s.add_knot(t, T_world_sensor=T),
         "query before first": lambda s: s.state_at(-1),
         "query with float time": lambda s: s.state_at(0.5),
     }

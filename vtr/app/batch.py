@@ -46,7 +46,6 @@ import logging
 import os
 import re
 import signal
-import sqlite3
 import threading
 import time
 import traceback
@@ -365,12 +364,9 @@ def copy_map(src: Path, dst: Path) -> None:
     """Copy a closed map file consistently (SQLite's online backup: WAL content included)."""
     if not src.is_file():
         raise DataError(f"{src}: the taught map is missing (its teach did not finish)")
-    s, d = sqlite3.connect(src), sqlite3.connect(dst)   # read-write: the last one out removes the WAL files
-    try:
-        s.backup(d)
-    finally:
-        d.close()
-        s.close()
+    from ..map import copy_map_file
+
+    copy_map_file(src, dst)
 
 
 def prepare_run_folder(out: Path, spec: RunSpec) -> OutputFolder:

@@ -29,7 +29,6 @@ from ..errors import OutputError
 
 RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
 TMP_TAG = ".vtr-tmp-"              # temporary names: .vtr-tmp-<hex>-<name>, renamed to <name> when complete
-SQLITE_SIDE_FILES = ("-wal", "-shm", "-journal")   # removed with a recorded map
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
 
@@ -224,8 +223,10 @@ class OutputFolder:
     def clear(self) -> None:
         """Remove every file vtr made here (as recorded; a map with its SQLite side files), then the record.
         Nothing else is touched: entries that are links or folders are left alone."""
+        from ..map.database import SIDE_FILES  # SQLite's files beside a map
+
         for name in sorted(self.made):
-            for n in (name, *(name + s for s in SQLITE_SIDE_FILES)):
+            for n in (name, *(name + s for s in SIDE_FILES)):
                 p = self.path / n
                 try:
                     st = os.lstat(p)

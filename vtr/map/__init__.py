@@ -17,10 +17,12 @@ Typical use (teach, then a repeat localized against it)::
 Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C and SIGTERM too)
 records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
 See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability rules,
+:mod:`vtr.map.database` for the file layer (SQLite connection, exclusive creation, WAL folding),
 :mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.schema` for the file layout,
 :mod:`vtr.map.codec` for the vertex codec.
 """
 
+from .database import copy_map_file
 from .path import TaughtPath
 from .records import EdgeRecord, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from .store import MAP_FORMAT_VERSION, VERTEX_CACHE_SIZE, Map
@@ -33,6 +35,7 @@ __all__ = [
     "RunInfo",
     "TaughtPath",
     "VertexRecord",
+    "copy_map_file",
     "split_vertex_id",
     "vertex_id",
 ]

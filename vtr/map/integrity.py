@@ -22,7 +22,6 @@ poses it joins (catches a moved vertex in a map without checksums too).
 from __future__ import annotations
 
 import hashlib
-import sqlite3
 import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -30,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import MapError
+from .database import Connection
 
 if TYPE_CHECKING:
     from .path import TaughtPath
@@ -85,19 +85,19 @@ def data_sum(vid: int, blob: object) -> bytes:
     return h.digest()
 
 
-def has_checksums(conn: sqlite3.Connection) -> bool:
+def has_checksums(conn: Connection) -> bool:
     """The map was created with checksums (its ``meta`` says so; then every vertex must have them)."""
     row = conn.execute("SELECT value FROM meta WHERE key = ?", (META_KEY,)).fetchone()
     return row is not None
 
 
-def create(conn: sqlite3.Connection) -> None:
+def create(conn: Connection) -> None:
     """Add the checksum table to a new map (inside its creation transaction)."""
     conn.executescript(SCHEMA)
     conn.execute("INSERT INTO meta(key, value) VALUES (?, ?)", (META_KEY, META_VALUE))
 
 
-def write(conn: sqlite3.Connection, vid: int, run: int, idx: int, t_ns: int, T_wv: bytes, T_vs: bytes,
+def write(conn: Connection, vid: int, run: int, idx: int, t_ns: int, T_wv: bytes, T_vs: bytes,
           n_features: int, n_landmarks: int, frame_index: int, blob: bytes) -> None:
     """The checksums of a vertex being inserted (same transaction)."""
     conn.execute(f"INSERT INTO {TABLE}(id, row_sum, data_sum) VALUES (?, ?, ?)",
@@ -117,7 +117,7 @@ def _damaged(where: str, vid: object, what: str) -> MapError:
                     "(`vtr map check` lists what else is)")
 
 
-def verify_rows(conn: sqlite3.Connection, where: str, lo: int, hi: int, data: bool = False) -> int:
+def verify_rows(conn: Connection, where: str, lo: int, hi: int, data: bool = False) -> int:
     """Check the checksums of the vertices with ids in ``[lo, hi]`` (and their blobs when ``data``); returns
     how many were checked. ``MapError`` naming the first damaged vertex."""
     cols = ROW_COLUMNS + ", c.row_sum, c.data_sum" + (", d.data" if data else "")
@@ -180,7 +180,7 @@ def check_taught_path(where: str, path: TaughtPath) -> None:
                                                 f"vertex's {int(path.t_ns[k - 1])} ns")
 
 
-def check_path_edges(conn: sqlite3.Connection, where: str, path: TaughtPath) -> None:
+def check_path_edges(conn: Connection, where: str, path: TaughtPath) -> None:
     """``MapError`` when a temporal edge between taught vertices disagrees with their poses (``add_vertex``
     computes one from the other: a difference is a moved vertex or a damaged edge, checksums or not)."""
     from ..geometry import inv_T
@@ -204,7 +204,7 @@ def check_path_edges(conn: sqlite3.Connection, where: str, path: TaughtPath) -> 
                                           f"{float(d[:3, 3].max()):.3g} m (a moved vertex or a damaged edge)")
 
 
-def check_vertex_runs(conn: sqlite3.Connection, where: str) -> None:
+def check_vertex_runs(conn: Connection, where: str) -> None:
     """``MapError`` when a vertex belongs to a run the runs table does not hold, or its id and run disagree."""
     r = conn.execute("SELECT v.id, v.run FROM vertices v LEFT JOIN runs r ON r.id = v.run "
                      "WHERE r.id IS NULL OR v.id <> ((v.run << 32) | v.idx) LIMIT 1").fetchone()
@@ -236,7 +236,7 @@ def check_map(m: object) -> CheckReport:
 
     assert isinstance(m, Map)
     where = str(m.path)
-    with m._db() as conn:
+    with m.file.connection() as conn:
         result = conn.execute("PRAGMA integrity_check").fetchall()
         if [tuple(r) for r in result] != [("ok",)]:
             raise MapError(f"{where}: the SQLite file is damaged ({str(result[0][0]).splitlines()[0]})")
@@ -278,5 +278,5 @@ def check_vertex_runs_of(m: object) -> None:
     from .store import Map
 
     assert isinstance(m, Map)
-    with m._db() as conn:
+    with m.file.connection() as conn:
         check_vertex_runs(conn, str(m.path))

@@ -19,28 +19,24 @@ SIGTERM does it). A run still marked running when no process holds the map's wri
 by a killed process and reads as ``interrupted``. A map appends only to its *open run*; finished
 and aborted runs never change (SQLite triggers enforce it as well as this class).
 
-Creation is exclusive: the schema is written to a temporary file beside the target, which is then
-hard-linked to the final name (fails if the name exists), so of two processes creating one map
-exactly one wins and the other's cleanup never touches the winner's file. One writing process at
-a time (``MapLock``: a second writer gets "another process is writing this map"); the per-session
-caches (vertex LRU, privileged path, k-d tree) do not see writes made by other processes after
-opening.
+The file itself (SQLite connection, exclusive creation by hard link, the writer lock, WAL folding,
+transactions) is :mod:`vtr.map.database`; this module gives it its meaning. Creation is exclusive:
+of two processes creating one map exactly one wins and the other's cleanup never touches the
+winner's file. One writing process at a time (``MapLock``: a second writer gets "another process is
+writing this map"); the per-session caches (vertex LRU, privileged path, k-d tree) do not see
+writes made by other processes after opening.
 
 Memory stays bounded on long routes: :meth:`Map.vertex` keeps at most ``cache_size`` decoded
-vertices, and poses, the privileged path, windows and nearest-vertex queries come from the small
-pose index without reading feature data.
+vertices, and poses and the privileged path (:class:`vtr.map.path.TaughtPath`, which answers window
+and nearest-vertex queries) come from the small pose index without reading feature data.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import secrets
-import sqlite3
-import threading
 from collections import OrderedDict
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import AbstractContextManager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -50,11 +46,11 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, Terminated, VtrError, interruption
-from ..geometry import inv_T, usable_covariance
+from ..errors import MapError, Terminated, interruption
+from ..geometry import inv_T
 from . import integrity
 from .codec import decode_frame, encode_frame
-from .lock import MapLock
+from .database import Connection, MapFile
 from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
@@ -82,14 +78,8 @@ if TYPE_CHECKING:
     from ..types import Keyframe, StereoFrame
 
 MAP_FORMAT_VERSION = 3                # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
-APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
-SQLITE_MAGIC = b"SQLite format 3\x00"
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
-BUSY_TIMEOUT_MS = 10_000             # wait for another connection's write lock before failing
-SYNCHRONOUS = "FULL"                 # fsync the WAL at every commit: durable across power loss too
 MODES = ("r", "a")
-SIDE_FILES = ("-wal", "-shm", "-journal")  # SQLite's files beside a map
-CREATING_SUFFIX = ".creating"        # temporary name of a map being created (hard-linked when complete)
 INTERRUPTED_REASON = "interrupted: its writing process ended without closing the run (killed?)"
 
 
@@ -142,66 +132,22 @@ def _check_int(value, what: str, minimum: int | None = None) -> int:
     return value
 
 
-def _connect(path: Path, readonly: bool, immutable: bool = False) -> sqlite3.Connection:
-    """A connection; read-only ones through an ``mode=ro`` URI, or ``immutable=1`` (no locks, no
-    -shm: for a closed map on read-only media)."""
-    if readonly:
-        target, uri = path.absolute().as_uri() + ("?immutable=1" if immutable else "?mode=ro"), True
-    else:
-        target, uri = str(path), False
-    conn = sqlite3.connect(target, uri=uri, isolation_level=None, check_same_thread=False,
-                           timeout=BUSY_TIMEOUT_MS / 1000)
-    conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-    conn.execute("PRAGMA foreign_keys = ON")
-    if readonly:
-        conn.execute("PRAGMA query_only = ON")
-    else:
-        conn.execute(f"PRAGMA synchronous = {SYNCHRONOUS}")
-    return conn
-
-
-def _connect_readonly(path: Path) -> sqlite3.Connection:
-    """Read-only connection: ``mode=ro`` (sees a live writer's commits and a killed writer's log); when
-    that cannot open (a WAL-mode file on read-only media, no -shm), ``immutable=1`` provided no
-    write-ahead log with data lies beside the file."""
-    conn = _connect(path, readonly=True)
-    try:
-        conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()
-        return conn
-    except sqlite3.OperationalError as err:
-        conn.close()
-        wal = Path(f"{path}-wal")
-        if wal.exists() and wal.stat().st_size > 0:
-            raise MapError(f"{path}: cannot open read-only ({err}) and {wal.name} holds data not yet in the map: "
-                           "open it once where it can be written (vtr map info on a writable copy of both files)"
-                           ) from err
-    return _connect(path, readonly=True, immutable=True)
-
-
-def _remove_map_files(path: Path) -> None:
-    """Unlink a map and its SQLite side files (only for a map this process created and holds)."""
-    for p in (path, *(Path(f"{path}{s}") for s in SIDE_FILES)):
-        p.unlink(missing_ok=True)
-
-
 class Map:
     """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
 
     ``camera`` is the rectified stereo calibration the map was taught with; ``path`` the file.
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, mode: str, camera: StereoCamera,
-                 meta: dict[str, str], cache_size: int, lock: MapLock | None = None,
+    def __init__(self, file: MapFile, mode: str, camera: StereoCamera, meta: dict[str, str], cache_size: int,
                  created: bool = False) -> None:
-        self.path = path
+        self.path = file.path
         self.mode = mode
         self.camera = camera
         self.meta = dict(meta)
         self.format_version = int(meta["format_version"])
         self.created = created          # this session created the file (it may remove it if left empty)
-        self._conn: sqlite3.Connection | None = conn
-        self._file_lock = lock
-        self._lock = threading.RLock()
+        self._file = file
+        self._lock = file.lock
         self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
         self._cache_size = _check_int(cache_size, "cache_size", 1)
@@ -215,7 +161,8 @@ class Map:
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
             # the open run (writing to it resumes it) until a new run begins
-            row = conn.execute("SELECT id, state, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+            assert file.conn is not None
+            row = file.conn.execute("SELECT id, state, privileged FROM runs ORDER BY id DESC LIMIT 1").fetchone()
             if row is not None and row[1] == RUN_RUNNING:
                 self._open_run, self._open_run_privileged = int(row[0]), bool(row[2])
 
@@ -226,10 +173,10 @@ class Map:
                cache_size: int = VERTEX_CACHE_SIZE) -> Map:
         """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
 
-        Atomic and exclusive: the schema is written to a temporary file in the same folder and
-        hard-linked to ``path``, which fails when ``path`` exists; of several processes creating
-        one map exactly one succeeds, the others get "already exists" and remove only their own
-        temporary file. The new map is locked for writing before its name appears.
+        Atomic and exclusive (:meth:`vtr.map.database.MapFile.create`): the schema is written to a
+        temporary file in the same folder and hard-linked to ``path``, which fails when ``path`` exists;
+        of several processes creating one map exactly one succeeds, the others get "already exists" and
+        remove only their own temporary file. The new map is locked for writing before its name appears.
         """
         path = Path(path)
         _check_int(cache_size, "cache_size", 1)
@@ -239,17 +186,6 @@ class Map:
             raise MapError(f"map.compress_level: {level} > 9")
         if not isinstance(camera, StereoCamera):
             raise MapError(f"camera: expected a StereoCamera, got {type(camera).__name__}")
-        if path.is_dir():
-            raise MapError(f"{path} is a directory: a vtr map is one SQLite file, give a file path such as "
-                           f"{path / 'route.vtrmap'}")
-        leftovers = [p for p in (path, Path(f"{path}-wal"), Path(f"{path}-journal")) if p.exists()]
-        if leftovers:
-            raise MapError(f"{leftovers[0]} already exists: refusing to overwrite a map "
-                           "(remove it or choose another path)")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise MapError(f"{path}: cannot create the map folder ({err})") from err
         meta = {
             "format_version": str(MAP_FORMAT_VERSION),
             "camera": json.dumps(camera.to_dict()),
@@ -258,79 +194,8 @@ class Map:
             "compress_level": str(level),
             integrity.META_KEY: integrity.META_VALUE,   # every vertex has checksums (vtr.map.integrity)
         }
-        tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}{CREATING_SUFFIX}")
-        try:  # a private name; the mode is the usual 0o666 less the umask (mkstemp would make it 0o600)
-            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
-        except OSError as err:
-            raise MapError(f"{path}: cannot create the map ({err})") from err
-        conn: sqlite3.Connection | None = None
-        lock: MapLock | None = None
-        linked = False
-        try:
-            lock = MapLock.writer(tmp, fd)
-            conn = _connect(tmp, readonly=False)
-            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            conn.executescript("BEGIN IMMEDIATE;" + SCHEMA + integrity.SCHEMA)
-            conn.executemany("INSERT INTO meta(key, value) VALUES (?, ?)", sorted(meta.items()))
-            conn.execute("COMMIT")
-            conn.close()
-            conn = None
-            try:
-                os.link(tmp, path)
-            except FileExistsError:
-                raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
-                               "first, or remove it and choose another path)") from None
-            except OSError:  # no hard links on this file system: exclusive create, then copy
-                lock = cls._create_by_copy(tmp, path, lock)
-            linked = True
-            tmp.unlink()
-            conn = _connect(path, readonly=False)
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if str(mode).lower() != "wal":
-                raise MapError(f"{path}: the file system does not support SQLite WAL mode (got {mode})")
-            return cls(path, conn, "a", camera, meta, cache_size, lock=lock, created=True)
-        except BaseException as err:
-            if conn is not None:
-                conn.close()
-            if linked:
-                _remove_map_files(path)   # ours: created by this call and still locked by it
-            _remove_map_files(tmp)
-            if lock is not None:
-                lock.release()
-            else:
-                with suppress(OSError):  # MapLock.writer closes it when it fails
-                    os.close(fd)
-            if isinstance(err, sqlite3.Error):
-                raise MapError(f"{path}: cannot create map ({err})") from err
-            if isinstance(err, OSError):
-                raise MapError(f"{path}: cannot create map ({err})") from err
-            raise
-
-    @staticmethod
-    def _create_by_copy(tmp: Path, path: Path, tmp_lock: MapLock) -> MapLock:
-        """``path`` created exclusively (``O_EXCL``) with ``tmp``'s bytes; returns the lock on it."""
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
-                           "first, or remove it and choose another path)") from None
-        try:
-            lock = MapLock.writer(path, os.open(path, os.O_RDONLY))
-        except BaseException:
-            os.close(fd)
-            path.unlink(missing_ok=True)
-            raise
-        try:
-            os.write(fd, tmp.read_bytes())
-            os.fsync(fd)
-        except BaseException:
-            path.unlink(missing_ok=True)
-            lock.release()
-            raise
-        finally:
-            os.close(fd)
-        tmp_lock.release()
-        return lock
+        return MapFile.create(path, SCHEMA + integrity.SCHEMA, meta,
+                              lambda file: cls(file, "a", camera, meta, cache_size, created=True))
 
     @classmethod
     def open(cls, path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
@@ -343,24 +208,8 @@ class Map:
             raise MapError(f"map open mode must be one of {MODES}, got {mode!r}")
         _check_int(cache_size, "cache_size", 1)
         path = Path(path)
-        if not path.exists():
-            raise MapError(f"no map at {path}")
-        if path.is_dir():
-            raise MapError(f"{path} is a directory, not a map file")
-        conn = None
-        lock = MapLock.writer(path) if mode == "a" else MapLock.reader(path)
-        try:
-            try:
-                head = lock.read_head(len(SQLITE_MAGIC))
-            except OSError as err:
-                raise MapError(f"{path}: cannot read map ({err})") from err
-            if head != SQLITE_MAGIC:
-                raise MapError(f"{path} is not a vtr map (not an SQLite database)")
-            conn = _connect(path, readonly=False) if mode == "a" else _connect_readonly(path)
-            app_id = conn.execute("PRAGMA application_id").fetchone()[0]
-            if app_id != APPLICATION_ID:
-                raise MapError(f"{path} is not a vtr map (SQLite database without the vtr application id)")
-            meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+
+        def check(meta: dict[str, str]) -> tuple[dict[str, str], StereoCamera]:
             if "format_version" not in meta:
                 raise MapError(f"{path} is not a vtr map (no format version)")
             version = int(meta["format_version"])
@@ -369,21 +218,10 @@ class Map:
                     "written by an older vtr: teach it again"
                 raise MapError(f"{path}: map format version {version}, this vtr {__version__} reads only "
                                f"format version {MAP_FORMAT_VERSION} ({hint})")
-            camera = StereoCamera.from_dict(json.loads(meta["camera"]))
-            if mode == "a":
-                jm = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-                if str(jm).lower() != "wal":
-                    raise MapError(f"{path}: cannot switch the map to WAL journal mode (got {jm})")
-            return cls(path, conn, mode, camera, meta, cache_size, lock=lock)
-        except BaseException as err:
-            if conn is not None:
-                conn.close()
-            lock.release()
-            if isinstance(err, MapError):
-                raise
-            if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
-                raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
-            raise
+            return meta, StereoCamera.from_dict(json.loads(meta["camera"]))
+
+        return MapFile.open(path, mode == "a", check,
+                            lambda file, checked: cls(file, mode, checked[1], checked[0], cache_size))
 
     def close(self) -> None:
         """Finish the run this session wrote (it becomes immutable), fold the write-ahead log into the
@@ -394,7 +232,8 @@ class Map:
         valid together with its ``-wal`` beside it.
         """
         with self._lock:
-            if self._conn is None:
+            conn = self._file.conn
+            if conn is None:
                 return
             discard = False
             try:
@@ -402,35 +241,12 @@ class Map:
                     if self._open_run is not None and self._open_run_touched:
                         self._set_state(self._open_run, RUN_FINISHED, "")
                     discard = self.created and self._aborted and \
-                        self._conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
+                        conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
                     if not discard:
-                        self._fold_wal()
+                        self._file.fold_wal()
             finally:
-                self._conn.close()
-                self._conn = None
+                self._file.close(remove=discard)
                 self._cache.clear()
-                if discard:
-                    _remove_map_files(self.path)
-                if self._file_lock is not None:
-                    self._file_lock.release()
-
-    def _fold_wal(self) -> None:
-        """Checkpoint the write-ahead log into the file and return to a rollback journal, so the closed
-        map is one self-contained file that opens read-only anywhere."""
-        conn = self._conn
-        assert conn is not None
-        try:
-            busy = conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
-        except sqlite3.Error as err:
-            raise MapError(f"{self.path}: could not write the write-ahead log back into the map ({err}); its "
-                           f"latest data is in {self.path.name}-wal: keep that file beside it") from err
-        if busy:
-            return  # a reader is in the middle of a read: the last connection to close checkpoints
-        try:
-            conn.execute("PRAGMA busy_timeout = 0")
-            conn.execute("PRAGMA journal_mode = DELETE").fetchone()
-        except sqlite3.Error:
-            pass  # another connection has the map open: it stays in WAL mode, its log empty
 
     def __enter__(self) -> Map:
         return self
@@ -450,12 +266,12 @@ class Map:
                 raise  # else the first error is the one to report
 
     def __repr__(self) -> str:
-        state = "closed" if self._conn is None else f"mode={self.mode!r}"
+        state = "closed" if self._file.closed else f"mode={self.mode!r}"
         return f"Map({str(self.path)!r}, {state})"
 
     @property
     def closed(self) -> bool:
-        return self._conn is None
+        return self._file.closed
 
     @property
     def open_run(self) -> int | None:
@@ -475,31 +291,21 @@ class Map:
 
     # ------------------------------------------------------------ database access
 
-    @contextmanager
-    def _db(self) -> Iterator[sqlite3.Connection]:
-        """The connection under the lock, with SQLite errors turned into ``MapError``."""
-        with self._lock:
-            if self._conn is None:
-                raise MapError(f"{self.path}: map is closed")
-            try:
-                yield self._conn
-            except sqlite3.Error as err:
-                raise MapError(f"{self.path}: {err}") from err
+    @property
+    def file(self) -> MapFile:
+        """The open map file (:mod:`vtr.map.database`): its SQLite connection and writer lock."""
+        return self._file
 
-    @contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
+    def _db(self) -> AbstractContextManager[Connection]:
+        """The connection under the lock, with SQLite errors turned into ``MapError``."""
+        return self._file.connection()
+
+    def _tx(self) -> AbstractContextManager[Connection]:
         """One write transaction: committed when the block ends, rolled back on any error."""
-        with self._db() as conn:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield conn
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+        return self._file.transaction()
 
     def _check_writable(self) -> None:
-        if self._conn is None:
+        if self._file.closed:
             raise MapError(f"{self.path}: map is closed")
         if self.mode != "a":
             raise MapError(f"{self.path}: map opened read-only (open it with mode='a' to write)")
@@ -511,7 +317,7 @@ class Map:
             raise MapError(f"{self.path}: {what}: run {run} is not the open run ({self._open_run}); "
                            "finished runs are immutable")
 
-    def _run_row(self, conn: sqlite3.Connection, run: int) -> tuple:
+    def _run_row(self, conn: Connection, run: int) -> tuple:
         row = conn.execute("SELECT id, kind, privileged FROM runs WHERE id = ?", (int(run),)).fetchone()
         if row is None:
             raise MapError(f"{self.path}: no run {run}")
@@ -578,22 +384,18 @@ class Map:
         return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
 
     def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True, unknown_variance: float | None = None) -> VertexRecord:
+                     link_previous: bool = True) -> VertexRecord:
         """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
 
         The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
-        keyframe's ``edge_covariance`` and ``edge_inliers``. With ``unknown_variance`` the covariance is
-        first made usable (:func:`vtr.geometry.usable_covariance`: an estimate without information becomes
-        ``unknown_variance * I``); without it, it must already be a valid covariance (else ``MapError``).
+        keyframe's ``edge_covariance`` and ``edge_inliers``; the covariance must be a valid one (else
+        ``MapError``): odometry makes it usable where it produces the keyframe (``vtr.vo``).
         The edge is written when the run already has a vertex and ``link_previous`` is true (pass false
         for the first keyframe of a new odometry session, e.g. after resuming a teach).
         """
         edge = None
         if link_previous:
-            C = keyframe.edge_covariance
-            if unknown_variance is not None:
-                C = usable_covariance(C, unknown_variance)
-            edge = (check_covariance(C, "temporal edge covariance"),
+            edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
                     _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
         return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
                                 edge)
@@ -703,7 +505,7 @@ class Map:
             return stored
         if self.mode == "a":  # we are the only writer
             return RUN_RUNNING if run == self._open_run and self._open_run_touched else RUN_INTERRUPTED
-        alive = self._file_lock.writer_alive() if self._file_lock is not None else True
+        alive = self._file.writer_alive()
         return RUN_RUNNING if alive else RUN_INTERRUPTED
 
     def run(self, run: int) -> RunInfo:
@@ -888,34 +690,6 @@ class Map:
             raise MapError(f"{self.path}: map has no taught run (no privileged vertices)")
         return path
 
-    def privileged_path(self) -> np.ndarray:
-        """(N,) int64 ids of the privileged (teach) vertices in path order (see :meth:`taught_path`)."""
-        return self.taught_path().ids
-
-    def window(self, center_id: int, back: int, forward: int) -> list[int]:
-        """Ids along the privileged path from ``back`` vertices before ``center_id`` to ``forward`` after
-        (clipped at the ends of the path), in path order."""
-        back = _check_int(back, "back", 0)
-        forward = _check_int(forward, "forward", 0)
-        path = self.taught_path()
-        try:
-            i = path.index(int(center_id))
-        except MapError as err:
-            raise MapError(f"{self.path}: {err}") from None
-        lo, hi = path.window(i, back, forward)
-        return [int(v) for v in path.ids[lo:hi]]
-
-    def nearest_vertices(self, position_world: np.ndarray, k: int = 1) -> np.ndarray:
-        """(min(k, N),) int64 ids of the privileged vertices nearest to ``position_world`` (3,), metres,
-        nearest first. Positions are camera centres in their run's world frame (the teach frame)."""
-        k = _check_int(k, "k", 1)
-        path = self.taught_path()
-        try:
-            idx = path.nearest(position_world, k)
-        except MapError as err:
-            raise MapError(f"nearest_vertices: {err}") from None
-        return path.ids[idx]
-
     # ------------------------------------------------------------ export
 
     def reference_run(self) -> int | None:
@@ -1011,7 +785,7 @@ class Map:
         self._check_writable()
         with self._tx() as conn:
             conn.execute(DERIVED_TABLE)
-            conn.execute("INSERT OR REPLACE INTO derived(key, data) VALUES (?, ?)", (str(key), sqlite3.Binary(data)))
+            conn.execute("INSERT OR REPLACE INTO derived(key, data) VALUES (?, ?)", (str(key), bytes(data)))
 
     def stats(self) -> dict:
         """Counts and size: runs, vertices, features, landmarks, edges (and by kind), bytes on disk."""
@@ -1036,10 +810,4 @@ class Map:
 
     def bytes_on_disk(self) -> int:
         """Size of the map file plus its write-ahead log, bytes."""
-        total = 0
-        for p in (self.path, Path(f"{self.path}-wal")):
-            try:
-                total += p.stat().st_size
-            except FileNotFoundError:
-                pass
-        return total
+        return self._file.bytes_on_disk()

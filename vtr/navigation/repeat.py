@@ -161,8 +161,7 @@ class Repeat:
         if result.new_keyframe is not None:
             kf = result.new_keyframe
             with self.timer("map_write"):
-                v = self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor,
-                                          unknown_variance=self.config.odometry.failure_variance)
+                v = self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor)
             self._leaf = v.id
             vid = v.id
             self._kf_of_leaf[v.id] = kf.id

@@ -282,7 +282,7 @@ class RepeatStateEstimator:
             kw["relative_covariance"] = v.relative_covariance
         if v.T_teach_leaf is not None:
             kw["T_world_sensor"], kw["covariance"] = v.T_teach_leaf, v.localization_covariance
-        self.smoother.add_keyframe(v.t_ns, **kw)
+        self.smoother.add_knot(v.t_ns, **kw)
         self._last = v
 
     # -- queries ------------------------------------------------------------------------------------

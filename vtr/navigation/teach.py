@@ -26,7 +26,6 @@ class Teach:
         self.camera = camera
         self.odometry = StereoOdometry(camera, config, keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
-        self._unknown_variance = config.odometry.failure_variance
         self._place = config.place
         self._seed = config.odometry.seed
         self.vertices = 0
@@ -74,5 +73,5 @@ class Teach:
             self._write(kf)
 
     def _write(self, kf: Keyframe) -> None:
-        self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor, unknown_variance=self._unknown_variance)
+        self.map.add_keyframe(self.run, kf, self.camera.T_vehicle_sensor)
         self.vertices += 1

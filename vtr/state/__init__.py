@@ -1,2 +1,2 @@
-"""Vehicle state: the WNOA trajectory smoother (``smoothing``) and the controller state, reference path
-and path error in the gravity-aligned trunk frame (``controller``)."""
+"""Vehicle state: the WNOA trajectory smoother (``smoothing``; its GP algebra, numpy only, in ``wnoa``) and
+the controller state, reference path and path error in the gravity-aligned trunk frame (``controller``)."""

@@ -25,6 +25,9 @@ Queries (:meth:`TrajectorySmoother.state_at`) use only cached knot states and GT
 * after the last knot: constant-velocity extrapolation ``T(t) = T_k Exp((t - t_k) varpi_k)`` (the
   thesis' ``Exp((t - t_k) varpi_k) T_k`` written for GTSAM's right-hand convention).
 
+The WNOA algebra itself (transition matrix, process covariance, interpolation matrices, the Hermite
+mean) is :mod:`vtr.state.wnoa` (numpy only); this module holds the GTSAM smoother and its queries.
+
 Covariances are 12x12 over ``[pose perturbation (rot, trans), twist]`` where the pose perturbation is
 GTSAM's right (body-frame) one, ``T = T_hat Exp(delta)``, as for every ``Pose3`` marginal in GTSAM.
 """
@@ -42,8 +45,16 @@ from ..config import SmoothingConfig, check_section
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
 from ..geometry import POSE_DIM, check_covariance, check_se3, inv_T, skew
-
-STATE_DIM = 12                   # [pose tangent, body twist]
+from .wnoa import (
+    STATE_DIM,
+    hermite_matrix,
+    kron_basis,
+    kron_qc,
+    local_variable,
+    noise_map,
+    wnoa_conditional_Q,
+    wnoa_Q,
+)
 
 # Weak prior on the first knot's twist: only there so a single keyframe is a determined problem.
 INITIAL_ANGULAR_VELOCITY_SIGMA = 10.0    # rad/s
@@ -74,14 +85,14 @@ _VELOCITY_SYMBOL = "v"           # gtsam symbol character of the twist keys V(i)
 # Lie-group helpers (GTSAM conventions: tangent [omega, v], right Jacobians)
 
 
-def _exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def expmap(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``Exp(xi)`` as a 4x4 matrix and the right Jacobian ``Jr(xi)`` (6x6)."""
     H = np.empty((POSE_DIM, POSE_DIM), order="F")
     T = gtsam.Pose3.Expmap(xi, H).matrix()
     return T, H
 
 
-def _log(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def logmap(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``Log(T)`` (6,) and the inverse right Jacobian ``Jr^-1(Log T)`` (6x6)."""
     H = np.empty((POSE_DIM, POSE_DIM), order="F")
     xi = gtsam.Pose3.Logmap(gtsam.Pose3(T), H)
@@ -98,35 +109,37 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return Ad
 
 
-def _jr(xi: np.ndarray) -> np.ndarray:
+def jr(xi: np.ndarray) -> np.ndarray:
+    """The right Jacobian ``Jr(xi)`` (6x6) of ``Exp``."""
     return gtsam.Pose3.ExpmapDerivative(xi)
 
 
-def _jr_inv(xi: np.ndarray) -> np.ndarray:
+def jr_inv(xi: np.ndarray) -> np.ndarray:
+    """The inverse right Jacobian ``Jr^-1(xi)`` (6x6)."""
     return gtsam.Pose3.LogmapDerivative(xi)
 
 
 _STEPS = JACOBIAN_STEP * np.eye(POSE_DIM)
 
 
-def _d_jr_times(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
+def d_jr_times(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
     """``d(Jr(xi) w)/d xi`` (6x6) by central differences of GTSAM's closed-form ``Jr``."""
     plus = np.array([gtsam.Pose3.ExpmapDerivative(xi + d) for d in _STEPS])
     minus = np.array([gtsam.Pose3.ExpmapDerivative(xi - d) for d in _STEPS])
     return ((plus - minus) @ w).T / (2.0 * JACOBIAN_STEP)
 
 
-def _d_jr_inv_times(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
+def d_jr_inv_times(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
     """``d(Jr^-1(xi) w)/d xi`` (6x6) by central differences of GTSAM's closed-form ``Jr^-1``."""
     plus = np.array([gtsam.Pose3.LogmapDerivative(xi + d) for d in _STEPS])
     minus = np.array([gtsam.Pose3.LogmapDerivative(xi - d) for d in _STEPS])
     return ((plus - minus) @ w).T / (2.0 * JACOBIAN_STEP)
 
 
-def _directional_d_jr(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
+def directional_d_jr(xi: np.ndarray, w: np.ndarray) -> np.ndarray:
     """``(d(Jr(xi) w)/d xi) w`` by a central difference along ``w``."""
     h = JACOBIAN_STEP
-    return (_jr(xi + h * w) @ w - _jr(xi - h * w) @ w) / (2.0 * h)
+    return (jr(xi + h * w) @ w - jr(xi - h * w) @ w) / (2.0 * h)
 
 
 def adjoint_inv(T: np.ndarray) -> np.ndarray:
@@ -137,93 +150,6 @@ def adjoint_inv(T: np.ndarray) -> np.ndarray:
     Ad[3:, 3:] = Rt
     Ad[3:, :3] = -Rt @ skew(T[:3, 3])
     return Ad
-
-
-def _noise_map(Jr: np.ndarray, E: np.ndarray) -> np.ndarray:
-    """Map (12x12) of local-variable noise ``(d xi, d xi')`` to the state perturbation ``(delta, d varpi)``."""
-    B = np.zeros((STATE_DIM, STATE_DIM))
-    B[:6, :6] = Jr
-    B[6:, 6:] = Jr
-    B[6:, :6] = E
-    return B
-
-
-def _kron_basis(qc: np.ndarray) -> np.ndarray:
-    """``E_ab ⊗ diag(qc)`` for the 2x2 unit matrices ``E_00, E_01, E_10, E_11`` (4x12x12)."""
-    out = np.zeros((4, STATE_DIM, STATE_DIM))
-    for n in range(4):
-        unit = np.zeros((2, 2))
-        unit[n // 2, n % 2] = 1.0
-        out[n] = np.kron(unit, np.diag(qc))
-    return out
-
-
-def _kron_qc(q2: np.ndarray, basis: np.ndarray) -> np.ndarray:
-    """``q2 ⊗ diag(qc)`` (12x12) for a per-axis 2x2 block ``q2``, with ``basis = _kron_basis(qc)``."""
-    return (q2.reshape(1, 4) @ basis.reshape(4, -1)).reshape(STATE_DIM, STATE_DIM)
-
-
-# ----------------------------------------------------------------------------------------------
-# WNOA scalar blocks (per axis; Qc factors out of the mean interpolation)
-
-
-def wnoa_Q(dt: float) -> np.ndarray:
-    """Per-axis WNOA process covariance over ``dt`` seconds (2x2, multiply by Qc): ``[[dt³/3, dt²/2], [dt²/2, dt]]``."""
-    return np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
-
-
-def wnoa_Phi(dt: float) -> np.ndarray:
-    """Per-axis WNOA transition matrix over ``dt`` seconds (2x2): ``[[1, dt], [0, 1]]``."""
-    return np.array([[1.0, dt], [0.0, 1.0]])
-
-
-def wnoa_interpolation_matrices(tau: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """GP interpolation matrices ``(Lambda, Psi)`` (2x2 each) at ``tau`` seconds into a segment of ``dt`` s.
-
-    ``gamma(tau) = Lambda gamma_1 + Psi gamma_2`` with ``Psi = Q(tau) Phi(dt - tau)^T Q(dt)^-1`` and
-    ``Lambda = Phi(tau) - Psi Phi(dt)`` (Barfoot, *State Estimation for Robotics*, §11.1).
-    """
-    Psi = wnoa_Q(tau) @ wnoa_Phi(dt - tau).T @ np.linalg.inv(wnoa_Q(dt))
-    Lam = wnoa_Phi(tau) - Psi @ wnoa_Phi(dt)
-    return Lam, Psi
-
-
-def wnoa_conditional_Q(tau: float, dt: float) -> np.ndarray:
-    """Per-axis covariance (2x2, multiply by Qc) of the GP state at ``tau`` given both segment ends.
-
-    ``Q(tau) - Psi Phi(dt - tau) Q(tau)``, written out so a query does not invert matrices.
-    """
-    kappa = dt - tau
-    q00, q01, q11 = tau**3 / 3.0, tau**2 / 2.0, tau
-    # Psi = Q(tau) Phi(kappa)^T Q(dt)^-1 with Q(dt)^-1 = [[12/dt³, -6/dt²], [-6/dt², 4/dt]]
-    i00, i01, i11 = 12.0 / dt**3, -6.0 / dt**2, 4.0 / dt
-    m00, m01 = q00 + q01 * kappa, q01                  # Q(tau) Phi(kappa)^T
-    m10, m11 = q01 + q11 * kappa, q11
-    p00, p01 = m00 * i00 + m01 * i01, m00 * i01 + m01 * i11
-    p10, p11 = m10 * i00 + m11 * i01, m10 * i01 + m11 * i11
-    # Psi Phi(kappa) Q(tau) = Psi M^T
-    c00 = q00 - (p00 * m00 + p01 * m01)
-    c01 = q01 - (p00 * m10 + p01 * m11)
-    c11 = q11 - (p10 * m10 + p11 * m11)
-    return np.array([[c00, c01], [c01, c11]])
-
-
-def _hermite_matrix(tau: float, dt: float) -> np.ndarray:
-    """Rows: weights of ``[dt v1, xi21, dt g21]`` giving ``xi(tau)``, ``xi'(tau)``, ``xi''(tau)`` (3x3).
-
-    The WNOA posterior mean in the local variable is the cubic Hermite curve with value 0 and slope
-    ``v1`` at ``tau = 0``, value ``xi21`` and slope ``g21`` at ``tau = dt`` (equal to
-    ``Lambda gamma_1 + Psi gamma_2``; see :func:`wnoa_interpolation_matrices`).
-    """
-    s = tau / dt
-    s2, s3 = s * s, s * s * s
-    return np.array(
-        [
-            [s3 - 2.0 * s2 + s, -2.0 * s3 + 3.0 * s2, s3 - s2],
-            [(3.0 * s2 - 4.0 * s + 1.0) / dt, (-6.0 * s2 + 6.0 * s) / dt, (3.0 * s2 - 2.0 * s) / dt],
-            [(6.0 * s - 4.0) / dt**2, (-12.0 * s + 6.0) / dt**2, (6.0 * s - 2.0) / dt**2],
-        ]
-    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -328,7 +254,7 @@ class _KnotCache:
         # seg_cov[i]: joint covariance (24x24) of knots i and i+1, last snapshot.
         self.seg_cov = np.zeros((n, 2 * STATE_DIM, 2 * STATE_DIM))
         self.last_cov = np.zeros((STATE_DIM, STATE_DIM))     # marginal of the newest knot
-        self.segments: dict[int, _Segment] = {}
+        self.segments: dict[int, Segment] = {}
 
     def grow(self) -> None:
         cap = 2 * len(self.times_ns)
@@ -339,7 +265,7 @@ class _KnotCache:
             setattr(self, name, new)
 
 
-class _Segment:
+class Segment:
     """Per-segment quantities that depend only on the two knot states (computed on first use).
 
     ``M`` stacks the Hermite control vectors ``[dt v1, xi21, dt g21]`` (3x6) of the local variable; the
@@ -353,7 +279,7 @@ class _Segment:
         self.dt = dt
         self.T1, self.v1, self.v2 = T1, v1, v2
         T21 = inv_T(T1) @ T2
-        self.xi21, self.Jr_inv21 = _log(T21)
+        self.xi21, self.Jr_inv21 = logmap(T21)
         self.g21 = self.Jr_inv21 @ v2                      # xi'(dt) in the local variable
         # Jl^-1(xi) = Jr^-1(xi) Ad(Exp(-xi))
         self.Jl_inv21 = self.Jr_inv21 @ adjoint_inv(T21)
@@ -368,7 +294,7 @@ class _Segment:
             S[0, :, 6:12] = np.eye(POSE_DIM)
             S[1, :, 0:6] = -self.Jl_inv21
             S[1, :, 12:18] = self.Jr_inv21
-            D = _d_jr_inv_times(self.xi21, self.v2)       # d(Jr^-1(xi) v2)/d xi at xi21
+            D = d_jr_inv_times(self.xi21, self.v2)       # d(Jr^-1(xi) v2)/d xi at xi21
             S[2] = D @ S[1]
             S[2, :, 18:24] += self.Jr_inv21
             self._S = S
@@ -412,7 +338,7 @@ class TrajectorySmoother:
             raise ConfigError("smoothing: initial velocity sigmas must be positive")
         self.config = config
         self.qc = np.array([config.qc_rotation] * 3 + [config.qc_translation] * 3)
-        self._qc_basis = _kron_basis(self.qc)
+        self._qc_basis = kron_basis(self.qc)
         self._velocity_prior_sigmas = np.array(
             [initial_velocity_sigma[0]] * 3 + [initial_velocity_sigma[1]] * 3
         )
@@ -447,6 +373,11 @@ class TrajectorySmoother:
         """Diagonal of Qc in GTSAM order ``[rot x3 (rad²/s³), trans x3 (m²/s³)]``."""
         return self.qc.copy()
 
+    @property
+    def velocity_prior_sigmas(self) -> np.ndarray:
+        """Standard deviations of the first knot's twist prior ``[angular x3 (rad/s), linear x3 (m/s)]``."""
+        return self._velocity_prior_sigmas.copy()
+
     def knots(self) -> KnotStates:
         """Copies of all knot states (final ones and those still in the window)."""
         c = self._cache
@@ -456,13 +387,13 @@ class TrajectorySmoother:
 
     def add_pose(self, t_ns: int, T_world_sensor: np.ndarray, covariance: np.ndarray) -> None:
         """Add a keyframe at ``t_ns`` with an absolute pose measurement ``T_world_sensor`` (6x6 covariance)."""
-        self.add_keyframe(t_ns, T_world_sensor=T_world_sensor, covariance=covariance)
+        self.add_knot(t_ns, T_world_sensor=T_world_sensor, covariance=covariance)
 
     def add_relative_pose(self, t_ns: int, T_prev_cur: np.ndarray, covariance: np.ndarray) -> None:
         """Add a keyframe at ``t_ns`` measured by odometry ``T_prev_cur`` from the previous keyframe."""
-        self.add_keyframe(t_ns, T_prev_cur=T_prev_cur, relative_covariance=covariance)
+        self.add_knot(t_ns, T_prev_cur=T_prev_cur, relative_covariance=covariance)
 
-    def add_keyframe(
+    def add_knot(
         self,
         t_ns: int,
         *,
@@ -494,11 +425,11 @@ class TrajectorySmoother:
             if t_ns < last:
                 raise EstimationError(f"t_ns={t_ns}: out of order (last keyframe at {last})")
         if T_world_sensor is None and T_prev_cur is None:
-            raise EstimationError("add_keyframe: needs T_world_sensor and/or T_prev_cur")
+            raise EstimationError("add_knot: needs T_world_sensor and/or T_prev_cur")
         if (T_world_sensor is None) != (covariance is None):
-            raise EstimationError("add_keyframe: T_world_sensor and covariance go together")
+            raise EstimationError("add_knot: T_world_sensor and covariance go together")
         if (T_prev_cur is None) != (relative_covariance is None):
-            raise EstimationError("add_keyframe: T_prev_cur and relative_covariance go together")
+            raise EstimationError("add_knot: T_prev_cur and relative_covariance go together")
         if c.n == 0 and T_world_sensor is None:
             raise EstimationError("the first keyframe needs an absolute pose (T_world_sensor)")
         if T_world_sensor is not None:
@@ -584,7 +515,7 @@ class TrajectorySmoother:
             v_init = np.zeros(POSE_DIM)
         else:
             dt = (t_ns - int(c.times_ns[k - 1])) / NS_PER_S
-            v_init = _log(inv_T(c.poses[k - 1]) @ T_init)[0] / dt
+            v_init = logmap(inv_T(c.poses[k - 1]) @ T_init)[0] / dt
         t_s = (t_ns - t0_ns) / NS_PER_S
         timestamps: dict[Any, float] = {X(k): t_s, V(k): t_s}
         values.insert(X(k), gtsam.Pose3(T_init))
@@ -661,12 +592,12 @@ class TrajectorySmoother:
 
     # -- internals: queries ----------------------------------------------------------------------
 
-    def _segment(self, i: int) -> _Segment:
+    def _segment(self, i: int) -> Segment:
         c = self._cache
         seg = c.segments.get(i)
         if seg is None:
             dt = (int(c.times_ns[i + 1]) - int(c.times_ns[i])) / NS_PER_S
-            seg = _Segment(c.poses[i].copy(), c.vels[i].copy(), c.poses[i + 1], c.vels[i + 1].copy(), dt)
+            seg = Segment(c.poses[i].copy(), c.vels[i].copy(), c.poses[i + 1], c.vels[i + 1].copy(), dt)
             c.segments[i] = seg
         return seg
 
@@ -689,35 +620,29 @@ class TrajectorySmoother:
         cov = self._knot_cov(i) if with_cov else None
         return TrajectoryState(t_ns, _frozen(c.poses[i]), _frozen(c.vels[i]), _frozen(acc), _frozen(cov), "knot")
 
-    @staticmethod
-    def _local(seg: _Segment, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Local variable ``xi(tau)`` and its first two time derivatives (cubic Hermite mean)."""
-        out = _hermite_matrix(tau, seg.dt) @ seg.M
-        return out[0], out[1], out[2]
-
-    def _segment_acceleration(self, seg: _Segment, tau: float) -> np.ndarray:
+    def _segment_acceleration(self, seg: Segment, tau: float) -> np.ndarray:
         """``d/dt [Jr(xi) xi']`` at ``tau`` = ``Jr(xi) xi'' + (d(Jr(xi) xi')/d xi) xi'``."""
-        xi, dxi, ddxi = self._local(seg, tau)
-        return _jr(xi) @ ddxi + _directional_d_jr(xi, dxi)
+        xi, dxi, ddxi = local_variable(tau, seg.dt, seg.M)
+        return jr(xi) @ ddxi + directional_d_jr(xi, dxi)
 
     def _interpolate(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
         c = self._cache
         seg = self._segment(i)
         tau = (t_ns - int(c.times_ns[i])) / NS_PER_S
-        xi, dxi, ddxi = self._local(seg, tau)
-        E_xi, Jr = _exp(xi)
+        xi, dxi, ddxi = local_variable(tau, seg.dt, seg.M)
+        E_xi, Jr = expmap(xi)
         T = seg.T1 @ E_xi
         vel = Jr @ dxi
         cov = None
         if with_cov:
-            E = _d_jr_times(xi, dxi)
+            E = d_jr_times(xi, dxi)
             acc = Jr @ ddxi + E @ dxi
             A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
-            B = _noise_map(Jr, E)
-            cov = A @ c.seg_cov[i] @ A.T + B @ _kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T
+            B = noise_map(Jr, E)
+            cov = A @ c.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T
             cov = 0.5 * (cov + cov.T)
         else:
-            acc = Jr @ ddxi + _directional_d_jr(xi, dxi)
+            acc = Jr @ ddxi + directional_d_jr(xi, dxi)
         return TrajectoryState(t_ns, _frozen(T), _frozen(vel), _frozen(acc), _frozen(cov), "interpolated")
 
     def _extrapolate(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
@@ -725,7 +650,7 @@ class TrajectorySmoother:
         dt = (t_ns - int(c.times_ns[i])) / NS_PER_S
         v = c.vels[i]
         xi = dt * v
-        E_xi, Jr = _exp(xi)
+        E_xi, Jr = expmap(xi)
         T = c.poses[i] @ E_xi
         if i > 0:
             seg = self._segment(i - 1)
@@ -735,8 +660,8 @@ class TrajectorySmoother:
         cov = None
         if with_cov:
             F = extrapolation_jacobian(dt, v, E_xi, Jr)
-            B = _noise_map(Jr, _d_jr_times(xi, v))
-            cov = F @ c.last_cov @ F.T + B @ _kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
+            B = noise_map(Jr, d_jr_times(xi, v))
+            cov = F @ c.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
             cov = 0.5 * (cov + cov.T)
         return TrajectoryState(t_ns, _frozen(T), _frozen(v), _frozen(acc), _frozen(cov), "extrapolated")
 
@@ -756,7 +681,7 @@ def extrapolation_jacobian(
     """
     xi = dt * v
     if E_xi is None or Jr is None:
-        E_xi, Jr = _exp(xi)
+        E_xi, Jr = expmap(xi)
     F = np.zeros((STATE_DIM, STATE_DIM))
     F[:6, :6] = adjoint_inv(E_xi)
     F[:6, 6:] = dt * Jr
@@ -765,7 +690,7 @@ def extrapolation_jacobian(
 
 
 def interpolation_jacobian(
-    seg: _Segment,
+    seg: Segment,
     tau: float,
     xi: np.ndarray,
     dxi: np.ndarray,
@@ -782,10 +707,10 @@ def interpolation_jacobian(
     ``D = d(Jr^-1(xi) v2)/d xi`` at ``xi21`` and ``E = d(Jr(xi) w)/d xi`` at ``(xi, xi')``.
     ``xi``, ``dxi`` are ``xi(tau)``, ``xi'(tau)``; ``E_xi``, ``Jr`` are ``Exp(xi)`` and ``Jr(xi)``.
     """
-    W = _hermite_matrix(tau, seg.dt)[:2] * np.array([seg.dt, 1.0, seg.dt])   # weights of (v1, xi21, g21)
+    W = hermite_matrix(tau, seg.dt)[:2] * np.array([seg.dt, 1.0, seg.dt])   # weights of (v1, xi21, g21)
     d = (W @ seg.S.reshape(3, -1)).reshape(2, POSE_DIM, 2 * STATE_DIM)
     if E is None:
-        E = _d_jr_times(xi, dxi)
+        E = d_jr_times(xi, dxi)
     A = np.empty((STATE_DIM, 2 * STATE_DIM))
     A[:6] = Jr @ d[0]
     A[:6, 0:6] += adjoint_inv(E_xi)
@@ -795,15 +720,18 @@ def interpolation_jacobian(
 
 __all__ = [
     "KnotStates",
+    "Segment",
     "TrajectorySmoother",
     "TrajectoryState",
     "adjoint",
     "adjoint_inv",
+    "d_jr_inv_times",
+    "d_jr_times",
+    "directional_d_jr",
+    "expmap",
     "extrapolation_jacobian",
     "interpolation_jacobian",
-    "wnoa_Phi",
-    "wnoa_Q",
-    "wnoa_conditional_Q",
-    "wnoa_interpolation_matrices",
+    "jr",
+    "jr_inv",
+    "logmap",
 ]
-

@@ -25,7 +25,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import Config, OdometryConfig
 from ..errors import ConfigError, EstimationError
-from ..geometry import exp_se3, inv_T, log_se3, rotation_angle
+from ..geometry import exp_se3, inv_T, log_se3, rotation_angle, usable_covariance
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from .estimation import bundle_adjust, odometry_row_weights, ransac_pnp, triangulate_bearings
@@ -199,7 +199,7 @@ class StereoOdometry:
         new = self._public(kf)
         return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=FrameKind.CREATE_VERTEX, matches=0, inliers=0,
                               keyframe_id=kf.id, T_keyframe_frame=np.eye(4), T_world_frame=inv_T(T_cw),
-                              covariance=new.edge_covariance, new_keyframe=new)
+                              covariance=kf.edge_covariance, new_keyframe=new)
 
     def _new_window_keyframe(self, frame: StereoFrame, T_cw: np.ndarray, cov: np.ndarray, inliers: int,
                              lm_ids: np.ndarray, feat_idx: np.ndarray) -> _WindowKeyframe:
@@ -229,8 +229,10 @@ class StereoOdometry:
         return self._public(kf), tuple(finalized)
 
     def _public(self, kf: _WindowKeyframe) -> Keyframe:
-        return Keyframe(kf.id, self._refined_frame(kf), self._keyframe_poses[kf.id], kf.edge_covariance,
-                        kf.edge_inliers)
+        """The keyframe as the map takes it: its edge covariance made usable (an estimate without
+        information, e.g. the zeros of a run's first keyframe, becomes ``odometry.failure_variance * I``)."""
+        C = usable_covariance(kf.edge_covariance, self.config.odometry.failure_variance)
+        return Keyframe(kf.id, self._refined_frame(kf), self._keyframe_poses[kf.id], C, kf.edge_inliers)
 
     def _refined_frame(self, kf: _WindowKeyframe) -> StereoFrame:
         """The keyframe's stereo frame with its landmarks where the windowed bundle adjustment put them
