@@ -7,6 +7,7 @@
   an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
 - ``landmarks_file``: the ``landmarks.csv``/``.parquet`` format (schema, ``Observations``, writer,
   columnar reader); ``io``: landmark/camera position readers; ``synthetic``: synthetic data;
+- ``plots``: the figure of a fit;
 - ``cli``: the ``perception-model`` command.
 
 The package does not depend on ``vtr``; its errors derive from ``PerceptionModelError``.

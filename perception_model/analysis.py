@@ -162,7 +162,7 @@ def fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str,
 def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any]:
     """Fit both models (binned, MLE; ``HOLDOUT`` held out) on the ``landmarks.csv`` files of one data set,
     save ``model_<method>.json`` and ``fit_<method>.png`` under ``out``; summary with the checks."""
-    from .cli import plot_fit
+    from .plots import plot_fit
 
     obs = read_landmarks_files(files, FIT_FIELDS)
     a_deg, t_deg = np.degrees(obs.alpha), np.degrees(obs.theta)
