@@ -37,16 +37,26 @@ from .commandline import OneLineGroup, force_option, version_option
 from .errors import InputDataError, PerceptionModelError, PerceptionModelWarning
 from .outputs import existing_output
 from .plots import plot_fit
+from .settings import (
+    CI_METHODS,
+    METHODS,
+    MIN_BOOTSTRAP,
+    THESIS_C_BAR,
+    THESIS_L_MIN,
+    THESIS_PITCH_DOWN_RAD,
+    UNIT_SCALE,
+    FitSettings,
+)
 
 if TYPE_CHECKING:
     import numpy as np
 
 PROG = "perception-model"
 DIST = "vtr"  # the distribution that ships this package
-#: Defaults of the CLI (library defaults in degrees for display).
-DEFAULT_ALPHA_BIN_DEG = 1.0
-DEFAULT_THETA_BIN_DEG = 2.5
-DEFAULT_PITCH_DEG = 50.0
+#: The defaults the options show: the fit's settings record (bin widths shown in degrees, the CLI's unit) and
+#: the thesis camera pitch in degrees.
+_FIT = FitSettings()
+_PITCH_DEG = math.degrees(THESIS_PITCH_DOWN_RAD)
 
 
 class _Group(OneLineGroup):
@@ -106,8 +116,8 @@ def main() -> None:
 
 def bin_options(command):
     """The (alpha, theta) bin widths used by fitting and by R^2 in evaluation (degrees)."""
-    for name, default, what in (("--theta-bin", DEFAULT_THETA_BIN_DEG, "View-angle"),
-                                ("--alpha-bin", DEFAULT_ALPHA_BIN_DEG, "Parallax")):
+    for name, default, what in (("--theta-bin", _FIT.theta_bin_deg, "View-angle"),
+                                ("--alpha-bin", _FIT.alpha_bin_deg, "Parallax")):
         command = click.option(name, type=click.FloatRange(min=0.0, min_open=True), default=default,
                                show_default=True, help=f"{what} bin width (degrees).")(command)
     return command
@@ -126,8 +136,8 @@ def bin_options(command):
 @force_option("model.json and the figure")
 @click.option(
     "--method",
-    type=click.Choice(["binned", "mle"]),
-    default="binned",
+    type=click.Choice(METHODS),
+    default=_FIT.method,
     show_default=True,
     help="binned: thesis protocol (weighted LSQ on bin frequencies); mle: Bernoulli likelihood.",
 )
@@ -140,39 +150,39 @@ def bin_options(command):
 )
 @click.option(
     "--unit",
-    type=click.Choice(["deg", "rad"]),
-    default="deg",
+    type=click.Choice(list(UNIT_SCALE)),
+    default=_FIT.angle_unit,
     show_default=True,
     help="Angle unit of the fitted constants.",
 )
 @click.option(
     "--holdout",
     type=click.FloatRange(0.0, 1.0, max_open=True),
-    default=0.2,
+    default=_FIT.holdout_fraction,
     show_default=True,
     help="Fraction of localizations held out for evaluation.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the hold-out split/bootstrap.")
+@click.option("--seed", type=int, default=_FIT.seed, show_default=True, help="Seed of the hold-out split/bootstrap.")
 @bin_options
 @click.option(
     "--min-bin-count",
     type=click.IntRange(min=1),
-    default=10,
+    default=_FIT.min_bin_count,
     show_default=True,
     help="Bins with fewer observations are not used.",
 )
 @click.option(
     "--ci",
-    type=click.Choice(["sandwich", "bootstrap"]),
-    default="sandwich",
+    type=click.Choice(CI_METHODS),
+    default=_FIT.ci,
     show_default=True,
     help="Confidence intervals of the binned fit (MLE always uses the Fisher information).",
 )
 @click.option(
     "--bootstrap",
     "n_bootstrap",
-    type=click.IntRange(min=2),
-    default=200,
+    type=click.IntRange(min=MIN_BOOTSTRAP),
+    default=_FIT.n_bootstrap,
     show_default=True,
     help="Bootstrap replicates for --ci bootstrap.",
 )
@@ -192,7 +202,7 @@ def fit_cmd(
     n_bootstrap: int,
 ) -> None:
     """Fit the model to landmarks files (.csv or .parquet): OUT/model.json and OUT/fit.png."""
-    from .fit import BinSpec, fit_observations
+    from .fit import fit_observations
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
 
     if out.suffix.lower() == ".json":
@@ -207,24 +217,18 @@ def fit_cmd(
     if plot is not None:
         check_output(plot, force)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
-    bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
-    result = fit_observations(
-        obs,
-        method=method,  # type: ignore[arg-type]  # click.Choice checked it
-        angle_unit=unit,
-        holdout_fraction=holdout,
-        seed=seed,
-        bins=bins,
-        ci=ci,  # type: ignore[arg-type]
-        n_bootstrap=n_bootstrap,
-    )
+    settings = FitSettings.from_degrees(
+        alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin, min_bin_count=min_bin_count, method=method,
+        angle_unit=unit, holdout_fraction=holdout, seed=seed, ci=ci, n_bootstrap=n_bootstrap,
+    )  # fmt: skip
+    result = fit_observations(obs, settings)
     model_path.parent.mkdir(parents=True, exist_ok=True)
     data = obs.describe()
     result.model.save(model_path, fit=result.to_dict(), data=data)
     click.echo(_fit_summary(result, data))
     click.echo(f"wrote {model_path}")
     if plot is not None:
-        plot_fit(result, plot, min_bin_count)
+        plot_fit(result, plot, settings.min_bin_count)
         click.echo(f"wrote {plot}")
 
 
@@ -279,8 +283,8 @@ def _evaluation_lines(ev: Any) -> list[str]:
 @click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("landmarks", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @bin_options
-@click.option("--min-bin-count", type=click.IntRange(min=1), default=10, show_default=True)
-@click.option("--calibration-bins", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--min-bin-count", type=click.IntRange(min=1), default=_FIT.min_bin_count, show_default=True)
+@click.option("--calibration-bins", type=click.IntRange(min=1), default=_FIT.calibration_bins, show_default=True)
 @click.option(
     "--out",
     "out",
@@ -310,7 +314,7 @@ def evaluate_cmd(
     json_flag: str | None,
 ) -> None:
     """Report log-loss, calibration and R^2 of a model on (held-out) landmarks files (.csv or .parquet)."""
-    from .fit import BinSpec, evaluate
+    from .fit import evaluate
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
     from .model import PerceptionModel
 
@@ -325,14 +329,15 @@ def evaluate_cmd(
         check_output(json_out, force)
     model = PerceptionModel.load(model_path)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
-    bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
+    settings = FitSettings.from_degrees(alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin,
+                                        min_bin_count=min_bin_count, calibration_bins=calibration_bins)
     ev = evaluate(
         model,
         obs.alpha,
         obs.theta,
         obs.inlier,
-        bins=bins,
-        calibration_bins=calibration_bins,
+        bins=settings.bins,
+        calibration_bins=settings.calibration_bins,
         source=obs.source_names,
     )
     c1, c2, c3 = model.constants
@@ -394,9 +399,9 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
     "[default: 0,0,0; --landmarks only].",
 )
-@click.option("--l-min", type=float, default=30.0, show_default=True, help="Minimum inlier count L_min.")
+@click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True, help="Minimum inlier count L_min.")
 @click.option(
-    "--c-bar", type=float, default=None, help="Normal quantile c_bar [default: 3, or from --delta]."
+    "--c-bar", type=float, default=None, help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta]."
 )
 @click.option(
     "--delta",
@@ -408,7 +413,7 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     "--pitch-deg",
     type=float,
     default=None,
-    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {DEFAULT_PITCH_DEG:g}; "
+    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {_PITCH_DEG:g}; "
     "with --map the trunk's pitch].",
 )
 @click.option(
@@ -467,7 +472,7 @@ def constraint_cmd(
     """
     import numpy as np
 
-    from .constraint import THESIS_C_BAR, c_bar_from_delta, delta_from_c_bar
+    from .constraint import c_bar_from_delta, delta_from_c_bar
     from .io import read_positions
     from .model import PerceptionModel
 
@@ -551,7 +556,7 @@ def _constraint_on_landmarks(
     from .constraint import PerceptionConstraint, normal_tail, poisson_binomial_tail
     from .io import read_points
 
-    pitch = DEFAULT_PITCH_DEG if pitch_deg is None else pitch_deg
+    pitch = _PITCH_DEG if pitch_deg is None else pitch_deg
     origin = _parse_vector("0,0,0" if taught_camera is None else taught_camera, "--taught-camera")
     pts = read_points(landmarks_path) - origin
     pos = path.positions - origin

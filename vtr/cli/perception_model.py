@@ -21,6 +21,7 @@ import click
 from perception_model.cli import PROG, _Group, _parse_vector, check_output
 from perception_model.cli import main as _package_main
 from perception_model.commandline import force_option
+from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
 from ..errors import VtrError
 
@@ -60,8 +61,9 @@ for _name, _cmd in _package_main.commands.items():
 @force_option("envelope.csv and envelope.png")
 @click.option("--up", default="0,-1,0", show_default=True,
               help="Gravity up in the map frame (the teach run's first camera frame); 0,-1,0 for a level camera.")
-@click.option("--l-min", type=float, default=30.0, show_default=True, help="Minimum inlier count L_min.")
-@click.option("--c-bar", type=float, default=None, help="Normal quantile c_bar [default: 3, or from --delta].")
+@click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True, help="Minimum inlier count L_min.")
+@click.option("--c-bar", type=float, default=None,
+              help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta].")
 @click.option("--delta", type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True), default=None,
               help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta).")
 @click.option("--step", "step_m", type=click.FloatRange(min=0.0, min_open=True), default=0.25, show_default=True,
@@ -72,7 +74,7 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
                  c_bar: float | None, delta: float | None, step_m: float, max_m: float) -> None:
     """For every taught vertex: how far left/right/up/down the vehicle may move (camera as taught)
     before mu - c_bar sigma < L_min."""
-    from perception_model.constraint import THESIS_C_BAR, c_bar_from_delta
+    from perception_model.constraint import c_bar_from_delta
     from perception_model.errors import InputDataError
     from perception_model.model import PerceptionModel
 
