@@ -2,22 +2,22 @@
 
     perception-model fit LANDMARKS.csv|.parquet... --out DIR [--method binned|mle]   # DIR/model.json, DIR/fit.png
     perception-model evaluate DIR/model.json LANDMARKS.csv|.parquet... [--out DIR] [--json]
-    perception-model constraint DIR/model.json --landmarks L.csv --positions P.csv
-    perception-model constraint DIR/model.json --map route.vtrmap --positions P.csv [--out DIR | --out -]
+    perception-model constraint DIR/model.json --landmarks L.csv --positions P.csv [--out DIR | --out -]
 
 The conventions of both console scripts (one-line usage errors, ``--out DIR`` always a folder, ``--force``
 to replace outputs, ``--json`` a flag) are written in ``perception_model.commandline``.
 
-``constraint --map`` reads each position's trunk and its landmarks from a ``vtr`` map, in the map
-frame (the teach run's first camera frame: x right, y down, z forward); see
-``perception_model.map_landmarks`` for the orientation/yaw convention. This package imports nothing
-from ``vtr``: the map reader is handed in through the click context (``ctx.obj["evaluate_on_map"]``)
-by the ``perception-model`` console script installed with ``vtr`` (``vtr.cli.perception_model``,
-which also adds ``envelope``). Run from this module alone, ``--map`` reports that it needs it.
+This package imports nothing from ``vtr`` and its command knows no maps: the ``perception-model`` console
+script installed with ``vtr`` (``vtr.cli.perception_model``) holds ``fit`` and ``evaluate`` from here and
+declares the map-aware commands itself (``constraint`` with ``--map`` as well as ``--landmarks``,
+``envelope``), built from the options and helpers of ``constraint`` here (``landmarks_option``,
+``confidence_options``, ``constraint_output_options``, ``resolve_c_bar``, ``report_constraint``...).
 
 A thin adapter over the library: known errors (``PerceptionModelError``, unreadable files)
 become one line ``perception-model: error: ...`` on stderr and exit code 1; library warnings are
-shown as ``perception-model: warning: ...``. Angles are printed in the model's unit.
+shown as ``perception-model: warning: ...``. Angles are printed in the model's unit. The defaults of the
+options are the library's (``perception_model.settings``); ``fit`` and ``evaluate`` build one
+``FitSettings`` record from their options (bin widths converted from degrees there, once).
 """
 
 from __future__ import annotations
@@ -368,114 +368,68 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     return vec
 
 
-@main.command("constraint")
-@click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--landmarks",
-    "landmarks_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Trunk landmark positions x,y,z in frame o (CSV with header, or .npy (M, 3)), metres.",
-)
-@click.option(
-    "--map",
-    "map_path",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="A taught vtr map: positions are in its map frame (the teach run's first camera frame, x right, "
-    "y down, z forward); each position's trunk is chosen by the localizer's rule.",
-)
-@click.option(
-    "--positions",
-    "positions_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] (yaw in radians); frame o, or the "
-    "map frame with --map.",
-)
-@click.option(
-    "--taught-camera",
-    default=None,
-    help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
-    "[default: 0,0,0; --landmarks only].",
-)
-@click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True, help="Minimum inlier count L_min.")
-@click.option(
-    "--c-bar", type=float, default=None, help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta]."
-)
-@click.option(
-    "--delta",
-    type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True),
-    default=None,
-    help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta).",
-)
-@click.option(
-    "--pitch-deg",
-    type=float,
-    default=None,
-    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {_PITCH_DEG:g}; "
-    "with --map the trunk's pitch].",
-)
-@click.option(
-    "--yaw-deg",
-    type=float,
-    default=None,
-    help="Camera yaw (degrees, CCW from x; with --map CCW from the map's +z about its -y) where the positions "
-    "file has no yaw column [default: 0; with --map the trunk's orientation].",
-)
-@click.option(
-    "--in-view/--all-landmarks",
-    default=True,
-    show_default=True,
-    help="With --map: count only trunk landmarks inside the camera image at each position (the population "
-    "of landmarks.csv), or every trunk landmark.",
-)
-@click.option(
-    "--exact/--no-exact",
-    default=True,
-    show_default=True,
-    help="Also compute the exact Poisson-binomial failure probability.",
-)
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(allow_dash=True, path_type=Path),
-    default=None,
-    help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the summary on stderr). "
-    "Deprecated: a FILE.csv path writes that file.",
-)
-@force_option("constraint.csv")
-def constraint_cmd(
-    model_path: Path,
-    landmarks_path: Path | None,
-    map_path: Path | None,
-    positions_path: Path,
-    taught_camera: str | None,
-    l_min: float,
-    c_bar: float | None,
-    delta: float | None,
-    pitch_deg: float | None,
-    yaw_deg: float | None,
-    in_view: bool,
-    exact: bool,
-    out: Path | None,
-    force: bool,
-) -> None:
-    """Evaluate mu, sigma and the chance-constraint margin along a path.
+# The options of `constraint` (and of vtr's map-aware commands, which share them): one declaration each.
+def landmarks_option(*, required: bool) -> Any:
+    """``--landmarks``: trunk landmark positions in frame o."""
+    return click.option(
+        "--landmarks",
+        "landmarks_path",
+        required=required,
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="Trunk landmark positions x,y,z in frame o (CSV with header, or .npy (M, 3)), metres.",
+    )
 
-    With --landmarks, landmarks and positions are in the gravity-aligned frame o (ENU-like, z up);
-    the optical axis comes from yaw and --pitch-deg. With --map, each position's trunk is the
-    taught vertex the localizer would pick (its window rule, from the vertex nearest to the first
-    position) and its landmarks come from the map; without a yaw the camera has the
-    trunk's orientation, with a yaw (heading about the map's -y, 0 along +z, positive to the left)
-    it is pitched by --pitch-deg or the trunk's pitch (see perception_model.map_landmarks).
-    """
-    import numpy as np
 
-    from .constraint import c_bar_from_delta, delta_from_c_bar
-    from .io import read_positions
-    from .model import PerceptionModel
+def taught_camera_option(command: Any) -> Any:
+    """``--taught-camera``: the origin of landmarks and positions given in frame o."""
+    return click.option(
+        "--taught-camera",
+        default=None,
+        help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
+        "[default: 0,0,0; --landmarks only].",
+    )(command)
 
+
+def confidence_options(command: Any) -> Any:
+    """``--l-min``, ``--c-bar`` and ``--delta``: the bound of the chance constraint (resolve with
+    :func:`resolve_c_bar`)."""
+    for option in reversed((
+        click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True,
+                     help="Minimum inlier count L_min."),
+        click.option("--c-bar", type=float, default=None,
+                     help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta]."),
+        click.option("--delta", type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True), default=None,
+                     help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta)."),
+    )):
+        command = option(command)
+    return command
+
+
+def constraint_output_options(command: Any) -> Any:
+    """``--exact/--no-exact``, ``--out`` and ``--force`` of a per-position constraint table."""
+    for option in reversed((
+        click.option("--exact/--no-exact", default=True, show_default=True,
+                     help="Also compute the exact Poisson-binomial failure probability."),
+        click.option("--out", "out", type=click.Path(allow_dash=True, path_type=Path), default=None,
+                     help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the "
+                     "summary on stderr). Deprecated: a FILE.csv path writes that file."),
+        force_option("constraint.csv"),
+    )):
+        command = option(command)
+    return command
+
+
+def resolve_c_bar(c_bar: float | None, delta: float | None) -> float:
+    """The normal quantile from ``--c-bar`` or ``--delta`` (at most one), ``THESIS_C_BAR`` by default."""
+    from .constraint import c_bar_from_delta
+
+    if c_bar is not None and delta is not None:
+        raise InputDataError("give at most one of --c-bar and --delta")
+    return c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
+
+
+def constraint_output(out: Path | None, force: bool) -> tuple[bool, Path | None]:
+    """``--out``: (the table to stdout?, the CSV file to write or None), its output rule checked."""
     to_stdout = out is not None and str(out) == "-"
     csv_path = None
     if out is not None and not to_stdout:
@@ -486,22 +440,83 @@ def constraint_cmd(
             check_output(out, force, folder=True, option="--out")
             csv_path = out / "constraint.csv"
         check_output(csv_path, force)
-    if (landmarks_path is None) == (map_path is None):
-        raise InputDataError("give exactly one of --landmarks FILE or --map MAP")
-    if map_path is not None and taught_camera is not None:
-        raise InputDataError("--taught-camera applies to --landmarks only (with --map the trunk is the origin)")
-    if c_bar is not None and delta is not None:
-        raise InputDataError("give at most one of --c-bar and --delta")
-    cbar = c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
+    return to_stdout, csv_path
+
+
+@main.command("constraint")
+@click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
+@landmarks_option(required=True)
+@click.option(
+    "--positions",
+    "positions_path",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] (yaw in radians); frame o.",
+)
+@taught_camera_option
+@confidence_options
+@click.option(
+    "--pitch-deg",
+    type=float,
+    default=None,
+    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {_PITCH_DEG:g}].",
+)
+@click.option(
+    "--yaw-deg",
+    type=float,
+    default=None,
+    help="Camera yaw (degrees, CCW from x) where the positions file has no yaw column [default: 0].",
+)
+@constraint_output_options
+def constraint_cmd(
+    model_path: Path,
+    landmarks_path: Path,
+    positions_path: Path,
+    taught_camera: str | None,
+    l_min: float,
+    c_bar: float | None,
+    delta: float | None,
+    pitch_deg: float | None,
+    yaw_deg: float | None,
+    exact: bool,
+    out: Path | None,
+    force: bool,
+) -> None:
+    """Evaluate mu, sigma and the chance-constraint margin along a path.
+
+    Landmarks and positions are in the gravity-aligned frame o (ENU-like, z up); the optical axis
+    comes from yaw and --pitch-deg. (The taught-map variant, --map, is the command installed with vtr.)
+    """
+    from .io import read_positions
+    from .model import PerceptionModel
+
+    to_stdout, csv_path = constraint_output(out, force)
+    cbar = resolve_c_bar(c_bar, delta)
     model = PerceptionModel.load(model_path)
     path = read_positions(positions_path)
-    if map_path is not None:
-        table = _constraint_on_map(model, map_path, path, l_min, cbar, pitch_deg, yaw_deg, in_view, exact)
-    else:
-        assert landmarks_path is not None
-        table = _constraint_on_landmarks(
-            model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact
-        )
+    table = constraint_on_landmarks(model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera,
+                                    exact)
+    report_constraint(table, l_min, cbar, to_stdout, csv_path)
+
+
+#: A per-position table: header, rows, (column, width, format) of the printed columns, the summary's first words.
+Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
+#: The printed columns every constraint table ends with.
+COMMON_FMT = [
+    ("mu", 8, ".2f"),
+    ("sigma", 7, ".2f"),
+    ("g", 8, ".2f"),
+    ("g_conservative", 8, ".2f"),
+    ("p_fail_normal", 10, ".3e"),
+]
+
+
+def report_constraint(table: Table, l_min: float, cbar: float, to_stdout: bool, csv_path: Path | None) -> None:
+    """Print the summary (and the table unless it goes to stdout as CSV), then write the CSV."""
+    import numpy as np
+
+    from .constraint import delta_from_c_bar
+
     header, rows, fmt, intro = table
     echo = (lambda text: click.echo(text, err=True)) if to_stdout else click.echo
     echo(f"{intro}, L_min = {l_min:g}, c_bar = {cbar:.4g} (delta = {delta_from_c_bar(cbar):.3g})")
@@ -529,17 +544,7 @@ def constraint_cmd(
         echo(f"wrote {csv_path}")
 
 
-_Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
-_COMMON_FMT = [
-    ("mu", 8, ".2f"),
-    ("sigma", 7, ".2f"),
-    ("g", 8, ".2f"),
-    ("g_conservative", 8, ".2f"),
-    ("p_fail_normal", 10, ".3e"),
-]
-
-
-def _constraint_on_landmarks(
+def constraint_on_landmarks(
     model: Any,
     landmarks_path: Path,
     path: Any,
@@ -549,7 +554,7 @@ def _constraint_on_landmarks(
     yaw_deg: float | None,
     taught_camera: str | None,
     exact: bool,
-) -> _Table:
+) -> Table:
     """Per-position rows for landmarks given in frame o."""
     import numpy as np
 
@@ -582,75 +587,8 @@ def _constraint_on_landmarks(
             row.append(poisson_binomial_tail(ev.p[i], l_min, lower=True))
         rows.append(row)
     fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f")]
-    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
+    fmt += COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
     intro = f"{pts.shape[0]} landmarks, {pos.shape[0]} positions, pitch {pitch:g} deg"
-    return header, rows, fmt, intro
-
-
-def _constraint_on_map(
-    model: Any,
-    map_path: Path,
-    path: Any,
-    l_min: float,
-    cbar: float,
-    pitch_deg: float | None,
-    yaw_deg: float | None,
-    in_view: bool,
-    exact: bool,
-) -> _Table:
-    """Per-position rows with each position's trunk taken from a taught vtr map."""
-    import numpy as np
-
-    ctx = click.get_current_context()
-    evaluate_on_map = (ctx.obj or {}).get("evaluate_on_map") if isinstance(ctx.obj, dict) else None
-    if evaluate_on_map is None:
-        raise InputDataError("--map needs the map reader of vtr: run the perception-model command installed with vtr "
-                             "(python -m vtr.cli.perception_model)")
-
-    yaw = path.yaw if path.yaw is not None else (None if yaw_deg is None else math.radians(yaw_deg))
-    t = evaluate_on_map(
-        model,
-        map_path,
-        path.positions,
-        yaw,
-        pitch_down=None if pitch_deg is None else math.radians(pitch_deg),
-        l_min=l_min,
-        c_bar=cbar,
-        in_view=in_view,
-        exact=exact,
-    )
-    header = ["index", "x", "y", "z", "yaw_deg", "pitch_deg", "trunk_id", "trunk_distance_m", "n_landmarks",
-              "n_in_view", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
-    if exact:
-        header.append("p_fail_exact")
-    rows = []
-    for i in range(len(t)):
-        row: list[Any] = [
-            i,
-            *t.positions[i].tolist(),
-            math.degrees(float(t.yaw[i])),
-            math.degrees(float(t.pitch_down[i])),
-            int(t.trunk_id[i]),
-            float(t.trunk_distance_m[i]),
-            int(t.n_landmarks[i]),
-            int(t.n_in_view[i]),
-            float(t.mu[i]),
-            float(t.sigma[i]),
-            float(t.g[i]),
-            float(t.g_conservative[i]),
-            float(t.p_fail_normal[i]),
-        ]
-        if t.p_fail_exact is not None:
-            row.append(float(t.p_fail_exact[i]))
-        rows.append(row)
-    fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f"),
-           ("trunk_id", 12, "d"), ("trunk_distance_m", 6, ".2f"), ("n_in_view", 6, "d")]
-    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
-    orientation = "yaw given" if t.yaw_given else "trunk orientation"
-    intro = (
-        f"map {map_path}: {len(np.unique(t.trunk_id))} trunk(s), {t.n_map_landmarks} landmarks, {len(t)} positions "
-        f"({orientation}, {'in-view landmarks' if in_view else 'all trunk landmarks'})"
-    )
     return header, rows, fmt, intro
 
 
