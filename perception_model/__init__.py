@@ -2,11 +2,14 @@
 
 - ``angles``: parallax and view angles of trunk landmarks (radians, frame ``o``);
 - ``model``: ``PerceptionModel`` ``p = c1 cos(c2 theta) exp(c3 alpha)`` with JSON save/load;
+- ``settings``: ``FitSettings`` (the fit's settings record: defaults, domains) and the thesis ``L_min``,
+  ``c_bar``;
 - ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation;
 - ``constraint``: the chance constraint ``mu - c_bar sigma >= L_min`` with analytic gradients over
   an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
 - ``landmarks_file``: the ``landmarks.csv``/``.parquet`` format (schema, ``Observations``, writer,
   columnar reader); ``io``: landmark/camera position readers; ``synthetic``: synthetic data;
+- ``plots``: the figure of a fit;
 - ``cli``: the ``perception-model`` command.
 
 The package does not depend on ``vtr``; its errors derive from ``PerceptionModelError``.
@@ -41,6 +44,7 @@ _LAZY = {
     "read_landmarks_files": "landmarks_file",
     "write_landmarks": "landmarks_file",
     "PerceptionModel": "model",
+    "FitSettings": "settings",
 }
 
 
@@ -60,6 +64,7 @@ def __dir__() -> list[str]:
 __all__ = [
     "ConstraintEvaluation",
     "FitResult",
+    "FitSettings",
     "LandmarksWriter",
     "Linearization",
     "Observations",

@@ -2,11 +2,12 @@
 checks on the binned inlier frequency, and a compact text report.
 
 ``analyse`` fits ``p = c1 cos(c2 theta) exp(c3 alpha)`` by binned least squares and by Bernoulli maximum
-likelihood on the ``landmarks.csv`` files of one data set (``HOLDOUT`` of the localizations held out) and
-reports c with 95 % intervals, whether each constant is well determined, R² over (alpha, theta) bins,
-log-loss (training, held out, and a constant predictor's on the held-out data), the signs of the slopes,
-and model-free checks: trends of the binned frequency over each angle, pooled and within bands of the
-other angle (Spearman rho, steps down, steps up beyond ``SIGNIFICANT_SE`` standard errors).
+likelihood on the ``landmarks.csv`` files of one data set (``SETTINGS``, the package's fit settings:
+``holdout_fraction`` of the localizations held out) and reports c with 95 % intervals, whether each
+constant is well determined, R² over (alpha, theta) bins, log-loss (training, held out, and a constant
+predictor's on the held-out data), the signs of the slopes, and model-free checks: trends of the binned
+frequency over each angle, pooled and within bands of the other angle (Spearman rho, steps down, steps up
+beyond ``SIGNIFICANT_SE`` standard errors).
 ``tools/perception_end_to_end.py`` runs it on synthetic and KITTI repeats.
 """
 
@@ -20,13 +21,13 @@ from typing import Any
 import numpy as np
 
 from .errors import PerceptionModelError
-from .fit import BinSpec, bin_observations, fit_observations
+from .fit import bin_observations, fit_observations
 from .landmarks_file import FIT_FIELDS, read_landmarks_files
+from .settings import METHODS, FitSettings
 
-HOLDOUT = 0.2
-ALPHA_BIN_DEG = 1.0
-THETA_BIN_DEG = 2.5
-MIN_BIN_COUNT = 10
+#: Both fits and the model-free checks use the package's defaults (bins, ``holdout_fraction`` held out),
+#: constants in degrees.
+SETTINGS = FitSettings(angle_unit="deg")
 SIGNIFICANT_SE = 2.0  # a step between bins counts as significant beyond this many standard errors
 #: "well determined": relative standard error of every constant below this, correlations below the next
 MAX_REL_SE = 0.25
@@ -92,13 +93,13 @@ def monotonic_checks(obs: Any) -> dict[str, Any]:
     """Model-free checks on the binned inlier frequency: marginal trends over alpha and theta bins and
     trends within bands of the other angle; ``<angle>_falls`` and ``<angle>_monotone`` verdicts."""
     a_deg, t_deg, y = np.degrees(obs.alpha), np.degrees(obs.theta), obs.inlier
-    grid = bin_observations(obs.alpha, obs.theta, y, BinSpec(math.radians(ALPHA_BIN_DEG), math.radians(THETA_BIN_DEG),
-                                                             MIN_BIN_COUNT))
+    s = SETTINGS
+    grid = bin_observations(obs.alpha, obs.theta, y, s.bins)
     out: dict[str, Any] = {
-        "alpha_marginal": trend_1d(a_deg, y, ALPHA_BIN_DEG, MIN_BIN_COUNT),
-        "theta_marginal": trend_1d(t_deg, y, THETA_BIN_DEG, MIN_BIN_COUNT),
-        "alpha_within_theta_bands": trend_within(grid.count_grid, grid.inlier_grid, 0, MIN_BIN_COUNT),
-        "theta_within_alpha_bands": trend_within(grid.count_grid, grid.inlier_grid, 1, MIN_BIN_COUNT),
+        "alpha_marginal": trend_1d(a_deg, y, s.alpha_bin_deg, s.min_bin_count),
+        "theta_marginal": trend_1d(t_deg, y, s.theta_bin_deg, s.min_bin_count),
+        "alpha_within_theta_bands": trend_within(grid.count_grid, grid.inlier_grid, 0, s.min_bin_count),
+        "theta_within_alpha_bands": trend_within(grid.count_grid, grid.inlier_grid, 1, s.min_bin_count),
     }
     for name in ("alpha", "theta"):
         m, w = out[f"{name}_marginal"], out[f"{name}_within_{'theta' if name == 'alpha' else 'alpha'}_bands"]
@@ -160,9 +161,9 @@ def fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str,
 
 
 def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any]:
-    """Fit both models (binned, MLE; ``HOLDOUT`` held out) on the ``landmarks.csv`` files of one data set,
-    save ``model_<method>.json`` and ``fit_<method>.png`` under ``out``; summary with the checks."""
-    from .cli import plot_fit
+    """Fit both models (binned, MLE; ``SETTINGS.holdout_fraction`` held out) on the ``landmarks.csv`` files of one
+    data set, save ``model_<method>.json`` and ``fit_<method>.png`` under ``out``; summary with the checks."""
+    from .plots import plot_fit
 
     obs = read_landmarks_files(files, FIT_FIELDS)
     a_deg, t_deg = np.degrees(obs.alpha), np.degrees(obs.theta)
@@ -182,13 +183,11 @@ def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any
         "monotonic": monotonic_checks(obs),
         "fits": {},
     }
-    bins = BinSpec(math.radians(ALPHA_BIN_DEG), math.radians(THETA_BIN_DEG), MIN_BIN_COUNT)
-    for method in ("binned", "mle"):
+    for method in METHODS:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                res = fit_observations(obs, method=method, angle_unit="deg", holdout_fraction=HOLDOUT, seed=seed,
-                                       bins=bins)
+                res = fit_observations(obs, SETTINGS.replace(method=method, seed=seed))
             except PerceptionModelError as err:
                 summary["fits"][method] = {"method": method, "error": str(err)}
                 continue

@@ -36,11 +36,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import GeometryError
+from .settings import THESIS_PITCH_DOWN_RAD  # the camera pitch of the thesis simulations
 
 Degenerate = Literal["nan", "raise"]
-
-#: Pitch of the camera below the horizon in the thesis simulations (§7.4), radians.
-THESIS_PITCH_DOWN_RAD = float(np.deg2rad(50.0))
 
 _VECTOR_DIM = 3
 

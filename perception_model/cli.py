@@ -2,22 +2,22 @@
 
     perception-model fit LANDMARKS.csv|.parquet... --out DIR [--method binned|mle]   # DIR/model.json, DIR/fit.png
     perception-model evaluate DIR/model.json LANDMARKS.csv|.parquet... [--out DIR] [--json]
-    perception-model constraint DIR/model.json --landmarks L.csv --positions P.csv
-    perception-model constraint DIR/model.json --map route.vtrmap --positions P.csv [--out DIR | --out -]
+    perception-model constraint DIR/model.json --landmarks L.csv --positions P.csv [--out DIR | --out -]
 
 The conventions of both console scripts (one-line usage errors, ``--out DIR`` always a folder, ``--force``
 to replace outputs, ``--json`` a flag) are written in ``perception_model.commandline``.
 
-``constraint --map`` reads each position's trunk and its landmarks from a ``vtr`` map, in the map
-frame (the teach run's first camera frame: x right, y down, z forward); see
-``perception_model.map_landmarks`` for the orientation/yaw convention. This package imports nothing
-from ``vtr``: the map reader is handed in through the click context (``ctx.obj["evaluate_on_map"]``)
-by the ``perception-model`` console script installed with ``vtr`` (``vtr.cli.perception_model``,
-which also adds ``envelope``). Run from this module alone, ``--map`` reports that it needs it.
+This package imports nothing from ``vtr`` and its command knows no maps: the ``perception-model`` console
+script installed with ``vtr`` (``vtr.cli.perception_model``) holds ``fit`` and ``evaluate`` from here and
+declares the map-aware commands itself (``constraint`` with ``--map`` as well as ``--landmarks``,
+``envelope``), built from the options and helpers of ``constraint`` here (``landmarks_option``,
+``confidence_options``, ``constraint_output_options``, ``resolve_c_bar``, ``report_constraint``...).
 
 A thin adapter over the library: known errors (``PerceptionModelError``, unreadable files)
 become one line ``perception-model: error: ...`` on stderr and exit code 1; library warnings are
-shown as ``perception-model: warning: ...``. Angles are printed in the model's unit.
+shown as ``perception-model: warning: ...``. Angles are printed in the model's unit. The defaults of the
+options are the library's (``perception_model.settings``); ``fit`` and ``evaluate`` build one
+``FitSettings`` record from their options (bin widths converted from degrees there, once).
 """
 
 from __future__ import annotations
@@ -36,19 +36,27 @@ import click
 from .commandline import OneLineGroup, force_option, version_option
 from .errors import InputDataError, PerceptionModelError, PerceptionModelWarning
 from .outputs import existing_output
+from .plots import plot_fit
+from .settings import (
+    CI_METHODS,
+    METHODS,
+    MIN_BOOTSTRAP,
+    THESIS_C_BAR,
+    THESIS_L_MIN,
+    THESIS_PITCH_DOWN_RAD,
+    UNIT_SCALE,
+    FitSettings,
+)
 
 if TYPE_CHECKING:
     import numpy as np
 
 PROG = "perception-model"
 DIST = "vtr"  # the distribution that ships this package
-#: Defaults of the CLI (library defaults in degrees for display).
-DEFAULT_ALPHA_BIN_DEG = 1.0
-DEFAULT_THETA_BIN_DEG = 2.5
-DEFAULT_PITCH_DEG = 50.0
-PLOT_DPI = 120
-PLOT_SIZE_IN = (12.0, 4.8)
-PLOT_CONTOURS = (0.05, 0.1, 0.2, 0.3, 0.4)
+#: The defaults the options show: the fit's settings record (bin widths shown in degrees, the CLI's unit) and
+#: the thesis camera pitch in degrees.
+_FIT = FitSettings()
+_PITCH_DEG = math.degrees(THESIS_PITCH_DOWN_RAD)
 
 
 class _Group(OneLineGroup):
@@ -108,8 +116,8 @@ def main() -> None:
 
 def bin_options(command):
     """The (alpha, theta) bin widths used by fitting and by R^2 in evaluation (degrees)."""
-    for name, default, what in (("--theta-bin", DEFAULT_THETA_BIN_DEG, "View-angle"),
-                                ("--alpha-bin", DEFAULT_ALPHA_BIN_DEG, "Parallax")):
+    for name, default, what in (("--theta-bin", _FIT.theta_bin_deg, "View-angle"),
+                                ("--alpha-bin", _FIT.alpha_bin_deg, "Parallax")):
         command = click.option(name, type=click.FloatRange(min=0.0, min_open=True), default=default,
                                show_default=True, help=f"{what} bin width (degrees).")(command)
     return command
@@ -128,8 +136,8 @@ def bin_options(command):
 @force_option("model.json and the figure")
 @click.option(
     "--method",
-    type=click.Choice(["binned", "mle"]),
-    default="binned",
+    type=click.Choice(METHODS),
+    default=_FIT.method,
     show_default=True,
     help="binned: thesis protocol (weighted LSQ on bin frequencies); mle: Bernoulli likelihood.",
 )
@@ -142,39 +150,39 @@ def bin_options(command):
 )
 @click.option(
     "--unit",
-    type=click.Choice(["deg", "rad"]),
-    default="deg",
+    type=click.Choice(list(UNIT_SCALE)),
+    default=_FIT.angle_unit,
     show_default=True,
     help="Angle unit of the fitted constants.",
 )
 @click.option(
     "--holdout",
     type=click.FloatRange(0.0, 1.0, max_open=True),
-    default=0.2,
+    default=_FIT.holdout_fraction,
     show_default=True,
     help="Fraction of localizations held out for evaluation.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the hold-out split/bootstrap.")
+@click.option("--seed", type=int, default=_FIT.seed, show_default=True, help="Seed of the hold-out split/bootstrap.")
 @bin_options
 @click.option(
     "--min-bin-count",
     type=click.IntRange(min=1),
-    default=10,
+    default=_FIT.min_bin_count,
     show_default=True,
     help="Bins with fewer observations are not used.",
 )
 @click.option(
     "--ci",
-    type=click.Choice(["sandwich", "bootstrap"]),
-    default="sandwich",
+    type=click.Choice(CI_METHODS),
+    default=_FIT.ci,
     show_default=True,
     help="Confidence intervals of the binned fit (MLE always uses the Fisher information).",
 )
 @click.option(
     "--bootstrap",
     "n_bootstrap",
-    type=click.IntRange(min=2),
-    default=200,
+    type=click.IntRange(min=MIN_BOOTSTRAP),
+    default=_FIT.n_bootstrap,
     show_default=True,
     help="Bootstrap replicates for --ci bootstrap.",
 )
@@ -194,7 +202,7 @@ def fit_cmd(
     n_bootstrap: int,
 ) -> None:
     """Fit the model to landmarks files (.csv or .parquet): OUT/model.json and OUT/fit.png."""
-    from .fit import BinSpec, fit_observations
+    from .fit import fit_observations
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
 
     if out.suffix.lower() == ".json":
@@ -209,24 +217,18 @@ def fit_cmd(
     if plot is not None:
         check_output(plot, force)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
-    bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
-    result = fit_observations(
-        obs,
-        method=method,  # type: ignore[arg-type]  # click.Choice checked it
-        angle_unit=unit,
-        holdout_fraction=holdout,
-        seed=seed,
-        bins=bins,
-        ci=ci,  # type: ignore[arg-type]
-        n_bootstrap=n_bootstrap,
-    )
+    settings = FitSettings.from_degrees(
+        alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin, min_bin_count=min_bin_count, method=method,
+        angle_unit=unit, holdout_fraction=holdout, seed=seed, ci=ci, n_bootstrap=n_bootstrap,
+    )  # fmt: skip
+    result = fit_observations(obs, settings)
     model_path.parent.mkdir(parents=True, exist_ok=True)
     data = obs.describe()
     result.model.save(model_path, fit=result.to_dict(), data=data)
     click.echo(_fit_summary(result, data))
     click.echo(f"wrote {model_path}")
     if plot is not None:
-        plot_fit(result, plot, min_bin_count)
+        plot_fit(result, plot, settings.min_bin_count)
         click.echo(f"wrote {plot}")
 
 
@@ -276,81 +278,13 @@ def _evaluation_lines(ev: Any) -> list[str]:
     return lines
 
 
-def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
-    """Observed inlier frequency per (alpha, theta) bin beside the fitted surface (cf. thesis Fig. 7.3) and the
-    number of observations per bin. Bins with fewer than ``min_count`` observations (the fit did not use
-    them; default: the smallest count among the bins it used) are hatched, not coloured: a frequency of 0 or
-    1 from a handful of samples says nothing."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-    from matplotlib.colors import LogNorm
-
-    model = result.model
-    k = model.unit_scale
-    unit = model.angle_unit
-    binned = result.binned
-    counts = binned.count_grid
-    if min_count is None:
-        min_count = int(binned.count.min()) if binned.count.size else 1
-    a_edges, t_edges = binned.alpha_edges, binned.theta_edges
-    freq = np.where(counts >= min_count, binned.frequency_grid, np.nan)
-    a_mid = 0.5 * (a_edges[1:] + a_edges[:-1])
-    t_mid = 0.5 * (t_edges[1:] + t_edges[:-1])
-    fitted = model.probability(a_mid[:, None], t_mid[None, :])
-    vmax = float(np.nanmax([np.nanmax(freq) if np.isfinite(freq).any() else 0.0, fitted.max(), 1e-3]))
-    fig, axes = plt.subplots(1, 3, figsize=(PLOT_SIZE_IN[0] * 1.4, PLOT_SIZE_IN[1]), sharey=True,
-                             constrained_layout=True)
-    sparse = (counts > 0) & (counts < min_count)
-    for ax, data, title in (
-        (axes[0], freq, f"observed inlier frequency (bins with >= {min_count} observations)"),
-        (axes[1], fitted, f"fitted model ({result.method})"),
-    ):
-        mesh = ax.pcolormesh(a_edges * k, t_edges * k, data.T, vmin=0.0, vmax=vmax, cmap="viridis")
-        cs = ax.contour(
-            a_mid * k,
-            t_mid * k,
-            fitted.T,
-            levels=[c for c in PLOT_CONTOURS if c < vmax],
-            colors="k",
-            linewidths=0.8,
-        )
-        ax.clabel(cs, fontsize=7)
-        ax.set_xlabel(f"parallax angle alpha [{unit}]")
-        ax.set_title(title, fontsize=9)
-    if sparse.any():
-        axes[0].contourf(a_mid * k, t_mid * k, sparse.T.astype(float), levels=[0.5, 1.5], colors="none",
-                         hatches=["////"])
-        axes[0].text(0.01, 0.99, f"hatched: 1-{min_count - 1} observations (not used)",
-                     transform=axes[0].transAxes, va="top", fontsize=7,
-                     bbox={"facecolor": "white", "alpha": 0.7, "linewidth": 0})
-    axes[0].set_ylabel(f"view angle theta [{unit}]")
-    fig.colorbar(mesh, ax=axes[:2], label="probability of inlier [-]", shrink=0.9)
-    shown = np.where(counts > 0, counts, np.nan)
-    cmesh = axes[2].pcolormesh(a_edges * k, t_edges * k, shown.T, cmap="magma",
-                               norm=LogNorm(vmin=1, vmax=max(2.0, float(counts.max()))))
-    axes[2].set_xlabel(f"parallax angle alpha [{unit}]")
-    axes[2].set_title("observations per bin (white: none)", fontsize=9)
-    fig.colorbar(cmesh, ax=axes[2], label="observations [count]", shrink=0.9)
-    c1, c2, c3 = model.constants
-    fig.suptitle(
-        f"perception model fit: p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha), angles in {unit}   "
-        f"R^2 = {result.r2:.3f}, n = {result.n}"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=PLOT_DPI)
-    plt.close(fig)
-
-
 # --------------------------------------------------------------------------- evaluate
 @main.command("evaluate")
 @click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("landmarks", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @bin_options
-@click.option("--min-bin-count", type=click.IntRange(min=1), default=10, show_default=True)
-@click.option("--calibration-bins", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--min-bin-count", type=click.IntRange(min=1), default=_FIT.min_bin_count, show_default=True)
+@click.option("--calibration-bins", type=click.IntRange(min=1), default=_FIT.calibration_bins, show_default=True)
 @click.option(
     "--out",
     "out",
@@ -380,7 +314,7 @@ def evaluate_cmd(
     json_flag: str | None,
 ) -> None:
     """Report log-loss, calibration and R^2 of a model on (held-out) landmarks files (.csv or .parquet)."""
-    from .fit import BinSpec, evaluate
+    from .fit import evaluate
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
     from .model import PerceptionModel
 
@@ -395,14 +329,15 @@ def evaluate_cmd(
         check_output(json_out, force)
     model = PerceptionModel.load(model_path)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
-    bins = BinSpec(math.radians(alpha_bin), math.radians(theta_bin), min_bin_count)
+    settings = FitSettings.from_degrees(alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin,
+                                        min_bin_count=min_bin_count, calibration_bins=calibration_bins)
     ev = evaluate(
         model,
         obs.alpha,
         obs.theta,
         obs.inlier,
-        bins=bins,
-        calibration_bins=calibration_bins,
+        bins=settings.bins,
+        calibration_bins=settings.calibration_bins,
         source=obs.source_names,
     )
     c1, c2, c3 = model.constants
@@ -433,114 +368,68 @@ def _parse_vector(text: str, name: str) -> np.ndarray:
     return vec
 
 
-@main.command("constraint")
-@click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
-@click.option(
-    "--landmarks",
-    "landmarks_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Trunk landmark positions x,y,z in frame o (CSV with header, or .npy (M, 3)), metres.",
-)
-@click.option(
-    "--map",
-    "map_path",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="A taught vtr map: positions are in its map frame (the teach run's first camera frame, x right, "
-    "y down, z forward); each position's trunk is chosen by the localizer's rule.",
-)
-@click.option(
-    "--positions",
-    "positions_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] (yaw in radians); frame o, or the "
-    "map frame with --map.",
-)
-@click.option(
-    "--taught-camera",
-    default=None,
-    help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
-    "[default: 0,0,0; --landmarks only].",
-)
-@click.option("--l-min", type=float, default=30.0, show_default=True, help="Minimum inlier count L_min.")
-@click.option(
-    "--c-bar", type=float, default=None, help="Normal quantile c_bar [default: 3, or from --delta]."
-)
-@click.option(
-    "--delta",
-    type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True),
-    default=None,
-    help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta).",
-)
-@click.option(
-    "--pitch-deg",
-    type=float,
-    default=None,
-    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {DEFAULT_PITCH_DEG:g}; "
-    "with --map the trunk's pitch].",
-)
-@click.option(
-    "--yaw-deg",
-    type=float,
-    default=None,
-    help="Camera yaw (degrees, CCW from x; with --map CCW from the map's +z about its -y) where the positions "
-    "file has no yaw column [default: 0; with --map the trunk's orientation].",
-)
-@click.option(
-    "--in-view/--all-landmarks",
-    default=True,
-    show_default=True,
-    help="With --map: count only trunk landmarks inside the camera image at each position (the population "
-    "of landmarks.csv), or every trunk landmark.",
-)
-@click.option(
-    "--exact/--no-exact",
-    default=True,
-    show_default=True,
-    help="Also compute the exact Poisson-binomial failure probability.",
-)
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(allow_dash=True, path_type=Path),
-    default=None,
-    help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the summary on stderr). "
-    "Deprecated: a FILE.csv path writes that file.",
-)
-@force_option("constraint.csv")
-def constraint_cmd(
-    model_path: Path,
-    landmarks_path: Path | None,
-    map_path: Path | None,
-    positions_path: Path,
-    taught_camera: str | None,
-    l_min: float,
-    c_bar: float | None,
-    delta: float | None,
-    pitch_deg: float | None,
-    yaw_deg: float | None,
-    in_view: bool,
-    exact: bool,
-    out: Path | None,
-    force: bool,
-) -> None:
-    """Evaluate mu, sigma and the chance-constraint margin along a path.
+# The options of `constraint` (and of vtr's map-aware commands, which share them): one declaration each.
+def landmarks_option(*, required: bool) -> Any:
+    """``--landmarks``: trunk landmark positions in frame o."""
+    return click.option(
+        "--landmarks",
+        "landmarks_path",
+        required=required,
+        type=click.Path(dir_okay=False, path_type=Path),
+        help="Trunk landmark positions x,y,z in frame o (CSV with header, or .npy (M, 3)), metres.",
+    )
 
-    With --landmarks, landmarks and positions are in the gravity-aligned frame o (ENU-like, z up);
-    the optical axis comes from yaw and --pitch-deg. With --map, each position's trunk is the
-    taught vertex the localizer would pick (its window rule, from the vertex nearest to the first
-    position) and its landmarks come from the map; without a yaw the camera has the
-    trunk's orientation, with a yaw (heading about the map's -y, 0 along +z, positive to the left)
-    it is pitched by --pitch-deg or the trunk's pitch (see perception_model.map_landmarks).
-    """
-    import numpy as np
 
-    from .constraint import THESIS_C_BAR, c_bar_from_delta, delta_from_c_bar
-    from .io import read_positions
-    from .model import PerceptionModel
+def taught_camera_option(command: Any) -> Any:
+    """``--taught-camera``: the origin of landmarks and positions given in frame o."""
+    return click.option(
+        "--taught-camera",
+        default=None,
+        help="Taught (trunk) camera position x,y,z in frame o; landmarks and positions are taken relative to it "
+        "[default: 0,0,0; --landmarks only].",
+    )(command)
 
+
+def confidence_options(command: Any) -> Any:
+    """``--l-min``, ``--c-bar`` and ``--delta``: the bound of the chance constraint (resolve with
+    :func:`resolve_c_bar`)."""
+    for option in reversed((
+        click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True,
+                     help="Minimum inlier count L_min."),
+        click.option("--c-bar", type=float, default=None,
+                     help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta]."),
+        click.option("--delta", type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True), default=None,
+                     help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta)."),
+    )):
+        command = option(command)
+    return command
+
+
+def constraint_output_options(command: Any) -> Any:
+    """``--exact/--no-exact``, ``--out`` and ``--force`` of a per-position constraint table."""
+    for option in reversed((
+        click.option("--exact/--no-exact", default=True, show_default=True,
+                     help="Also compute the exact Poisson-binomial failure probability."),
+        click.option("--out", "out", type=click.Path(allow_dash=True, path_type=Path), default=None,
+                     help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the "
+                     "summary on stderr). Deprecated: a FILE.csv path writes that file."),
+        force_option("constraint.csv"),
+    )):
+        command = option(command)
+    return command
+
+
+def resolve_c_bar(c_bar: float | None, delta: float | None) -> float:
+    """The normal quantile from ``--c-bar`` or ``--delta`` (at most one), ``THESIS_C_BAR`` by default."""
+    from .constraint import c_bar_from_delta
+
+    if c_bar is not None and delta is not None:
+        raise InputDataError("give at most one of --c-bar and --delta")
+    return c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
+
+
+def constraint_output(out: Path | None, force: bool) -> tuple[bool, Path | None]:
+    """``--out``: (the table to stdout?, the CSV file to write or None), its output rule checked."""
     to_stdout = out is not None and str(out) == "-"
     csv_path = None
     if out is not None and not to_stdout:
@@ -551,22 +440,83 @@ def constraint_cmd(
             check_output(out, force, folder=True, option="--out")
             csv_path = out / "constraint.csv"
         check_output(csv_path, force)
-    if (landmarks_path is None) == (map_path is None):
-        raise InputDataError("give exactly one of --landmarks FILE or --map MAP")
-    if map_path is not None and taught_camera is not None:
-        raise InputDataError("--taught-camera applies to --landmarks only (with --map the trunk is the origin)")
-    if c_bar is not None and delta is not None:
-        raise InputDataError("give at most one of --c-bar and --delta")
-    cbar = c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
+    return to_stdout, csv_path
+
+
+@main.command("constraint")
+@click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
+@landmarks_option(required=True)
+@click.option(
+    "--positions",
+    "positions_path",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Camera positions along the path: CSV x,y,z[,yaw | ,yaw_deg] (yaw in radians); frame o.",
+)
+@taught_camera_option
+@confidence_options
+@click.option(
+    "--pitch-deg",
+    type=float,
+    default=None,
+    help=f"Camera pitch below the horizon (degrees) for yaw-defined axes [default: {_PITCH_DEG:g}].",
+)
+@click.option(
+    "--yaw-deg",
+    type=float,
+    default=None,
+    help="Camera yaw (degrees, CCW from x) where the positions file has no yaw column [default: 0].",
+)
+@constraint_output_options
+def constraint_cmd(
+    model_path: Path,
+    landmarks_path: Path,
+    positions_path: Path,
+    taught_camera: str | None,
+    l_min: float,
+    c_bar: float | None,
+    delta: float | None,
+    pitch_deg: float | None,
+    yaw_deg: float | None,
+    exact: bool,
+    out: Path | None,
+    force: bool,
+) -> None:
+    """Evaluate mu, sigma and the chance-constraint margin along a path.
+
+    Landmarks and positions are in the gravity-aligned frame o (ENU-like, z up); the optical axis
+    comes from yaw and --pitch-deg. (The taught-map variant, --map, is the command installed with vtr.)
+    """
+    from .io import read_positions
+    from .model import PerceptionModel
+
+    to_stdout, csv_path = constraint_output(out, force)
+    cbar = resolve_c_bar(c_bar, delta)
     model = PerceptionModel.load(model_path)
     path = read_positions(positions_path)
-    if map_path is not None:
-        table = _constraint_on_map(model, map_path, path, l_min, cbar, pitch_deg, yaw_deg, in_view, exact)
-    else:
-        assert landmarks_path is not None
-        table = _constraint_on_landmarks(
-            model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact
-        )
+    table = constraint_on_landmarks(model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera,
+                                    exact)
+    report_constraint(table, l_min, cbar, to_stdout, csv_path)
+
+
+#: A per-position table: header, rows, (column, width, format) of the printed columns, the summary's first words.
+Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
+#: The printed columns every constraint table ends with.
+COMMON_FMT = [
+    ("mu", 8, ".2f"),
+    ("sigma", 7, ".2f"),
+    ("g", 8, ".2f"),
+    ("g_conservative", 8, ".2f"),
+    ("p_fail_normal", 10, ".3e"),
+]
+
+
+def report_constraint(table: Table, l_min: float, cbar: float, to_stdout: bool, csv_path: Path | None) -> None:
+    """Print the summary (and the table unless it goes to stdout as CSV), then write the CSV."""
+    import numpy as np
+
+    from .constraint import delta_from_c_bar
+
     header, rows, fmt, intro = table
     echo = (lambda text: click.echo(text, err=True)) if to_stdout else click.echo
     echo(f"{intro}, L_min = {l_min:g}, c_bar = {cbar:.4g} (delta = {delta_from_c_bar(cbar):.3g})")
@@ -594,17 +544,7 @@ def constraint_cmd(
         echo(f"wrote {csv_path}")
 
 
-_Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
-_COMMON_FMT = [
-    ("mu", 8, ".2f"),
-    ("sigma", 7, ".2f"),
-    ("g", 8, ".2f"),
-    ("g_conservative", 8, ".2f"),
-    ("p_fail_normal", 10, ".3e"),
-]
-
-
-def _constraint_on_landmarks(
+def constraint_on_landmarks(
     model: Any,
     landmarks_path: Path,
     path: Any,
@@ -614,14 +554,14 @@ def _constraint_on_landmarks(
     yaw_deg: float | None,
     taught_camera: str | None,
     exact: bool,
-) -> _Table:
+) -> Table:
     """Per-position rows for landmarks given in frame o."""
     import numpy as np
 
     from .constraint import PerceptionConstraint, normal_tail, poisson_binomial_tail
     from .io import read_points
 
-    pitch = DEFAULT_PITCH_DEG if pitch_deg is None else pitch_deg
+    pitch = _PITCH_DEG if pitch_deg is None else pitch_deg
     origin = _parse_vector("0,0,0" if taught_camera is None else taught_camera, "--taught-camera")
     pts = read_points(landmarks_path) - origin
     pos = path.positions - origin
@@ -647,75 +587,8 @@ def _constraint_on_landmarks(
             row.append(poisson_binomial_tail(ev.p[i], l_min, lower=True))
         rows.append(row)
     fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f")]
-    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
+    fmt += COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
     intro = f"{pts.shape[0]} landmarks, {pos.shape[0]} positions, pitch {pitch:g} deg"
-    return header, rows, fmt, intro
-
-
-def _constraint_on_map(
-    model: Any,
-    map_path: Path,
-    path: Any,
-    l_min: float,
-    cbar: float,
-    pitch_deg: float | None,
-    yaw_deg: float | None,
-    in_view: bool,
-    exact: bool,
-) -> _Table:
-    """Per-position rows with each position's trunk taken from a taught vtr map."""
-    import numpy as np
-
-    ctx = click.get_current_context()
-    evaluate_on_map = (ctx.obj or {}).get("evaluate_on_map") if isinstance(ctx.obj, dict) else None
-    if evaluate_on_map is None:
-        raise InputDataError("--map needs the map reader of vtr: run the perception-model command installed with vtr "
-                             "(python -m vtr.cli.perception_model)")
-
-    yaw = path.yaw if path.yaw is not None else (None if yaw_deg is None else math.radians(yaw_deg))
-    t = evaluate_on_map(
-        model,
-        map_path,
-        path.positions,
-        yaw,
-        pitch_down=None if pitch_deg is None else math.radians(pitch_deg),
-        l_min=l_min,
-        c_bar=cbar,
-        in_view=in_view,
-        exact=exact,
-    )
-    header = ["index", "x", "y", "z", "yaw_deg", "pitch_deg", "trunk_id", "trunk_distance_m", "n_landmarks",
-              "n_in_view", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
-    if exact:
-        header.append("p_fail_exact")
-    rows = []
-    for i in range(len(t)):
-        row: list[Any] = [
-            i,
-            *t.positions[i].tolist(),
-            math.degrees(float(t.yaw[i])),
-            math.degrees(float(t.pitch_down[i])),
-            int(t.trunk_id[i]),
-            float(t.trunk_distance_m[i]),
-            int(t.n_landmarks[i]),
-            int(t.n_in_view[i]),
-            float(t.mu[i]),
-            float(t.sigma[i]),
-            float(t.g[i]),
-            float(t.g_conservative[i]),
-            float(t.p_fail_normal[i]),
-        ]
-        if t.p_fail_exact is not None:
-            row.append(float(t.p_fail_exact[i]))
-        rows.append(row)
-    fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f"),
-           ("trunk_id", 12, "d"), ("trunk_distance_m", 6, ".2f"), ("n_in_view", 6, "d")]
-    fmt += _COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
-    orientation = "yaw given" if t.yaw_given else "trunk orientation"
-    intro = (
-        f"map {map_path}: {len(np.unique(t.trunk_id))} trunk(s), {t.n_map_landmarks} landmarks, {len(t)} positions "
-        f"({orientation}, {'in-view landmarks' if in_view else 'all trunk landmarks'})"
-    )
     return header, rows, fmt, intro
 
 

@@ -45,14 +45,11 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .angles import THESIS_PITCH_DOWN_RAD
 from .errors import GeometryError, PerceptionModelError
 from .model import PerceptionModel
 from .records import short_repr
+from .settings import THESIS_C_BAR, THESIS_L_MIN, THESIS_PITCH_DOWN_RAD  # thesis defaults (§7.4)
 
-#: Thesis simulation settings (§7.4): minimum inliers and the c_bar multiplier (3 sigma).
-THESIS_L_MIN = 30.0
-THESIS_C_BAR = 3.0
 #: Default Monte Carlo sample count and chunk size (rows of Bernoulli draws held at once).
 DEFAULT_MC_SAMPLES = 100_000
 MC_CHUNK_ELEMENTS = 4_000_000

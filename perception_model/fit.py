@@ -23,7 +23,9 @@ The model is a probability, so both fits constrain ``0 < c1 <= 1`` (bounded ``le
 L-BFGS-B). When the data would push ``c1`` above 1 the fit stops at ``c1 = 1`` and says so:
 ``FitResult.c1_at_bound`` (also ``c1_at_bound`` in the model file's ``fit`` section); the c1
 interval is then cut at 1. Bad input (empty, NaN angles, all labels equal, too few bins) raises
-``FitError`` naming the data source; the data are checked once per fit.
+``FitError`` naming the data source; the data are checked once per fit. The settings of a fit (bins,
+hold-out, intervals) and their defaults are one record, ``perception_model.settings.FitSettings``, checked
+when it is built.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import math
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,31 +42,24 @@ from scipy import optimize, special
 
 from .errors import FitError, PerceptionModelError, PerceptionModelWarning
 from .landmarks_file import Observations
-from .model import (
-    DEFAULT_ALPHA_MAX_RAD,
-    DEFAULT_THETA_MAX_RAD,
-    THESIS_CONSTANTS_DEG,
+from .model import DEFAULT_ALPHA_MAX_RAD, DEFAULT_THETA_MAX_RAD, THESIS_CONSTANTS_DEG, PerceptionModel
+from .settings import (
     UNIT_SCALE,
-    PerceptionModel,
+    BinSpec,
+    CiMethod,
+    FitSettings,
+    check_angle_unit,
+    check_bootstrap,
+    check_ci,
+    check_holdout_fraction,
 )
 
 #: Probabilities are clipped to [PROB_EPS, 1 - PROB_EPS] in log-likelihoods and log-loss.
 PROB_EPS = 1e-6
-#: Default bin widths for the binned fit and binned R^2 (radians): 1 deg parallax x 2.5 deg view.
-DEFAULT_ALPHA_BIN_RAD = math.radians(1.0)
-DEFAULT_THETA_BIN_RAD = math.radians(2.5)
-#: Bins with fewer observations than this are left out of binned fits and R^2.
-DEFAULT_MIN_BIN_COUNT = 10
+#: The defaults of every setting (bins, hold-out, intervals, calibration): ``perception_model.settings``.
+_DEFAULT = FitSettings()
 #: A binned fit needs at least this many usable bins (3 constants + residual freedom).
 MIN_FIT_BINS = 6
-#: Default confidence level of intervals.
-DEFAULT_CONFIDENCE = 0.95
-#: Number of equal-width predicted-probability bins of the calibration table.
-DEFAULT_CALIBRATION_BINS = 10
-#: Default held-out fraction of localizations in ``fit_observations``.
-DEFAULT_HOLDOUT_FRACTION = 0.2
-#: Default bootstrap replicates when ``ci="bootstrap"``.
-DEFAULT_BOOTSTRAP = 200
 #: Optimizer tolerances.
 LSQ_TOL = 1e-12
 MLE_FTOL = 1e-15
@@ -83,8 +78,6 @@ MLE_CHUNK = 1 << 20
 MLE_STEP_TOL = 1e-3
 
 CONSTANT_NAMES = ("c1", "c2", "c3")
-Method = Literal["binned", "mle"]
-CiMethod = Literal["sandwich", "bootstrap"]
 
 
 # --------------------------------------------------------------------------- result types
@@ -113,19 +106,6 @@ class CalibrationBin:
     mean_predicted: float
     observed: float
     std_err: float
-
-
-@dataclass(frozen=True)
-class BinSpec:
-    """Regular (alpha, theta) grid for binning (radians) and the minimum count of a used bin."""
-
-    alpha_width: float = DEFAULT_ALPHA_BIN_RAD
-    theta_width: float = DEFAULT_THETA_BIN_RAD
-    min_count: int = DEFAULT_MIN_BIN_COUNT
-
-    def __post_init__(self) -> None:
-        if not (self.alpha_width > 0 and self.theta_width > 0 and self.min_count >= 1):
-            raise FitError("bin widths must be > 0 and min_count >= 1")
 
 
 @dataclass(frozen=True)
@@ -413,7 +393,7 @@ def log_loss(p: ArrayLike, y: ArrayLike) -> float:
 
 
 def calibration_table(
-    p: ArrayLike, y: ArrayLike, n_bins: int = DEFAULT_CALIBRATION_BINS
+    p: ArrayLike, y: ArrayLike, n_bins: int = _DEFAULT.calibration_bins
 ) -> tuple[CalibrationBin, ...]:
     """Predicted-probability bins (equal width on [0, 1]) vs observed inlier frequency; empty bins omitted."""
     pp = np.asarray(p, dtype=np.float64).reshape(-1)
@@ -442,7 +422,7 @@ def evaluate(
     inlier: ArrayLike,
     *,
     bins: BinSpec | None = None,
-    calibration_bins: int = DEFAULT_CALIBRATION_BINS,
+    calibration_bins: int = _DEFAULT.calibration_bins,
     source: str = "<data>",
 ) -> Evaluation:
     """Log-loss, Brier score, binned R^2 and calibration of ``model`` on observations (radians)."""
@@ -513,8 +493,8 @@ def fit_binned(
     angle_unit: str = "deg",
     bins: BinSpec | None = None,
     ci: CiMethod = "sandwich",
-    n_bootstrap: int = DEFAULT_BOOTSTRAP,
-    confidence: float = DEFAULT_CONFIDENCE,
+    n_bootstrap: int = _DEFAULT.n_bootstrap,
+    confidence: float = _DEFAULT.confidence,
     seed: int = 0,
     initial: ArrayLike | None = None,
     source: str = "<data>",
@@ -526,6 +506,10 @@ def fit_binned(
     ``ci="bootstrap"`` resamples observations ``n_bootstrap`` times (percentile intervals).
     """
     a, t, y = _check_data(alpha, theta, inlier, source)
+    check_angle_unit(angle_unit)
+    check_ci(ci)
+    if ci == "bootstrap":
+        check_bootstrap(n_bootstrap)
     return _fit_binned(
         a, t, y, angle_unit=angle_unit, bins=bins, ci=ci, n_bootstrap=n_bootstrap, confidence=confidence,
         seed=seed, initial=initial, source=source,
@@ -546,9 +530,7 @@ def _fit_binned(
     initial: ArrayLike | None,
     source: str,
 ) -> FitResult:
-    """``fit_binned`` on checked data (``_check_data``)."""
-    if angle_unit not in UNIT_SCALE:
-        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    """``fit_binned`` on checked data (``_check_data``) and settings (``perception_model.settings``)."""
     spec = bins or BinSpec()
     k = UNIT_SCALE[angle_unit]
     binned = bin_observations(a, t, y, spec)
@@ -565,13 +547,11 @@ def _fit_binned(
     e_b = binned.frequency - p_bins
     if ci == "bootstrap":
         cov, intervals = _bootstrap(a, t, y, spec, k, c, n_bootstrap, confidence, seed)
-    elif ci == "sandwich":
+    else:  # "sandwich"
         bread = _safe_inverse(jac.T @ (n_b[:, None] * jac), "the least-squares normal matrix")
         meat = (jac * ((n_b * e_b) ** 2)[:, None]).T @ jac
         cov = bread @ meat @ bread
         intervals = _intervals(c, cov, confidence)
-    else:
-        raise FitError(f"unknown ci method {ci!r} (use 'sandwich' or 'bootstrap')")
     model = _make_model(c, angle_unit, a, t, source, bool(res.success), str(res.message))
     return FitResult(
         model=model,
@@ -611,8 +591,6 @@ def _bootstrap(
     confidence: float,
     seed: int,
 ) -> tuple[NDArray[np.float64], tuple[ConstantInterval, ...]]:
-    if n_boot < 2:
-        raise FitError("bootstrap needs n_bootstrap >= 2")
     rng = np.random.default_rng(seed)
     draws = []
     for _ in range(n_boot):
@@ -677,7 +655,7 @@ def fit_mle(
     *,
     angle_unit: str = "deg",
     bins: BinSpec | None = None,
-    confidence: float = DEFAULT_CONFIDENCE,
+    confidence: float = _DEFAULT.confidence,
     initial: ArrayLike | None = None,
     source: str = "<data>",
 ) -> FitResult:
@@ -687,6 +665,7 @@ def fit_mle(
     constants). Angles in radians; constants returned for ``angle_unit``.
     """
     a, t, y = _check_data(alpha, theta, inlier, source)
+    check_angle_unit(angle_unit)
     return _fit_mle(a, t, y, angle_unit=angle_unit, bins=bins, confidence=confidence, initial=initial, source=source)
 
 
@@ -701,9 +680,7 @@ def _fit_mle(
     initial: ArrayLike | None,
     source: str,
 ) -> FitResult:
-    """``fit_mle`` on checked data (``_check_data``)."""
-    if angle_unit not in UNIT_SCALE:
-        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    """``fit_mle`` on checked data (``_check_data``) and settings (``perception_model.settings``)."""
     for name, values in (("parallax angle", a), ("view angle", t)):
         if np.ptp(values) == 0:
             raise FitError(f"{source}: every observation has the same {name} ({values[0]:.6g} rad); "
@@ -715,7 +692,7 @@ def _fit_mle(
             with warnings.catch_warnings():  # only a starting point: its warnings do not concern the MLE
                 warnings.simplefilter("ignore", PerceptionModelWarning)
                 x0 = _fit_binned(
-                    a, t, y, angle_unit=angle_unit, bins=spec, ci="sandwich", n_bootstrap=DEFAULT_BOOTSTRAP,
+                    a, t, y, angle_unit=angle_unit, bins=spec, ci="sandwich", n_bootstrap=_DEFAULT.n_bootstrap,
                     confidence=confidence, seed=0, initial=None, source=source,
                 ).model.constants  # fmt: skip
         except FitError:
@@ -782,8 +759,12 @@ def _fit_mle(
 # --------------------------------------------------------------------------- observations front end
 def holdout_split(groups: NDArray[np.int64], fraction: float, seed: int) -> NDArray[np.bool_]:
     """Boolean mask of held-out rows: a random ``fraction`` of the groups (localizations)."""
-    if not 0.0 <= fraction < 1.0:
-        raise FitError(f"holdout fraction must be in [0, 1), got {fraction}")
+    check_holdout_fraction(fraction)
+    return _holdout_mask(groups, fraction, seed)
+
+
+def _holdout_mask(groups: NDArray[np.int64], fraction: float, seed: int) -> NDArray[np.bool_]:
+    """``holdout_split`` with a checked ``fraction``."""
     uniq = np.unique(groups)
     if fraction == 0.0:
         return np.zeros(groups.shape, dtype=bool)
@@ -796,50 +777,44 @@ def holdout_split(groups: NDArray[np.int64], fraction: float, seed: int) -> NDAr
     return np.isin(groups, held)
 
 
-def fit_observations(
-    obs: Observations,
-    *,
-    method: Method = "binned",
-    angle_unit: str = "deg",
-    holdout_fraction: float = DEFAULT_HOLDOUT_FRACTION,
-    seed: int = 0,
-    bins: BinSpec | None = None,
-    ci: CiMethod = "sandwich",
-    n_bootstrap: int = DEFAULT_BOOTSTRAP,
-    confidence: float = DEFAULT_CONFIDENCE,
-    calibration_bins: int = DEFAULT_CALIBRATION_BINS,
-) -> FitResult:
+def fit_observations(obs: Observations, settings: FitSettings | None = None, **changes: Any) -> FitResult:
     """Fit on a random ``1 - holdout_fraction`` of the localizations, evaluate on the rest.
 
-    The data are checked once (here, on the whole set: clearer messages); the training part is
-    only checked for holding both labels.
+    ``settings`` (default ``FitSettings()``, the thesis protocol), with any of its fields changed by keyword
+    (``method="mle"``, ``holdout_fraction=0.0``; ``bins=BinSpec(...)`` sets the three bin fields). The
+    settings are checked when their record is built, the data once (here, on the whole set: clearer
+    messages); the training part is only checked for holding both labels.
     """
+    s = _DEFAULT if settings is None else settings
+    bins = changes.pop("bins", None)
+    if bins is not None:
+        changes.update(alpha_bin_rad=bins.alpha_width, theta_bin_rad=bins.theta_width, min_bin_count=bins.min_count)
+    if changes:
+        s = s.replace(**changes)
     source = obs.source_names
     a, t, y = _check_data(obs.alpha, obs.theta, obs.inlier, source)
-    if method not in ("binned", "mle"):
-        raise FitError(f"unknown method {method!r} (use 'binned' or 'mle')")
-    held = holdout_split(obs.frame_groups(), holdout_fraction, seed)
+    held = _holdout_mask(obs.frame_groups(), s.holdout_fraction, s.seed)
     if held.any():
         train = ~held
         a_fit, t_fit, y_fit = a[train], t[train], y[train]
         _check_both_labels(y_fit, source)
     else:
         a_fit, t_fit, y_fit = a, t, y
-    if method == "binned":
+    if s.method == "binned":
         result = _fit_binned(
-            a_fit, t_fit, y_fit, angle_unit=angle_unit, bins=bins, ci=ci, n_bootstrap=n_bootstrap,
-            confidence=confidence, seed=seed, initial=None, source=source,
+            a_fit, t_fit, y_fit, angle_unit=s.angle_unit, bins=s.bins, ci=s.ci, n_bootstrap=s.n_bootstrap,
+            confidence=s.confidence, seed=s.seed, initial=None, source=source,
         )  # fmt: skip
     else:
         result = _fit_mle(
-            a_fit, t_fit, y_fit, angle_unit=angle_unit, bins=bins, confidence=confidence, initial=None,
+            a_fit, t_fit, y_fit, angle_unit=s.angle_unit, bins=s.bins, confidence=s.confidence, initial=None,
             source=source,
         )  # fmt: skip
     del a_fit, t_fit, y_fit
     holdout = None
     if held.any():
-        holdout = _evaluate(result.model, a[held], t[held], y[held], bins=bins, calibration_bins=calibration_bins)
-    extra = dict(result.extra, holdout_fraction=holdout_fraction, seed=seed)
+        holdout = _evaluate(result.model, a[held], t[held], y[held], bins=s.bins, calibration_bins=s.calibration_bins)
+    extra = dict(result.extra, holdout_fraction=s.holdout_fraction, seed=s.seed)
     return FitResult(**{**vars(result), "holdout": holdout, "extra": extra})
 
 
@@ -911,7 +886,7 @@ def fit_binned_stream(
     *,
     angle_unit: str = "deg",
     bins: BinSpec | None = None,
-    confidence: float = DEFAULT_CONFIDENCE,
+    confidence: float = _DEFAULT.confidence,
     initial: ArrayLike | None = None,
     source: str = "<data>",
 ) -> FitResult:
@@ -921,8 +896,7 @@ def fit_binned_stream(
     landmarks.csv; it is iterated twice: once to bin, once for the per-observation log-loss. The
     constants equal ``fit_binned`` on all chunks concatenated (up to summation order).
     """
-    if angle_unit not in UNIT_SCALE:
-        raise FitError(f"angle_unit must be one of {sorted(UNIT_SCALE)}")
+    check_angle_unit(angle_unit)
     acc = BinAccumulator(bins)
     for a, t, y in chunks():
         acc.add(a, t, y, source)

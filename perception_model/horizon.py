@@ -34,12 +34,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .angles import THESIS_PITCH_DOWN_RAD
-from .constraint import THESIS_C_BAR, THESIS_L_MIN, _build_view_factor, check_bounds
+from .constraint import _build_view_factor, check_bounds
 from .errors import GeometryError, PerceptionModelError
 from .frames import rot_z
 from .model import PerceptionModel
 from .records import short_repr
+from .settings import THESIS_C_BAR, THESIS_L_MIN, THESIS_PITCH_DOWN_RAD
 
 #: Per-step flags of a horizon evaluation.
 OK = 0

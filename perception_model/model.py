@@ -38,9 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ModelFileError, PerceptionModelError, PerceptionModelWarning
-
-#: Units the constants may be expressed in, and the factor from radians to that unit.
-UNIT_SCALE = {"deg": 180.0 / math.pi, "rad": 1.0}
+from .settings import UNIT_SCALE  # the units the constants may be expressed in (radians -> unit)
 
 #: Thesis constants (c1, c2, c3) for angles in degrees (thesis §7.3.1, fit over 12 km, R^2 = 0.92).
 THESIS_CONSTANTS_DEG = (0.424, 0.028, -0.145)

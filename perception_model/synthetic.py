@@ -12,10 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .angles import THESIS_PITCH_DOWN_RAD, optical_axis
+from .angles import optical_axis
 from .fit import simulate_labels
 from .landmarks_file import Observations, SourceSpan
 from .model import DEFAULT_ALPHA_MAX_RAD, DEFAULT_THETA_MAX_RAD, PerceptionModel
+from .settings import THESIS_PITCH_DOWN_RAD
 
 #: Default scene: camera altitude above the ground plane and height of raised structure (m).
 DEFAULT_ALTITUDE_M = 15.0

@@ -8,7 +8,9 @@ may import from its own subpackage or from a layer to its left, never to its rig
 
 Every import is checked, including those inside functions and under ``TYPE_CHECKING`` (read with ``ast``
 from the source, nothing is imported). ``perception_model`` is a separate package and imports nothing
-from ``vtr``.
+from ``vtr``. In both packages no library module imports a command-line module (``CLI_MODULES``: ``vtr.cli``
+and its submodules, ``vtr.__main__``, ``perception_model.cli``, ``perception_model.commandline``,
+``perception_model.__main__``); command-line modules may import each other.
 
 Owners of outside libraries: only the map's file layer (``vtr.map.database``) imports ``sqlite3``, in
 ``vtr`` and ``perception_model`` (tests and tools may open map files directly); the WNOA algebra
@@ -29,6 +31,10 @@ BOTTOM_MODULES = {"vtr", "vtr.errors", "vtr.conventions", "vtr.config", "vtr.geo
 ENTRY_POINTS = {"vtr.__main__": "cli"}   # ``python -m vtr`` runs the command line
 SQLITE_OWNER = "vtr.map.database"       # the one module that talks to SQLite
 GTSAM_FREE = ("vtr.state.wnoa",)        # pure numpy algebra
+#: The command-line modules (a name and everything below it); every other module of both packages is a library
+#: module, and no library module imports one of these.
+CLI_MODULES = ("vtr.cli", "vtr.__main__", "perception_model.cli", "perception_model.commandline",
+               "perception_model.__main__")
 
 
 def module_name(path: Path) -> str:
@@ -121,3 +127,21 @@ def test_wnoa_algebra_imports_no_gtsam():
            for line, target in imports(path)
            if target == "gtsam" or target.startswith("gtsam.")]
     assert not bad, "the WNOA algebra is numpy only:\n" + "\n".join(bad)
+
+
+def is_cli(module: str) -> bool:
+    return any(module == name or module.startswith(name + ".") for name in CLI_MODULES)
+
+
+def test_the_cli_modules_exist():
+    assert [name for name in CLI_MODULES if not is_module(name) and name != "perception_model.__main__"] == []
+
+
+def test_no_library_module_imports_a_cli_module():
+    bad = [f"{path.relative_to(ROOT)}:{line}: {mod} imports {target}"
+           for package in ("vtr", "perception_model")
+           for path in sources(package)
+           if not is_cli(mod := module_name(path))
+           for line, target in imports(path)
+           if is_cli(target)]
+    assert not bad, "library modules import command-line modules:\n" + "\n".join(bad)

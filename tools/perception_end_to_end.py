@@ -125,8 +125,8 @@ def kitti_positions(out: Path, name: str) -> np.ndarray:
 def mu_check(model_path: Path, map_path: Path, runs: list[tuple[str, np.ndarray, Path]]) -> list[dict[str, Any]]:
     """Closed loop: the constraint's ``mu`` on the taught map (``perception-model constraint --map``) at
     each repeat's camera positions, beside the inlier counts that repeat observed (landmarks.csv)."""
-    from perception_model.constraint import THESIS_C_BAR, THESIS_L_MIN
     from perception_model.model import PerceptionModel
+    from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
     from vtr.app.perception import evaluate_on_map
 
     model = PerceptionModel.load(model_path)

@@ -23,6 +23,8 @@ from typing import Any, SupportsInt, cast
 
 import yaml
 
+from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
+
 from .errors import ConfigError
 
 
@@ -296,8 +298,8 @@ class ControlConfig:
     # outer loop: one QP (one SQP iteration) per tick
     rate_hz: float = setting(50.0, Range(0.0, 10_000.0, lo_open=True))
     speed_mps: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))  # desired speed along the taught path
-    l_min: float = setting(30.0, Range(0.0, 1e6))  # minimum inlier count
-    c_bar: float = setting(3.0, Range(0.0, 100.0))  # normal quantile of the chance constraint (3 sigma)
+    l_min: float = setting(THESIS_L_MIN, Range(0.0, 1e6))  # minimum inlier count
+    c_bar: float = setting(THESIS_C_BAR, Range(0.0, 100.0))  # normal quantile of the chance constraint (3 sigma)
     # linearized mu - c sigma - L_min >= this (absorbs one SQP step's error)
     perception_margin: float = setting(6.0, Range(0.0, 1e6))
     q_position: float = setting(1.0, Range(0.0, 1e9))  # tracking weight on position error (1/m^2)

@@ -58,9 +58,9 @@ def test_envelope_figure_marks_capped_values_and_shows_headings(saved, tmp_path)
 
 
 def test_fit_figure_shows_counts(saved, tmp_path):
-    from perception_model.cli import plot_fit
     from perception_model.fit import fit_observations
     from perception_model.model import PerceptionModel
+    from perception_model.plots import plot_fit
     from perception_model.synthetic import simulate_observations
 
     obs = simulate_observations(PerceptionModel.thesis(), 20_000, np.random.default_rng(0), name="r")

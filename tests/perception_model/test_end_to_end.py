@@ -63,7 +63,7 @@ def kitti_map(tmp_path_factory, kitti_clip):
 
 
 def _run(args):
-    from vtr.cli.perception_model import main  # the console script installed with vtr (adds the map reader)
+    from vtr.cli.perception_model import main  # the console script installed with vtr (the map commands)
 
     return CliRunner().invoke(main, [str(a) for a in args])
 
@@ -143,16 +143,22 @@ def test_yaw_convention_in_the_map_frame():
     assert np.isclose(yaw, np.radians(-30.0)) and np.isclose(pitch, np.radians(50.0))
 
 
-def test_map_commands_need_the_vtr_side_script(kitti_map, tmp_path):
+def test_map_commands_live_on_the_vtr_side(kitti_map, tmp_path):
+    """The package's command knows no maps (``--map`` never worked without vtr); vtr's declares and serves it."""
     from perception_model.cli import main as package_main
 
     model = tmp_path / "thesis.json"
     PerceptionModel.thesis().save(model)
     positions = tmp_path / "pos.csv"
     positions.write_text("x,y,z\n0,0,1\n")
-    r = CliRunner().invoke(package_main, ["constraint", str(model), "--map", str(kitti_map), "--positions",
-                                          str(positions)])
-    assert r.exit_code == 1 and "needs the map reader of vtr" in r.stderr and "Traceback" not in r.output
+    args = ["constraint", str(model), "--map", str(kitti_map), "--positions", str(positions)]
+    r = CliRunner().invoke(package_main, args)
+    assert r.exit_code == 1 and "No such option '--map'" in r.stderr and "Traceback" not in r.output
+    assert not [o for p in package_main.commands["constraint"].params for o in p.opts if "map" in o]
+    assert "envelope" not in package_main.commands
+    r = _run([*args, "--out", "-"])
+    assert r.exit_code == 0, r.output
+    assert r.stdout.splitlines()[0].startswith("index,x,y,z,yaw_deg,pitch_deg,trunk_id")
 
 
 @pytest.mark.parametrize("args, msg", [

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from perception_model.model import PerceptionModel
+from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
 from ..config import Config
 from ..io import open_source
@@ -100,7 +101,7 @@ def fit_model(landmark_files: list[Path], method: str = "mle") -> PerceptionMode
     from perception_model.fit import fit_observations
     from perception_model.landmarks_file import FIT_FIELDS, read_landmarks_files
 
-    return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), method=method).model  # type: ignore[arg-type]
+    return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), method=method).model
 
 
 __all__ = ["MissionRepeat", "fit_model", "render", "repeat", "teach", "up_in_map"]
@@ -152,7 +153,7 @@ class MissionReport:
 def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSION_LENGTH_M,
                        lateral_m: tuple[float, ...] = MISSION_LATERAL_M,
                        held_out_m: tuple[float, ...] = MISSION_HELD_OUT_M, ramp_m: float = MISSION_RAMP_M,
-                       l_min: float = 30.0, c_bar: float = 3.0,
+                       l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR,
                        progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> MissionReport:
     """Teach a straight aerial route, repeat it at lateral offsets (left), fit the model on the repeats'
     landmarks, compute the localization envelope and compare it with where the repeats localized."""
@@ -191,13 +192,13 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
             median_inliers=float(np.median([loc.inliers for loc in rs.localizations_list]))
             if rs.localizations_list else 0.0))
     html = out_dir / "report.html"
-    _write_report(html, rows, env, env_png, model, l_min)
+    _write_report(html, rows, env, env_png, model, l_min, c_bar)
     return MissionReport(out_dir=out_dir, map_path=map_path, model_path=model_path, envelope_csv=env_csv,
                          report_html=html, rows=tuple(rows))
 
 
 def _write_report(path: Path, checks: list[EnvelopeCheck], env: list, env_png: Path, model: PerceptionModel,
-                  l_min: float) -> None:
+                  l_min: float, c_bar: float) -> None:
     rows = [dataclasses.asdict(c) for c in checks]
     left = [e.distance_m["left"] for e in env]
     n_capped = sum(e.capped["left"] for e in env)
@@ -214,7 +215,7 @@ repeated drifting to lateral offsets (left) through the real pipeline (stereo VO
 perception model was fitted (maximum likelihood) on the repeats' <code>landmarks.csv</code>:
 c = ({model.c1:.3g}, {model.c2:.3g}, {model.c3:.3g}) per {model.angle_unit}. The <b>localization envelope</b>
 (<code>perception-model envelope</code>) gives, for every taught vertex, how far the vehicle may move before
-mu - 3 sigma &lt; L_min = {l_min:g} (camera as taught); median allowed left offset {np.median(left):.2f} m
+mu - {c_bar:g} sigma &lt; L_min = {l_min:g} (camera as taught); median allowed left offset {np.median(left):.2f} m
 {capped_note}.</p>
 <h2>Repeats against the envelope</h2>
 <table border="1" cellpadding="4"><tr>{head}</tr>{body}</table>

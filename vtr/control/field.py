@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from perception_model import frames
-from perception_model.constraint import THESIS_C_BAR, THESIS_L_MIN
 from perception_model.horizon import HorizonEvaluation, HorizonEvaluator, TrunkLandmarks
 from perception_model.model import PerceptionModel
+from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
 from ..config import LocalizationConfig
 from ..errors import EstimationError, MapError
