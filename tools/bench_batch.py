@@ -26,6 +26,7 @@ from machine_load import second_core_available  # tools/machine_load.py
 
 from vtr.app.batch import BatchOptions, load_manifest, run_batch
 from vtr.app.runfiles.run_json import run_status
+from vtr.cli.summaries import batch_table
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
 
 OUTPUTS = ("localization.csv", "landmarks.csv", "trajectory_tum.txt", "state.csv", "frames.csv")
@@ -93,7 +94,7 @@ def main() -> None:
     for workers in (1, 2):
         control[workers] = second_core_available()
         wall[workers], result = timed_batch(manifest, args.out / f"w{workers}", workers, threads=1)
-        assert not result.failed, result.table()
+        assert not result.failed, batch_table(result)
         busy = sum(o.seconds for o in result.outcomes) / (workers * wall[workers])
         print(f"workers {workers}: {wall[workers]:.1f} s wall for {n} runs "
               f"({sum(o.frames for o in result.outcomes)} frames); workers busy {100 * busy:.0f} % of the wall time; "
@@ -102,7 +103,7 @@ def main() -> None:
     report["wall_s"] = wall
     report["speedup_2_vs_1"] = wall[1] / wall[2]
     print(f"2 workers vs 1: {report['speedup_2_vs_1']:.2f}x")
-    for line in result.table():
+    for line in batch_table(result):
         print("    " + line)
     report["w1_equals_w2"] = not compare(args.out / "w1", args.out / "w2", manifest)
 

@@ -4,6 +4,8 @@ The CLI turns any ``VtrError`` into a one-line message and exit code 1; anything
 and keeps its traceback.
 """
 
+from __future__ import annotations
+
 
 class VtrError(Exception):
     """Root of every error the library raises on purpose."""
@@ -23,6 +25,21 @@ class CalibrationError(DataError):
 
 class MapError(VtrError):
     """A map on disk is missing, corrupt, of another format version, or misused."""
+
+
+class UnfinishedRouteError(MapError):
+    """A repeat refused because the map's teach run did not finish (its route may be cut short); ``reason`` says
+    which run and how it ended, ``vertices`` how many it holds. The caller names its own way to allow it (the
+    library's ``allow_partial``, the command line's ``--allow-partial``)."""
+
+    def __init__(self, reason: str, vertices: int, allow: str = "allow_partial=True"):
+        self.reason, self.vertices, self.allow = reason, int(vertices), allow
+        super().__init__(f"{reason}: its route may be incomplete; refusing to repeat it ({allow} to use its "
+                         f"{self.vertices} vertices anyway)")
+
+    def allowed_by(self, allow: str) -> UnfinishedRouteError:
+        """The same refusal naming another way to allow it."""
+        return UnfinishedRouteError(self.reason, self.vertices, allow)
 
 
 class EstimationError(VtrError):

@@ -12,6 +12,7 @@ import yaml
 
 from vtr.app.batch import BLOCKED, FAILED, FINISHED, RESUMED, BatchOptions, load_manifest, run_batch
 from vtr.app.runfiles.run_json import run_status
+from vtr.cli.summaries import batch_table
 from vtr.errors import ConfigError
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
 
@@ -59,7 +60,7 @@ def test_two_workers_run_every_run_and_record_the_failure(undisturbed):
     assert run_status(out / "route_0" / "broken") == "failed"
     assert len(statuses) == 4 and statuses[-1][2:] == (4, 4)
     assert result.failed == [broken]
-    table = "\n".join(result.table())
+    table = "\n".join(batch_table(result))
     assert "rep_1m" in table and "no images" in table and "1 failed" in table
     assert (out / "summary.csv").read_text().count("\n") == 5
 

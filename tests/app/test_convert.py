@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from vtr.app.convert import convert
 from vtr.cli import main
+from vtr.cli.summaries import convert_line
 from vtr.errors import DataError, OutputError
 from vtr.io import KittiSource, open_source
 from vtr.io.rosbag_writer import BagTopics, write_bag
@@ -70,7 +71,7 @@ def test_euroc_to_bag_to_kitti_keeps_unix_ns(tmp_path):
 def test_kitti_to_kitti_keeps_poses(tmp_path):
     src = open_source(KITTI)
     s = convert(src, tmp_path / "k", to="kitti", indices=SELECTED)
-    assert s.wrote_poses and "with poses.txt" in s.line()
+    assert s.wrote_poses and "with poses.txt" in convert_line(s)
     gt = open_source(tmp_path / "k").ground_truth()
     np.testing.assert_allclose(gt.T_world_cam, src.ground_truth().T_world_cam[SELECTED], atol=1e-8)
 

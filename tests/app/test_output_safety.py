@@ -27,6 +27,7 @@ from vtr.app.batch import (
     run_batch,
 )
 from vtr.app.outputs import RECORD, OutputFolder
+from vtr.cli.summaries import batch_table
 from vtr.errors import ConfigError, DataError, OutputError
 from vtr.sim.batch_routes import write_batch_routes
 
@@ -274,7 +275,7 @@ def test_changed_manifest_reruns_what_changed_and_keeps_foreign_files(routes, tm
     by = {o.name: o for o in changed.outcomes}
     assert by["teach"].status == RESUMED
     assert by["rep_0m"].status == FINISHED and "frames" in by["rep_0m"].changed and by["rep_0m"].frames == 5
-    assert "rerun: " in "\n".join(changed.table())
+    assert "rerun: " in "\n".join(batch_table(changed))
     assert notes.read_text() == "the user's"                     # not made by vtr: never removed
 
 

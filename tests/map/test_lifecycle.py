@@ -154,7 +154,7 @@ def test_live_writer_is_running_killed_writer_is_interrupted_and_never_finished(
     with Map.open(path) as m:
         [info] = m.runs()
         assert (info.state, info.finished, info.n_vertices) == ("interrupted", False, 5)
-        with pytest.raises(MapError, match="teach run 0 is interrupted, not finished.*--allow-partial"):
+        with pytest.raises(MapError, match="teach run 0 is interrupted, not finished.*allow_partial=True"):
             m.check_taught_route()
         m.check_taught_route(allow_partial=True)
     # a writer that opens the map (e.g. a repeat) never marks the interrupted teach finished

@@ -445,24 +445,6 @@ class BatchResult:
     def failed(self) -> list[RunOutcome]:
         return [o for o in self.outcomes if not o.ok]
 
-    def table(self) -> list[str]:
-        """The summary table, one line per run."""
-        head = (f"{'route':<14} {'run':<16} {'status':<9} {'frames':>6} {'localized':>9} {'inliers':>7} "
-                f"{'time s':>7}  error")
-        lines = [head, "-" * len(head)]
-        for o in self.outcomes:
-            loc = f"{o.localized_pct:.1f} %" if o.localized_pct is not None else "-"
-            inl = f"{o.median_inliers:.0f}" if o.median_inliers is not None else "-"
-            sec = f"{o.seconds:.1f}" if o.seconds is not None else "-"
-            frames = str(o.frames) if o.frames is not None else "-"
-            note = (o.error or "").splitlines()[0] if o.error else (o.changed or "")
-            lines.append(f"{o.route:<14} {o.name:<16} {o.status:<9} {frames:>6} {loc:>9} {inl:>7} {sec:>7}  {note}")
-        n = {s: sum(o.status == s for o in self.outcomes) for s in (FINISHED, RESUMED, FAILED, BLOCKED)}
-        lines.append(f"{len(self.outcomes)} runs: {n[FINISHED]} finished, {n[RESUMED]} resumed (done before), "
-                     f"{n[FAILED]} failed, {n[BLOCKED]} blocked; {self.seconds:.1f} s on {self.workers}")
-        return lines
-
-
 SUMMARY_FIELDS = [f.name for f in fields(RunOutcome)] + ["localized_pct"]
 
 

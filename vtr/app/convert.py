@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import NS_PER_S
 from ..errors import DataError
 from ..io.base import FrameSource
 from ..io.kitti_writer import KittiWriter
@@ -43,13 +42,6 @@ class ConvertSummary:
     bytes_written: int
     seconds: float
     wrote_poses: bool = False
-
-    def line(self) -> str:
-        """One-line human summary."""
-        span = (self.last_t_ns - self.first_t_ns) / NS_PER_S
-        poses = ", with poses.txt" if self.wrote_poses else ""
-        return (f"converted {self.frames} frames ({span:.3f} s of data) {self.source_format} -> {self.target}: "
-                f"{self.out} ({self.bytes_written / 1e6:.1f} MB{poses}) in {self.seconds:.1f} s")
 
 
 def default_target(out: Path) -> str:

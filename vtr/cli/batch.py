@@ -9,6 +9,7 @@ import click
 
 from . import main
 from .common import make_bar
+from .summaries import batch_table
 
 
 @main.command("batch")
@@ -64,7 +65,7 @@ def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | N
     finally:
         for b in bars:
             b.close()
-    for line in result.table():
+    for line in batch_table(result):
         click.echo(line)
     click.echo(f"wrote {result.summary_csv}")
     if result.fit is not None:

@@ -9,6 +9,7 @@ import click
 
 from . import main
 from .common import frames_option, make_bar, note_outputs, source_argument, source_options
+from .summaries import convert_line
 
 if TYPE_CHECKING:
     from ..io.base import SourceOptions
@@ -34,4 +35,4 @@ def convert_cmd(source: Path, out: Path, to: str | None, frames: str | None, sou
         idx = parse_frame_range(frames, len(src), str(source))
         with make_bar(len(idx), "convert", disable=no_progress) as bar:
             summary = convert(src, out, to=to, indices=idx, progress=lambda n: bar.update(n - bar.n))
-    click.echo(summary.line())
+    click.echo(convert_line(summary))

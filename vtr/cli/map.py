@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from . import main
+from .summaries import map_check_line
 
 map_argument = click.argument("map_path", metavar="MAP", type=click.Path(path_type=Path))
 
@@ -80,7 +81,7 @@ def map_check_cmd(map_path: Path) -> None:
 
     with Map.open(map_path, "r") as m:
         report = check_map(m)
-    click.echo(report.line(map_path))
+    click.echo(map_check_line(report, map_path))
 
 
 @main.command("export-map")

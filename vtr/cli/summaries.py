@@ -6,9 +6,14 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from ..conventions import NS_PER_S
+
 if TYPE_CHECKING:
+    from ..app.batch import BatchResult
+    from ..app.convert import ConvertSummary
     from ..app.mission import MissionReport
     from ..app.pipeline import OdometrySummary, RepeatSummary, TeachSummary
+    from ..map.integrity import CheckReport
 
 
 def _fps(frames: int, seconds: float) -> float:
@@ -57,4 +62,38 @@ def mission_lines(m: MissionReport) -> list[str]:
     return out
 
 
-__all__ = ["mission_lines", "odometry_lines", "repeat_lines", "teach_lines"]
+def convert_line(s: ConvertSummary) -> str:
+    span = (s.last_t_ns - s.first_t_ns) / NS_PER_S
+    poses = ", with poses.txt" if s.wrote_poses else ""
+    return (f"converted {s.frames} frames ({span:.3f} s of data) {s.source_format} -> {s.target}: "
+            f"{s.out} ({s.bytes_written / 1e6:.1f} MB{poses}) in {s.seconds:.1f} s")
+
+
+def map_check_line(report: CheckReport, path: object) -> str:
+    sums = "checksums verified" if report.checksums else "no checksums (map made before they existed)"
+    return (f"{path}: ok ({report.runs} runs, {report.vertices} vertices, {report.edges} edges checked; "
+            f"{sums})")
+
+
+def batch_table(result: BatchResult) -> list[str]:
+    """The batch's summary table, one line per run, and the counts."""
+    from ..app.batch import BLOCKED, FAILED, FINISHED, RESUMED
+
+    head = (f"{'route':<14} {'run':<16} {'status':<9} {'frames':>6} {'localized':>9} {'inliers':>7} "
+            f"{'time s':>7}  error")
+    lines = [head, "-" * len(head)]
+    for o in result.outcomes:
+        loc = f"{o.localized_pct:.1f} %" if o.localized_pct is not None else "-"
+        inl = f"{o.median_inliers:.0f}" if o.median_inliers is not None else "-"
+        sec = f"{o.seconds:.1f}" if o.seconds is not None else "-"
+        frames = str(o.frames) if o.frames is not None else "-"
+        note = (o.error or "").splitlines()[0] if o.error else (o.changed or "")
+        lines.append(f"{o.route:<14} {o.name:<16} {o.status:<9} {frames:>6} {loc:>9} {inl:>7} {sec:>7}  {note}")
+    n = {s: sum(o.status == s for o in result.outcomes) for s in (FINISHED, RESUMED, FAILED, BLOCKED)}
+    lines.append(f"{len(result.outcomes)} runs: {n[FINISHED]} finished, {n[RESUMED]} resumed (done before), "
+                 f"{n[FAILED]} failed, {n[BLOCKED]} blocked; {result.seconds:.1f} s on {result.workers}")
+    return lines
+
+
+__all__ = ["batch_table", "convert_line", "map_check_line", "mission_lines", "odometry_lines", "repeat_lines",
+           "teach_lines"]

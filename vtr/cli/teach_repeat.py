@@ -90,13 +90,17 @@ def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str
     not finish unless --allow-partial. The repeat is appended to MAP as a new run (the documented exception
     to the output rule: MAP is an input that grows), unless --read-only-map."""
     from ..app.pipeline import repeat_command
+    from ..errors import UnfinishedRouteError
 
     note_outputs(map_path)
     check_out_dir(out, force)
     config = load_config(config_path, threads)
-    summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
-                             rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
-                             start_distance_m=start_distance, read_only_map=read_only_map)
+    try:
+        summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
+                                 rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
+                                 start_distance_m=start_distance, read_only_map=read_only_map)
+    except UnfinishedRouteError as err:
+        raise err.allowed_by("--allow-partial") from None
     for line in repeat_lines(summary):
         click.echo(line)
     click.echo(f"wrote {out}/localization.csv, landmarks.csv, state.csv, trajectory_tum.txt, report.png, run.json")

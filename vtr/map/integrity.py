@@ -222,11 +222,6 @@ class CheckReport:
     edges: int
     checksums: bool                    # the map has checksums (created by a vtr with them)
 
-    def line(self, path: object) -> str:
-        sums = "checksums verified" if self.checksums else "no checksums (map made before they existed)"
-        return (f"{path}: ok ({self.runs} runs, {self.vertices} vertices, {self.edges} edges checked; "
-                f"{sums})")
-
 
 def check_map(m: object) -> CheckReport:
     """The full check of an open map ``m`` (a :class:`vtr.map.Map`); ``MapError`` on the first damage found."""

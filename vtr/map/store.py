@@ -46,7 +46,7 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, Terminated, interruption
+from ..errors import MapError, Terminated, UnfinishedRouteError, interruption
 from ..geometry import inv_T
 from . import integrity
 from .codec import decode_frame, encode_frame
@@ -523,9 +523,8 @@ class Map:
             return
         for r in self.runs():
             if r.privileged and not r.finished:
-                raise MapError(f"{self.path}: teach run {r.id} is {r.describe()}, not finished: its route may be "
-                               "incomplete; refusing to repeat it (--allow-partial / allow_partial=True to use "
-                               f"its {r.n_vertices} vertices anyway)")
+                raise UnfinishedRouteError(f"{self.path}: teach run {r.id} is {r.describe()}, not finished",
+                                           r.n_vertices)
 
     def has_vertex(self, vid: int) -> bool:
         if int(vid) in self._cache:
