@@ -39,6 +39,19 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import GeometryError
 
+#: ``T_vehicle_camera`` of a level, forward-looking camera (x right, y down, z forward) at the centre of a vehicle
+#: whose frame is FLU (x forward, y left, z up): vehicle x = camera z, y = -camera x, z = -camera y. The one
+#: statement of the "level camera" convention; the identity ``T_vehicle_sensor`` of a source (KITTI) means it.
+T_VEHICLE_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
+                                   [-1.0, 0.0, 0.0, 0.0],
+                                   [0.0, -1.0, 0.0, 0.0],
+                                   [0.0, 0.0, 0.0, 1.0]])
+T_VEHICLE_LEVEL_CAMERA.flags.writeable = False
+#: Gravity up in a level camera's coordinates (the vehicle's z seen from the camera: its -y); the map frame's up
+#: when the first teach camera was level.
+LEVEL_CAMERA_UP: tuple[float, float, float] = (float(T_VEHICLE_LEVEL_CAMERA[2, 0]), float(T_VEHICLE_LEVEL_CAMERA[2, 1]),
+                                               float(T_VEHICLE_LEVEL_CAMERA[2, 2]))
+
 UP = np.array([0.0, 0.0, 1.0])
 #: A horizontal direction shorter than this (unit vectors) has no heading.
 MIN_HORIZONTAL_NORM = 1e-9
@@ -139,7 +152,7 @@ def T_g_map_from_up(up_map: ArrayLike, forward_map: ArrayLike = (0.0, 0.0, 1.0))
 
     g: z = ``up_map``; x = ``forward_map`` (default the first teach camera's optical axis, the map's +z)
     projected on the horizontal plane; origin the map origin. For a level first camera (a car, KITTI)
-    the up direction is the map's ``-y``.
+    the up direction is the map's ``-y`` (:data:`LEVEL_CAMERA_UP`).
     """
     up = np.asarray(up_map, dtype=np.float64)
     n = np.linalg.norm(up)
@@ -157,6 +170,8 @@ def T_g_map_from_up(up_map: ArrayLike, forward_map: ArrayLike = (0.0, 0.0, 1.0))
 
 
 __all__ = [
+    "LEVEL_CAMERA_UP",
+    "T_VEHICLE_LEVEL_CAMERA",
     "UP",
     "T_g_map_from_up",
     "axis_yaw",

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from perception_model.frames import T_VEHICLE_LEVEL_CAMERA
 from vtr.app.pipeline import repeat_command, teach_command
 from vtr.app.runfiles.state_csv import SCHEMA as STATE_CSV
 from vtr.app.runfiles.state_csv import read_state_csv
@@ -22,7 +23,7 @@ from vtr.map import Map, TaughtPath
 from vtr.navigation.chain import LocalizationChain
 from vtr.navigation.localization import Localization
 from vtr.navigation.repeat import RepeatStep
-from vtr.navigation.repeat_state import VEHICLE_FROM_LEVEL_CAMERA, RepeatStateEstimator, output_times
+from vtr.navigation.repeat_state import RepeatStateEstimator, output_times
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
 RATE_HZ = 50.0
@@ -193,7 +194,7 @@ def _synthetic_steps(n: int, failed: set[int]):
     return np.arange(n), T_priv, steps
 
 
-@pytest.mark.parametrize("T_vehicle_sensor", [np.eye(4), VEHICLE_FROM_LEVEL_CAMERA @ make_T(np.eye(3), [0, -1.5, 1.0])])
+@pytest.mark.parametrize("T_vehicle_sensor", [np.eye(4), T_VEHICLE_LEVEL_CAMERA @ make_T(np.eye(3), [0, -1.5, 1.0])])
 def test_anchored_at_first_localization(T_vehicle_sensor):
     """The first three localizations fail: the vertices wait and are placed by the first success."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})

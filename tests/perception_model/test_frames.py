@@ -69,3 +69,16 @@ def test_up_from_a_pitched_first_camera():
     up_map = R_world_cam.T @ [0.0, 0.0, 1.0]
     T_g_map = frames.T_g_map_from_up(up_map)
     assert np.allclose(T_g_map[:3, :3] @ R_world_cam.T, np.eye(3), atol=1e-12)
+
+
+def test_the_level_camera_convention_is_one_statement():
+    """The vehicle's up seen from a level camera is LEVEL_CAMERA_UP (its -y), a proper rotation maps camera z
+    (forward) to vehicle x, and the map's gravity-aligned frame from that up looks along the camera's axis."""
+    T = frames.T_VEHICLE_LEVEL_CAMERA
+    R = T[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-15)
+    assert np.linalg.det(R) == 1.0
+    np.testing.assert_array_equal(R.T @ [0.0, 0.0, 1.0], frames.LEVEL_CAMERA_UP)
+    np.testing.assert_array_equal(R @ [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    T_g_map = frames.T_g_map_from_up(frames.LEVEL_CAMERA_UP)
+    np.testing.assert_allclose(T_g_map[:3, :3], R, atol=1e-15)   # g is the level vehicle's frame

@@ -44,7 +44,7 @@ from perception_model.map_landmarks import (
 from perception_model.model import PerceptionModel
 
 from ..camera import StereoCamera
-from ..control.field import LEVEL_CAMERA_UP_MAP, TaughtPathField, TaughtVertex, read_taught_vertices
+from ..control.field import TaughtPathField, TaughtVertex, read_taught_vertices
 from ..errors import VtrError
 from ..map import Map
 
@@ -110,7 +110,7 @@ def evaluate_on_map(model: PerceptionModel, map_path: str | Path, positions: np.
     n = pos.shape[0]
     psi_in = None if yaw is None else np.broadcast_to(np.asarray(yaw, dtype=np.float64), (n,))
     vertices, camera = _read(map_path)
-    field = TaughtPathField(model, vertices, T_g_map=frames.T_g_map_from_up(LEVEL_CAMERA_UP_MAP), l_min=l_min,
+    field = TaughtPathField(model, vertices, T_g_map=frames.T_g_map_from_up(frames.LEVEL_CAMERA_UP), l_min=l_min,
                             c_bar=c_bar)
     pos_g = pos @ field.T_g_map[:3, :3].T
     start = field.nearest_trunk(pos_g[0])
@@ -206,7 +206,7 @@ def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
 
 
 def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
-                          up_map=LEVEL_CAMERA_UP_MAP, step_m: float = ENVELOPE_STEP_M,
+                          up_map=frames.LEVEL_CAMERA_UP, step_m: float = ENVELOPE_STEP_M,
                           max_m: float = ENVELOPE_MAX_M) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring)."""
     check_envelope_grid(step_m, max_m)

@@ -228,17 +228,19 @@ def _constraint_on_map(
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Output folder: envelope.csv and envelope.png.")
 @force_option("envelope.csv and envelope.png")
-@click.option("--up", default="0,-1,0", show_default=True,
-              help="Gravity up in the map frame (the teach run's first camera frame); 0,-1,0 for a level camera.")
+@click.option("--up", default=None, metavar="X,Y,Z",
+              help="Gravity up in the map frame (the teach run's first camera frame). Default: the map's -y, "
+                   "as for a level first camera (perception_model.frames.LEVEL_CAMERA_UP).")
 @confidence_options
 @click.option("--step", "step_m", type=click.FloatRange(min=0.0, min_open=True), default=0.25, show_default=True,
               help="Offset grid step (m).")
 @click.option("--max", "max_m", type=click.FloatRange(min=0.0, min_open=True), default=20.0, show_default=True,
               help="Largest offset scanned (m).")
-def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: str, l_min: float,
+def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: str | None, l_min: float,
                  c_bar: float | None, delta: float | None, step_m: float, max_m: float) -> None:
     """For every taught vertex: how far left/right/up/down the vehicle may move (camera as taught)
     before mu - c_bar sigma < L_min."""
+    from perception_model.frames import LEVEL_CAMERA_UP
     from perception_model.model import PerceptionModel
 
     from ..app.perception import DIRECTIONS, localization_envelope, write_envelope
@@ -246,8 +248,9 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     c_bar = resolve_c_bar(c_bar, delta)
     check_output(out, force, folder=True, option="--out")
     model = PerceptionModel.load(model_path)
-    rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=_parse_vector(up, "--up"),
-                                 step_m=step_m, max_m=max_m)
+    up_map = LEVEL_CAMERA_UP if up is None else _parse_vector(up, "--up")
+    rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m,
+                                 max_m=max_m)
     csv_path, png = write_envelope(rows, out, l_min=l_min, title=f"{map_path.name}: localization envelope")
     for d in DIRECTIONS:
         vals = [r.distance_m[d] for r in rows]

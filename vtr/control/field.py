@@ -36,9 +36,6 @@ from ..geometry import inv_T
 from ..map import Map
 from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
 
-#: Default gravity "up" in the map frame: the first teach camera was level (x right, y down).
-LEVEL_CAMERA_UP_MAP = (0.0, -1.0, 0.0)
-
 
 @dataclass(frozen=True)
 class CameraMount:
@@ -122,7 +119,7 @@ class TaughtPathField:
         self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
 
     @classmethod
-    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=LEVEL_CAMERA_UP_MAP,
+    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=frames.LEVEL_CAMERA_UP,
                  mount: CameraMount | None = None, config: LocalizationConfig | None = None,
                  l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR) -> TaughtPathField:
         """Read every taught vertex of ``vtr_map`` (open) once; ``up_map``: gravity up in the map frame."""

@@ -33,8 +33,8 @@ started at the taught vertex ``start_index``) as the first knot's prior, which o
 **Gravity.** The teach world is the teach run's first camera frame (KITTI and the other sources: x right,
 y down, z forward). The vehicle frame is FLU (docs/frames.md), placed by ``T_vehicle_sensor``; when that is
 the identity (KITTI), the camera is taken as a level, forward-looking vehicle: vehicle frame = camera
-centre with x = camera z, y = -camera x, z = -camera y (:data:`VEHICLE_FROM_LEVEL_CAMERA`). The vehicle at
-the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
+centre with x = camera z, y = -camera x, z = -camera y (``perception_model.frames.T_VEHICLE_LEVEL_CAMERA``). The
+vehicle at the teach run's first camera is assumed level, so the gravity-aligned frame g (z up) is the vehicle frame
 there: ``C_g_world = C_vehicle_sensor``; for a level first camera, up is ``-y`` of that camera. Each trunk's
 ``T_o_t`` then comes from :func:`vtr.state.controller.gravity_aligned_T_o_t` on ``C_g_trunk``. (A source whose
 ``T_vehicle_sensor`` is not FLU, e.g. EuRoC's IMU body frame, breaks that assumption: its o is tilted.)
@@ -60,6 +60,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from perception_model.frames import T_VEHICLE_LEVEL_CAMERA
+
 from ..config import Config, SmoothingConfig, check_setting
 from ..conventions import NS_PER_S
 from ..errors import DataError, EstimationError
@@ -71,11 +73,6 @@ from ..state.smoothing import TrajectorySmoother, adjoint
 if TYPE_CHECKING:
     from .repeat import RepeatStep
 
-# T_vehicle_camera of a level camera looking forward (vehicle FLU at the camera centre; camera x right, y down).
-VEHICLE_FROM_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
-                                      [-1.0, 0.0, 0.0, 0.0],
-                                      [0.0, -1.0, 0.0, 0.0],
-                                      [0.0, 0.0, 0.0, 1.0]])
 # Absolute prior on the first knot of a run that never localizes (at the chain's assumption): a single
 # absolute prior does not move the means, it only fixes the gauge. Not weaker: GTSAM declares a system whose
 # information spans more than ~1e7 (odometry rotation variances are ~1e-8 rad^2) indeterminate.
@@ -101,7 +98,7 @@ def output_times(t_first_ns: int, t_last_ns: int, rate_hz: float) -> np.ndarray:
 def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
     """``T_vehicle_sensor`` with the identity read as a level, forward-looking camera (see module doc)."""
     T = np.asarray(T_vehicle_sensor, float)
-    return VEHICLE_FROM_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
+    return T_VEHICLE_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
 
 
 @dataclass(frozen=True)
@@ -357,7 +354,6 @@ class RepeatStateEstimator:
 
 
 __all__ = [
-    "VEHICLE_FROM_LEVEL_CAMERA",
     "RepeatStateEstimator",
     "StateTable",
     "check_rate",
