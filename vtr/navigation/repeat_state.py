@@ -145,16 +145,14 @@ class RepeatStateEstimator:
         T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
         trunk_window: ``(back, forward)`` taught vertices around the trunk that make the reference path.
         lost_after_failures: localization failures in a row after which the repeat is no longer localized.
-        unknown_variance: the variance (per axis) given to an odometry covariance that is unusable.
     """
 
     def __init__(self, path: TaughtPath, smoothing: SmoothingConfig, T_vehicle_sensor: np.ndarray, *,
-                 trunk_window: tuple[int, int], lost_after_failures: int, unknown_variance: float):
+                 trunk_window: tuple[int, int], lost_after_failures: int):
         self.path = path
         self.smoothing = smoothing
         self.smoother = TrajectorySmoother(smoothing)
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
-        self.unknown_variance = float(unknown_variance)
         self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
         self.C_g_world = self.T_vehicle_sensor[:3, :3]
@@ -178,12 +176,11 @@ class RepeatStateEstimator:
     @classmethod
     def for_route(cls, path: TaughtPath, config: Config, T_vehicle_sensor: np.ndarray) -> RepeatStateEstimator:
         """The estimator of a repeat along ``path`` with the settings of ``config`` (``smoothing``, the
-        localization's trunk window and ``lost_after_failures``, ``odometry.failure_variance``)."""
+        localization's trunk window and ``lost_after_failures``)."""
         loc = config.localization
         return cls(path, config.smoothing, T_vehicle_sensor,
                    trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
-                   lost_after_failures=loc.lost_after_failures,
-                   unknown_variance=config.odometry.failure_variance)
+                   lost_after_failures=loc.lost_after_failures)
 
     # -- feeding ------------------------------------------------------------------------------------
 
@@ -200,8 +197,8 @@ class RepeatStateEstimator:
             rel_cov = None
             previous = self._pending[-1] if self._pending else self._last
             if previous is not None:
-                rel_cov = usable_covariance(r.covariance, self.unknown_variance)
-                rel_cov = rel_cov + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
+                # the keyframe's edge covariance (usable as odometry hands it out) plus drift with distance
+                rel_cov = kf.edge_covariance + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
             if loc is not None and loc.success:
                 loc_cov = usable_covariance(loc.covariance)
