@@ -1,0 +1,104 @@
+"""The run files, each from its one module (vtr/app/runfiles/): what a writer writes its reader reads back, and a
+damaged file is a one-line DataError naming the file, the line and the column."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vtr.app.runfiles import frames_csv, localization_csv, state_csv
+from vtr.errors import DataError
+from vtr.geometry import exp_se3
+from vtr.navigation.localization import Localization, LocalizationStatus
+from vtr.navigation.repeat_state import StateTable
+from vtr.types import FrameKind, FrameRecord
+
+finite = st.floats(-1e3, 1e3, allow_nan=False)
+ids = st.integers(-1, 2**40)
+
+
+@st.composite
+def localizations(draw) -> Localization:
+    xi = np.array(draw(st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6)))
+    var = np.array(draw(st.lists(st.floats(1e-12, 1e2), min_size=6, max_size=6)))
+    return Localization(t_ns=draw(st.integers(0, 2**62)), leaf_id=draw(ids), trunk_id=draw(ids), twig_id=draw(ids),
+                        branch_id=draw(ids), success=draw(st.booleans()), matches=draw(st.integers(0, 10**5)),
+                        inliers=draw(st.integers(0, 10**5)), T_leaf_trunk=exp_se3(xi), covariance=np.diag(var),
+                        consecutive_failures=draw(st.integers(0, 100)),
+                        distance_since_success_m=draw(st.floats(0.0, 1e4)),
+                        status=draw(st.sampled_from(list(LocalizationStatus))),
+                        direction=draw(st.sampled_from([1, -1])))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(localizations(), max_size=5))
+def test_localization_csv_reads_back_what_it_wrote(tmp_path_factory, locs):
+    path = tmp_path_factory.mktemp("loc") / "localization.csv"
+    with open(path, "w", newline="") as f:
+        w = localization_csv.LocalizationWriter(f)
+        for loc in locs:
+            w.write(loc)
+    back = localization_csv.read_localization_csv(path)
+    assert len(back) == len(locs)
+    for a, b in zip(locs, back, strict=True):
+        for name in ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers",
+                     "consecutive_failures", "status", "direction"):
+            assert getattr(a, name) == getattr(b, name), name
+        assert b.distance_since_success_m == pytest.approx(a.distance_since_success_m, abs=5e-4)
+        np.testing.assert_allclose(b.T_leaf_trunk, a.T_leaf_trunk, atol=1e-8)          # 9 decimals
+        np.testing.assert_allclose(np.diag(b.covariance), np.diag(a.covariance), rtol=1e-6)   # 7 significant digits
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 6), st.data())
+def test_state_csv_reads_back_what_it_wrote(tmp_path_factory, n, data):
+    arr = lambda *shape: np.array(data.draw(st.lists(finite, min_size=int(np.prod(shape)),  # noqa: E731
+                                                     max_size=int(np.prod(shape))))).reshape(shape)
+    table = StateTable(t_ns=np.sort(np.array(data.draw(st.lists(st.integers(0, 2**62), min_size=n, max_size=n)),
+                                             np.int64)),
+                       position=arr(n, 3), velocity=arr(n, 3), acceleration=arr(n, 3), yaw=arr(n),
+                       trunk_id=np.array(data.draw(st.lists(ids, min_size=n, max_size=n)), np.int64),
+                       lateral=np.where(np.arange(n) % 2, np.nan, arr(n)), vertical=arr(n), along_track=arr(n),
+                       localized=np.arange(n) % 2 == 0)
+    path = tmp_path_factory.mktemp("state") / "state.csv"
+    state_csv.write_state_csv(path, table)
+    back = state_csv.read_state_csv(path)
+    np.testing.assert_array_equal(back.t_ns, table.t_ns)
+    np.testing.assert_array_equal(back.trunk_id, table.trunk_id)
+    np.testing.assert_array_equal(back.localized, table.localized)
+    for name in ("position", "velocity", "acceleration", "lateral", "vertical", "along_track"):
+        np.testing.assert_allclose(getattr(back, name), getattr(table, name), atol=5e-7, err_msg=name)
+    np.testing.assert_allclose(back.yaw, table.yaw, atol=5e-9)
+
+
+def test_frames_csv_columns(tmp_path):
+    records = [FrameRecord(t_ns=10 * i, kind=kind, matches=100 + i, inliers=50 + i, vertex_id=i // 2,
+                           new_vertex=i % 2 == 0)
+               for i, kind in enumerate([FrameKind.CREATE_VERTEX, FrameKind.DO_NOTHING, FrameKind.FAILURE])]
+    frames_csv.write_frames_csv(tmp_path / "frames.csv", records)
+    c = frames_csv.read_frames_csv(tmp_path / "frames.csv")
+    assert list(c["result"]) == ["CREATE_VERTEX", "DO_NOTHING", "FAILURE"]
+    np.testing.assert_array_equal(c["t_ns"], [0, 10, 20])
+    np.testing.assert_array_equal(c["keyframe_id"], [0, 0, 1])
+
+
+@pytest.mark.parametrize("damage, named", [
+    (lambda text: text.replace("t_ns,", "time,", 1), "not a state.csv"),
+    (lambda text: text.rsplit(",", 1)[0] + "\n", ":3: 15 cells"),
+    (lambda text: text.replace("\n1", "\nx1", 1), ":2: column t_ns: 'x1"),
+    (lambda text: text.rstrip("\n")[:-1] + "2\n", ":3: column localized: '2' is not 0 or 1"),
+])
+def test_a_damaged_state_csv_is_one_line_naming_it(tmp_path, damage, named):
+    table = StateTable(t_ns=np.array([1, 2], np.int64), position=np.zeros((2, 3)), velocity=np.zeros((2, 3)),
+                       acceleration=np.zeros((2, 3)), yaw=np.zeros(2), trunk_id=np.array([5, 6]),
+                       lateral=np.zeros(2), vertical=np.zeros(2), along_track=np.zeros(2),
+                       localized=np.array([True, False]))
+    path = tmp_path / "state.csv"
+    state_csv.write_state_csv(path, table)
+    path.write_text(damage(path.read_text()))
+    with pytest.raises(DataError) as err:
+        state_csv.read_state_csv(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and named in message, message
