@@ -37,6 +37,9 @@ class UnfinishedRouteError(MapError):
         super().__init__(f"{reason}: its route may be incomplete; refusing to repeat it ({allow} to use its "
                          f"{self.vertices} vertices anyway)")
 
+    def __reduce__(self):          # pickled whole (a batch's worker process hands it back)
+        return type(self), (self.reason, self.vertices, self.allow)
+
     def allowed_by(self, allow: str) -> UnfinishedRouteError:
         """The same refusal naming another way to allow it."""
         return UnfinishedRouteError(self.reason, self.vertices, allow)

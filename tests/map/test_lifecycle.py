@@ -338,3 +338,16 @@ def test_reader_in_the_same_process_keeps_the_writers_sqlite_locks(tmp_path):
         assert not other_process_switches_journal()
         add_vertices(m, 0, 1, seed=1)
     assert [s[:3] for s in states(path)] == [("teach", "finished", 2)]
+
+
+def test_an_unfinished_route_error_names_its_way_out_and_survives_pickling():
+    """The library names allow_partial, the command line its option; a batch worker's error crosses processes."""
+    import pickle
+
+    from vtr.errors import UnfinishedRouteError
+
+    err = UnfinishedRouteError("route.vtrmap: teach run 0 is aborted, not finished", 12)
+    assert "allow_partial=True to use its 12 vertices" in str(err) and "--" not in str(err)
+    back = pickle.loads(pickle.dumps(err))
+    assert type(back) is UnfinishedRouteError and str(back) == str(err) and back.vertices == 12
+    assert "(--allow-partial to use its 12 vertices anyway)" in str(err.allowed_by("--allow-partial"))
