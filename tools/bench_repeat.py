@@ -22,7 +22,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vtr.app.evaluation import path_length  # noqa: E402
-from vtr.app.pipeline import chain_errors, teach_command  # noqa: E402
+from vtr.app.pipeline import chain_errors, teach_command, trunk_times  # noqa: E402
 from vtr.app.repeat_run import run_repeat  # noqa: E402
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
@@ -49,7 +49,7 @@ def timed_repeat(map_path: Path, frames: str, config: Config) -> dict:
         loop = run_repeat(rp, rp.odometry.stereo.frames(images), on_step=latency)
         locs, seconds = list(loop.localizations), loop.seconds
         ok = [loc for loc in locs if loc.success]
-        err = chain_errors(ok, m, src.ground_truth())
+        err = chain_errors(ok, trunk_times(ok, rp.chain.path), src.ground_truth())
     stages = {k: 1000 * v / len(idx) for k, v in rp.timer.seconds.items()}
     stages["other"] = 1000 * seconds / len(idx) - sum(stages.values())
     key = [(loc.trunk_id, loc.success, loc.inliers, loc.T_leaf_trunk.tobytes()) for loc in locs]

@@ -39,6 +39,7 @@ from .runfiles.run_json import RunLog
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
 
+    from ..map import TaughtPath
     from ..navigation.localization import Localization
     from ..navigation.repeat import RepeatStep
     from ..navigation.repeat_state import StateTable
@@ -351,11 +352,14 @@ class RepeatRun:
         errors[~loop.localized] = np.nan          # no path error where not localized, nor beyond the route's ends
         errors[chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
         locs = list(loop.localizations)
-        gt_errors = _errors_against_ground_truth(source, m, [loc for loc in locs if loc.success])
-        integrity = None
-        if locs and _same_source(source, m):
+        gt_errors = integrity = None
+        if locs and _same_source(source, m):          # ground truth covers the leaves and their trunks
             gt = source.ground_truth()
-            integrity = integrity_of(locs, np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64), gt, gt)
+            trunk_t_ns = trunk_times(locs, chain.path)
+            integrity = integrity_of(locs, trunk_t_ns, gt, gt)
+            ok = np.array([loc.success for loc in locs])
+            if ok.any():
+                gt_errors = chain_errors([loc for loc in locs if loc.success], trunk_t_ns[ok], gt)
         statuses: dict[str, int] = {}
         for loc in locs:
             statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
@@ -449,16 +453,13 @@ def _same_source(source: FrameSource, m) -> bool:
     return source.ground_truth() is not None and teach is not None and str(source.path) == m.run(teach).source
 
 
-def _errors_against_ground_truth(source: FrameSource, m, locs) -> LocalizationErrors | None:
-    """Localization errors of the successes when :func:`_same_source`."""
-    if not locs or not _same_source(source, m):
-        return None
-    return chain_errors(locs, m, source.ground_truth())
+def trunk_times(locs, path: TaughtPath) -> np.ndarray:
+    """(N,) int64 times of the localizations' trunks, vertices of the taught ``path`` (no vertex is read)."""
+    return path.t_ns[[path.index(loc.trunk_id) for loc in locs]].astype(np.int64)
 
 
-def chain_errors(locs, m, gt) -> LocalizationErrors:
-    """Errors of localizations ``T_leaf_trunk`` (trunks are vertices of map ``m``) against ground truth
-    ``gt`` that covers both the leaf and the trunk times."""
-    trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
+def chain_errors(locs, trunk_t_ns: np.ndarray, gt) -> LocalizationErrors:
+    """Errors of localizations ``T_leaf_trunk`` against ground truth ``gt`` that covers both the leaf times and
+    the trunk times ``trunk_t_ns`` (:func:`trunk_times`)."""
     return localization_errors(np.array([loc.T_leaf_trunk for loc in locs]), np.array([loc.t_ns for loc in locs]),
-                               trunk_t, gt.t_ns, gt.T_world_cam)
+                               np.asarray(trunk_t_ns, np.int64), gt.t_ns, gt.T_world_cam)
