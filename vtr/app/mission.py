@@ -43,9 +43,15 @@ class MissionRepeat:
 
     name: str
     landmarks_csv: Path
-    localizations: int
-    successes: int
-    localizations_list: tuple[Localization, ...]
+    localizations_list: tuple[Localization, ...]   # the attempts after the drift ramp, in order
+
+    @property
+    def localizations(self) -> int:
+        return len(self.localizations_list)
+
+    @property
+    def successes(self) -> int:
+        return sum(loc.success for loc in self.localizations_list)
 
     @property
     def success_rate(self) -> float:
@@ -91,9 +97,7 @@ def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip
     kept = locs[skip:]
     out_dir.mkdir(parents=True, exist_ok=True)
     write_landmarks_csv(out_dir / "landmarks.csv", kept)
-    ok = sum(1 for loc in kept if loc.success)
-    return MissionRepeat(name=out_dir.name, landmarks_csv=out_dir / "landmarks.csv", localizations=len(kept),
-                         successes=ok, localizations_list=tuple(kept))
+    return MissionRepeat(name=out_dir.name, landmarks_csv=out_dir / "landmarks.csv", localizations_list=tuple(kept))
 
 
 def fit_model(landmark_files: list[Path], method: str = "mle") -> PerceptionModel:
