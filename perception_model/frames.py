@@ -169,8 +169,21 @@ def T_g_map_from_up(up_map: ArrayLike, forward_map: ArrayLike = (0.0, 0.0, 1.0))
     return T
 
 
+def T_vehicle_camera_from_up(up_camera: ArrayLike) -> NDArray[np.float64]:
+    """``T_vehicle_camera`` (4x4, pure rotation) of a camera rigidly mounted on a *level* vehicle, from the up
+    direction seen from the camera (``up_camera``, camera coordinates: x right, y down, z forward).
+
+    The vehicle frame (FLU) sits at the camera centre: z = up, x = the optical axis projected on the horizontal
+    plane, y = z x x. A camera pitched 50 degrees down has ``up_camera = (0, -cos 50, -sin 50)``; a level camera
+    has :data:`LEVEL_CAMERA_UP`, for which this is :data:`T_VEHICLE_LEVEL_CAMERA`. It is :func:`T_g_map_from_up`
+    of the camera's own frame: at the first teach camera, the vehicle frame is the map's g.
+    """
+    return T_g_map_from_up(up_camera)
+
+
 __all__ = [
     "LEVEL_CAMERA_UP",
+    "T_vehicle_camera_from_up",
     "T_VEHICLE_LEVEL_CAMERA",
     "UP",
     "T_g_map_from_up",

@@ -49,6 +49,11 @@ class EstimationError(VtrError):
     """An estimator received invalid input (NaN pose, non-SE(3) matrix, non-PSD covariance...)."""
 
 
+class NotLocalizedError(EstimationError):
+    """A controller asked for a state the estimator cannot give yet: no repeat frame has been localized (or
+    processed) up to that time. Typed so that a control loop can wait for the first localization."""
+
+
 class Terminated(BaseException):  # noqa: N818 - a signal, named like KeyboardInterrupt
     """SIGTERM turned into an exception by the ``vtr`` command: an orderly exit, like ``KeyboardInterrupt``
     (not an ``Exception``, so no ``except Exception`` swallows it); runs in progress end ``aborted``."""

@@ -64,26 +64,28 @@ def up_in_map(T_world_cam0: np.ndarray) -> np.ndarray:
 
 
 def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_seed: int = 0,
-           progress: Callable[[int, int], None] | None = None) -> Path:
-    """Render (or reuse, when scene, poses and noise seed are the same) a ZED-like stereo sequence in ``out_dir``."""
+           progress: Callable[[int, int], None] | None = None, speed_mps: float = SYNTHETIC_SPEED_MPS) -> Path:
+    """Render (or reuse, when scene, poses, noise seed and speed are the same) a ZED-like stereo sequence in
+    ``out_dir``, its frames timed as flown at ``speed_mps``."""
     key = hashlib.sha1(repr(scene).encode() + np.ascontiguousarray(T_world_cam).tobytes()
-                       + str(noise_seed).encode()).hexdigest()
+                       + str(noise_seed).encode()
+                       + (b"" if speed_mps == SYNTHETIC_SPEED_MPS else f"{speed_mps!r}".encode())).hexdigest()
     stamp = out_dir / "render.key"
     if stamp.is_file() and stamp.read_text().strip() == key and (out_dir / "image_0").is_dir():
         return out_dir
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    syn.write_sequence(out_dir, scene, syn.zed_camera(), T_world_cam, syn.route_times(T_world_cam, SYNTHETIC_SPEED_MPS),
+    syn.write_sequence(out_dir, scene, syn.zed_camera(), T_world_cam, syn.route_times(T_world_cam, speed_mps),
                        noise_seed=noise_seed, progress=progress)
     stamp.write_text(key + "\n")
     return out_dir
 
 
-def teach(seq_dir: Path, map_path: Path, config: Config) -> Path:
-    """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one)."""
+def teach(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray | None = None) -> Path:
+    """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one), keeping ``gravity_up`` in it."""
     for f in map_path.parent.glob(map_path.name + "*"):
         f.unlink()
-    teach_command(seq_dir, map_path, None, config)
+    teach_command(seq_dir, map_path, None, config, gravity_up=gravity_up)
     return map_path
 
 
@@ -167,7 +169,7 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     scene = syn.aerial_scene(MISSION_SCENE_SEED)
     T_teach = syn.aerial_route(length_m, 1.0)
     seq = render(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)
-    map_path = teach(seq, out_dir / "route.vtrmap", config)
+    map_path = teach(seq, out_dir / "route.vtrmap", config, gravity_up=up_in_map(T_teach[0]))
     reps = []
     for dy in (*lateral_m, *held_out_m):
         T_rep = syn.drifting_aerial_route(length_m - 1.0, 1.0, dy, 0.0, ramp_m, 0.5)
@@ -177,8 +179,7 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     model = fit_model([r.landmarks_csv for dy, r in reps if dy in lateral_m])   # the held-out repeats are not fitted
     model_path = out_dir / "model.json"
     model.save(model_path)
-    env = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_in_map(T_teach[0]),
-                                max_m=MISSION_ENVELOPE_MAX_M)
+    env = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, max_m=MISSION_ENVELOPE_MAX_M)
     env_csv, env_png = write_envelope(env, out_dir / "envelope", l_min=l_min, title="synthetic aerial route")
     by_id = {r.vertex_id: r for r in env}
     rows: list[EnvelopeCheck] = []

@@ -68,10 +68,12 @@ def open_map(path: str | Path) -> Map:
         raise InputDataError(str(err)) from None
 
 
-def _read(path: str | Path) -> tuple[list[TaughtVertex], StereoCamera]:
+def _read(path: str | Path) -> tuple[list[TaughtVertex], StereoCamera, np.ndarray]:
+    """The taught vertices, the camera and the map's up direction (stored, else a level first camera's)."""
     with open_map(path) as m:
         try:
-            return read_taught_vertices(m), m.camera
+            up = m.gravity_up
+            return read_taught_vertices(m), m.camera, np.asarray(frames.LEVEL_CAMERA_UP if up is None else up)
         except VtrError as err:
             raise InputDataError(str(err)) from None
 
@@ -109,9 +111,8 @@ def evaluate_on_map(model: PerceptionModel, map_path: str | Path, positions: np.
         raise InputDataError(f"positions must have shape (N, 3) with N >= 1, got {pos.shape}")
     n = pos.shape[0]
     psi_in = None if yaw is None else np.broadcast_to(np.asarray(yaw, dtype=np.float64), (n,))
-    vertices, camera = _read(map_path)
-    field = TaughtPathField(model, vertices, T_g_map=frames.T_g_map_from_up(frames.LEVEL_CAMERA_UP), l_min=l_min,
-                            c_bar=c_bar)
+    vertices, camera, up_map = _read(map_path)
+    field = TaughtPathField(model, vertices, T_g_map=frames.T_g_map_from_up(up_map), l_min=l_min, c_bar=c_bar)
     pos_g = pos @ field.T_g_map[:3, :3].T
     start = field.nearest_trunk(pos_g[0])
     if psi_in is None:  # selection with the nearest taught vertex's heading at each position
@@ -206,13 +207,14 @@ def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
 
 
 def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
-                          up_map=frames.LEVEL_CAMERA_UP, step_m: float = ENVELOPE_STEP_M,
+                          up_map=None, step_m: float = ENVELOPE_STEP_M,
                           max_m: float = ENVELOPE_MAX_M) -> list[EnvelopeRow]:
-    """The localization envelope of every taught vertex (see the module docstring)."""
+    """The localization envelope of every taught vertex (see the module docstring); ``up_map`` overrides the
+    map's gravity (default: the map's stored up, else a level first camera)."""
     check_envelope_grid(step_m, max_m)
     check_bounds(l_min, c_bar)
-    vertices, camera = _read(map_path)
-    T_g_map = frames.T_g_map_from_up(up_map)
+    vertices, camera, stored_up = _read(map_path)
+    T_g_map = frames.T_g_map_from_up(stored_up if up_map is None else up_map)
     R_map_g = T_g_map[:3, :3].T
     grid = np.arange(step_m, max_m + 1e-9, step_m)
     rows = []

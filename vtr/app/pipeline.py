@@ -4,6 +4,7 @@ with a progress bar, save, summarize). The library never prints; progress goes t
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -147,6 +148,10 @@ def keyframe_note(keyframes: int, frames: int, poses: np.ndarray, config: Config
 # ---------------------------------------------------------------------------------------- teach
 
 
+#: an explicit up direction further than this from the map's stored one is reported (degrees)
+GRAVITY_AGREEMENT_DEG = 1.0
+
+
 @dataclass(frozen=True)
 class TeachSummary:
     frames: int
@@ -154,12 +159,21 @@ class TeachSummary:
     failures: int
     seconds: float
     map_path: Path
+    gravity_up: tuple[float, float, float] | None = None   # kept in the map (None: none stored)
+
+
+def _unit3(v: np.ndarray) -> tuple[float, float, float]:
+    x, y, z = (float(a) for a in np.asarray(v, float) / np.linalg.norm(v))
+    return x, y, z
 
 
 def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
                   source_options: SourceOptions | str | None = None,
-                  progress: Callable | None = None) -> TeachSummary:
+                  progress: Callable | None = None, gravity_up: np.ndarray | None = None) -> TeachSummary:
     """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path).
+
+    ``gravity_up``: up in the first left camera's frame (``--up``); without it the source's own (a format whose
+    ground truth is gravity-aligned), else none is stored and readers take the first camera as level.
 
     The run ends finished, or aborted with the reason on any exception (the keyframes still in the
     odometry window are written first); a teach that wrote no vertex leaves no map file."""
@@ -171,7 +185,8 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         folder = OutputFolder.prepare(out, [source_path], TEACH_OUTPUTS) if out is not None else None
         t0 = time.perf_counter()
         results = []
-        with Map.create(map_path, source.camera, config.map) as m:
+        up = gravity_up if gravity_up is not None or not indices else source.gravity_up(indices[0])
+        with Map.create(map_path, source.camera, config.map, gravity_up=up) as m:
             teach = Teach(m, source.camera, config, source=str(source_path))
             try:
                 for frame in frames_of(source, indices, teach.odometry.stereo, progress, "teach"):
@@ -187,13 +202,15 @@ def teach_command(source_path: Path, map_path: Path, frames: str | None, config:
         seconds = time.perf_counter() - t0
         failures = sum(r.kind == FrameKind.FAILURE for r in results)
         summary = TeachSummary(frames=len(results), vertices=n_vertices, failures=failures, seconds=seconds,
-                               map_path=map_path)
+                               map_path=map_path,
+                               gravity_up=None if up is None else _unit3(up))
         if out is not None and folder is not None:
             log = RunLog(out, "teach", config, [source_path])
             folder.write("trajectory_tum.txt", write_tum, t_taught, T_taught)
             folder.write("frames.csv", write_frames_csv, results)
             log.write({"frames": summary.frames, "vertices": n_vertices, "failures": failures,
-                       "seconds": seconds, "map": str(map_path)})
+                       "seconds": seconds, "map": str(map_path),
+                       "gravity_up": None if summary.gravity_up is None else list(summary.gravity_up)})
     return summary
 
 
@@ -247,7 +264,8 @@ def append_landmarks(writer: LandmarksWriter, loc: Localization) -> None:
 def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
                    source_options: SourceOptions | str | None = None, progress: Callable | None = None,
                    rate_hz: float | None = None, allow_partial: bool = False, start_vertex: int | None = None,
-                   start_distance_m: float | None = None, read_only_map: bool = False) -> RepeatSummary:
+                   start_distance_m: float | None = None, read_only_map: bool = False,
+                   gravity_up: np.ndarray | None = None, warn: Callable[[str], None] | None = None) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
     ``start_vertex`` (path index) or ``start_distance_m`` (along the taught path) is an optional hint of where
@@ -256,13 +274,16 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     Refuses a map whose teach run is not finished unless ``allow_partial``. The repeat run ends
     finished once every frame is processed, or aborted with the reason on any exception. With
     ``read_only_map`` the map is left untouched: the repeat runs on a private copy in temporary space,
-    removed at the end (the outputs in ``out`` are the same). The steps are :class:`RepeatRun`'s."""
+    removed at the end (the outputs in ``out`` are the same). ``gravity_up`` (up in the teach run's first camera)
+    overrides the map's stored gravity for the controller state (``warn`` is told when they disagree). The steps are
+    :class:`RepeatRun`'s."""
     from ..navigation.repeat_state import check_rate
 
     rate_hz = check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz)
     return RepeatRun(source_path, map_path, out, frames, config, source_options=source_options, progress=progress,
                      rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
-                     start_distance_m=start_distance_m, read_only_map=read_only_map).run()
+                     start_distance_m=start_distance_m, read_only_map=read_only_map, gravity_up=gravity_up,
+                     warn=warn).run()
 
 
 @dataclass(frozen=True)
@@ -286,8 +307,10 @@ class RepeatRun:
     def __init__(self, source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config, *,
                  source_options: SourceOptions | str | None = None, progress: Callable | None = None,
                  rate_hz: float, allow_partial: bool = False, start_vertex: int | None = None,
-                 start_distance_m: float | None = None, read_only_map: bool = False):
+                 start_distance_m: float | None = None, read_only_map: bool = False,
+                 gravity_up: np.ndarray | None = None, warn: Callable[[str], None] | None = None):
         self.source_path, self.map_path, self.out, self.frames = Path(source_path), Path(map_path), Path(out), frames
+        self.gravity_up, self.warn = gravity_up, warn
         self.config, self.source_options, self.progress, self.rate_hz = config, source_options, progress, rate_hz
         self.allow_partial, self.read_only_map = allow_partial, read_only_map
         self.start_vertex, self.start_distance_m = start_vertex, start_distance_m
@@ -343,7 +366,23 @@ class RepeatRun:
                     append_landmarks(lm_csv, step.localization)
 
             frames = frames_of(self.source, self.indices, self.repeat.odometry.stereo, self.progress, "repeat")
-            return run_repeat(self.repeat, frames, on_step=report)
+            return run_repeat(self.repeat, frames, on_step=report, gravity_up=self._gravity())
+
+    def _gravity(self) -> np.ndarray | None:
+        """The up direction of the controller state: an explicit one, else the map's (None: a level first camera).
+        An explicit one that disagrees with the map's by more than ``GRAVITY_AGREEMENT_DEG`` is reported."""
+        from ..map import check_gravity_up
+
+        stored = self.map.gravity_up
+        if self.gravity_up is None:
+            return stored
+        up = check_gravity_up(self.gravity_up, "--up")
+        if stored is not None and self.warn is not None:
+            angle = math.degrees(math.acos(float(np.clip(up @ stored, -1.0, 1.0))))
+            if angle > GRAVITY_AGREEMENT_DEG:
+                self.warn(f"warning: --up {up.round(4).tolist()} differs from the map's gravity "
+                          f"{stored.round(4).tolist()} by {angle:.1f} deg: using --up")
+        return up
 
     def evaluate(self, loop: RepeatLoop) -> RepeatEvaluation:
         """Path-tracking errors, and errors and integrity against ground truth where the source has it."""

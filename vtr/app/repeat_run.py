@@ -27,7 +27,7 @@ from ..types import StereoFrame
 @dataclass(frozen=True)
 class RepeatLoop:
     """What one repeat's loop produced: per frame its time, its camera pose in the teach frame (the chain's)
-    and whether the chain held a localization; the localizations (with their landmark records only when
+    and whether the chain held a localization (its verdict); the localizations (with their landmark records only when
     kept); the controller-state estimator (finished); seconds in the loop and in localization."""
 
     t_ns: np.ndarray
@@ -40,11 +40,13 @@ class RepeatLoop:
 
 
 def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callable[[RepeatStep], None] | None = None,
-               keep_landmarks: bool = False) -> RepeatLoop:
+               keep_landmarks: bool = False, gravity_up: np.ndarray | None = None) -> RepeatLoop:
     """Run the repeat over ``frames`` (stereo frames, e.g. ``repeat.odometry.stereo.frames(images)``) and finish
     its run in the map. ``on_step`` receives every step in order (e.g. writes its report rows); with
-    ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route)."""
-    clog = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor)
+    ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route).
+    ``gravity_up`` overrides the map's stored gravity (``Map.gravity_up``) for the controller state."""
+    up = repeat.map.gravity_up if gravity_up is None else gravity_up
+    clog = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor, up)
     t_ns: list[int] = []
     T_teach: list[np.ndarray] = []
     localized: list[bool] = []
@@ -57,7 +59,7 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
         clog.add(step)
         t_ns.append(step.odometry.t_ns)
         T_teach.append(step.T_teach_frame)
-        localized.append(clog.vertex_localized[-1] if clog.vertex_localized else False)
+        localized.append(step.localized)
         if on_step is not None:
             on_step(step)
         if step.localization is not None:

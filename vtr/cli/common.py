@@ -213,6 +213,26 @@ def source_options(command: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+def _parse_up(ctx, param, value: str | None):
+    """``--up X,Y,Z`` as a unit 3-vector (None when not given); a one-line usage error otherwise."""
+    if value is None:
+        return None
+    from ..errors import ConfigError
+    from ..map import check_gravity_up
+
+    try:
+        parts = [float(x) for x in value.split(",")]
+        return check_gravity_up(parts, "--up")
+    except (ValueError, ConfigError) as err:
+        raise click.BadParameter(f"expected three numbers X,Y,Z (a non-zero up direction), got {value!r}"
+                                 + (f" ({err})" if isinstance(err, ConfigError) else "")) from None
+
+
+def up_option(help_text: str):
+    """``--up X,Y,Z``: the up direction (opposite to gravity) in the teach run's first left camera frame."""
+    return click.option("--up", "gravity_up", default=None, metavar="X,Y,Z", callback=_parse_up, help=help_text)
+
+
 threads_option = click.option("--threads", type=click.IntRange(min=0), default=None,
                               help="Threads for the per-frame work (features.threads; 0 = every core, the default). "
                                    "Results are identical for every value.")

@@ -38,9 +38,11 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         runs = m.runs()
         cam = m.camera
         created = m.meta.get("created", "?")
+        up = m.gravity_up
     if as_json:
         stats["created"] = created
         stats["camera"] = cam.to_dict()
+        stats["gravity_up"] = None if up is None else [float(x) for x in up]
         stats["run_list"] = [
             {"id": r.id, "kind": r.kind, "privileged": r.privileged, "state": r.state, "reason": r.reason,
              "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created}
@@ -52,6 +54,9 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
     click.echo(f"format version: {stats['format_version']}  created: {created}")
     click.echo(f"camera: {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} "
                f"cy={cam.cy:.2f} baseline={cam.baseline:.4f} m")
+    click.echo("gravity: " + ("not stored (taught without --up: readers take the first camera as level, up = its -y)"
+                              if up is None else "up " + ",".join(f"{x:.4f}" for x in up) +
+                              " in the first teach camera"))
     click.echo(f"size on disk: {_size(stats['bytes'])} ({stats['bytes']} bytes)")
     click.echo(f"vertices: {stats['vertices']}  edges: {stats['edges']} (temporal {stats['temporal_edges']}, "
                f"spatial {stats['spatial_edges']})  landmarks: {stats['landmarks']}  features: {stats['features']}")

@@ -229,8 +229,8 @@ def _constraint_on_map(
               help="Output folder: envelope.csv and envelope.png.")
 @force_option("envelope.csv and envelope.png")
 @click.option("--up", default=None, metavar="X,Y,Z",
-              help="Gravity up in the map frame (the teach run's first camera frame). Default: the map's -y, "
-                   "as for a level first camera (perception_model.frames.LEVEL_CAMERA_UP).")
+              help="Gravity up in the map frame (the teach run's first camera frame). Default: the map's stored "
+                   "gravity (vtr teach --up), else the map's -y, as for a level first camera.")
 @confidence_options
 @click.option("--step", "step_m", type=click.FloatRange(min=0.0, min_open=True), default=0.25, show_default=True,
               help="Offset grid step (m).")
@@ -240,7 +240,6 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
                  c_bar: float | None, delta: float | None, step_m: float, max_m: float) -> None:
     """For every taught vertex: how far left/right/up/down the vehicle may move (camera as taught)
     before mu - c_bar sigma < L_min."""
-    from perception_model.frames import LEVEL_CAMERA_UP
     from perception_model.model import PerceptionModel
 
     from ..app.perception import DIRECTIONS, localization_envelope, write_envelope
@@ -248,7 +247,7 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     c_bar = resolve_c_bar(c_bar, delta)
     check_output(out, force, folder=True, option="--out")
     model = PerceptionModel.load(model_path)
-    up_map = LEVEL_CAMERA_UP if up is None else _parse_vector(up, "--up")
+    up_map = None if up is None else _parse_vector(up, "--up")
     rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m,
                                  max_m=max_m)
     csv_path, png = write_envelope(rows, out, l_min=l_min, title=f"{map_path.name}: localization envelope")

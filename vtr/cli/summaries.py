@@ -30,8 +30,10 @@ def odometry_lines(s: OdometrySummary) -> list[str]:
 
 
 def teach_lines(s: TeachSummary) -> list[str]:
+    up = ("gravity: none stored (a level first camera is assumed; --up sets it)" if s.gravity_up is None else
+          "gravity: up " + ",".join(f"{x:.4f}" for x in s.gravity_up) + " in the first camera, kept in the map")
     return [f"teach: frames {s.frames}  vertices {s.vertices}  failures {s.failures}  "
-            f"{_fps(s.frames, s.seconds):.1f} frames/s  -> {s.map_path}"]
+            f"{_fps(s.frames, s.seconds):.1f} frames/s  -> {s.map_path}", up]
 
 
 def repeat_lines(s: RepeatSummary) -> list[str]:

@@ -19,6 +19,7 @@ from .common import (
     source_argument,
     source_options,
     threads_option,
+    up_option,
 )
 from .summaries import repeat_lines, teach_lines
 
@@ -36,11 +37,14 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 @click.option("--out", type=click.Path(path_type=Path), default=None,
               help="Also write trajectory_tum.txt, frames.csv and run.json here.")
 @force_out_option
+@up_option("Up (opposite to gravity) in the first left camera's frame (x right, y down, z forward), kept in the "
+           "map for every reader (state.csv, the perception field, the envelope). E.g. a camera pitched 50 deg "
+           "down: 0,-0.643,-0.766. Default: the source's own (EuRoC), else none stored (a level first camera).")
 @config_option
 @source_options
 @threads_option
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, force: bool,
-              config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
+              gravity_up, config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
 
     The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
@@ -54,7 +58,8 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
     if out is not None:
         check_out_dir(out, force)
     config = load_config(config_path, threads)
-    summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar())
+    summary = teach_command(source, map_path, frames, config, out, source_options, progress_bar(),
+                            gravity_up=gravity_up)
     for line in teach_lines(summary):
         click.echo(line)
 
@@ -78,12 +83,14 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @click.option("--read-only-map", is_flag=True,
               help="Leave MAP untouched: repeat on a private copy in temporary space (removed at the end) instead "
                    "of appending the repeat run to MAP.")
+@up_option("Up in the teach run's first left camera frame for the controller state; overrides the map's stored "
+           "gravity (a warning when they disagree). Default: the map's, else a level first camera.")
 @config_option
 @source_options
 @threads_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str | None, rate_hz: float | None,
                allow_partial: bool, start_vertex: int | None, start_distance: float | None, read_only_map: bool,
-               config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
+               gravity_up, config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     The repeat may start anywhere on the route and travel it either way. Refuses a map whose teach run did
@@ -98,7 +105,8 @@ def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str
     try:
         summary = repeat_command(source, map_path, out, frames, config, source_options, progress_bar(),
                                  rate_hz=rate_hz, allow_partial=allow_partial, start_vertex=start_vertex,
-                                 start_distance_m=start_distance, read_only_map=read_only_map)
+                                 start_distance_m=start_distance, read_only_map=read_only_map,
+                                 gravity_up=gravity_up, warn=lambda line: click.echo(line, err=True))
     except UnfinishedRouteError as err:
         raise err.allowed_by("--allow-partial") from None
     for line in repeat_lines(summary):

@@ -39,6 +39,10 @@ class SourceOptions:
                                   ("allow_unpaired", self.allow_unpaired)) if v}
 
 
+#: a reference pose further than this from a frame's time does not give that frame's gravity (ns)
+GRAVITY_TRUTH_MATCH_NS = 50_000_000
+
+
 @dataclass(frozen=True)
 class GroundTruth:
     """Reference poses of the left rectified camera: ``T_world_cam`` (N, 4, 4) at ``t_ns`` (N,)."""
@@ -53,6 +57,7 @@ class FrameSource(ABC, Sequence):
     path: Path
     camera: StereoCamera
     format_name: str = "?"
+    gravity_aligned_truth: bool = False     # the ground truth's world has z up (gravity_up reads it)
 
     @abstractmethod
     def __len__(self) -> int: ...
@@ -83,6 +88,20 @@ class FrameSource(ABC, Sequence):
     def ground_truth(self) -> GroundTruth | None:
         """Reference trajectory of the left rectified camera, when the format carries one."""
         return None
+
+    def gravity_up(self, index: int) -> np.ndarray | None:
+        """Up (opposite to gravity) in the left rectified camera of frame ``index`` (unit 3-vector), when the
+        source knows it: formats whose ground-truth world is gravity-aligned, z up (``gravity_aligned_truth``,
+        e.g. EuRoC) give it from the reference pose nearest the frame (within ``GRAVITY_TRUTH_MATCH_NS``);
+        None otherwise (a KITTI folder knows no mount)."""
+        gt = self.ground_truth() if self.gravity_aligned_truth else None
+        if gt is None or len(gt.t_ns) == 0:
+            return None
+        t = int(self.timestamps()[index])
+        j = int(np.argmin(np.abs(np.asarray(gt.t_ns, np.int64) - t)))
+        if abs(int(gt.t_ns[j]) - t) > GRAVITY_TRUTH_MATCH_NS:
+            return None
+        return np.asarray(gt.T_world_cam[j], float)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
     def close(self) -> None:
         """Release files or handles held by the source."""

@@ -100,6 +100,7 @@ class EurocSource(FrameSource):
     """Reader of an EuRoC ASL stereo sequence, rectified on the fly."""
 
     format_name = "euroc"
+    gravity_aligned_truth = True      # the Vicon / Leica world of state_groundtruth_estimate0 has z up
 
     def __init__(self, path: str | Path, alpha: float = 0.0):
         self.path = Path(path)
@@ -193,6 +194,7 @@ class StereoPairsSource(FrameSource):
     """
 
     format_name = "stereo-pairs"
+    gravity_aligned_truth = True      # groundtruth.csv holds EuRoC body poses (world z up)
 
     def __init__(self, path: str | Path, alpha: float = 0.0):
         self.path = Path(path)

@@ -25,7 +25,7 @@ See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability
 from .database import copy_map_file
 from .path import TaughtPath
 from .records import EdgeRecord, RunInfo, VertexRecord, split_vertex_id, vertex_id
-from .store import MAP_FORMAT_VERSION, VERTEX_CACHE_SIZE, Map
+from .store import MAP_FORMAT_VERSION, VERTEX_CACHE_SIZE, Map, check_gravity_up
 
 __all__ = [
     "MAP_FORMAT_VERSION",
@@ -35,6 +35,7 @@ __all__ = [
     "RunInfo",
     "TaughtPath",
     "VertexRecord",
+    "check_gravity_up",
     "copy_map_file",
     "split_vertex_id",
     "vertex_id",

@@ -46,7 +46,7 @@ import numpy as np
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import MapError, Terminated, UnfinishedRouteError, interruption
+from ..errors import ConfigError, MapError, Terminated, UnfinishedRouteError, interruption
 from ..geometry import inv_T
 from . import integrity
 from .codec import decode_frame, encode_frame
@@ -92,6 +92,26 @@ def abort_reason(exc: BaseException) -> str:
         return "terminated by SIGTERM"
     text = str(exc)
     return one_line_reason(f"{type(exc).__name__}: {text}" if text else type(exc).__name__)
+
+
+GRAVITY_META_KEY = "gravity_up"
+#: an up vector shorter than this has no direction
+MIN_UP_NORM = 1e-9
+
+
+def check_gravity_up(value, what: str, error: type[Exception] = ConfigError) -> np.ndarray:
+    """``value`` as a unit 3-vector (an up direction); ``error`` naming ``what`` unless three finite numbers of
+    non-zero length."""
+    try:
+        up = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise error(f"{what}: expected three numbers, got {value!r}") from None
+    if up.shape != (3,) or not np.all(np.isfinite(up)):
+        raise error(f"{what}: expected three finite numbers, got {value!r}")
+    n = float(np.linalg.norm(up))
+    if n < MIN_UP_NORM:
+        raise error(f"{what}: the up direction has zero length")
+    return up / n
 
 
 def _utc_now() -> str:
@@ -170,15 +190,19 @@ class Map:
 
     @classmethod
     def create(cls, path, camera: StereoCamera, config: MapConfig | None = None, *,
-               cache_size: int = VERTEX_CACHE_SIZE) -> Map:
+               cache_size: int = VERTEX_CACHE_SIZE, gravity_up=None) -> Map:
         """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
 
         Atomic and exclusive (:meth:`vtr.map.database.MapFile.create`): the schema is written to a
         temporary file in the same folder and hard-linked to ``path``, which fails when ``path`` exists;
         of several processes creating one map exactly one succeeds, the others get "already exists" and
         remove only their own temporary file. The new map is locked for writing before its name appears.
+
+        ``gravity_up`` (3,): the up direction (opposite to gravity) in the map frame, i.e. seen from the teach
+        run's first left camera; kept in the map (:attr:`gravity_up`) for every later reader.
         """
         path = Path(path)
+        up = None if gravity_up is None else check_gravity_up(gravity_up, "gravity_up")
         _check_int(cache_size, "cache_size", 1)
         config = config or MapConfig()
         level = _check_int(config.compress_level, "map.compress_level", 0)
@@ -194,6 +218,8 @@ class Map:
             "compress_level": str(level),
             integrity.META_KEY: integrity.META_VALUE,   # every vertex has checksums (vtr.map.integrity)
         }
+        if up is not None:
+            meta[GRAVITY_META_KEY] = json.dumps([float(x) for x in up])
         return MapFile.create(path, SCHEMA + integrity.SCHEMA, meta,
                               lambda file: cls(file, "a", camera, meta, cache_size, created=True))
 
@@ -272,6 +298,20 @@ class Map:
     @property
     def closed(self) -> bool:
         return self._file.closed
+
+    @property
+    def gravity_up(self) -> np.ndarray | None:
+        """Unit up direction (3,) in the map frame (the teach run's first left camera), as taught (``vtr teach
+        --up``, or a source that knows its mount); None for a map taught without it: readers then take the first
+        camera as level (up = its -y). MapError when the stored value is damaged."""
+        raw = self.meta.get(GRAVITY_META_KEY)
+        if raw is None:
+            return None
+        try:
+            value = json.loads(raw)
+        except ValueError:
+            raise MapError(f"{self.path}: damaged gravity direction in the map's meta table: {raw[:40]!r}") from None
+        return check_gravity_up(value, f"{self.path}: the map's gravity direction", MapError)
 
     @property
     def open_run(self) -> int | None:

@@ -42,7 +42,7 @@ from ..state.smoothing import adjoint
 from ..types import Keyframe
 from .localization import LocalizationEstimate, LocalizationStatus, Localizer, TaughtSubmap
 from .place import PlaceIndex
-from .trunk import BACKWARD, FORWARD, select_trunk, trunk_window
+from .trunk import BACKWARD, FORWARD, UNDECIDED, select_trunk, trunk_window
 
 S = LocalizationStatus
 
@@ -64,7 +64,8 @@ class ChainState:
 
     ``tracking``: localized with odometry intact since; ``trunk``/``branch`` path indices (branch -1 before
     the first success); ``T_world_twig`` the twig's repeat-world pose and ``T_twig_branch`` its localization
-    with ``twig_covariance``; ``direction`` +1 along the taught path, -1 against it.
+    with ``twig_covariance``; ``direction`` +1 along the taught path, -1 against it, 0 before the repeat's motion
+    has said which (the trunk window then looks forward).
     """
 
     tracking: bool = False
@@ -76,7 +77,7 @@ class ChainState:
     twig_covariance: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(6))
     consecutive_failures: int = 0
     distance_since_success_m: float = 0.0
-    direction: int = FORWARD
+    direction: int = UNDECIDED
     last_position: np.ndarray | None = None
     candidate: Candidate | None = None
     leaves_since_check: int = 0
@@ -123,7 +124,12 @@ class LocalizationChain:
 
     @property
     def localized(self) -> bool:
-        return self.state.tracking
+        """The chain's verdict, the one owner of "localized": tracking (the last success holds, odometry intact
+        since), with fewer than ``lost_after_failures`` failures in a row and at most ``lost_after_distance_m``
+        travelled since the last success: a controller may trust the pose relative to the taught path."""
+        s, c = self.state, self.config
+        return bool(s.tracking and s.consecutive_failures < c.lost_after_failures
+                    and s.distance_since_success_m <= c.lost_after_distance_m)
 
     @property
     def trunk(self) -> int:
@@ -274,6 +280,8 @@ class LocalizationChain:
         direction = s.direction
         if ref is not None and abs(along - ref) >= c.direction_min_step_m:
             direction = FORWARD if along > ref else BACKWARD
+        elif ref is None:
+            direction = self.motion_direction(T_world_leaf, trunk, T_leaf_trunk) or direction
         self.state = ChainState(tracking=True, trunk=trunk, branch=trunk, twig_id=leaf_id,
                                 T_world_twig=np.array(T_world_leaf, float), T_twig_branch=np.array(T_leaf_trunk, float),
                                 twig_covariance=np.array(covariance, float), consecutive_failures=0,
@@ -283,13 +291,32 @@ class LocalizationChain:
 
     def failed(self, T_world_leaf: np.ndarray, trunk: int | None, *, lost: bool,
                candidate: Candidate | None = None) -> None:
-        """A failure: odometry carries the chain; ``lost`` drops tracking (the next leaf searches)."""
+        """A failure: odometry carries the chain; ``lost`` drops tracking (the next leaf searches). A new place
+        candidate already says which way the route is travelled (:meth:`motion_direction`)."""
         s = self.state
+        direction = s.direction
+        if candidate is not None:
+            direction = self.motion_direction(T_world_leaf, candidate.trunk, candidate.T_leaf_trunk) or direction
         self.state = dataclasses.replace(
             s, tracking=s.tracking and not lost, trunk=s.trunk if trunk is None else trunk,
             consecutive_failures=s.consecutive_failures + 1,
             distance_since_success_m=s.distance_since_success_m + self.step_distance(T_world_leaf),
-            last_position=np.array(T_world_leaf[:3, 3], float), candidate=candidate)
+            last_position=np.array(T_world_leaf[:3, 3], float), candidate=candidate, direction=direction)
+
+    def motion_direction(self, T_world_leaf: np.ndarray, trunk: int, T_leaf_trunk: np.ndarray) -> int:
+        """Direction of travel (+1, -1; 0 when undecided) of a leaf placed against ``trunk`` by an estimate, from
+        the odometry since the previous leaf: that motion turned into the teach frame through the estimate and
+        projected on the route's tangent at the trunk, decided once it reaches ``direction_min_step_m``. So the
+        first attempts of a repeat (an unconfirmed place candidate) already carry the direction of the rest."""
+        last = self.state.last_position
+        if last is None:
+            return UNDECIDED
+        T_teach_leaf = self.path.T_world_vertex[trunk] @ inv_T(T_leaf_trunk)
+        C_teach_world = T_teach_leaf[:3, :3] @ np.asarray(T_world_leaf, float)[:3, :3].T
+        along = float(C_teach_world @ (np.asarray(T_world_leaf, float)[:3, 3] - last) @ self._tangent(trunk))
+        if abs(along) < self.config.direction_min_step_m:
+            return UNDECIDED
+        return FORWARD if along > 0 else BACKWARD
 
     def refresh(self, current: dict[int, np.ndarray]) -> None:
         """Twig and candidate poses updated from odometry's latest window adjustment (by leaf id)."""

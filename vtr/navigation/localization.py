@@ -65,7 +65,7 @@ class Localization:
     distance_since_success_m: float
     landmarks: Observations | None = None
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
-    direction: int = 1                      # +1 the route travelled as taught, -1 backward
+    direction: int = 1                      # +1 the route travelled as taught, -1 backward, 0 not yet decided
 
     __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
 

@@ -37,7 +37,9 @@ class RepeatStep:
     """What one repeat frame produced: its odometry result, and a localization when it became a vertex.
 
     ``T_teach_frame`` is the frame's camera pose in the teach run's first camera frame, as the
-    chain estimates it (odometry from the last localization).
+    chain estimates it (odometry from the last localization). ``localized`` and ``direction`` are the chain's
+    verdict after the frame (:attr:`LocalizationChain.localized`, the one owner of "localized"; +1 / -1 / 0
+    undecided): what every reader downstream (the state estimator, ``state.csv``, a controller) takes as given.
     """
 
     odometry: OdometryResult
@@ -45,6 +47,8 @@ class RepeatStep:
     vertex_id: int
     T_teach_frame: np.ndarray
     localization_seconds: float = 0.0     # time spent localizing this frame (0 when it made no vertex)
+    localized: bool = False
+    direction: int = 0
 
 
 SUBMAP_FRAMES_KEPT = 64     # taught frames held for submaps before the cache starts again (memory stays flat)
@@ -169,7 +173,8 @@ class Repeat:
             with self.timer("localization"):
                 loc = self._localize(v.id, kf, window or {})
             seconds = time.perf_counter() - t0
-        return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame), seconds)
+        return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame), seconds,
+                          localized=self.chain.localized, direction=self.chain.state.direction)
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""

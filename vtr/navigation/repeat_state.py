@@ -53,6 +53,7 @@ of the whole taught path.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -60,15 +61,24 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from perception_model.frames import T_VEHICLE_LEVEL_CAMERA
+from perception_model.frames import LEVEL_CAMERA_UP, T_g_map_from_up, T_vehicle_camera_from_up
 
 from ..config import Config, SmoothingConfig, check_setting
 from ..conventions import NS_PER_S
-from ..errors import DataError, EstimationError
+from ..errors import DataError, EstimationError, NotLocalizedError
 from ..geometry import inv_T, usable_covariance
 from ..map import TaughtPath
-from ..state.controller import ControllerState, PathError, ReferencePath, controller_state, gravity_aligned_T_o_t
+from ..state.controller import (
+    ControllerState,
+    PathError,
+    ReferencePath,
+    StateStatus,
+    controller_state,
+    gravity_aligned_T_o_t,
+)
 from ..state.smoothing import TrajectorySmoother, adjoint
+from .localization import LocalizationStatus
+from .trunk import BACKWARD
 
 if TYPE_CHECKING:
     from .repeat import RepeatStep
@@ -95,10 +105,14 @@ def output_times(t_first_ns: int, t_last_ns: int, rate_hz: float) -> np.ndarray:
     return int(t_first_ns) + t[t <= span]
 
 
-def vehicle_from_sensor(T_vehicle_sensor: np.ndarray) -> np.ndarray:
-    """``T_vehicle_sensor`` with the identity read as a level, forward-looking camera (see module doc)."""
+def vehicle_from_sensor(T_vehicle_sensor: np.ndarray, gravity_up: np.ndarray | None = None) -> np.ndarray:
+    """``T_vehicle_sensor`` with the identity (a source that knows no mount) read as a camera rigidly mounted on a
+    level vehicle whose up direction, seen from the first teach camera, is ``gravity_up`` (default: a level,
+    forward-looking camera; see module doc)."""
     T = np.asarray(T_vehicle_sensor, float)
-    return T_VEHICLE_LEVEL_CAMERA.copy() if np.allclose(T, np.eye(4)) else T
+    if not np.allclose(T, np.eye(4)):
+        return T
+    return T_vehicle_camera_from_up(LEVEL_CAMERA_UP if gravity_up is None else gravity_up)
 
 
 @dataclass(frozen=True)
@@ -107,7 +121,9 @@ class StateTable:
     :mod:`vtr.app.runfiles.state_csv`).
 
     ``position``, ``velocity``, ``acceleration`` (N, 3) of the vehicle origin in o (m, m/s, m/s²), ``yaw``
-    (N,) rad, ``trunk_id`` (N,) map ids, ``lateral``/``vertical``/``along_track`` (N,) m.
+    (N,) rad, ``trunk_id`` (N,) map ids, ``lateral``/``vertical``/``along_track`` (N,) m (lateral positive to the
+    left of the direction of travel), ``localized`` (N,) bool (``status == "localized"``), ``direction`` (N,)
+    +1/-1/0 and ``status`` (N,) :class:`~vtr.state.controller.StateStatus` values.
     """
 
     t_ns: np.ndarray
@@ -120,6 +136,8 @@ class StateTable:
     vertical: np.ndarray
     along_track: np.ndarray
     localized: np.ndarray | None = None   # (N,) bool: the chain held a localization at that time
+    direction: np.ndarray | None = None   # (N,) int: +1 taught order, -1 backward, 0 not decided
+    status: np.ndarray | None = None      # (N,) str: StateStatus values
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -137,36 +155,47 @@ class _Vertex:
 
 class RepeatStateEstimator:
     """The controller-facing state of a repeat: feeds a :class:`~vtr.state.smoothing.TrajectorySmoother` from
-    repeat steps and answers controller states at any time.
+    repeat steps and answers controller states at any time, each with its status and direction.
 
     Args:
         path: the taught path the repeat follows (ids, camera poses in the teach world).
-        smoothing: the smoother's settings (Qc, lag) and the odometry drift per metre.
-        T_vehicle_sensor: the camera on the vehicle (identity: a level forward-looking camera).
-        trunk_window: ``(back, forward)`` taught vertices around the trunk that make the reference path.
-        lost_after_failures: localization failures in a row after which the repeat is no longer localized.
+        smoothing: the smoother's settings (Qc, lag, ``max_extrapolation_s``) and the odometry drift per metre.
+        T_vehicle_sensor: the camera on the vehicle (identity: a camera rigidly mounted on a level vehicle, see
+            ``gravity_up``).
+        trunk_window: ``(back, forward)`` taught vertices around the trunk, in the direction of travel, that make
+            the reference path.
+        off_route_distance_m: a state further than this beyond either end of the taught route is ``off_route``.
+        gravity_up: up in the first teach camera's frame (the map's gravity, ``Map.gravity_up``); None: that
+            camera was level (or the mount ``T_vehicle_sensor`` says where up is).
     """
 
     def __init__(self, path: TaughtPath, smoothing: SmoothingConfig, T_vehicle_sensor: np.ndarray, *,
-                 trunk_window: tuple[int, int], lost_after_failures: int):
+                 trunk_window: tuple[int, int], off_route_distance_m: float,
+                 gravity_up: np.ndarray | None = None):
         self.path = path
         self.smoothing = smoothing
         self.smoother = TrajectorySmoother(smoothing)
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
-        self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor)
+        self.off_route_distance_m = float(off_route_distance_m)
+        self.gravity_up = None if gravity_up is None else np.asarray(gravity_up, float)
+        self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor, self.gravity_up)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
-        self.C_g_world = self.T_vehicle_sensor[:3, :3]
+        # the gravity-aligned frame g of the teach world: from the map's up, else the vehicle at the first camera
+        self.C_g_world = (self.T_vehicle_sensor[:3, :3] if self.gravity_up is None
+                          else T_g_map_from_up(self.gravity_up)[:3, :3])
         # taught vehicle poses in the teach world
         self._T_world_trunk = self.path.T_world_vertex @ self.T_sensor_vehicle
         self._arc = self.path.arc_length_m(self.T_sensor_vehicle)
-        self._trunk_cache: dict[int, tuple[np.ndarray, ReferencePath | None, float]] = {}
+        self._trunk_cache: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
         self._pending: list[_Vertex] = []
         self._anchored = False
         self._last: _Vertex | None = None
         self.vertex_t_ns: list[int] = []
         self.vertex_trunk: list[int] = []     # index along the privileged path
-        self.vertex_localized: list[bool] = []   # the chain held a localization after the vertex's attempt
-        self._lost_after = int(lost_after_failures)
+        self.vertex_localized: list[bool] = []   # the chain's verdict after the vertex's attempt
+        self.vertex_direction: list[int] = []    # the chain's direction of travel after it
+        self.vertex_off_route: list[bool] = []   # the attempt found the vertex beyond an end of the route
+        self.frame_t_ns: list[int] = []          # every frame fed (a state long after the last one is unknown)
         self._ever = False
         self.unknown: str | None = None           # why the state of a never-localized run is unknown
         self.first_t_ns: int | None = None
@@ -174,24 +203,27 @@ class RepeatStateEstimator:
         self.seconds = 0.0                    # time spent feeding the smoother and answering queries
 
     @classmethod
-    def for_route(cls, path: TaughtPath, config: Config, T_vehicle_sensor: np.ndarray) -> RepeatStateEstimator:
+    def for_route(cls, path: TaughtPath, config: Config, T_vehicle_sensor: np.ndarray,
+                  gravity_up: np.ndarray | None = None) -> RepeatStateEstimator:
         """The estimator of a repeat along ``path`` with the settings of ``config`` (``smoothing``, the
-        localization's trunk window and ``lost_after_failures``)."""
+        localization's trunk window and off-route distance) and the map's ``gravity_up``."""
         loc = config.localization
         return cls(path, config.smoothing, T_vehicle_sensor,
                    trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
-                   lost_after_failures=loc.lost_after_failures)
+                   off_route_distance_m=loc.off_route_distance_m, gravity_up=gravity_up)
 
     # -- feeding ------------------------------------------------------------------------------------
 
     def add(self, step: RepeatStep) -> None:
         """Take one :class:`~vtr.navigation.repeat.RepeatStep`; a new vertex becomes a smoother knot (or waits for
-        the first successful localization)."""
+        the first successful localization). Whether the repeat is localized, and its direction, are the chain's
+        verdict carried by the step."""
         t0 = time.perf_counter()
         r = step.odometry
         if self.first_t_ns is None:
             self.first_t_ns = int(r.t_ns)
         self.last_t_ns = int(r.t_ns)
+        self.frame_t_ns.append(int(r.t_ns))
         kf, loc = r.new_keyframe, step.localization
         if kf is not None:
             rel_cov = None
@@ -207,11 +239,10 @@ class RepeatStateEstimator:
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
-            success = loc is not None and loc.success
-            self._ever = self._ever or success
-            carried = (loc is not None and self._ever and loc.status.value != "off_route"
-                       and loc.consecutive_failures < self._lost_after)
-            self.vertex_localized.append(bool(success or carried))
+            self._ever = self._ever or (loc is not None and loc.success)
+            self.vertex_localized.append(bool(step.localized))
+            self.vertex_direction.append(int(step.direction))
+            self.vertex_off_route.append(loc is not None and loc.status == LocalizationStatus.OFF_ROUTE)
             trunk = loc.trunk_id if loc is not None else None
             self.vertex_trunk.append(self.path.index(trunk) if trunk is not None else
                                      (self.vertex_trunk[-1] if self.vertex_trunk else 0))
@@ -220,9 +251,6 @@ class RepeatStateEstimator:
             else:
                 self._pending.append(v)
                 if T_teach_leaf is not None:
-                    # the waiting vertices are placed through odometry from the first localization: localized
-                    n = len(self._pending)
-                    self.vertex_localized[-n:] = [True] * n
                     self._flush_localized()
         self.seconds += time.perf_counter() - t0
 
@@ -286,29 +314,97 @@ class RepeatStateEstimator:
         T_wt = self._T_world_trunk[k]
         return T_wt, gravity_aligned_T_o_t(self.C_g_world @ T_wt[:3, :3])
 
-    def _trunk(self, k: int) -> tuple[np.ndarray, ReferencePath | None, float]:
-        """``T_o_t``, the reference path in o around trunk k, and the arc length at the path's first point."""
-        if k not in self._trunk_cache:
+    def T_g_o(self, k: int) -> np.ndarray:
+        """The frame o of trunk k in the map's gravity-aligned frame g (4x4): ``T_g_world T_world_t inv(T_o_t)``."""
+        T_wt, T_o_t = self.trunk_frame(k)
+        T_g_world = np.eye(4)
+        T_g_world[:3, :3] = self.C_g_world
+        return T_g_world @ T_wt @ inv_T(T_o_t)
+
+    def _trunk(self, k: int, direction: int = 1) -> tuple[np.ndarray, ReferencePath | None, float]:
+        """``T_o_t``, the reference path in o around trunk k (its window mirrored for a route travelled backward),
+        and the arc length at the path's first point."""
+        key = (k, BACKWARD if direction == BACKWARD else 1)
+        if key not in self._trunk_cache:
             T_wt, T_o_t = self.trunk_frame(k)
-            lo, hi = self.path.window(k, *self.trunk_window)
+            back, forward = self.trunk_window if key[1] == 1 else self.trunk_window[::-1]
+            lo, hi = self.path.window(k, back, forward)
             try:
                 path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
             except EstimationError:       # fewer than two distinct taught vertices
                 path = None
-            self._trunk_cache[k] = (T_o_t, path, float(self._arc[lo]))
-        return self._trunk_cache[k]
+            self._trunk_cache[key] = (T_o_t, path, float(self._arc[lo]))
+        return self._trunk_cache[key]
+
+    def _vertex_at(self, t_ns: np.ndarray) -> np.ndarray:
+        """Index of the latest vertex at or before each time (-1 before the first)."""
+        return np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), np.asarray(t_ns, np.int64), side="right") - 1
 
     def trunk_index_at(self, t_ns: np.ndarray) -> np.ndarray:
         """Path index of the chain's trunk at the latest vertex at or before each time."""
-        i = np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), np.asarray(t_ns, np.int64), side="right") - 1
+        i = self._vertex_at(t_ns)
         return np.asarray(self.vertex_trunk, np.int64)[np.maximum(i, 0)]
 
-    def controller_state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
-        """Controller state (vehicle in o at the trunk) at ``t_ns``; no covariance (see the smoother for it)."""
-        k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else trunk_index
+    def direction_at(self, t_ns: np.ndarray) -> np.ndarray:
+        """The chain's direction of travel (+1, -1; 0 undecided) at the latest vertex at or before each time."""
+        i = self._vertex_at(t_ns)
+        d = np.asarray(self.vertex_direction, np.int64)
+        return np.where(i >= 0, d[np.maximum(i, 0)] if len(d) else 0, 0)
+
+    def status_at(self, t_ns: np.ndarray, along_track_m: np.ndarray) -> np.ndarray:
+        """:class:`StateStatus` values (N,) of states at ``t_ns`` whose arc length along the taught path is
+        ``along_track_m``: ``unknown`` before the chain first held a localization or more than
+        ``smoothing.max_extrapolation_s`` after the latest frame (a pause: no measurement bridges it);
+        ``off_route`` beyond either end of the route by more than ``off_route_distance_m`` (or where the chain's
+        attempt said so); ``localized`` where the chain's verdict at the latest vertex is localized; otherwise
+        ``dead_reckoning``."""
+        t = np.asarray(t_ns, np.int64)
+        along = np.asarray(along_track_m, float)
+        i = self._vertex_at(t)
+        has = i >= 0
+        ii = np.maximum(i, 0)
+        if self.vertex_t_ns:
+            loc_v = np.asarray(self.vertex_localized, bool)
+            loc = loc_v[ii] & has
+            ever = np.logical_or.accumulate(loc_v)[ii] & has
+            off = np.asarray(self.vertex_off_route, bool)[ii] & has
+        else:
+            loc = ever = off = np.zeros(len(t), bool)
+        frames = np.asarray(self.frame_t_ns, np.int64)
+        f = np.searchsorted(frames, t, side="right") - 1
+        gap_ns = self.smoothing.max_extrapolation_s * NS_PER_S
+        stale = (f < 0) | (t - (frames[np.maximum(f, 0)] if len(frames) else t) > gap_ns)
+        d = self.off_route_distance_m
+        with np.errstate(invalid="ignore"):
+            off = off | (along < -d) | (along > float(self._arc[-1]) + d)
+        out = np.full(len(t), StateStatus.DEAD_RECKONING.value, dtype=object)
+        out[loc] = StateStatus.LOCALIZED.value
+        out[off] = StateStatus.OFF_ROUTE.value
+        out[stale | ~ever] = StateStatus.UNKNOWN.value
+        return out.astype(str)
+
+    def _state(self, t_ns: int, k: int) -> ControllerState:
+        """The smoother's state at ``t_ns`` in trunk k's frame o, without validity."""
+        first = self.smoother.first_time_ns
+        if first is None:
+            raise NotLocalizedError("no state yet: the repeat has not been localized")
+        if int(t_ns) < first:
+            raise NotLocalizedError(f"no state at t_ns={int(t_ns)}: before the repeat's first state ({first})")
         T_o_t, _, _ = self._trunk(k)
         s = self.smoother.state_at(int(t_ns), with_covariance=False)
         return controller_state(s, self._T_world_trunk[k], T_o_t, self.T_sensor_vehicle)
+
+    def controller_state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
+        """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel and
+        the trunk frame in the map's g (``T_g_o``); no covariance (see the smoother for it). Raises
+        :class:`~vtr.errors.NotLocalizedError` before the first localization."""
+        k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else int(trunk_index)
+        direction = int(self.direction_at(np.array([t_ns]))[0])
+        cs = self._state(int(t_ns), k)
+        _, path, offset = self._trunk(k, direction)
+        along = path.error(cs.position).along_track + offset if path is not None else math.nan
+        status = StateStatus(self.status_at(np.array([t_ns]), np.array([along]))[0])
+        return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.T_g_o(k))
 
     def states(self, t_ns: np.ndarray) -> StateTable:
         """Controller states and path errors at the given times (int64 ns, not before the first vertex)."""
@@ -320,28 +416,35 @@ class RepeatStateEstimator:
             trunks = self.trunk_index_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64)
             return StateTable(t_ns=t_ns, position=nan3, velocity=nan3.copy(), acceleration=nan3.copy(), yaw=nan,
                               trunk_id=self.path.ids[trunks], lateral=nan.copy(), vertical=nan.copy(),
-                              along_track=nan.copy(), localized=np.zeros(n, bool))
+                              along_track=nan.copy(), localized=np.zeros(n, bool),
+                              direction=self.direction_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64),
+                              status=np.full(n, StateStatus.UNKNOWN.value))
         if n and self.smoother.num_keyframes == 0:
             raise DataError("no repeat vertex was processed: no state to report")
         trunks = self.trunk_index_at(t_ns)
+        direction = self.direction_at(t_ns)
         P, Vel, A = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
         yaw = np.zeros(n)
         for j in range(n):
-            cs = self.controller_state_at(int(t_ns[j]), int(trunks[j]))
+            cs = self._state(int(t_ns[j]), int(trunks[j]))
             P[j], Vel[j], A[j], yaw[j] = cs.position, cs.velocity, cs.acceleration, cs.yaw
         lat, ver, along = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-        for k in np.unique(trunks):
-            sel = trunks == k
-            _, path, offset = self._trunk(int(k))
+        backward = direction == BACKWARD
+        for k, b in {(int(k), bool(b)) for k, b in zip(trunks, backward, strict=True)}:
+            sel = (trunks == k) & (backward == b)
+            _, path, offset = self._trunk(k, BACKWARD if b else 1)
             if path is not None:
                 e: PathError = path.error(P[sel])
-                lat[sel], ver[sel], along[sel] = e.lateral, e.vertical, e.along_track + offset
-        i = np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), t_ns, side="right") - 1
-        localized = np.asarray(self.vertex_localized, bool)[np.maximum(i, 0)] & (i >= 0)
+                # lateral is to the left of the direction of travel: the taught path's left, mirrored going back
+                lat[sel] = -e.lateral if b else e.lateral
+                ver[sel], along[sel] = e.vertical, e.along_track + offset
+        status = self.status_at(t_ns, along)
+        localized = status == StateStatus.LOCALIZED.value
         lat[~localized] = ver[~localized] = np.nan        # no path error where the repeat is not localized
         self.seconds += time.perf_counter() - t0
         return StateTable(t_ns=t_ns, position=P, velocity=Vel, acceleration=A, yaw=yaw, trunk_id=self.path.ids[trunks],
-                          lateral=lat, vertical=ver, along_track=along, localized=localized)
+                          lateral=lat, vertical=ver, along_track=along, localized=localized, direction=direction,
+                          status=status)
 
     def output(self, rate_hz: float) -> StateTable:
         """States at ``rate_hz`` over the run's span (first to last frame processed)."""

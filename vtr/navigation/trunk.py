@@ -16,6 +16,8 @@ import numpy as np
 from ..geometry import log_se3_batch
 
 FORWARD, BACKWARD = 1, -1
+#: a direction of travel not yet decided (a repeat's first leaves): trunk windows look forward
+UNDECIDED = 0
 
 
 def trunk_cost(T_pose_vertex: np.ndarray, rotation_weight: float) -> np.ndarray:
@@ -37,4 +39,4 @@ def select_trunk(T_pose_vertex: np.ndarray, lo: int, rotation_weight: float) -> 
     return int(lo + np.argmin(trunk_cost(T_pose_vertex, rotation_weight)))
 
 
-__all__ = ["BACKWARD", "FORWARD", "select_trunk", "trunk_cost", "trunk_window"]
+__all__ = ["BACKWARD", "FORWARD", "UNDECIDED", "select_trunk", "trunk_cost", "trunk_window"]

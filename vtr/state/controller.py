@@ -21,10 +21,11 @@ The reference path is the polyline through consecutive privileged vertices, expr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
-from perception_model.frames import rot_z, yaw_of
+from perception_model.frames import rot_z, wrap_angle, yaw_of
 
 from ..errors import EstimationError
 from ..geometry import check_se3, inv_T, skew
@@ -51,6 +52,15 @@ def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
     return check_se3(T, "T_o_t")
 
 
+class StateStatus(StrEnum):
+    """What a controller state rests on (``ControllerState.status``, ``state.csv``'s ``status`` column)."""
+
+    LOCALIZED = "localized"             # the localization chain holds a localization (its verdict): trust it
+    DEAD_RECKONING = "dead_reckoning"   # localized before, now carried by odometry alone: the error grows
+    OFF_ROUTE = "off_route"             # beyond either end of the taught route (or the chain said so)
+    UNKNOWN = "unknown"                 # not localized yet, or too long after the last frame (a pause)
+
+
 @dataclass(frozen=True)
 class ControllerState:
     """Vehicle state in the gravity-aligned trunk frame o (thesis eqs. 6.1-6.2).
@@ -65,6 +75,10 @@ class ControllerState:
         position_covariance: (3x3) m², in o; None if the smoother state had no covariance.
         velocity_covariance: (3x3) (m/s)², in o; None likewise.
         yaw_variance: rad²; None likewise.
+        status: what the state rests on (:class:`StateStatus`); a controller acts on ``localized`` only.
+        direction: +1 the route travelled in taught order, -1 backward, 0 not yet decided.
+        T_g_o: the trunk's frame o in the map's gravity-aligned frame g (4x4; None when not known), the frame of
+            :class:`vtr.control.field.TaughtPathField`: see :meth:`in_map_gravity_frame`.
     """
 
     t_ns: int
@@ -76,6 +90,22 @@ class ControllerState:
     position_covariance: np.ndarray | None = None
     velocity_covariance: np.ndarray | None = None
     yaw_variance: float | None = None
+    status: StateStatus = StateStatus.UNKNOWN
+    direction: int = 0
+    T_g_o: np.ndarray | None = None
+
+    @property
+    def localized(self) -> bool:
+        return self.status == StateStatus.LOCALIZED
+
+    def in_map_gravity_frame(self) -> tuple[np.ndarray, float]:
+        """``(p_g, psi_g)``: the vehicle's position (3,) and yaw in the map's gravity-aligned frame g, the output
+        ``(p, psi)`` that :meth:`vtr.control.field.TaughtPathField.evaluate` takes (o is g turned by the trunk's
+        yaw about z and moved to the trunk: ``p_g = T_g_o p_o``, ``psi_g = psi + psi_t``)."""
+        if self.T_g_o is None:
+            raise EstimationError("this controller state has no T_g_o (the trunk frame in the map's g)")
+        p_g = self.T_g_o[:3, :3] @ self.position + self.T_g_o[:3, 3]
+        return p_g, float(wrap_angle(self.yaw + float(yaw_of(self.T_g_o[:3, :3]))))
 
     @property
     def z(self) -> np.ndarray:
@@ -308,6 +338,7 @@ __all__ = [
     "ControllerState",
     "PathError",
     "ReferencePath",
+    "StateStatus",
     "controller_state",
     "gravity_aligned_T_o_t",
     "trunk_in_world",

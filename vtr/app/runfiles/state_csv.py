@@ -3,7 +3,9 @@
 Columns (:data:`SCHEMA`): ``t_ns``; ``px py pz``, ``vx vy vz``, ``ax ay az`` (vehicle origin in the gravity-aligned
 trunk frame o: m, m/s, m/s²); ``yaw`` (rad); ``trunk_id``; ``lateral_m``, ``vertical_m`` (errors to the taught path,
 empty of meaning — NaN — where the repeat is not localized), ``along_track_m`` (arc length from the start of the
-taught path); ``localized`` (0/1: the chain held a localization).
+taught path); ``localized`` (0/1: the chain's verdict, ``status == localized``); ``direction`` (+1 the route travelled
+in taught order, -1 backward, 0 not yet decided: ``lateral_m`` is positive to the left of the direction of travel);
+``status`` (``localized``, ``dead_reckoning``, ``off_route``, ``unknown``: :class:`vtr.state.controller.StateStatus`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from ...io.csv_table import Column, CsvSchema
 from ...navigation.repeat_state import StateTable
+from ...state.controller import StateStatus
 
 _XYZ = ("x", "y", "z")
 SCHEMA = CsvSchema("state.csv", (
@@ -27,15 +30,21 @@ SCHEMA = CsvSchema("state.csv", (
     Column("vertical_m", "float", ".6f", "m"),
     Column("along_track_m", "float", ".6f", "m"),
     Column("localized", "bool"),
+    Column("direction", "int"),
+    Column("status", "str"),
 ), line_end="\n")
 
 
 def write_state_csv(path: Path, table: StateTable) -> None:
     """The file at ``path``: one row per time of ``table``."""
-    localized = np.ones(len(table), bool) if table.localized is None else table.localized
+    n = len(table)
+    localized = np.ones(n, bool) if table.localized is None else table.localized
+    direction = np.zeros(n, np.int64) if table.direction is None else table.direction
+    status = (np.where(localized, StateStatus.LOCALIZED.value, StateStatus.UNKNOWN.value) if table.status is None
+              else table.status)
     SCHEMA.write(path, ((table.t_ns[j], *table.position[j], *table.velocity[j], *table.acceleration[j],
                          table.yaw[j], table.trunk_id[j], table.lateral[j], table.vertical[j], table.along_track[j],
-                         localized[j]) for j in range(len(table))))
+                         localized[j], direction[j], status[j]) for j in range(n)))
 
 
 def read_state_csv(path: Path) -> StateTable:
@@ -47,7 +56,8 @@ def read_state_csv(path: Path) -> StateTable:
 
     return StateTable(t_ns=c["t_ns"], position=xyz("p"), velocity=xyz("v"), acceleration=xyz("a"), yaw=c["yaw"],
                       trunk_id=c["trunk_id"], lateral=c["lateral_m"], vertical=c["vertical_m"],
-                      along_track=c["along_track_m"], localized=c["localized"])
+                      along_track=c["along_track_m"], localized=c["localized"], direction=c["direction"],
+                      status=c["status"])
 
 
 __all__ = ["SCHEMA", "read_state_csv", "write_state_csv"]
