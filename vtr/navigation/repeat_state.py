@@ -383,13 +383,18 @@ class RepeatStateEstimator:
         out[stale | ~ever] = StateStatus.UNKNOWN.value
         return out.astype(str)
 
-    def _state(self, t_ns: int, k: int) -> ControllerState:
-        """The smoother's state at ``t_ns`` in trunk k's frame o, without validity."""
+    def _check_state_at(self, t_ns: int) -> None:
+        """NotLocalizedError unless the smoother holds a state at ``t_ns`` (it has knots only once the repeat was
+        localized, from the first waiting vertex on)."""
         first = self.smoother.first_time_ns
         if first is None:
             raise NotLocalizedError("no state yet: the repeat has not been localized")
         if int(t_ns) < first:
             raise NotLocalizedError(f"no state at t_ns={int(t_ns)}: before the repeat's first state ({first})")
+
+    def _state(self, t_ns: int, k: int) -> ControllerState:
+        """The smoother's state at ``t_ns`` in trunk k's frame o, without validity."""
+        self._check_state_at(t_ns)
         T_o_t, _, _ = self._trunk(k)
         s = self.smoother.state_at(int(t_ns), with_covariance=False)
         return controller_state(s, self._T_world_trunk[k], T_o_t, self.T_sensor_vehicle)
@@ -398,6 +403,7 @@ class RepeatStateEstimator:
         """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel and
         the trunk frame in the map's g (``T_g_o``); no covariance (see the smoother for it). Raises
         :class:`~vtr.errors.NotLocalizedError` before the first localization."""
+        self._check_state_at(int(t_ns))
         k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else int(trunk_index)
         direction = int(self.direction_at(np.array([t_ns]))[0])
         cs = self._state(int(t_ns), k)
