@@ -130,6 +130,27 @@ def test_teach_up_is_kept_and_shown(kitti_clip, tmp_path):
     assert "gravity: not stored" in CliRunner().invoke(main, ["map", "info", str(plain)]).output
 
 
+def test_export_in_the_map_gravity_frame(tmp_path):
+    """A pitched first camera's map exported gravity-aligned: the flat synthetic ground is a horizontal plane."""
+    from vtr.app.mission import render, up_in_map
+    from vtr.app.pipeline import teach_command
+    from vtr.map.export import export_landmarks_ply
+
+    T = syn.aerial_route(6.0, 1.0)
+    seq = render(tmp_path / "seq", syn.aerial_scene(0), T)
+    teach_command(seq, tmp_path / "m.vtrmap", None, Config(), gravity_up=up_in_map(T[0]))
+    import open3d as o3d
+
+    with Map.open(tmp_path / "m.vtrmap") as m:
+        export_landmarks_ply(m, tmp_path / "g.ply", gravity_aligned=True)
+        export_landmarks_ply(m, tmp_path / "c.ply")
+    z_g = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "g.ply")).points)[:, 2]
+    y_cam = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "c.ply")).points)[:, 1]
+    # most landmarks lie on the ground, 12 m below the first camera: in g at z = -12, in the camera frame not flat
+    assert abs(np.median(z_g) + 12.0) < 0.3 and np.percentile(np.abs(z_g + 12.0), 50) < 0.3
+    assert np.std(y_cam) > 3 * np.std(z_g[np.abs(z_g + 12.0) < 1.0])
+
+
 def test_euroc_knows_its_gravity(euroc_pairs, euroc_micro):
     """EuRoC's ground truth is gravity-aligned: a source with it gives the first camera's up (one without, none)."""
     from vtr.io import open_source

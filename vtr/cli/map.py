@@ -94,7 +94,10 @@ def map_check_cmd(map_path: Path) -> None:
 @click.option("--ply", "ply_path", type=click.Path(path_type=Path), required=True,
               help="Output point cloud (.ply): landmarks of every run, coloured by run.")
 @click.option("--force", is_flag=True, help="Replace the .ply file if it exists.")
-def export_map_cmd(map_path: Path, ply_path: Path, force: bool) -> None:
+@click.option("--gravity-aligned", is_flag=True,
+              help="Points in the map's gravity frame (z up; the map's stored gravity, else a level first camera) "
+                   "instead of the first teach camera's frame.")
+def export_map_cmd(map_path: Path, ply_path: Path, force: bool, gravity_aligned: bool) -> None:
     """Export the landmarks of MAP as a PLY point cloud in the first teach run's world frame.
 
     Repeat runs linked to the teach run by spatial edges are placed through them; an unlinked
@@ -106,10 +109,10 @@ def export_map_cmd(map_path: Path, ply_path: Path, force: bool) -> None:
 
     check_out_file(ply_path, force)
     with Map.open(map_path, "r") as m:
-        summary = export_landmarks_ply(m, ply_path)
+        summary = export_landmarks_ply(m, ply_path, gravity_aligned=gravity_aligned)
     total = sum(s.points for s in summary)
     for s in summary:
         rgb = "#" + "".join(f"{round(c * 255):02x}" for c in s.colour)
-        frame = "map frame" if s.aligned else "own frame"
+        frame = ("map gravity frame" if gravity_aligned else "map frame") if s.aligned else "own frame"
         click.echo(f"run {s.run} ({s.kind}): {s.points} landmarks, colour {rgb}, {frame}")
     click.echo(f"wrote {total} points to {ply_path}")

@@ -41,11 +41,15 @@ def run_colour(order: int) -> np.ndarray:
     return RUN_COLOURS[order % len(RUN_COLOURS)]
 
 
-def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list[RunExport]:
+def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
+                         gravity_aligned: bool = False) -> list[RunExport]:
     """Write the landmarks of ``runs`` (all by default) to a binary PLY point cloud, coloured by run.
 
-    Returns one :class:`RunExport` per run. Raises ``MapError`` when the file name does not end in
-    ``.ply``, the map has no landmark, or open3d cannot write the file.
+    With ``gravity_aligned`` the points are in the map's gravity frame g (z up, x the first teach camera's forward
+    direction made horizontal: ``perception_model.frames.T_g_map_from_up`` of ``Map.gravity_up``, or of a level
+    first camera's up when the map stores none) instead of the map frame. Returns one :class:`RunExport` per run.
+    Raises ``MapError`` when the file name does not end in ``.ply``, the map has no landmark, or open3d cannot
+    write the file.
     """
     path = Path(path)
     if path.suffix.lower() != PLY_SUFFIX:
@@ -67,6 +71,11 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list
     points = np.concatenate(pts) if pts else np.empty((0, 3))
     if len(points) == 0:
         raise MapError(f"{map_.path}: the map has no landmarks to export")
+    if gravity_aligned:
+        from perception_model.frames import LEVEL_CAMERA_UP, T_g_map_from_up
+
+        up = map_.gravity_up
+        points = points @ T_g_map_from_up(LEVEL_CAMERA_UP if up is None else up)[:3, :3].T
 
     import open3d as o3d
 
