@@ -86,9 +86,9 @@ def test_frames_csv_columns(tmp_path):
 
 @pytest.mark.parametrize("damage, named", [
     (lambda text: text.replace("t_ns,", "time,", 1), "not a state.csv"),
-    (lambda text: text.rsplit(",", 1)[0] + "\n", ":3: 17 cells"),
+    (lambda text: text.rsplit(",", 1)[0] + "\n", ":3: 23 cells"),
     (lambda text: text.replace("\n1", "\nx1", 1), ":2: column t_ns: 'x1"),
-    (lambda text: text.replace(",0,0,unknown", ",2,0,unknown"), ":3: column localized: '2' is not 0 or 1"),
+    (lambda text: text.replace(",0,0,unknown,", ",2,0,unknown,"), ":3: column localized: '2' is not 0 or 1"),
 ])
 def test_a_damaged_state_csv_is_one_line_naming_it(tmp_path, damage, named):
     table = StateTable(t_ns=np.array([1, 2], np.int64), position=np.zeros((2, 3)), velocity=np.zeros((2, 3)),

@@ -76,7 +76,7 @@ from ..state.controller import (
     controller_state,
     gravity_aligned_T_o_t,
 )
-from ..state.smoothing import TrajectorySmoother, adjoint
+from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint
 from .localization import LocalizationStatus
 from .trunk import BACKWARD
 
@@ -138,6 +138,8 @@ class StateTable:
     localized: np.ndarray | None = None   # (N,) bool: the chain held a localization at that time
     direction: np.ndarray | None = None   # (N,) int: +1 taught order, -1 backward, 0 not decided
     status: np.ndarray | None = None      # (N,) str: StateStatus values
+    position_sigma: np.ndarray | None = None   # (N, 3) m: standard deviations of position in o
+    velocity_sigma: np.ndarray | None = None   # (N, 3) m/s: likewise of velocity
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -183,10 +185,9 @@ class RepeatStateEstimator:
         # the gravity-aligned frame g of the teach world: from the map's up, else the vehicle at the first camera
         self.C_g_world = (self.T_vehicle_sensor[:3, :3] if self.gravity_up is None
                           else T_g_map_from_up(self.gravity_up)[:3, :3])
-        # taught vehicle poses in the teach world
-        self._T_world_trunk = self.path.T_world_vertex @ self.T_sensor_vehicle
-        self._arc = self.path.arc_length_m(self.T_sensor_vehicle)
-        self._trunk_cache: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
+        self.route = RouteFrames(path, self.T_sensor_vehicle, self.C_g_world, self.trunk_window,
+                                 self.off_route_distance_m, smoothing.max_extrapolation_s)
+        self._full_view: RepeatStateView | None = None
         self._pending: list[_Vertex] = []
         self._anchored = False
         self._last: _Vertex | None = None
@@ -219,6 +220,7 @@ class RepeatStateEstimator:
         the first successful localization). Whether the repeat is localized, and its direction, are the chain's
         verdict carried by the step."""
         t0 = time.perf_counter()
+        self._full_view = None
         r = step.odometry
         if self.first_t_ns is None:
             self.first_t_ns = int(r.t_ns)
@@ -265,6 +267,7 @@ class RepeatStateEstimator:
         """End of the run: vertices still waiting for a localization are fed with the chain's assumption. When
         that cannot be solved (a run that never localized, with odometry failures in it, leaves the knots after a
         failure unconstrained) the state stays unknown: :meth:`states` reports NaN, not a failure of the run."""
+        self._full_view = None
         if self._pending:
             first = self._pending[0]
             sig = np.r_[[UNLOCALIZED_ROTATION_SIGMA_RAD] * 3, [UNLOCALIZED_TRANSLATION_SIGMA_M] * 3]
@@ -309,9 +312,85 @@ class RepeatStateEstimator:
 
     # -- queries ------------------------------------------------------------------------------------
 
+    def view(self, history_s: float | None = None) -> RepeatStateView:
+        """The state as of the last step fed, immutable: every query of a controller answered from it, on any
+        thread, while this estimator goes on. ``history_s`` keeps only the last seconds (a copy of a few knots: what
+        an online controller reads); None keeps the whole run (no copy; the estimator's own offline queries)."""
+        if history_s is None:
+            if self._full_view is None:
+                self._full_view = self._make_view(None)
+            return self._full_view
+        return self._make_view(float(history_s))
+
+    def _make_view(self, history_s: float | None) -> RepeatStateView:
+        t_v = np.asarray(self.vertex_t_ns, np.int64)
+        frames = np.asarray(self.frame_t_ns, np.int64)
+        localized = np.asarray(self.vertex_localized, bool)
+        ever = np.logical_or.accumulate(localized) if len(localized) else localized
+        lo_v = lo_f = 0
+        since = None
+        if history_s is not None and self.last_t_ns is not None:
+            since = self.last_t_ns - int(history_s * NS_PER_S)
+            lo_v = max(0, int(np.searchsorted(t_v, since, side="right")) - 1)
+            lo_f = max(0, int(np.searchsorted(frames, since, side="right")) - 1)
+        trajectory = self.smoother.snapshot(since) if history_s is not None else self.smoother._view()
+        return RepeatStateView(
+            route=self.route, trajectory=trajectory, vertex_t_ns=t_v[lo_v:],
+            vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:], vertex_localized=localized[lo_v:],
+            vertex_ever=ever[lo_v:], vertex_direction=np.asarray(self.vertex_direction, np.int64)[lo_v:],
+            vertex_off_route=np.asarray(self.vertex_off_route, bool)[lo_v:], frame_t_ns=frames[lo_f:],
+            unknown=self.unknown)
+
     def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world)."""
-        T_wt = self._T_world_trunk[k]
+        return self.route.trunk_frame(k)
+
+    def trunk_index_at(self, t_ns: np.ndarray) -> np.ndarray:
+        """Path index of the chain's trunk at the latest vertex at or before each time."""
+        return self.view().trunk_index_at(t_ns)
+
+    def direction_at(self, t_ns: np.ndarray) -> np.ndarray:
+        """The chain's direction of travel (+1, -1; 0 undecided) at the latest vertex at or before each time."""
+        return self.view().direction_at(t_ns)
+
+    def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
+                            with_covariance: bool = False) -> ControllerState:
+        """:meth:`RepeatStateView.controller_state_at` on the whole run so far."""
+        return self.view().controller_state_at(t_ns, trunk_index, with_covariance=with_covariance)
+
+    def states(self, t_ns: np.ndarray, *, with_covariance: bool = True) -> StateTable:
+        """Controller states and path errors at the given times (int64 ns, not before the first vertex)."""
+        t0 = time.perf_counter()
+        out = self.view().states(t_ns, with_covariance=with_covariance)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+    def output(self, rate_hz: float) -> StateTable:
+        """States at ``rate_hz`` over the run's span (first to last frame processed)."""
+        if self.first_t_ns is None or self.last_t_ns is None:
+            raise DataError("no repeat frame was processed: no state to report")
+        return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
+
+
+class RouteFrames:
+    """The taught route as the controller state sees it (immutable once built; the memo of each trunk's frame and
+    reference path fills on first use, from any thread: entries are pure functions of the route)."""
+
+    def __init__(self, path: TaughtPath, T_sensor_vehicle: np.ndarray, C_g_world: np.ndarray,
+                 trunk_window: tuple[int, int], off_route_distance_m: float, max_gap_s: float) -> None:
+        self.path = path
+        self.T_sensor_vehicle = T_sensor_vehicle
+        self.C_g_world = C_g_world
+        self.trunk_window = trunk_window
+        self.off_route_distance_m = off_route_distance_m
+        self.max_gap_s = max_gap_s
+        self.T_world_trunk = path.T_world_vertex @ T_sensor_vehicle      # taught vehicle poses, teach world
+        self.arc = path.arc_length_m(T_sensor_vehicle)
+        self._memo: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
+
+    def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world)."""
+        T_wt = self.T_world_trunk[k]
         return T_wt, gravity_aligned_T_o_t(self.C_g_world @ T_wt[:3, :3])
 
     def T_g_o(self, k: int) -> np.ndarray:
@@ -321,35 +400,61 @@ class RepeatStateEstimator:
         T_g_world[:3, :3] = self.C_g_world
         return T_g_world @ T_wt @ inv_T(T_o_t)
 
-    def _trunk(self, k: int, direction: int = 1) -> tuple[np.ndarray, ReferencePath | None, float]:
+    def trunk(self, k: int, direction: int = 1) -> tuple[np.ndarray, ReferencePath | None, float]:
         """``T_o_t``, the reference path in o around trunk k (its window mirrored for a route travelled backward),
         and the arc length at the path's first point."""
         key = (k, BACKWARD if direction == BACKWARD else 1)
-        if key not in self._trunk_cache:
+        hit = self._memo.get(key)
+        if hit is None:
             T_wt, T_o_t = self.trunk_frame(k)
             back, forward = self.trunk_window if key[1] == 1 else self.trunk_window[::-1]
             lo, hi = self.path.window(k, back, forward)
             try:
-                path = ReferencePath.from_world(self._T_world_trunk[lo:hi], T_wt, T_o_t)
+                path = ReferencePath.from_world(self.T_world_trunk[lo:hi], T_wt, T_o_t)
             except EstimationError:       # fewer than two distinct taught vertices
                 path = None
-            self._trunk_cache[key] = (T_o_t, path, float(self._arc[lo]))
-        return self._trunk_cache[key]
+            hit = self._memo.setdefault(key, (T_o_t, path, float(self.arc[lo])))
+        return hit
+
+
+@dataclass(frozen=True)
+class RepeatStateView:
+    """The repeat's controller state as of one step, immutable (:meth:`RepeatStateEstimator.view`): the smoother's
+    knots (a :class:`~vtr.state.smoothing.KnotTrajectory`), the chain's verdict per vertex and the frame times."""
+
+    route: RouteFrames
+    trajectory: KnotTrajectory
+    vertex_t_ns: np.ndarray
+    vertex_trunk: np.ndarray
+    vertex_localized: np.ndarray
+    vertex_ever: np.ndarray           # a localization at or before the vertex (the whole run's, not the view's)
+    vertex_direction: np.ndarray
+    vertex_off_route: np.ndarray
+    frame_t_ns: np.ndarray
+    unknown: str | None = None
+
+    @property
+    def last_frame_t_ns(self) -> int | None:
+        return int(self.frame_t_ns[-1]) if len(self.frame_t_ns) else None
 
     def _vertex_at(self, t_ns: np.ndarray) -> np.ndarray:
         """Index of the latest vertex at or before each time (-1 before the first)."""
-        return np.searchsorted(np.asarray(self.vertex_t_ns, np.int64), np.asarray(t_ns, np.int64), side="right") - 1
+        return np.searchsorted(self.vertex_t_ns, np.asarray(t_ns, np.int64), side="right") - 1
 
     def trunk_index_at(self, t_ns: np.ndarray) -> np.ndarray:
         """Path index of the chain's trunk at the latest vertex at or before each time."""
-        i = self._vertex_at(t_ns)
-        return np.asarray(self.vertex_trunk, np.int64)[np.maximum(i, 0)]
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        if not len(self.vertex_t_ns):
+            return np.zeros(len(t), np.int64)
+        return self.vertex_trunk[np.maximum(self._vertex_at(t), 0)]
 
     def direction_at(self, t_ns: np.ndarray) -> np.ndarray:
         """The chain's direction of travel (+1, -1; 0 undecided) at the latest vertex at or before each time."""
-        i = self._vertex_at(t_ns)
-        d = np.asarray(self.vertex_direction, np.int64)
-        return np.where(i >= 0, d[np.maximum(i, 0)] if len(d) else 0, 0)
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        if not len(self.vertex_t_ns):
+            return np.zeros(len(t), np.int64)
+        i = self._vertex_at(t)
+        return np.where(i >= 0, self.vertex_direction[np.maximum(i, 0)], 0)
 
     def status_at(self, t_ns: np.ndarray, along_track_m: np.ndarray) -> np.ndarray:
         """:class:`StateStatus` values (N,) of states at ``t_ns`` whose arc length along the taught path is
@@ -358,25 +463,21 @@ class RepeatStateEstimator:
         ``off_route`` beyond either end of the route by more than ``off_route_distance_m`` (or where the chain's
         attempt said so); ``localized`` where the chain's verdict at the latest vertex is localized; otherwise
         ``dead_reckoning``."""
-        t = np.asarray(t_ns, np.int64)
-        along = np.asarray(along_track_m, float)
-        i = self._vertex_at(t)
-        has = i >= 0
-        ii = np.maximum(i, 0)
-        if self.vertex_t_ns:
-            loc_v = np.asarray(self.vertex_localized, bool)
-            loc = loc_v[ii] & has
-            ever = np.logical_or.accumulate(loc_v)[ii] & has
-            off = np.asarray(self.vertex_off_route, bool)[ii] & has
-        else:
-            loc = ever = off = np.zeros(len(t), bool)
-        frames = np.asarray(self.frame_t_ns, np.int64)
-        f = np.searchsorted(frames, t, side="right") - 1
-        gap_ns = self.smoothing.max_extrapolation_s * NS_PER_S
-        stale = (f < 0) | (t - (frames[np.maximum(f, 0)] if len(frames) else t) > gap_ns)
-        d = self.off_route_distance_m
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        along = np.atleast_1d(np.asarray(along_track_m, float))
+        loc = ever = off = np.zeros(len(t), bool)
+        if len(self.vertex_t_ns):
+            i = self._vertex_at(t)
+            has, ii = i >= 0, np.maximum(i, 0)
+            loc, ever, off = (self.vertex_localized[ii] & has, self.vertex_ever[ii] & has,
+                              self.vertex_off_route[ii] & has)
+        f = np.searchsorted(self.frame_t_ns, t, side="right") - 1
+        gap_ns = self.route.max_gap_s * NS_PER_S
+        latest = self.frame_t_ns[np.maximum(f, 0)] if len(self.frame_t_ns) else t
+        stale = (f < 0) | (t - latest > gap_ns)
+        d = self.route.off_route_distance_m
         with np.errstate(invalid="ignore"):
-            off = off | (along < -d) | (along > float(self._arc[-1]) + d)
+            off = off | (along < -d) | (along > float(self.route.arc[-1]) + d)
         out = np.full(len(t), StateStatus.DEAD_RECKONING.value, dtype=object)
         out[loc] = StateStatus.LOCALIZED.value
         out[off] = StateStatus.OFF_ROUTE.value
@@ -386,59 +487,66 @@ class RepeatStateEstimator:
     def _check_state_at(self, t_ns: int) -> None:
         """NotLocalizedError unless the smoother holds a state at ``t_ns`` (it has knots only once the repeat was
         localized, from the first waiting vertex on)."""
-        first = self.smoother.first_time_ns
+        first = self.trajectory.first_time_ns
         if first is None:
             raise NotLocalizedError("no state yet: the repeat has not been localized")
         if int(t_ns) < first:
             raise NotLocalizedError(f"no state at t_ns={int(t_ns)}: before the repeat's first state ({first})")
 
-    def _state(self, t_ns: int, k: int) -> ControllerState:
+    def _state(self, t_ns: int, k: int, with_covariance: bool) -> ControllerState:
         """The smoother's state at ``t_ns`` in trunk k's frame o, without validity."""
         self._check_state_at(t_ns)
-        T_o_t, _, _ = self._trunk(k)
-        s = self.smoother.state_at(int(t_ns), with_covariance=False)
-        return controller_state(s, self._T_world_trunk[k], T_o_t, self.T_sensor_vehicle)
+        T_o_t, _, _ = self.route.trunk(k)
+        s = self.trajectory.state_at(int(t_ns), with_covariance=with_covariance)
+        return controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
 
-    def controller_state_at(self, t_ns: int, trunk_index: int | None = None) -> ControllerState:
-        """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel and
-        the trunk frame in the map's g (``T_g_o``); no covariance (see the smoother for it). Raises
-        :class:`~vtr.errors.NotLocalizedError` before the first localization."""
+    def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
+                            with_covariance: bool = False) -> ControllerState:
+        """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel, the
+        trunk frame in the map's g (``T_g_o``) and, ``with_covariance``, the position, velocity and yaw
+        covariances in o. Raises :class:`~vtr.errors.NotLocalizedError` before the first localization."""
         self._check_state_at(int(t_ns))
-        k = int(self.trunk_index_at(np.array([t_ns]))[0]) if trunk_index is None else int(trunk_index)
-        direction = int(self.direction_at(np.array([t_ns]))[0])
-        cs = self._state(int(t_ns), k)
-        _, path, offset = self._trunk(k, direction)
+        t = np.array([t_ns], np.int64)
+        k = int(self.trunk_index_at(t)[0]) if trunk_index is None else int(trunk_index)
+        direction = int(self.direction_at(t)[0])
+        cs = self._state(int(t_ns), k, with_covariance)
+        _, path, offset = self.route.trunk(k, direction)
         along = path.error(cs.position).along_track + offset if path is not None else math.nan
-        status = StateStatus(self.status_at(np.array([t_ns]), np.array([along]))[0])
-        return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.T_g_o(k))
+        status = StateStatus(self.status_at(t, np.array([along]))[0])
+        return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.route.T_g_o(k))
 
-    def states(self, t_ns: np.ndarray) -> StateTable:
-        """Controller states and path errors at the given times (int64 ns, not before the first vertex)."""
-        t0 = time.perf_counter()
+    def states(self, t_ns: np.ndarray, *, with_covariance: bool = True) -> StateTable:
+        """Controller states and path errors at the given times (int64 ns, not before the first vertex); with
+        ``with_covariance`` the standard deviations of position and velocity in o too."""
         t_ns = np.asarray(t_ns, np.int64)
         n = len(t_ns)
         if self.unknown is not None:
             nan3, nan = np.full((n, 3), np.nan), np.full(n, np.nan)
-            trunks = self.trunk_index_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64)
+            trunks = self.trunk_index_at(t_ns)
             return StateTable(t_ns=t_ns, position=nan3, velocity=nan3.copy(), acceleration=nan3.copy(), yaw=nan,
-                              trunk_id=self.path.ids[trunks], lateral=nan.copy(), vertical=nan.copy(),
-                              along_track=nan.copy(), localized=np.zeros(n, bool),
-                              direction=self.direction_at(t_ns) if self.vertex_t_ns else np.zeros(n, np.int64),
-                              status=np.full(n, StateStatus.UNKNOWN.value))
-        if n and self.smoother.num_keyframes == 0:
+                              trunk_id=self.route.path.ids[trunks], lateral=nan.copy(), vertical=nan.copy(),
+                              along_track=nan.copy(), localized=np.zeros(n, bool), direction=self.direction_at(t_ns),
+                              status=np.full(n, StateStatus.UNKNOWN.value),
+                              position_sigma=nan3.copy() if with_covariance else None,
+                              velocity_sigma=nan3.copy() if with_covariance else None)
+        if n and self.trajectory.n == 0:
             raise DataError("no repeat vertex was processed: no state to report")
         trunks = self.trunk_index_at(t_ns)
         direction = self.direction_at(t_ns)
         P, Vel, A = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+        sig_p, sig_v = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
         yaw = np.zeros(n)
         for j in range(n):
-            cs = self._state(int(t_ns[j]), int(trunks[j]))
+            cs = self._state(int(t_ns[j]), int(trunks[j]), with_covariance)
             P[j], Vel[j], A[j], yaw[j] = cs.position, cs.velocity, cs.acceleration, cs.yaw
+            if cs.position_covariance is not None and cs.velocity_covariance is not None:
+                sig_p[j] = np.sqrt(np.clip(np.diag(cs.position_covariance), 0.0, None))
+                sig_v[j] = np.sqrt(np.clip(np.diag(cs.velocity_covariance), 0.0, None))
         lat, ver, along = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
         backward = direction == BACKWARD
         for k, b in {(int(k), bool(b)) for k, b in zip(trunks, backward, strict=True)}:
             sel = (trunks == k) & (backward == b)
-            _, path, offset = self._trunk(k, BACKWARD if b else 1)
+            _, path, offset = self.route.trunk(k, BACKWARD if b else 1)
             if path is not None:
                 e: PathError = path.error(P[sel])
                 # lateral is to the left of the direction of travel: the taught path's left, mirrored going back
@@ -447,20 +555,17 @@ class RepeatStateEstimator:
         status = self.status_at(t_ns, along)
         localized = status == StateStatus.LOCALIZED.value
         lat[~localized] = ver[~localized] = np.nan        # no path error where the repeat is not localized
-        self.seconds += time.perf_counter() - t0
-        return StateTable(t_ns=t_ns, position=P, velocity=Vel, acceleration=A, yaw=yaw, trunk_id=self.path.ids[trunks],
-                          lateral=lat, vertical=ver, along_track=along, localized=localized, direction=direction,
-                          status=status)
-
-    def output(self, rate_hz: float) -> StateTable:
-        """States at ``rate_hz`` over the run's span (first to last frame processed)."""
-        if self.first_t_ns is None or self.last_t_ns is None:
-            raise DataError("no repeat frame was processed: no state to report")
-        return self.states(output_times(self.first_t_ns, self.last_t_ns, rate_hz))
+        return StateTable(t_ns=t_ns, position=P, velocity=Vel, acceleration=A, yaw=yaw,
+                          trunk_id=self.route.path.ids[trunks], lateral=lat, vertical=ver, along_track=along,
+                          localized=localized, direction=direction, status=status,
+                          position_sigma=sig_p if with_covariance else None,
+                          velocity_sigma=sig_v if with_covariance else None)
 
 
 __all__ = [
     "RepeatStateEstimator",
+    "RepeatStateView",
+    "RouteFrames",
     "StateTable",
     "check_rate",
     "output_times",

@@ -468,24 +468,25 @@ class TrajectorySmoother:
         shrink it). Raises EstimationError for a time before the first keyframe, more than
         ``max_extrapolation_s`` after the newest one, or when nothing has been measured yet.
         """
-        t_ns = _check_time(t_ns)
+        return self._view().state_at(t_ns, with_covariance=with_covariance)
+
+    def snapshot(self, since_ns: int | None = None) -> KnotTrajectory:
+        """An immutable copy of the knots from the last one at or before ``since_ns`` (all knots when None) to
+        the newest, with their covariances: the same queries as :meth:`state_at`, answerable on any thread while
+        the smoother goes on (the copy is ~5 kB per knot)."""
         c = self._cache
-        if c.n == 0:
-            raise EstimationError("state_at: no measurement yet")
-        t_first = int(c.times_ns[0])
-        if t_ns < t_first:
-            raise EstimationError(f"state_at: t_ns={t_ns} is before the first keyframe ({t_first})")
-        i = int(np.searchsorted(c.times_ns[: c.n], t_ns, side="right")) - 1
-        if int(c.times_ns[i]) == t_ns:
-            return self._knot_state(i, t_ns, with_covariance)
-        if i == c.n - 1:
-            ahead_s = (t_ns - int(c.times_ns[i])) / NS_PER_S
-            if ahead_s > self.config.max_extrapolation_s:
-                raise EstimationError(
-                    f"state_at: t_ns={t_ns} is {ahead_s:.6g} s after the newest keyframe, beyond "
-                    f"smoothing.max_extrapolation_s={self.config.max_extrapolation_s:g} s")
-            return self._extrapolate(i, t_ns, with_covariance)
-        return self._interpolate(i, t_ns, with_covariance)
+        lo = 0
+        if since_ns is not None and c.n:
+            lo = max(0, int(np.searchsorted(c.times_ns[: c.n], int(since_ns), side="right")) - 1)
+        return KnotTrajectory(c.times_ns[lo : c.n].copy(), c.poses[lo : c.n].copy(), c.vels[lo : c.n].copy(),
+                              c.seg_cov[lo : c.n].copy(), c.last_cov.copy(), self._qc_basis,
+                              self.config.max_extrapolation_s)
+
+    def _view(self) -> KnotTrajectory:
+        """The queries over the live cache (no copy; the segment memo is the cache's)."""
+        c = self._cache
+        return KnotTrajectory(c.times_ns[: c.n], c.poses[: c.n], c.vels[: c.n], c.seg_cov[: c.n], c.last_cov,
+                              self._qc_basis, self.config.max_extrapolation_s, segments=c.segments)
 
     # -- internals: solver -----------------------------------------------------------------------
 
@@ -590,26 +591,68 @@ class TrajectorySmoother:
             c.seg_cov[i] = joint[s : s + 2 * STATE_DIM, s : s + 2 * STATE_DIM]
         c.last_cov = joint[-STATE_DIM:, -STATE_DIM:].copy()
 
-    # -- internals: queries ----------------------------------------------------------------------
+
+class KnotTrajectory:
+    """Read-only queries over knot states: GP interpolation between knots, extrapolation after the last one.
+
+    The smoother answers its own queries through one over its live cache (:meth:`TrajectorySmoother.state_at`) and
+    publishes immutable copies (:meth:`TrajectorySmoother.snapshot`) for readers on other threads. ``times_ns``
+    (N,), ``poses`` (N, 4, 4), ``vels`` (N, 6), ``seg_cov`` (N, 24, 24) (joint covariance of knots i, i+1),
+    ``last_cov`` (12, 12) (the newest knot's marginal).
+    """
+
+    def __init__(self, times_ns: np.ndarray, poses: np.ndarray, vels: np.ndarray, seg_cov: np.ndarray,
+                 last_cov: np.ndarray, qc_basis: np.ndarray, max_extrapolation_s: float,
+                 segments: dict[int, Segment] | None = None) -> None:
+        self.times_ns, self.poses, self.vels, self.seg_cov, self.last_cov = times_ns, poses, vels, seg_cov, last_cov
+        self.n = len(times_ns)
+        self._qc_basis = qc_basis
+        self.max_extrapolation_s = float(max_extrapolation_s)
+        self.segments: dict[int, Segment] = {} if segments is None else segments
+
+    @property
+    def first_time_ns(self) -> int | None:
+        return int(self.times_ns[0]) if self.n else None
+
+    @property
+    def last_time_ns(self) -> int | None:
+        return int(self.times_ns[self.n - 1]) if self.n else None
+
+    def state_at(self, t_ns: int, *, with_covariance: bool = True) -> TrajectoryState:
+        """State at ``t_ns`` (see :meth:`TrajectorySmoother.state_at`)."""
+        t_ns = _check_time(t_ns)
+        if self.n == 0:
+            raise EstimationError("state_at: no measurement yet")
+        t_first = int(self.times_ns[0])
+        if t_ns < t_first:
+            raise EstimationError(f"state_at: t_ns={t_ns} is before the first keyframe ({t_first})")
+        i = int(np.searchsorted(self.times_ns[: self.n], t_ns, side="right")) - 1
+        if int(self.times_ns[i]) == t_ns:
+            return self._knot_state(i, t_ns, with_covariance)
+        if i == self.n - 1:
+            ahead_s = (t_ns - int(self.times_ns[i])) / NS_PER_S
+            if ahead_s > self.max_extrapolation_s:
+                raise EstimationError(
+                    f"state_at: t_ns={t_ns} is {ahead_s:.6g} s after the newest keyframe, beyond "
+                    f"smoothing.max_extrapolation_s={self.max_extrapolation_s:g} s")
+            return self._extrapolate(i, t_ns, with_covariance)
+        return self._interpolate(i, t_ns, with_covariance)
 
     def _segment(self, i: int) -> Segment:
-        c = self._cache
-        seg = c.segments.get(i)
+        seg = self.segments.get(i)
         if seg is None:
-            dt = (int(c.times_ns[i + 1]) - int(c.times_ns[i])) / NS_PER_S
-            seg = Segment(c.poses[i].copy(), c.vels[i].copy(), c.poses[i + 1], c.vels[i + 1].copy(), dt)
-            c.segments[i] = seg
+            dt = (int(self.times_ns[i + 1]) - int(self.times_ns[i])) / NS_PER_S
+            seg = Segment(self.poses[i].copy(), self.vels[i].copy(), self.poses[i + 1], self.vels[i + 1].copy(), dt)
+            self.segments[i] = seg
         return seg
 
     def _knot_cov(self, i: int) -> np.ndarray:
-        c = self._cache
-        if i == c.n - 1:
-            return c.last_cov
-        return c.seg_cov[i][:STATE_DIM, :STATE_DIM]
+        if i == self.n - 1:
+            return self.last_cov
+        return self.seg_cov[i][:STATE_DIM, :STATE_DIM]
 
     def _knot_state(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
-        c = self._cache
-        if i < c.n - 1:
+        if i < self.n - 1:
             seg = self._segment(i)
             acc = self._segment_acceleration(seg, 0.0)
         elif i > 0:
@@ -618,7 +661,7 @@ class TrajectorySmoother:
         else:
             acc = np.zeros(POSE_DIM)
         cov = self._knot_cov(i) if with_cov else None
-        return TrajectoryState(t_ns, _frozen(c.poses[i]), _frozen(c.vels[i]), _frozen(acc), _frozen(cov), "knot")
+        return TrajectoryState(t_ns, _frozen(self.poses[i]), _frozen(self.vels[i]), _frozen(acc), _frozen(cov), "knot")
 
     def _segment_acceleration(self, seg: Segment, tau: float) -> np.ndarray:
         """``d/dt [Jr(xi) xi']`` at ``tau`` = ``Jr(xi) xi'' + (d(Jr(xi) xi')/d xi) xi'``."""
@@ -626,9 +669,8 @@ class TrajectorySmoother:
         return jr(xi) @ ddxi + directional_d_jr(xi, dxi)
 
     def _interpolate(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
-        c = self._cache
         seg = self._segment(i)
-        tau = (t_ns - int(c.times_ns[i])) / NS_PER_S
+        tau = (t_ns - int(self.times_ns[i])) / NS_PER_S
         xi, dxi, ddxi = local_variable(tau, seg.dt, seg.M)
         E_xi, Jr = expmap(xi)
         T = seg.T1 @ E_xi
@@ -639,19 +681,18 @@ class TrajectorySmoother:
             acc = Jr @ ddxi + E @ dxi
             A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
             B = noise_map(Jr, E)
-            cov = A @ c.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T
+            cov = A @ self.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T
             cov = 0.5 * (cov + cov.T)
         else:
             acc = Jr @ ddxi + directional_d_jr(xi, dxi)
         return TrajectoryState(t_ns, _frozen(T), _frozen(vel), _frozen(acc), _frozen(cov), "interpolated")
 
     def _extrapolate(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
-        c = self._cache
-        dt = (t_ns - int(c.times_ns[i])) / NS_PER_S
-        v = c.vels[i]
+        dt = (t_ns - int(self.times_ns[i])) / NS_PER_S
+        v = self.vels[i]
         xi = dt * v
         E_xi, Jr = expmap(xi)
-        T = c.poses[i] @ E_xi
+        T = self.poses[i] @ E_xi
         if i > 0:
             seg = self._segment(i - 1)
             acc = self._segment_acceleration(seg, seg.dt)
@@ -661,7 +702,7 @@ class TrajectorySmoother:
         if with_cov:
             F = extrapolation_jacobian(dt, v, E_xi, Jr)
             B = noise_map(Jr, d_jr_times(xi, v))
-            cov = F @ c.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
+            cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
             cov = 0.5 * (cov + cov.T)
         return TrajectoryState(t_ns, _frozen(T), _frozen(v), _frozen(acc), _frozen(cov), "extrapolated")
 
@@ -720,6 +761,7 @@ def interpolation_jacobian(
 
 __all__ = [
     "KnotStates",
+    "KnotTrajectory",
     "Segment",
     "TrajectorySmoother",
     "TrajectoryState",

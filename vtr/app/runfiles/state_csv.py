@@ -5,7 +5,9 @@ trunk frame o: m, m/s, m/s²); ``yaw`` (rad); ``trunk_id``; ``lateral_m``, ``ver
 empty of meaning — NaN — where the repeat is not localized), ``along_track_m`` (arc length from the start of the
 taught path); ``localized`` (0/1: the chain's verdict, ``status == localized``); ``direction`` (+1 the route travelled
 in taught order, -1 backward, 0 not yet decided: ``lateral_m`` is positive to the left of the direction of travel);
-``status`` (``localized``, ``dead_reckoning``, ``off_route``, ``unknown``: :class:`vtr.state.controller.StateStatus`).
+``status`` (``localized``, ``dead_reckoning``, ``off_route``, ``unknown``: :class:`vtr.state.controller.StateStatus`);
+``sigma_px_m sigma_py_m sigma_pz_m``, ``sigma_vx_mps sigma_vy_mps sigma_vz_mps`` (standard deviations of position and
+velocity in o, from the smoother's covariance; empty where none).
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ SCHEMA = CsvSchema("state.csv", (
     Column("localized", "bool"),
     Column("direction", "int"),
     Column("status", "str"),
+    *(Column(f"sigma_p{a}_m", "float", ".6f", "m") for a in _XYZ),
+    *(Column(f"sigma_v{a}_mps", "float", ".6f", "m/s") for a in _XYZ),
 ), line_end="\n")
 
 
@@ -42,9 +46,12 @@ def write_state_csv(path: Path, table: StateTable) -> None:
     direction = np.zeros(n, np.int64) if table.direction is None else table.direction
     status = (np.where(localized, StateStatus.LOCALIZED.value, StateStatus.UNKNOWN.value) if table.status is None
               else table.status)
+    nan3 = np.full((n, 3), np.nan)
+    sig_p = nan3 if table.position_sigma is None else table.position_sigma
+    sig_v = nan3 if table.velocity_sigma is None else table.velocity_sigma
     SCHEMA.write(path, ((table.t_ns[j], *table.position[j], *table.velocity[j], *table.acceleration[j],
                          table.yaw[j], table.trunk_id[j], table.lateral[j], table.vertical[j], table.along_track[j],
-                         localized[j], direction[j], status[j]) for j in range(n)))
+                         localized[j], direction[j], status[j], *sig_p[j], *sig_v[j]) for j in range(n)))
 
 
 def read_state_csv(path: Path) -> StateTable:
@@ -57,7 +64,9 @@ def read_state_csv(path: Path) -> StateTable:
     return StateTable(t_ns=c["t_ns"], position=xyz("p"), velocity=xyz("v"), acceleration=xyz("a"), yaw=c["yaw"],
                       trunk_id=c["trunk_id"], lateral=c["lateral_m"], vertical=c["vertical_m"],
                       along_track=c["along_track_m"], localized=c["localized"], direction=c["direction"],
-                      status=c["status"])
+                      status=c["status"],
+                      position_sigma=np.column_stack([c[f"sigma_p{a}_m"] for a in _XYZ]).reshape(-1, 3),
+                      velocity_sigma=np.column_stack([c[f"sigma_v{a}_mps"] for a in _XYZ]).reshape(-1, 3))
 
 
 __all__ = ["SCHEMA", "read_state_csv", "write_state_csv"]
