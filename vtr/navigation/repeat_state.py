@@ -75,6 +75,7 @@ from ..state.controller import (
     StateStatus,
     controller_state,
     gravity_aligned_T_o_t,
+    output_jacobian,
 )
 from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint
 from .localization import LocalizationStatus
@@ -143,6 +144,26 @@ class StateTable:
 
     def __len__(self) -> int:
         return len(self.t_ns)
+
+
+@dataclass(frozen=True)
+class OutputWindow:
+    """Outputs ``y = (p, psi)`` at ``t_ns`` (n,) in one frame: the o of trunk ``trunk_id`` (``T_g_o`` places it in the
+    map's gravity frame g). ``position`` (n, 3) m, ``yaw`` (n,) rad (unwrapped), ``covariance`` (4n, 4n) over
+    ``(p_x, p_y, p_z, psi)`` per sample, sample after sample; ``status`` (n,) :class:`StateStatus` values."""
+
+    t_ns: np.ndarray
+    position: np.ndarray
+    yaw: np.ndarray
+    covariance: np.ndarray
+    trunk_id: int
+    T_g_o: np.ndarray
+    status: np.ndarray
+
+    @property
+    def outputs(self) -> np.ndarray:
+        """``y`` (n, 4): position and yaw per sample."""
+        return np.column_stack([self.position, self.yaw])
 
 
 @dataclass
@@ -515,6 +536,30 @@ class RepeatStateView:
         status = StateStatus(self.status_at(t, np.array([along]))[0])
         return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.route.T_g_o(k))
 
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
+        """The outputs ``y = (p, psi)`` of ``n`` samples ``dt_s`` apart ending at ``t_end_ns``, all in the frame o of
+        the trunk at ``t_end_ns`` (one fixed frame: no jump where the trunk moves on), with their joint covariance
+        (:meth:`~vtr.state.smoothing.KnotTrajectory.joint_covariance` mapped through each output's Jacobian)."""
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+            raise EstimationError(f"window: n must be a whole number >= 1, got {n!r}")
+        if not (isinstance(dt_s, int | float) and math.isfinite(dt_s) and dt_s > 0):
+            raise EstimationError(f"window: dt_s must be a finite time > 0 s, got {dt_s!r}")
+        step_ns = int(round(dt_s * NS_PER_S))
+        t = int(t_end_ns) - step_ns * np.arange(n - 1, -1, -1, dtype=np.int64)
+        self._check_state_at(int(t[0]))
+        k = int(self.trunk_index_at(np.array([t_end_ns]))[0])
+        P, yaw, H = np.zeros((n, 3)), np.zeros(n), np.zeros((4 * n, 12 * n))
+        status = []
+        for j, tj in enumerate(t):
+            cs = self.controller_state_at(int(tj), k)
+            P[j], yaw[j] = cs.position, cs.yaw
+            status.append(cs.status.value)
+            H[4 * j:4 * j + 4, 12 * j:12 * j + 12] = output_jacobian(cs.T_o_a, self.route.T_sensor_vehicle)
+        cov = H @ self.trajectory.joint_covariance(t) @ H.T
+        yaw = np.unwrap(yaw)
+        return OutputWindow(t_ns=t, position=P, yaw=yaw, covariance=0.5 * (cov + cov.T),
+                            trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k), status=np.array(status))
+
     def states(self, t_ns: np.ndarray, *, with_covariance: bool = True) -> StateTable:
         """Controller states and path errors at the given times (int64 ns, not before the first vertex); with
         ``with_covariance`` the standard deviations of position and velocity in o too."""
@@ -563,6 +608,7 @@ class RepeatStateView:
 
 
 __all__ = [
+    "OutputWindow",
     "RepeatStateEstimator",
     "RepeatStateView",
     "RouteFrames",

@@ -128,7 +128,7 @@ def trunk_in_world(T_world_leaf: np.ndarray, T_leaf_trunk: np.ndarray) -> np.nda
     return check_se3(T_world_leaf, "T_world_leaf") @ check_se3(T_leaf_trunk, "T_leaf_trunk")
 
 
-def _yaw_jacobian(C_o_a: np.ndarray) -> np.ndarray:
+def yaw_jacobian(C_o_a: np.ndarray) -> np.ndarray:
     """d psi / d theta (1x3) for a right rotation perturbation ``C_o_a Exp(theta)``."""
     x = C_o_a[:, 0]
     d_x = -C_o_a @ skew(np.array([1.0, 0.0, 0.0]))   # d(C Exp(theta) e1)/d theta
@@ -187,7 +187,7 @@ def controller_state(
         # v_o = C_o_a v_a: d v_o = C_o_a (d v - v^ d theta)
         Jv = np.hstack([-C_o_a @ skew(v_a), C_o_a])                 # w.r.t. (d theta, d v)
         vel_cov = Jv @ P[_ROT_AND_LINEAR_VEL][:, _ROT_AND_LINEAR_VEL] @ Jv.T
-        jy = _yaw_jacobian(C_o_a)
+        jy = yaw_jacobian(C_o_a)
         yaw_var = float(jy @ P[:3, :3] @ jy)
     return ControllerState(
         t_ns=state.t_ns,
@@ -200,6 +200,19 @@ def controller_state(
         velocity_covariance=vel_cov,
         yaw_variance=yaw_var,
     )
+
+
+def output_jacobian(T_o_a: np.ndarray, T_sensor_vehicle: np.ndarray | None = None) -> np.ndarray:
+    """Jacobian (4x12) of the output ``y = (p_o, psi)`` of :func:`controller_state` w.r.t. the smoother's state
+    perturbation ``[right pose perturbation (rot, trans), twist]`` of the sensor (the trunk taken as exact)."""
+    C_o_a = np.asarray(T_o_a, float)[:3, :3]
+    Ad_vs = np.eye(6) if T_sensor_vehicle is None else adjoint(inv_T(check_se3(T_sensor_vehicle, "T_sensor_vehicle")))
+    H = np.zeros((4, 12))
+    Hv = np.zeros((4, 6))                     # w.r.t. the vehicle's pose perturbation (rot, trans)
+    Hv[:3, 3:6] = C_o_a
+    Hv[3, :3] = yaw_jacobian(C_o_a)
+    H[:, :6] = Hv @ Ad_vs
+    return H
 
 
 @dataclass(frozen=True)
@@ -341,6 +354,8 @@ __all__ = [
     "StateStatus",
     "controller_state",
     "gravity_aligned_T_o_t",
+    "output_jacobian",
     "trunk_in_world",
+    "yaw_jacobian",
     "yaw_of",
 ]

@@ -638,6 +638,72 @@ class KnotTrajectory:
             return self._extrapolate(i, t_ns, with_covariance)
         return self._interpolate(i, t_ns, with_covariance)
 
+    def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:
+        """Joint covariance (12n x 12n) of the states at ``t_ns`` (n times, each within :meth:`state_at`'s range).
+
+        Each state is a linear map (to first order) of the knots it is built from (its segment's two, or the newest
+        one after the last knot) plus its own process noise: ``J Sigma_K J' + N``. ``Sigma_K``, the knots' joint
+        covariance, is assembled from the joint covariance of consecutive knots (the posterior of a WNOA chain is a
+        Markov chain: ``cov(x_a, x_c) = cov(x_a, x_b) cov(x_b)^-1 cov(x_b, x_c)`` for ``a < b < c``). ``N`` is block
+        diagonal: the GP's conditional noise of each state, whose cross-time terms are left out (within one segment
+        they are smaller than the knots' part; across segments they are zero). The diagonal blocks equal the
+        covariances of :meth:`state_at`.
+        """
+        times = [_check_time(int(t)) for t in np.atleast_1d(np.asarray(t_ns))]
+        maps: list[list[tuple[int, np.ndarray]]] = []
+        noise: list[np.ndarray] = []
+        zero = np.zeros((STATE_DIM, STATE_DIM))
+        for t in times:
+            self.state_at(t, with_covariance=False)          # the same range checks
+            i = int(np.searchsorted(self.times_ns[: self.n], t, side="right")) - 1
+            if int(self.times_ns[i]) == t:
+                maps.append([(i, np.eye(STATE_DIM))])
+                noise.append(zero)
+            elif i == self.n - 1:
+                dt = (t - int(self.times_ns[i])) / NS_PER_S
+                v = self.vels[i]
+                E_xi, Jr = expmap(dt * v)
+                maps.append([(i, extrapolation_jacobian(dt, v, E_xi, Jr))])
+                B = noise_map(Jr, d_jr_times(dt * v, v))
+                noise.append(B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T)
+            else:
+                seg = self._segment(i)
+                tau = (t - int(self.times_ns[i])) / NS_PER_S
+                xi, dxi, _ = local_variable(tau, seg.dt, seg.M)
+                E_xi, Jr = expmap(xi)
+                E = d_jr_times(xi, dxi)
+                A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
+                maps.append([(i, A[:, :STATE_DIM]), (i + 1, A[:, STATE_DIM:])])
+                B = noise_map(Jr, E)
+                noise.append(B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T)
+        knots = [k for m in maps for k, _ in m]
+        lo, hi = min(knots), max(knots)
+        K = self._knot_joint(lo, hi)
+        J = np.zeros((STATE_DIM * len(times), STATE_DIM * (hi - lo + 1)))
+        for r, m in enumerate(maps):
+            for k, Jk in m:
+                J[r * STATE_DIM:(r + 1) * STATE_DIM, (k - lo) * STATE_DIM:(k - lo + 1) * STATE_DIM] = Jk
+        cov = J @ K @ J.T
+        for r, Nr in enumerate(noise):
+            cov[r * STATE_DIM:(r + 1) * STATE_DIM, r * STATE_DIM:(r + 1) * STATE_DIM] += Nr
+        return 0.5 * (cov + cov.T)
+
+    def _knot_joint(self, lo: int, hi: int) -> np.ndarray:
+        """Joint covariance of knots ``lo..hi`` from the consecutive pairs' (see :meth:`joint_covariance`)."""
+        m, d = hi - lo + 1, STATE_DIM
+        K = np.zeros((m * d, m * d))
+        marg = [self._knot_cov(lo + a) for a in range(m)]
+        for a in range(m):
+            K[a * d:(a + 1) * d, a * d:(a + 1) * d] = marg[a]
+        for a in range(m):
+            C = marg[a]
+            for b in range(a + 1, m):
+                step = self.seg_cov[lo + b - 1][:d, d:]                  # cov(x_{b-1}, x_b)
+                C = C @ np.linalg.solve(marg[b - 1], step) if b > a + 1 else step
+                K[a * d:(a + 1) * d, b * d:(b + 1) * d] = C
+                K[b * d:(b + 1) * d, a * d:(a + 1) * d] = C.T
+        return K
+
     def _segment(self, i: int) -> Segment:
         seg = self.segments.get(i)
         if seg is None:
