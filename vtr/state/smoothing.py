@@ -644,28 +644,24 @@ class KnotTrajectory:
         Each state is a linear map (to first order) of the knots it is built from (its segment's two, or the newest
         one after the last knot) plus its own process noise: ``J Sigma_K J' + N``. ``Sigma_K``, the knots' joint
         covariance, is assembled from the joint covariance of consecutive knots (the posterior of a WNOA chain is a
-        Markov chain: ``cov(x_a, x_c) = cov(x_a, x_b) cov(x_b)^-1 cov(x_b, x_c)`` for ``a < b < c``). ``N`` is block
-        diagonal: the GP's conditional noise of each state, whose cross-time terms are left out (within one segment
-        they are smaller than the knots' part; across segments they are zero). The diagonal blocks equal the
-        covariances of :meth:`state_at`.
+        Markov chain: ``cov(x_a, x_c) = cov(x_a, x_b) cov(x_b)^-1 cov(x_b, x_c)`` for ``a < b < c``); the GP's
+        conditional noise of each state enters its own block only (its cross-time terms are left out: within one
+        segment they are smaller than the knots' part, across segments zero). The diagonal blocks are the covariances
+        of :meth:`state_at` exactly and the cross-time blocks keep the correlations of ``J Sigma_K J'`` (a
+        congruence: the matrix stays positive semi-definite).
         """
         times = [_check_time(int(t)) for t in np.atleast_1d(np.asarray(t_ns))]
         maps: list[list[tuple[int, np.ndarray]]] = []
-        noise: list[np.ndarray] = []
-        zero = np.zeros((STATE_DIM, STATE_DIM))
         for t in times:
             self.state_at(t, with_covariance=False)          # the same range checks
             i = int(np.searchsorted(self.times_ns[: self.n], t, side="right")) - 1
             if int(self.times_ns[i]) == t:
                 maps.append([(i, np.eye(STATE_DIM))])
-                noise.append(zero)
             elif i == self.n - 1:
                 dt = (t - int(self.times_ns[i])) / NS_PER_S
                 v = self.vels[i]
                 E_xi, Jr = expmap(dt * v)
                 maps.append([(i, extrapolation_jacobian(dt, v, E_xi, Jr))])
-                B = noise_map(Jr, d_jr_times(dt * v, v))
-                noise.append(B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T)
             else:
                 seg = self._segment(i)
                 tau = (t - int(self.times_ns[i])) / NS_PER_S
@@ -674,8 +670,6 @@ class KnotTrajectory:
                 E = d_jr_times(xi, dxi)
                 A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
                 maps.append([(i, A[:, :STATE_DIM]), (i + 1, A[:, STATE_DIM:])])
-                B = noise_map(Jr, E)
-                noise.append(B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T)
         knots = [k for m in maps for k, _ in m]
         lo, hi = min(knots), max(knots)
         K = self._knot_joint(lo, hi)
@@ -683,25 +677,37 @@ class KnotTrajectory:
         for r, m in enumerate(maps):
             for k, Jk in m:
                 J[r * STATE_DIM:(r + 1) * STATE_DIM, (k - lo) * STATE_DIM:(k - lo + 1) * STATE_DIM] = Jk
-        cov = J @ K @ J.T
-        for r, Nr in enumerate(noise):
-            cov[r * STATE_DIM:(r + 1) * STATE_DIM, r * STATE_DIM:(r + 1) * STATE_DIM] += Nr
+        C = J @ K @ J.T
+        # the diagonal blocks become the marginals of state_at exactly (a state's own covariance, with its GP
+        # noise), the cross-time blocks keep the correlations of J K J': a congruence, so the result stays PSD
+        d = STATE_DIM
+        L = np.zeros_like(C)
+        for r, t in enumerate(times):
+            blk = slice(r * d, (r + 1) * d)
+            L[blk, blk] = _psd_sqrt(self.state_at(t).covariance) @ _psd_sqrt(C[blk, blk], inverse=True)
+        cov = L @ C @ L.T
         return 0.5 * (cov + cov.T)
 
     def _knot_joint(self, lo: int, hi: int) -> np.ndarray:
-        """Joint covariance of knots ``lo..hi`` from the consecutive pairs' (see :meth:`joint_covariance`)."""
+        """Joint covariance of knots ``lo..hi`` (see :meth:`joint_covariance`): each knot's marginal, and between
+        knots the chain of consecutive pairs' correlations (each pair's from its own joint covariance), so that the
+        matrix is positive semi-definite although the pairs were computed when different knots were the newest."""
         m, d = hi - lo + 1, STATE_DIM
-        K = np.zeros((m * d, m * d))
         marg = [self._knot_cov(lo + a) for a in range(m)]
+        roots = [_psd_sqrt(M) for M in marg]
+        corr = []                                      # whitened cross-correlation of knots (b-1, b)
+        for b in range(1, m):
+            P = self.seg_cov[lo + b - 1]
+            corr.append(_psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True))
+        K = np.zeros((m * d, m * d))
         for a in range(m):
             K[a * d:(a + 1) * d, a * d:(a + 1) * d] = marg[a]
-        for a in range(m):
-            C = marg[a]
+            R = np.eye(d)
             for b in range(a + 1, m):
-                step = self.seg_cov[lo + b - 1][:d, d:]                  # cov(x_{b-1}, x_b)
-                C = C @ np.linalg.solve(marg[b - 1], step) if b > a + 1 else step
-                K[a * d:(a + 1) * d, b * d:(b + 1) * d] = C
-                K[b * d:(b + 1) * d, a * d:(a + 1) * d] = C.T
+                R = R @ corr[b - 1]
+                blk = roots[a] @ R @ roots[b]
+                K[a * d:(a + 1) * d, b * d:(b + 1) * d] = blk
+                K[b * d:(b + 1) * d, a * d:(a + 1) * d] = blk.T
         return K
 
     def _segment(self, i: int) -> Segment:
@@ -771,6 +777,21 @@ class KnotTrajectory:
             cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
             cov = 0.5 * (cov + cov.T)
         return TrajectoryState(t_ns, _frozen(T), _frozen(v), _frozen(acc), _frozen(cov), "extrapolated")
+
+
+#: eigenvalues of a covariance below this share of its largest are floored when it is inverted
+PSD_RELATIVE_FLOOR = 1e-12
+
+
+def _psd_sqrt(M: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Symmetric square root (or its inverse) of a symmetric positive semi-definite matrix."""
+    w, U = np.linalg.eigh(0.5 * (M + M.T))
+    w = np.clip(w, PSD_RELATIVE_FLOOR * max(float(w.max()), 0.0) if inverse else 0.0, None)
+    if inverse:
+        w = np.where(w > 0.0, 1.0 / np.sqrt(np.where(w > 0.0, w, 1.0)), 0.0)
+    else:
+        w = np.sqrt(w)
+    return (U * w) @ U.T
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,167 @@
+"""One route online (vtr.control.online.OnlineRepeat): a real camera thread and a real control thread on the KITTI clip,
+immutable views (no torn read), the map never written, typed errors before the first localization; the joint
+covariance of a window of outputs against the marginals of single queries."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from perception_model.model import PerceptionModel
+from vtr.app.pipeline import teach_command
+from vtr.config import Config, SmoothingConfig
+from vtr.control.online import OnlineRepeat
+from vtr.errors import EstimationError, NotLocalizedError
+from vtr.geometry import make_T
+from vtr.io import open_source
+from vtr.map import Map
+from vtr.state.smoothing import TrajectorySmoother
+
+CONTROL_PERIOD_S = 0.01          # the control thread at 100 Hz
+CAMERA_PERIOD_S = 0.1            # the camera at 10 Hz (fed as fast as the feeder can below that)
+
+
+@pytest.fixture(scope="module")
+def taught(kitti_clip, tmp_path_factory):
+    path = tmp_path_factory.mktemp("online") / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:40:2", Config())
+    return path
+
+
+def _digest(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_a_camera_thread_and_a_control_thread(taught, kitti_clip):
+    """The control thread reads at 100 Hz while frames arrive: only NotLocalizedError before the first localization,
+    then states, windows and constraints; every view it reads is one the feeder finished (no torn read)."""
+    before = _digest(taught)
+    with Map.open(taught) as m:
+        runs_before = len(m.runs())
+    with open_source(kitti_clip) as src:
+        frames = [src[i] for i in range(1, 40, 2)]
+    finished: dict[int, tuple] = {}          # per frame time, what the feeder published after it
+    seen: list[tuple] = []
+    errors: list[str] = []
+    not_localized_after: list[int] = []
+    done = threading.Event()
+
+    def signature(view) -> tuple:
+        return (view.last_frame_t_ns, view.trajectory.last_time_ns, len(view.vertex_t_ns),
+                view.trajectory.n, int(view.vertex_trunk[-1]) if len(view.vertex_trunk) else None)
+
+    with OnlineRepeat(taught, model=PerceptionModel.thesis()) as live:
+        def control() -> None:
+            while not done.is_set():
+                view = live.view
+                seen.append(signature(view))
+                t = view.last_frame_t_ns
+                try:
+                    if t is None:
+                        raise NotLocalizedError("no frame yet")
+                    s = live.state(t)
+                    w = live.window(t, 3, 0.02)
+                    assert np.all(np.isfinite(w.covariance)) and s.position_covariance is not None
+                    p_g, psi_g = s.in_map_gravity_frame()
+                    live.constraint(p_g[None] + np.arange(5)[:, None] * [1.0, 0.0, 0.0], np.full(5, psi_g))
+                except NotLocalizedError:
+                    if live.localized:
+                        not_localized_after.append(t or -1)
+                except Exception as err:  # noqa: BLE001 - the test reports any
+                    errors.append(repr(err))
+                time.sleep(CONTROL_PERIOD_S)
+
+        thread = threading.Thread(target=control)
+        thread.start()
+        try:
+            for f in frames:
+                step = live.feed(f)
+                finished[step.odometry.t_ns] = signature(live.view)
+                time.sleep(CAMERA_PERIOD_S / 4)
+        finally:
+            done.set()
+            thread.join()
+        assert live.localized
+        state = live.state(frames[-1].t_ns)
+        assert state.status.value == "localized" and state.direction == 1
+    assert errors == [] and not_localized_after == []
+    assert len(seen) > len(frames)
+    published = {None: (None, None, 0, 0, None), **finished}
+    assert all(sig == published[sig[0]] for sig in seen), "a tick read a view the feeder had not finished"
+    assert _digest(taught) == before                   # never written
+    with Map.open(taught) as m:
+        assert len(m.runs()) == runs_before
+
+
+def test_before_the_first_frame_every_query_is_typed(taught):
+    with OnlineRepeat(taught) as live:
+        for query in (lambda: live.state(0), lambda: live.window(0, 3, 0.02)):
+            with pytest.raises(NotLocalizedError):
+                query()
+        with pytest.raises(EstimationError, match="perception model"):
+            live.constraint(np.zeros((1, 3)), np.zeros(1))
+    with pytest.raises(EstimationError, match="closed"):
+        live.feed(None)  # type: ignore[arg-type]
+
+
+def test_bad_arguments_are_one_line_errors(taught):
+    with pytest.raises(EstimationError, match="history_s"):
+        OnlineRepeat(taught, history_s=0.0)
+    with OnlineRepeat(taught) as live:
+        for n, dt in ((0, 0.02), (3, 0.0), (3, float("nan"))):
+            with pytest.raises(EstimationError):
+                live.window(0, n, dt)
+
+
+# ---------------------------------------------------------------------------------------------- joint covariance
+
+def _smoother(n: int = 12) -> TrajectorySmoother:
+    """Knots 0.1 s apart on a gentle curve, absolute poses every third knot, odometry in between."""
+    sm = TrajectorySmoother(SmoothingConfig())
+    prev = None
+    for k in range(n):
+        yaw = 0.05 * k
+        T = make_T(np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]),
+                   [k * 0.5, 0.02 * k**2, 0.0])
+        kw = {}
+        if prev is not None:
+            kw.update(T_prev_cur=np.linalg.inv(prev) @ T, relative_covariance=np.diag([1e-6] * 3 + [1e-4] * 3))
+        if k % 3 == 0:
+            kw.update(T_world_sensor=T, covariance=np.diag([1e-5] * 3 + [1e-3] * 3))
+        sm.add_knot(k * 100_000_000, **kw)
+        prev = T
+    return sm
+
+
+@settings(max_examples=30, deadline=None)
+@given(times=st.lists(st.integers(0, 1_150_000_000), min_size=1, max_size=4))
+def test_joint_covariance_blocks_are_the_marginals(times):
+    sm = _smoother()
+    traj = sm.snapshot()
+    t = np.array(times, np.int64)
+    J = traj.joint_covariance(t)
+    assert J.shape == (12 * len(t), 12 * len(t)) and np.allclose(J, J.T)
+    for r, tr in enumerate(t):
+        marg = sm.state_at(int(tr)).covariance
+        assert np.allclose(J[12 * r:12 * r + 12, 12 * r:12 * r + 12], marg, rtol=1e-6, atol=1e-12)
+    assert np.min(np.linalg.eigvalsh(J)) > -1e-9 * np.max(np.abs(J))
+
+
+def test_a_snapshot_answers_as_the_smoother_and_stays_put():
+    sm = _smoother(8)
+    snap = sm.snapshot(since_ns=350_000_000)
+    assert snap.first_time_ns == 300_000_000
+    a = snap.state_at(500_000_000)
+    b = sm.state_at(500_000_000)
+    assert np.allclose(a.pose, b.pose) and np.allclose(a.covariance, b.covariance)
+    sm.add_knot(900_000_000, T_prev_cur=make_T(np.eye(3), [0.5, 0, 0]),
+                relative_covariance=np.diag([1e-6] * 3 + [1e-4] * 3))
+    assert snap.last_time_ns == 700_000_000                 # the copy does not see the new knot
+    with pytest.raises(EstimationError):
+        snap.state_at(200_000_000)                          # before the copy
