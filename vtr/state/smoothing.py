@@ -684,7 +684,9 @@ class KnotTrajectory:
         L = np.zeros_like(C)
         for r, t in enumerate(times):
             blk = slice(r * d, (r + 1) * d)
-            L[blk, blk] = _psd_sqrt(self.state_at(t).covariance) @ _psd_sqrt(C[blk, blk], inverse=True)
+            own = self.state_at(t).covariance
+            assert own is not None
+            L[blk, blk] = _psd_sqrt(own) @ _psd_sqrt(C[blk, blk], inverse=True)
         cov = L @ C @ L.T
         return 0.5 * (cov + cov.T)
 
