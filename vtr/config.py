@@ -287,6 +287,10 @@ class SmoothingConfig:
     # state_at answers at most this long after the newest knot (a controller's query beyond it is an error:
     # the WNOA prior alone would extrapolate without bound)
     max_extrapolation_s: float = setting(1.0, Range(0.0, 3600.0))
+    # the controller state's acceleration: a kernel-weighted local linear fit of the knots' velocities within this
+    # half-width (s; continuous in time, the noise of each knot's velocity averaged); 0: the derivative of the
+    # WNOA mean (discontinuous at every knot, as noisy as the knots' velocities differ)
+    acceleration_window_s: float = setting(1.0, Range(0.0, 60.0))
 
 
 @dataclass

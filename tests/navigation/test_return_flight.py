@@ -35,14 +35,15 @@ MAX_MEDIAN_VERTICAL_M = 0.10
 MAX_P95_VERTICAL_M = 0.30
 MAX_MEDIAN_VZ_MPS = 0.20
 
-# a shorter route than tools/return_flight.py's (the suite stays fast): a straight, a 30-degree arc, a straight
-SHORT_SEGMENTS = ((8.0, 0.0), (20.0 * math.pi / 6, 1.0 / 20.0), (6.0, 0.0))
+MAX_STRAIGHT_ACCEL_MPS2 = 0.3       # constant speed on a straight: truth 0
+MAX_ARC_ACCEL_ERROR_MPS2 = 0.3      # on the arc: v^2 / r
+MAX_ACCEL_STEP_MPS2 = 0.2           # continuous: no jump at a knot
 
 
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory):
-    return {c.name: c for c in run_return_flight(tmp_path_factory.mktemp("return"), segments=SHORT_SEGMENTS,
-                                                 past_start_m=8.0)}
+    """tools/return_flight.py's flights (the route with its arc, forward and back 10 m past the start)."""
+    return {c.name: c for c in run_return_flight(tmp_path_factory.mktemp("return"))}
 
 
 @pytest.mark.parametrize("name", ["forward", "backward"])
@@ -54,6 +55,15 @@ def test_the_return_flight_reads_right(flights, name):
     assert abs(c.median_lateral_m - c.expected_lateral_m) <= MAX_LATERAL_ERROR_M, c
     assert abs(c.median_vertical_m) <= MAX_MEDIAN_VERTICAL_M and c.p95_abs_vertical_m <= MAX_P95_VERTICAL_M, c
     assert abs(c.median_vz_mps) <= MAX_MEDIAN_VZ_MPS, c
+
+
+@pytest.mark.parametrize("name", ["forward", "backward"])
+def test_an_acceleration_a_controller_can_use(flights, name):
+    """Constant speed: ~0 on the straights, v^2/r on the arc, continuous (no jump at the knots)."""
+    c = flights[name]
+    assert c.accel_straight_median_mps2 <= MAX_STRAIGHT_ACCEL_MPS2, c
+    assert abs(c.accel_arc_median_mps2 - c.accel_arc_expected_mps2) <= MAX_ARC_ACCEL_ERROR_MPS2, c
+    assert c.accel_max_step_mps2 <= MAX_ACCEL_STEP_MPS2, c
 
 
 def test_nothing_localized_past_the_taught_start(flights):

@@ -49,6 +49,10 @@ class FlightCheck:
     successes_past_start: int           # successes with the truth more than off_route_distance_m past the start
     localized_rows_past_start: int      # likewise, localized state rows
     off_route_rows: int
+    accel_straight_median_mps2: float   # |a| on the straights (truth 0), away from the arc by the fit's reach
+    accel_arc_median_mps2: float        # |a| on the arc
+    accel_arc_expected_mps2: float      # v^2 / r of the flown arc
+    accel_max_step_mps2: float          # largest change of a between consecutive localized rows
 
 
 def _truth_arc(t_ns: np.ndarray, t_frames: np.ndarray, s_frames: np.ndarray) -> np.ndarray:
@@ -57,9 +61,11 @@ def _truth_arc(t_ns: np.ndarray, t_frames: np.ndarray, s_frames: np.ndarray) -> 
 
 
 def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarray, *, expected_direction: int,
-                 expected_lateral_m: float, past_m: float) -> FlightCheck:
+                 expected_lateral_m: float, past_m: float, arc_m: tuple[float, float], arc_accel_mps2: float,
+                 margin_m: float) -> FlightCheck:
     """Judge ``out/state.csv`` and ``out/localization.csv`` of a repeat whose frames were at ``t_frames`` and
-    arc lengths ``s_frames`` along the taught path."""
+    arc lengths ``s_frames`` along the taught path; the arc spans ``arc_m`` (taught arc length) with a centripetal
+    acceleration ``arc_accel_mps2``; acceleration is judged ``margin_m`` away from where the curvature changes."""
     st = read_state_csv(out / "state.csv")
     assert st.localized is not None and st.direction is not None and st.status is not None
     s_truth = _truth_arc(st.t_ns, t_frames, s_frames)
@@ -70,6 +76,11 @@ def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarra
     s_loc = _truth_arc(np.atleast_1d(locs["t_ns"]), t_frames, s_frames)
     vz = st.velocity[on_route, 2]
     vertical = st.vertical[on_route]
+    a = np.linalg.norm(st.acceleration, axis=1)
+    straight = on_route & ((s_truth < arc_m[0] - margin_m) | (s_truth > arc_m[1] + margin_m))
+    arc = on_route & (s_truth > arc_m[0] + margin_m) & (s_truth < arc_m[1] - margin_m)
+    both = loc[1:] & loc[:-1]
+    steps = np.linalg.norm(np.diff(st.acceleration, axis=0), axis=1)[both]
     return FlightCheck(
         name=name, expected_direction=expected_direction, expected_lateral_m=expected_lateral_m, rows=len(st),
         localized_rows=int(loc.sum()),
@@ -81,7 +92,11 @@ def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarra
         successes=int(success.sum()),
         successes_past_start=int(np.sum(success & (s_loc < -past_m))),
         localized_rows_past_start=int(np.sum(loc & (s_truth < -past_m))),
-        off_route_rows=int(np.sum(st.status == "off_route")))
+        off_route_rows=int(np.sum(st.status == "off_route")),
+        accel_straight_median_mps2=float(np.median(a[straight])) if straight.any() else math.nan,
+        accel_arc_median_mps2=float(np.median(a[arc])) if arc.any() else math.nan,
+        accel_arc_expected_mps2=arc_accel_mps2,
+        accel_max_step_mps2=float(steps.max()) if len(steps) else math.nan)
 
 
 def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.0, past_start_m: float = 10.0,
@@ -109,6 +124,12 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
         # backward: from the end back to the start and on past it; the camera faces as taught (gimbal return)
         "backward": (-1, -offset_m, np.arange(-past_start_m, total - spacing + 1e-9, spacing)[::-1]),
     }
+    # the arc (the one curved segment) and the centripetal acceleration on the flown one (offset to the left)
+    starts = np.cumsum([0.0] + [length for length, _ in segments])
+    curved = [i for i, (_, kappa) in enumerate(segments) if kappa != 0.0]
+    arc_m = (float(starts[curved[0]]), float(starts[curved[0] + 1])) if curved else (math.inf, math.inf)
+    radius_m = 1.0 / segments[curved[0]][1] - offset_m if curved else math.inf
+    margin_m = config.smoothing.acceleration_window_s * speed_mps     # the acceleration fit's reach
     checks = []
     for name, (direction, lateral, s) in flights.items():
         start = float(min(s[0], s[-1]))
@@ -120,7 +141,8 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
         rep_out = out / name / "repeat"
         repeat_command(seq, map_path, rep_out, None, config, read_only_map=True)
         checks.append(check_flight(name, rep_out, t_frames, s, expected_direction=direction,
-                                   expected_lateral_m=lateral, past_m=config.localization.off_route_distance_m))
+                                   expected_lateral_m=lateral, past_m=config.localization.off_route_distance_m,
+                                   arc_m=arc_m, arc_accel_mps2=speed_mps**2 / radius_m, margin_m=margin_m))
         say(format_check(checks[-1]))
     (out / "return_flight.json").write_text(json.dumps([asdict(c) for c in checks], indent=2) + "\n")
     return checks
@@ -131,7 +153,9 @@ def format_check(c: FlightCheck) -> str:
             f"lateral median {c.median_lateral_m:+.3f} m (truth {c.expected_lateral_m:+.1f}); vertical median "
             f"{c.median_vertical_m:+.3f} m, p95 |.| {c.p95_abs_vertical_m:.3f} m; vz median {c.median_vz_mps:+.3f} "
             f"m/s; successes {c.successes} ({c.successes_past_start} past the start); localized rows past the "
-            f"start {c.localized_rows_past_start}; off_route rows {c.off_route_rows}")
+            f"start {c.localized_rows_past_start}; off_route rows {c.off_route_rows}; |a| straight median "
+            f"{c.accel_straight_median_mps2:.3f}, arc median {c.accel_arc_median_mps2:.3f} (v^2/r "
+            f"{c.accel_arc_expected_mps2:.3f}) m/s^2, largest step {c.accel_max_step_mps2:.3f} m/s^2")
 
 
 __all__ = ["FlightCheck", "ROUTE_SEGMENTS", "check_flight", "format_check", "run_return_flight"]

@@ -207,7 +207,8 @@ class RepeatStateEstimator:
         self.C_g_world = (self.T_vehicle_sensor[:3, :3] if self.gravity_up is None
                           else T_g_map_from_up(self.gravity_up)[:3, :3])
         self.route = RouteFrames(path, self.T_sensor_vehicle, self.C_g_world, self.trunk_window,
-                                 self.off_route_distance_m, smoothing.max_extrapolation_s)
+                                 self.off_route_distance_m, smoothing.max_extrapolation_s,
+                                 smoothing.acceleration_window_s)
         self._full_view: RepeatStateView | None = None
         self._pending: list[_Vertex] = []
         self._anchored = False
@@ -398,13 +399,15 @@ class RouteFrames:
     reference path fills on first use, from any thread: entries are pure functions of the route)."""
 
     def __init__(self, path: TaughtPath, T_sensor_vehicle: np.ndarray, C_g_world: np.ndarray,
-                 trunk_window: tuple[int, int], off_route_distance_m: float, max_gap_s: float) -> None:
+                 trunk_window: tuple[int, int], off_route_distance_m: float, max_gap_s: float,
+                 acceleration_window_s: float = 0.0) -> None:
         self.path = path
         self.T_sensor_vehicle = T_sensor_vehicle
         self.C_g_world = C_g_world
         self.trunk_window = trunk_window
         self.off_route_distance_m = off_route_distance_m
         self.max_gap_s = max_gap_s
+        self.acceleration_window_s = float(acceleration_window_s)
         self.T_world_trunk = path.T_world_vertex @ T_sensor_vehicle      # taught vehicle poses, teach world
         self.arc = path.arc_length_m(T_sensor_vehicle)
         self._memo: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
@@ -519,7 +522,15 @@ class RepeatStateView:
         self._check_state_at(t_ns)
         T_o_t, _, _ = self.route.trunk(k)
         s = self.trajectory.state_at(int(t_ns), with_covariance=with_covariance)
-        return controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
+        cs = controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
+        window = self.route.acceleration_window_s
+        if window <= 0.0:
+            return cs
+        # the acceleration of the vehicle origin from a fit of the knots' velocities (smoothing.acceleration_window_s)
+        a_world, cov_world = self.trajectory.fitted_acceleration(int(t_ns), window, self.route.T_sensor_vehicle)
+        C_o_world = T_o_t[:3, :3] @ self.route.T_world_trunk[k][:3, :3].T
+        return dataclasses.replace(cs, acceleration=C_o_world @ a_world,
+                                   acceleration_covariance=C_o_world @ cov_world @ C_o_world.T)
 
     def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
                             with_covariance: bool = False) -> ControllerState:

@@ -79,6 +79,8 @@ class ControllerState:
         direction: +1 the route travelled in taught order, -1 backward, 0 not yet decided.
         T_g_o: the trunk's frame o in the map's gravity-aligned frame g (4x4; None when not known), the frame of
             :class:`vtr.control.field.TaughtPathField`: see :meth:`in_map_gravity_frame`.
+        acceleration_covariance: (3x3) (m/s²)², in o, of ``acceleration`` when it comes from a fit of the knots'
+            velocities (``smoothing.acceleration_window_s``; infinite where too few knots); None otherwise.
     """
 
     t_ns: int
@@ -93,6 +95,7 @@ class ControllerState:
     status: StateStatus = StateStatus.UNKNOWN
     direction: int = 0
     T_g_o: np.ndarray | None = None
+    acceleration_covariance: np.ndarray | None = None
 
     @property
     def localized(self) -> bool:

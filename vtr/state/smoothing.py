@@ -638,6 +638,44 @@ class KnotTrajectory:
             return self._extrapolate(i, t_ns, with_covariance)
         return self._interpolate(i, t_ns, with_covariance)
 
+    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
+        """World-frame acceleration (3,) of a point on the sensor at ``t_ns`` (default its origin; ``T_sensor_point``
+        places another, e.g. the vehicle's origin) and its covariance (3x3): the slope of a weighted linear fit of
+        the point's world-frame velocity at the knots within ``window_s`` of ``t_ns`` (tricube weights, continuous
+        in time), each knot's velocity weighted by the inverse of its variance too. The covariance is the fit's,
+        from the knots' velocity covariances (taken as independent: a conservative figure for neighbours the
+        posterior correlates positively). Fewer than two knots in the window: zero with an infinite covariance.
+        """
+        t = _check_time(t_ns)
+        lo = int(np.searchsorted(self.times_ns[: self.n], t - int(window_s * NS_PER_S), side="left"))
+        hi = int(np.searchsorted(self.times_ns[: self.n], t + int(window_s * NS_PER_S), side="right"))
+        if hi - lo < 2:
+            return np.zeros(3), np.full((3, 3), np.inf)
+        dt = (self.times_ns[lo:hi] - t) / NS_PER_S
+        w = np.clip(1.0 - np.abs(dt / window_s) ** 3, 0.0, None) ** 3
+        R = self.poses[lo:hi, :3, :3]
+        tw = self.vels[lo:hi]
+        if T_sensor_point is not None:
+            Ad = adjoint_inv(np.asarray(T_sensor_point, float))        # twist moved to the point's frame
+            tw = tw @ Ad.T
+            R = R @ np.asarray(T_sensor_point, float)[:3, :3]
+        v_world = np.einsum("kij,kj->ki", R, tw[:, 3:])
+        # each knot's velocity variance (trace / 3 of its linear-velocity block, world frame)
+        var = np.array([np.trace(self._knot_cov(lo + k)[9:12, 9:12]) / 3.0 for k in range(hi - lo)])
+        w = w / np.maximum(var, PSD_RELATIVE_FLOOR)
+        if np.count_nonzero(w > 0) < 2:
+            return np.zeros(3), np.full((3, 3), np.inf)
+        tbar = float(np.sum(w * dt) / np.sum(w))
+        sxx = float(np.sum(w * (dt - tbar) ** 2))
+        if sxx <= 0.0:
+            return np.zeros(3), np.full((3, 3), np.inf)
+        c = w * (dt - tbar) / sxx                                         # slope = sum c_k v_k
+        acc = c @ v_world
+        cov = np.einsum("k,kij,k->ij", c, np.einsum("kab,kbc,kdc->kad", R, np.stack(
+            [self._knot_cov(lo + k)[9:12, 9:12] for k in range(hi - lo)]), R), c)
+        return acc, 0.5 * (cov + cov.T)
+
     def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:
         """Joint covariance (12n x 12n) of the states at ``t_ns`` (n times, each within :meth:`state_at`'s range).
 
