@@ -165,3 +165,51 @@ def test_a_snapshot_answers_as_the_smoother_and_stays_put():
     assert snap.last_time_ns == 700_000_000                 # the copy does not see the new knot
     with pytest.raises(EstimationError):
         snap.state_at(200_000_000)                          # before the copy
+
+
+# ---------------------------------------------------------------------------------------------- commands in
+
+@settings(max_examples=50, deadline=None)
+@given(times=st.lists(st.integers(0, 400), min_size=1, max_size=5, unique=True),
+       acc=st.lists(st.floats(-5, 5), min_size=15, max_size=15), t1=st.integers(0, 600))
+def test_the_command_log_integrates_a_zero_order_hold(times, acc, t1):
+    from vtr.navigation.repeat_state import CommandLog
+
+    t = np.sort(np.array(times, np.int64)) * 1_000_000
+    a = np.array(acc).reshape(5, 3)[:len(t)]
+    log = CommandLog(t, a)
+    t0_ns, t1_ns = 50_000_000, t1 * 1_000_000
+    dp, dv, now = log.integrate(t0_ns, t1_ns)
+    # numerically: a(tau) held piecewise, integrated on a 0.1 ms grid
+    grid = np.arange(t0_ns, max(t1_ns, t0_ns), 100_000)
+    j = np.searchsorted(t, grid, side="right") - 1
+    a_grid = np.where((j >= 0)[:, None], a[np.maximum(j, 0)], 0.0)
+    dt = 1e-4
+    assert np.allclose(dv, a_grid.sum(axis=0) * dt, atol=1e-9)
+    assert np.allclose(dp, (a_grid * ((t1_ns - grid - 50_000) / 1e9)[:, None]).sum(axis=0) * dt, atol=1e-6)
+    k = np.searchsorted(t, t1_ns, side="right") - 1
+    assert np.allclose(now, a[k] if k >= 0 else 0.0)
+
+
+def test_commands_move_the_extrapolation(taught, kitti_clip):
+    """After the newest keyframe the state follows the commanded acceleration (eq. 8.15), not constant velocity."""
+    with open_source(kitti_clip) as src:
+        frames = [src[i] for i in range(1, 16, 2)]
+    with OnlineRepeat(taught) as live:
+        for f in frames:
+            live.feed(f)
+        t_knot = live.view.trajectory.last_time_ns
+        assert t_knot is not None
+        t = t_knot + 300_000_000
+        plain = live.state(t, with_covariance=False)
+        a_g = np.array([1.0, -0.5, 0.2])
+        live.command(t_knot, a_g)
+        moved = live.state(t, with_covariance=False)
+        C_o_g = plain.T_g_o[:3, :3].T
+        assert np.allclose(moved.position - plain.position, C_o_g @ a_g * 0.5 * 0.3**2, atol=1e-9)
+        assert np.allclose(moved.velocity - plain.velocity, C_o_g @ a_g * 0.3, atol=1e-9)
+        assert np.allclose(moved.acceleration, C_o_g @ a_g)
+        with pytest.raises(EstimationError, match="not after"):
+            live.command(t_knot, a_g)
+        with pytest.raises(EstimationError, match="finite"):
+            live.command(t_knot + 1, [np.nan, 0, 0])

@@ -31,7 +31,7 @@ from ..config import Config
 from ..errors import EstimationError, NotLocalizedError
 from ..map import Map, copy_map_file
 from ..navigation.repeat import Repeat, RepeatStep
-from ..navigation.repeat_state import OutputWindow, RepeatStateEstimator, RepeatStateView
+from ..navigation.repeat_state import CommandLog, OutputWindow, RepeatStateEstimator, RepeatStateView
 from ..state.controller import ControllerState
 from ..types import StereoImages
 from .field import CameraMount, FieldEvaluation, TaughtPathField
@@ -83,6 +83,10 @@ class OnlineRepeat:
             raise
         self.history_s = float(history_s)
         self._feeding = threading.Lock()
+        self._commanding = threading.Lock()          # the command log's writers (readers take the published log)
+        self._command_t: list[int] = []
+        self._command_a: list[np.ndarray] = []
+        self._commands: CommandLog | None = None
         self._view: RepeatStateView = self.estimator.view(self.history_s)
         self._latest: RepeatStep | None = None
         self._closed = False
@@ -120,11 +124,30 @@ class OnlineRepeat:
         step = self._latest
         return bool(step is not None and step.localized)
 
+    def command(self, t_ns: int, acceleration_g: np.ndarray) -> None:
+        """Tell the estimator the acceleration the controller commanded from ``t_ns`` on (vehicle origin, map gravity
+        frame g, m/s²; e.g. the flat model's input): after the newest keyframe :meth:`state` extrapolates with the
+        commands instead of at constant velocity (thesis eq. 8.15). Times must increase."""
+        a = np.asarray(acceleration_g, float)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise EstimationError(f"command: acceleration_g must be 3 finite numbers, got {acceleration_g!r}")
+        with self._commanding:
+            if self._command_t and int(t_ns) <= self._command_t[-1]:
+                raise EstimationError(f"command: t_ns={int(t_ns)} is not after the previous command's")
+            self._command_t.append(int(t_ns))
+            self._command_a.append(a)
+            keep = self._view.trajectory.first_time_ns
+            if keep is not None and len(self._command_t) > 1 and self._command_t[1] < keep:
+                drop = int(np.searchsorted(self._command_t, keep, side="right")) - 1
+                del self._command_t[:drop], self._command_a[:drop]
+            self._commands = CommandLog(np.array(self._command_t, np.int64), np.array(self._command_a))
+
     def state(self, t_ns: int, *, with_covariance: bool = True) -> ControllerState:
         """The controller state at ``t_ns`` (its status, direction, covariances in o; see
-        :meth:`RepeatStateView.controller_state_at`). ``NotLocalizedError`` before the first localization; an
-        ``EstimationError`` more than ``smoothing.max_extrapolation_s`` after the last keyframe."""
-        return self._view.controller_state_at(int(t_ns), with_covariance=with_covariance)
+        :meth:`RepeatStateView.controller_state_at`), extrapolated with the commands sent (:meth:`command`), if any.
+        ``NotLocalizedError`` before the first localization; an ``EstimationError`` more than
+        ``smoothing.max_extrapolation_s`` after the last keyframe."""
+        return self._view.controller_state_at(int(t_ns), with_covariance=with_covariance, commands=self._commands)
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
         """``n`` outputs ``(p, psi)`` ``dt_s`` apart ending at ``t_end_ns`` in one frame, with their joint covariance

@@ -147,6 +147,35 @@ class StateTable:
 
 
 @dataclass(frozen=True)
+class CommandLog:
+    """Accelerations a controller commanded (the vehicle origin's, in the map's gravity frame g, m/s²), each held
+    from its time to the next one's (zero-order hold): ``t_ns`` (N,) increasing, ``acceleration_g`` (N, 3)."""
+
+    t_ns: np.ndarray
+    acceleration_g: np.ndarray
+
+    def integrate(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(dp, dv, a)``: the displacement and velocity change (g) the commands add between ``t0`` and ``t1`` over
+        constant velocity, and the command in force at ``t1`` (zero before the first command)."""
+        t = np.asarray(self.t_ns, np.int64)
+        a = np.asarray(self.acceleration_g, float).reshape(-1, 3)
+        dp, dv = np.zeros(3), np.zeros(3)
+        if not len(t):
+            return dp, dv, np.zeros(3)
+        edges = np.r_[t, np.iinfo(np.int64).max]
+        for j in range(len(t)):
+            lo, hi = max(int(edges[j]), t0_ns), min(int(edges[j + 1]), t1_ns)
+            if hi <= lo:
+                continue
+            d_s = (hi - lo) / NS_PER_S
+            rest_s = (t1_ns - hi) / NS_PER_S
+            dv += a[j] * d_s
+            dp += a[j] * (0.5 * d_s**2 + d_s * rest_s)
+        j = int(np.searchsorted(t, t1_ns, side="right")) - 1
+        return dp, dv, a[j].copy() if j >= 0 else np.zeros(3)
+
+
+@dataclass(frozen=True)
 class OutputWindow:
     """Outputs ``y = (p, psi)`` at ``t_ns`` (n,) in one frame: the o of trunk ``trunk_id`` (``T_g_o`` places it in the
     map's gravity frame g). ``position`` (n, 3) m, ``yaw`` (n,) rad (unwrapped), ``covariance`` (4n, 4n) over
@@ -533,19 +562,33 @@ class RepeatStateView:
                                    acceleration_covariance=C_o_world @ cov_world @ C_o_world.T)
 
     def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
-                            with_covariance: bool = False) -> ControllerState:
+                            with_covariance: bool = False, commands: CommandLog | None = None) -> ControllerState:
         """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel, the
         trunk frame in the map's g (``T_g_o``) and, ``with_covariance``, the position, velocity and yaw
-        covariances in o. Raises :class:`~vtr.errors.NotLocalizedError` before the first localization."""
+        covariances in o. After the newest knot the state is extrapolated at constant velocity, or, given the
+        ``commands`` a controller sent (:class:`CommandLog`), with them (thesis eq. 8.15). Raises
+        :class:`~vtr.errors.NotLocalizedError` before the first localization."""
         self._check_state_at(int(t_ns))
         t = np.array([t_ns], np.int64)
         k = int(self.trunk_index_at(t)[0]) if trunk_index is None else int(trunk_index)
         direction = int(self.direction_at(t)[0])
         cs = self._state(int(t_ns), k, with_covariance)
+        last = self.trajectory.last_time_ns
+        if commands is not None and last is not None and int(t_ns) > last:
+            cs = self._with_commands(cs, k, last, int(t_ns), commands)
         _, path, offset = self.route.trunk(k, direction)
         along = path.error(cs.position).along_track + offset if path is not None else math.nan
         status = StateStatus(self.status_at(t, np.array([along]))[0])
         return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.route.T_g_o(k))
+
+    def _with_commands(self, cs: ControllerState, k: int, t_knot_ns: int, t_ns: int,
+                       commands: CommandLog) -> ControllerState:
+        """``cs`` (extrapolated at constant velocity from the knot at ``t_knot_ns``) moved by the commanded
+        accelerations since that knot: ``dv = int a``, ``dp = int (t - tau) a`` (zero-order hold)."""
+        dp_g, dv_g, a_g = commands.integrate(t_knot_ns, t_ns)
+        C_o_g = self.route.T_g_o(k)[:3, :3].T
+        return dataclasses.replace(cs, position=cs.position + C_o_g @ dp_g, velocity=cs.velocity + C_o_g @ dv_g,
+                                   acceleration=C_o_g @ a_g, acceleration_covariance=None)
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
         """The outputs ``y = (p, psi)`` of ``n`` samples ``dt_s`` apart ending at ``t_end_ns``, all in the frame o of
@@ -619,6 +662,7 @@ class RepeatStateView:
 
 
 __all__ = [
+    "CommandLog",
     "OutputWindow",
     "RepeatStateEstimator",
     "RepeatStateView",
