@@ -213,7 +213,8 @@ def main() -> None:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, case in (("aerial backward", lambda: aerial_case(args.out, args)), ("kitti06", lambda: kitti_case(args.out))):
+    cases = (("aerial backward", lambda: aerial_case(args.out, args)), ("kitti06", lambda: kitti_case(args.out)))
+    for name, case in cases:
         map_path, source, indices, truth = case()
         print(f"{name}: {len(indices)} frames at {args.camera_hz:g} Hz, control at {args.control_hz:g} Hz ...")
         row = run_case(name, map_path, source, indices, truth, args)
