@@ -132,9 +132,10 @@ class OnlineRepeat:
         if a.shape != (3,) or not np.all(np.isfinite(a)):
             raise EstimationError(f"command: acceleration_g must be 3 finite numbers, got {acceleration_g!r}")
         with self._commanding:
-            if self._command_t and int(t_ns) <= self._command_t[-1]:
+            t_ns = _time(t_ns)
+            if self._command_t and t_ns <= self._command_t[-1]:
                 raise EstimationError(f"command: t_ns={int(t_ns)} is not after the previous command's")
-            self._command_t.append(int(t_ns))
+            self._command_t.append(t_ns)
             self._command_a.append(a)
             keep = self._view.trajectory.first_time_ns
             if keep is not None and len(self._command_t) > 1 and self._command_t[1] < keep:
@@ -147,12 +148,12 @@ class OnlineRepeat:
         :meth:`RepeatStateView.controller_state_at`), extrapolated with the commands sent (:meth:`command`), if any.
         ``NotLocalizedError`` before the first localization; an ``EstimationError`` more than
         ``smoothing.max_extrapolation_s`` after the last keyframe."""
-        return self._view.controller_state_at(int(t_ns), with_covariance=with_covariance, commands=self._commands)
+        return self._view.controller_state_at(_time(t_ns), with_covariance=with_covariance, commands=self._commands)
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
         """``n`` outputs ``(p, psi)`` ``dt_s`` apart ending at ``t_end_ns`` in one frame, with their joint covariance
         (:meth:`RepeatStateView.window`)."""
-        return self._view.window(int(t_end_ns), n, dt_s)
+        return self._view.window(_time(t_end_ns), n, dt_s)
 
     def constraint(self, positions_g: np.ndarray, yaw_g: np.ndarray, *, axes: np.ndarray | None = None,
                    gradient: bool = True) -> FieldEvaluation:
@@ -187,6 +188,16 @@ class OnlineRepeat:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _time(t_ns: object) -> int:
+    """A query time as int ns; ``NotLocalizedError`` for None (no frame yet: the view's ``last_frame_t_ns``),
+    ``EstimationError`` for anything else that is not a whole number."""
+    if t_ns is None:
+        raise NotLocalizedError("no time: no frame has been fed yet")
+    if isinstance(t_ns, bool) or not isinstance(t_ns, int | np.integer):
+        raise EstimationError(f"t_ns: expected a whole number of nanoseconds, got {type(t_ns).__name__}")
+    return int(t_ns)
 
 
 __all__ = ["DEFAULT_HISTORY_S", "OnlineRepeat"]
