@@ -256,6 +256,20 @@ def test_a_pause_is_not_localized():
     table = est.states(np.array([5 * DT_NS, 30 * 10**9, 60 * 10**9 + 5 * DT_NS]))
     assert table.status is not None and table.status.tolist() == ["localized", "unknown", "localized"]
     assert np.isnan(table.lateral[1]) and not table.localized[1]
+    assert est.pauses_s == [pytest.approx(60.0 - 19 * DT_NS * 1e-9)]      # a new smoother segment after it
+    rows = est.output(50.0)
+    assert rows.status is not None and not rows.localized[(rows.t_ns > 2 * 10**9) & (rows.t_ns < 59 * 10**9)].any()
+
+
+def test_a_pause_longer_than_any_prior_can_bridge():
+    """10^5 s without frames: no solver failure (no motion factor spans it), both sides localized."""
+    path = _path(60)
+    t = np.r_[np.arange(20) * DT_NS, 10**14 + np.arange(20) * DT_NS]
+    s = 2.0 + np.r_[np.arange(20), 20 + np.arange(20)] * SPEED * DT_NS * 1e-9
+    est = _estimator(path, _steps(path, s, t, right_m=0.1))
+    table = est.states(np.array([5 * DT_NS, 10**14 + 5 * DT_NS]))
+    assert table.status is not None and table.status.tolist() == ["localized", "localized"]
+    assert np.allclose(table.lateral, -0.1, atol=1e-3)
 
 
 def test_past_the_end_is_off_route():

@@ -426,7 +426,10 @@ class RepeatRun:
         state_info = {"rate_hz": self.rate_hz, "rows": len(state),
                       "smoother_ms_per_frame": 1000 * loop.controller.seconds / max(len(loop.t_ns), 1),
                       "median_abs_lateral_m": float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
-                      "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None}
+                      "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None,
+                      "statuses": ({str(k): int(v) for k, v in zip(*np.unique(state.status, return_counts=True),
+                                                                   strict=True)} if state.status is not None else {}),
+                      "pauses_s": [round(p, 3) for p in loop.controller.pauses_s]}
         errors = evaluation.path_errors_m
         return RepeatSummary(frames=len(loop.t_ns), vertices=len(loop.localizations), localized=len(ok),
                              seconds=loop.seconds + seconds_after_loop, localization_seconds=loop.localization_seconds,

@@ -53,6 +53,13 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
         out.append(f"state.csv: {s.state['rows']} rows at {s.state['rate_hz']:g} Hz, smoothed lateral error "
                    + (f"median {lateral:.3f} m" if lateral is not None else "none (never localized)")
                    + f", smoother {s.state['smoother_ms_per_frame']:.1f} ms/frame")
+        statuses = s.state.get("statuses") or {}
+        if statuses:
+            out.append("state.csv rows by status: " + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+        pauses = s.state.get("pauses_s") or []
+        if pauses:
+            out.append(f"{len(pauses)} pause(s) without frames (longest {max(pauses):.3g} s, more than "
+                       "smoothing.max_extrapolation_s): a new smoother segment after each, the states across it unknown")
     return out
 
 

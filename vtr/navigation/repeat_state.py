@@ -146,6 +146,47 @@ class StateTable:
         return len(self.t_ns)
 
 
+class SegmentedTrajectory:
+    """The knots of a run cut by pauses: one :class:`~vtr.state.smoothing.KnotTrajectory` per segment, each time
+    answered by the segment it falls in (the latest that starts at or before it); no segment bridges a pause."""
+
+    def __init__(self, segments: list[KnotTrajectory]) -> None:
+        self.segments = [seg for seg in segments if seg.n]
+        self.starts = np.array([seg.first_time_ns for seg in self.segments], np.int64)
+        self.n = sum(seg.n for seg in self.segments)
+
+    @property
+    def first_time_ns(self) -> int | None:
+        return self.segments[0].first_time_ns if self.segments else None
+
+    @property
+    def last_time_ns(self) -> int | None:
+        return self.segments[-1].last_time_ns if self.segments else None
+
+    def _segment(self, t_ns: int) -> KnotTrajectory:
+        if not self.segments:
+            raise EstimationError("state_at: no measurement yet")
+        return self.segments[max(0, int(np.searchsorted(self.starts, int(t_ns), side="right")) - 1)]
+
+    def state_at(self, t_ns: int, *, with_covariance: bool = True):
+        return self._segment(t_ns).state_at(t_ns, with_covariance=with_covariance)
+
+    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None):
+        return self._segment(t_ns).fitted_acceleration(t_ns, window_s, T_sensor_point)
+
+    def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:
+        """Per segment (:meth:`KnotTrajectory.joint_covariance`); states in different segments are independent."""
+        t = np.atleast_1d(np.asarray(t_ns, np.int64))
+        which = np.maximum(np.searchsorted(self.starts, t, side="right") - 1, 0)
+        cov = np.zeros((12 * len(t), 12 * len(t)))
+        for k in np.unique(which):
+            rows = np.flatnonzero(which == k)
+            block = self.segments[int(k)].joint_covariance(t[rows])
+            idx = (12 * rows[:, None] + np.arange(12)).ravel()
+            cov[np.ix_(idx, idx)] = block
+        return cov
+
+
 @dataclass(frozen=True)
 class CommandLog:
     """Accelerations a controller commanded (the vehicle origin's, in the map's gravity frame g, m/s²), each held
@@ -242,6 +283,8 @@ class RepeatStateEstimator:
         self._pending: list[_Vertex] = []
         self._anchored = False
         self._last: _Vertex | None = None
+        self._past_segments: list[TrajectorySmoother] = []   # closed by pauses, oldest first
+        self.pauses_s: list[float] = []                      # the length of each pause (s)
         self.vertex_t_ns: list[int] = []
         self.vertex_trunk: list[int] = []     # index along the privileged path
         self.vertex_localized: list[bool] = []   # the chain's verdict after the vertex's attempt
@@ -275,6 +318,8 @@ class RepeatStateEstimator:
         r = step.odometry
         if self.first_t_ns is None:
             self.first_t_ns = int(r.t_ns)
+        if self.last_t_ns is not None and int(r.t_ns) - self.last_t_ns > self.smoothing.max_extrapolation_s * NS_PER_S:
+            self._pause(int(r.t_ns) - self.last_t_ns)
         self.last_t_ns = int(r.t_ns)
         self.frame_t_ns.append(int(r.t_ns))
         kf, loc = r.new_keyframe, step.localization
@@ -307,6 +352,19 @@ class RepeatStateEstimator:
                     self._flush_localized()
         self.seconds += time.perf_counter() - t0
 
+    def _pause(self, gap_ns: int) -> None:
+        """No frame for longer than ``smoothing.max_extrapolation_s``: nothing measured bridges the pause, so the
+        smoother's motion prior must not either. The current segment is closed (vertices still waiting for a
+        localization are placed by the chain's assumption, as at the end of a run) and the next vertex starts a new
+        one, anchored again by the next localization; the states across the pause are ``unknown``."""
+        self.pauses_s.append(gap_ns / NS_PER_S)
+        self._close_pending()
+        if self.smoother.num_keyframes:
+            self._past_segments.append(self.smoother)
+        self.smoother = TrajectorySmoother(self.smoothing)
+        self._anchored = False
+        self._last = None
+
     def _drift_covariance(self, T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
         """Odometry drift between two vertices, growing with the distance travelled ([rot, trans])."""
         c = self.smoothing
@@ -319,6 +377,9 @@ class RepeatStateEstimator:
         that cannot be solved (a run that never localized, with odometry failures in it, leaves the knots after a
         failure unconstrained) the state stays unknown: :meth:`states` reports NaN, not a failure of the run."""
         self._full_view = None
+        self._close_pending()
+
+    def _close_pending(self) -> None:
         if self._pending:
             first = self._pending[0]
             sig = np.r_[[UNLOCALIZED_ROTATION_SIGMA_RAD] * 3, [UNLOCALIZED_TRANSLATION_SIGMA_M] * 3]
@@ -384,7 +445,14 @@ class RepeatStateEstimator:
             since = self.last_t_ns - int(history_s * NS_PER_S)
             lo_v = max(0, int(np.searchsorted(t_v, since, side="right")) - 1)
             lo_f = max(0, int(np.searchsorted(frames, since, side="right")) - 1)
-        trajectory = self.smoother.snapshot(since) if history_s is not None else self.smoother._view()
+        trajectory: KnotTrajectory | SegmentedTrajectory
+        if history_s is not None:
+            trajectory = self.smoother.snapshot(since)
+        elif self._past_segments:
+            trajectory = SegmentedTrajectory([sm._view() for sm in (*self._past_segments, self.smoother)
+                                              if sm.num_keyframes])
+        else:
+            trajectory = self.smoother._view()
         return RepeatStateView(
             route=self.route, trajectory=trajectory, vertex_t_ns=t_v[lo_v:],
             vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:], vertex_localized=localized[lo_v:],
@@ -476,7 +544,7 @@ class RepeatStateView:
     knots (a :class:`~vtr.state.smoothing.KnotTrajectory`), the chain's verdict per vertex and the frame times."""
 
     route: RouteFrames
-    trajectory: KnotTrajectory
+    trajectory: KnotTrajectory | SegmentedTrajectory
     vertex_t_ns: np.ndarray
     vertex_trunk: np.ndarray
     vertex_localized: np.ndarray
@@ -636,7 +704,12 @@ class RepeatStateView:
         sig_p, sig_v = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
         yaw = np.zeros(n)
         for j in range(n):
-            cs = self._state(int(t_ns[j]), int(trunks[j]), with_covariance)
+            try:
+                cs = self._state(int(t_ns[j]), int(trunks[j]), with_covariance)
+            except EstimationError:         # a pause: no segment reaches this time (the row is unknown)
+                P[j] = Vel[j] = A[j] = np.nan
+                yaw[j] = np.nan
+                continue
             P[j], Vel[j], A[j], yaw[j] = cs.position, cs.velocity, cs.acceleration, cs.yaw
             if cs.position_covariance is not None and cs.velocity_covariance is not None:
                 sig_p[j] = np.sqrt(np.clip(np.diag(cs.position_covariance), 0.0, None))
@@ -646,7 +719,8 @@ class RepeatStateView:
         for k, b in {(int(k), bool(b)) for k, b in zip(trunks, backward, strict=True)}:
             sel = (trunks == k) & (backward == b)
             _, path, offset = self.route.trunk(k, BACKWARD if b else 1)
-            if path is not None:
+            sel &= np.all(np.isfinite(P), axis=1)
+            if path is not None and sel.any():
                 e: PathError = path.error(P[sel])
                 # lateral is to the left of the direction of travel: the taught path's left, mirrored going back
                 lat[sel] = -e.lateral if b else e.lateral
@@ -663,6 +737,7 @@ class RepeatStateView:
 
 __all__ = [
     "CommandLog",
+    "SegmentedTrajectory",
     "OutputWindow",
     "RepeatStateEstimator",
     "RepeatStateView",
