@@ -50,6 +50,8 @@ def test_settings_refuse_values_outside_their_domain_naming_the_field():
         DiscreteFlatnessSettings(time_constant_s=-0.1)
     with pytest.raises(ConfigError, match="plant_rate_hz/control_rate_hz"):
         DiscreteFlatnessSettings(plant_rate_hz=130.0)
+    with pytest.raises(ConfigError, match="warmup_s"):
+        DiscreteFlatnessSettings(warmup_s=0.1, window_knots_back=2)
 
 
 def test_smoother_density_is_the_references_acceleration_over_one_camera_period():

@@ -94,8 +94,11 @@ class DiscreteFlatnessSettings:
             ratio = fast / slow
             if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
                 raise ConfigError(f"discrete_flatness: {name} must be a whole number >= 1, got {ratio:g}")
-        if NS_PER_S % round(NS_PER_S / self.control_rate_hz) or abs(
-                NS_PER_S / self.control_rate_hz - round(NS_PER_S / self.control_rate_hz)) > 1e-6:
+        history_s = self.window_knots_back / self.measurement_rate_hz + (WINDOW - 1) / self.control_rate_hz
+        if self.warmup_s < history_s - 1e-9:
+            raise ConfigError(f"discrete_flatness: warmup_s={self.warmup_s:g} is shorter than the first window's "
+                              f"history ({history_s:g} s: window_knots_back camera periods and {WINDOW - 1} ticks)")
+        if abs(NS_PER_S / self.control_rate_hz - round(NS_PER_S / self.control_rate_hz)) > 1e-6:
             raise ConfigError(f"discrete_flatness: control_rate_hz={self.control_rate_hz:g} has no whole-ns period")
 
     def replace(self, **changes: Any) -> DiscreteFlatnessSettings:
@@ -248,10 +251,11 @@ class SmootherOutputs:
     the translation along x of an SE(3) pose (identity attitude), fed as an absolute pose measurement with
     the position noise's variance on each axis.
 
-    ``window`` and ``state`` answer as the online estimator's ``window(t_end_ns, n, dt_s)`` and
-    ``state(t_ns)`` will (position of each sample; ``(p, v, a)``); after the newest knot the smoother
-    extrapolates at constant velocity, so ``measured_until_ns`` stops at the newest knot and the
-    discrete-time flatness controller carries the window forward with the inputs it sent.
+    ``window(t_end_ns, n, dt_s)`` (positions (n,)) and ``state(t_ns)`` (``(p, v, a)``) are the calls of the
+    online estimator that will replace it. After the newest knot the smoother extrapolates at constant velocity
+    and at that knot its WNOA mean has zero acceleration (a natural spline's end), so :class:`SmootherBatch`
+    ends the discrete-time flatness window ``knots_back`` knots earlier and the controller carries it to now
+    with the inputs it sent (8.15).
     """
 
     def __init__(self, smoothing: SmoothingConfig, sigma_m: float) -> None:
@@ -261,14 +265,18 @@ class SmootherOutputs:
         self._cov = np.diag([ROTATION_SIGMA_RAD**2] * 3 + [sigma_m**2] * 3)
 
     def add(self, t_ns: int, x_m: float) -> None:
+        """A measured position ``x_m`` (m) at ``t_ns``."""
         T = np.eye(4)
         T[0, 3] = x_m
         self.smoother.add_pose(t_ns, T, self._cov)
 
-    def positions(self, times_ns: Sequence[int]) -> np.ndarray:
-        return np.array([self.smoother.state_at(int(t), with_covariance=False).position[0] for t in times_ns])
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
+        """Positions (n,) at ``t_end_ns - (n - 1 - i) dt_s``."""
+        return np.array([self.smoother.state_at(t, with_covariance=False).position[0]
+                         for t in _times(t_end_ns, n, dt_s)])
 
-    def flat_state(self, t_ns: int) -> np.ndarray:
+    def state(self, t_ns: int) -> np.ndarray:
+        """``(p m, v m/s, a m/s^2)`` at ``t_ns``."""
         s = self.smoother.state_at(t_ns, with_covariance=False)
         return np.array([s.position[0], s.linear_velocity_world[0], s.linear_acceleration_world[0]])
 
@@ -280,7 +288,8 @@ class SmootherOutputs:
 
 
 class SmootherBatch:
-    """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``."""
+    """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``; windows
+    end ``knots_back`` measurement periods before the newest knot."""
 
     def __init__(self, sources: Sequence[SmootherOutputs], period_ns: int, knots_back: int = 0) -> None:
         self.sources = list(sources)
@@ -292,11 +301,10 @@ class SmootherBatch:
             src.add(t_ns, float(x))
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
-        times = _times(t_end_ns, n, dt_s)
-        return np.stack([src.positions(times) for src in self.sources])
+        return np.stack([src.window(t_end_ns, n, dt_s) for src in self.sources])
 
     def state(self, t_ns: int) -> np.ndarray:
-        return np.stack([src.flat_state(t_ns) for src in self.sources])
+        return np.stack([src.state(t_ns) for src in self.sources])
 
     def measured_until_ns(self, t_ns: int) -> int:
         newest = min(src.newest_ns() for src in self.sources)
