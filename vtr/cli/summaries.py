@@ -59,7 +59,8 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
         pauses = s.state.get("pauses_s") or []
         if pauses:
             out.append(f"{len(pauses)} pause(s) without frames (longest {max(pauses):.3g} s, more than "
-                       "smoothing.max_extrapolation_s): a new smoother segment after each, the states across it unknown")
+                       "smoothing.max_extrapolation_s): a new smoother segment after each, the states across it "
+                       "unknown")
     return out
 
 
