@@ -31,7 +31,8 @@ from ..config import Config
 from ..errors import EstimationError, NotLocalizedError
 from ..map import Map, copy_map_file
 from ..navigation.repeat import Repeat, RepeatStep
-from ..navigation.repeat_state import CommandLog, OutputWindow, RepeatStateEstimator, RepeatStateView
+from ..navigation.repeat_state import RepeatStateEstimator
+from ..navigation.state_view import CommandLog, OutputWindow, RepeatStateView
 from ..state.controller import ControllerState
 from ..types import StereoImages
 from .field import CameraMount, FieldEvaluation, TaughtPathField
