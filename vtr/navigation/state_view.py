@@ -285,8 +285,8 @@ class RepeatStateView:
         # the acceleration of the vehicle origin from a fit of the knots' velocities (smoothing.acceleration_window_s)
         a_world, cov_world = self.trajectory.fitted_acceleration(int(t_ns), window, self.route.T_sensor_vehicle)
         C_o_world = T_o_t[:3, :3] @ self.route.T_world_trunk[k][:3, :3].T
-        return dataclasses.replace(cs, acceleration=C_o_world @ a_world,
-                                   acceleration_covariance=C_o_world @ cov_world @ C_o_world.T)
+        cov_o = C_o_world @ cov_world @ C_o_world.T if np.all(np.isfinite(cov_world)) else cov_world
+        return dataclasses.replace(cs, acceleration=C_o_world @ a_world, acceleration_covariance=cov_o)
 
     def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
                             with_covariance: bool = False, commands: CommandLog | None = None) -> ControllerState:
