@@ -206,7 +206,7 @@ def test_envelope_on_a_taught_map(kitti_map, tmp_path):
     assert [int(row["vertex_id"]) for row in rows] == [int(i) for i in ids]
     assert (out / "envelope.png").stat().st_size > 10_000
     # the reported distance is the last offset that keeps mu - 3 sigma >= L_min before the first crossing
-    vertices, camera = _read(kitti_map)
+    vertices, camera, _ = _read(kitti_map)
     m = PerceptionModel.thesis()
     checked = 0
     for v, row in zip(vertices, rows, strict=True):
