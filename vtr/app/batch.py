@@ -59,7 +59,7 @@ import yaml
 
 from .. import __version__
 from ..config import Config
-from ..errors import ConfigError, DataError, OutputError
+from ..errors import ConfigError, DataError, OutputError, VtrError
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
 from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
 
@@ -339,7 +339,8 @@ def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str,
 def key_change(folder: Path, key: dict[str, Any]) -> str | None:
     """None when ``folder``'s run was made with ``key``; else what changed (for the summary)."""
     try:
-        old = json.loads((folder / KEY_NAME).read_text())
+        data = OutputFolder(folder).read_own(KEY_NAME)     # never through a link vtr did not make
+        old = None if data is None else json.loads(data)
     except (OSError, ValueError):
         old = None
     if not isinstance(old, dict):
@@ -731,10 +732,17 @@ def _run_on(client, pending: list[tuple[RunSpec, dict[str, Any], str | None]], o
 
 
 def repeat_landmark_files(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> Iterator[Path]:
+    """The landmarks.csv of every finished repeat, each checked to be the file vtr made there (never a link:
+    ``OutputError`` naming it, :meth:`vtr.app.outputs.OutputFolder.own_file`)."""
     ok = {(o.route, o.name) for o in outcomes if o.ok and o.kind == "repeat"}
     for spec in manifest.runs():
         if (spec.route, spec.name) in ok:
-            yield spec.folder(out) / "landmarks.csv"
+            folder = spec.folder(out)
+            check_no_links(out, folder)
+            p = OutputFolder(folder).own_file("landmarks.csv")
+            if p is None:
+                raise DataError(f"{folder / 'landmarks.csv'}: missing from a finished repeat")
+            yield p
 
 
 def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> dict[str, Any]:
@@ -746,7 +754,10 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     from perception_model.landmarks_file import FIT_FIELDS, read_landmarks
     from perception_model.plots import plot_fit
 
-    files = list(repeat_landmark_files(manifest, out, outcomes))
+    try:
+        files = list(repeat_landmark_files(manifest, out, outcomes))
+    except VtrError as err:
+        return {"error": str(err)}
     if not files:
         return {"error": "no finished repeat to fit"}
     check_no_links(out, out / FIT_FOLDER)
@@ -755,12 +766,15 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
 
     def chunks():
         for f in files:
-            obs = read_landmarks(f, fields=FIT_FIELDS)
+            own = OutputFolder(f.parent).own_file(f.name)      # again, just before reading it
+            if own is None:
+                raise PerceptionModelError(f"{f}: removed while the batch read it")
+            obs = read_landmarks(own, fields=FIT_FIELDS)
             yield obs.alpha, obs.theta, obs.inlier
 
     try:
         result = fit_binned_stream(chunks, source=f"{len(files)} repeats under {out}")
-    except PerceptionModelError as err:
+    except (PerceptionModelError, VtrError) as err:
         return {"error": str(err), "files": len(files)}
     data = {"files": [str(f) for f in files], "n_observations": result.n, "n_inliers": result.n_inliers}
     fit_folder.write("model.json", result.model.save, fit=result.to_dict(), data=data)

@@ -72,13 +72,14 @@ def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, confi
 def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool) -> None:
     """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
     from ..errors import DataError
+    from ..io.outputs import write_output
     from ..io.trajectory import read_tum, write_trajectory
 
     if not tum_file.is_file():
         raise DataError(f"{tum_file}: no such file")
-    check_out_file(out_file, force)
+    check_out_file(out_file, force, inputs=(tum_file,))
     t_ns, T = read_tum(tum_file)
-    write_trajectory(out_file, t_ns, T, fmt)
+    write_output(out_file, lambda tmp: write_trajectory(tmp, t_ns, T, fmt), force, inputs=(tum_file,))
     click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")
 
 

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from perception_model.outputs import replace_file
+
 from ..errors import MapError
 from .store import Map
 
@@ -44,7 +46,9 @@ def run_colour(order: int) -> np.ndarray:
 def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list[RunExport]:
     """Write the landmarks of ``runs`` (all by default) to a binary PLY point cloud, coloured by run.
 
-    Returns one :class:`RunExport` per run. Raises ``MapError`` when the file name does not end in
+    The file is written beside and renamed over ``path`` (never through a link there:
+    :func:`perception_model.outputs.replace_file`). Returns one :class:`RunExport` per run.
+    Raises ``MapError`` when the file name does not end in
     ``.ply``, the map has no landmark, or open3d cannot write the file.
     """
     path = Path(path)
@@ -73,7 +77,10 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None) -> list
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
     cloud.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(np.concatenate(cols), dtype=np.float64))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
-        raise MapError(f"{path}: open3d could not write the point cloud")
+
+    def write(tmp: Path) -> None:
+        if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
+            raise MapError(f"{path}: open3d could not write the point cloud")
+
+    replace_file(path, write)           # whole, and never through a link at ``path``
     return summary
