@@ -249,6 +249,90 @@ class OutputFolder:
         except OSError as err:
             raise OutputError(f"{p}: cannot create it ({err.strerror or err})") from None
 
+    # ------------------------------------------------------------------ whole entries of a command's own
+
+    def claim_entries(self, names: Iterable[str]) -> None:
+        """For a command that rewrites whole entries (files or folders, ``vtr demo``): every ``names`` that exists
+        must be one vtr made here (in the record; never a symbolic link), else ``OutputError`` naming it before
+        anything is touched; then all are recorded. A user's ``route.vtrmap`` or ``aerial/teach/`` is refused,
+        never removed."""
+        names = list(names)
+        for name in names:
+            if not _is_safe_name(name):
+                raise OutputError(f"{self.path}: {name!r} is not a file name")
+            p = self.path / name
+            if not p.exists() and not p.is_symlink():
+                continue
+            what = "is a symbolic link" if p.is_symlink() else (
+                None if name in self.made else f"was not made by vtr here (not in {RECORD})")
+            if what is not None:
+                raise OutputError(f"{p}: {what}; not replacing it (move it away or choose another {self.option})")
+        for name in names:
+            self._record(name)
+
+    def remove_entry(self, name: str) -> None:
+        """Remove entry ``name`` that vtr made here (a file, with a map's SQLite side files, or a whole folder);
+        ``OutputError`` for anything vtr did not make (see :meth:`claim_entries`)."""
+        import shutil
+
+        from ..map.database import SIDE_FILES  # SQLite's files beside a map
+
+        self.claim_entries([name])
+        p = self.path / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            for n in (name, *(name + s for s in SIDE_FILES)):
+                self._unlink_regular(self.path / n)
+
+    # ------------------------------------------------------------------ replacing a finished run
+
+    def adopt(self, staged: OutputFolder, last: Iterable[str] = ()) -> None:
+        """Move the complete outputs of ``staged`` (a run built beside this folder) in, replacing this folder's own
+        files of the same names, then remove this folder's other own files; ``staged`` is removed when empty.
+        Each file moves by one rename (never half a file); ``last`` are moved after every other file, in that
+        order (``run.json`` last: until it moves, this folder still says which run it holds). Files vtr did not
+        make here are kept, and a link or a file vtr did not make at an incoming name stops the move
+        (``OutputError``) before anything is replaced."""
+        from ..map.database import SIDE_FILES  # SQLite's files beside a map
+
+        staged.made, self.made = staged._read_record(), self._read_record()   # other writers recorded files too
+        last = [n for n in last if n in staged.made]
+        incoming = sorted(n for n in staged.made if not n.startswith(TMP_TAG) and n not in last) + last
+        incoming = [n for n in incoming if staged.own_file(n) is not None]
+        for name in incoming:
+            self.check_writable(name)
+        for name in incoming:
+            self._record(name)
+            for side in SIDE_FILES:                          # an old map's SQLite files never meet the new map
+                self._unlink_regular(self.path / (name + side))
+            os.replace(staged.path / name, self.path / name)
+        for name in sorted(self.made - set(incoming)):
+            if name == RECORD:
+                continue
+            for n in (name, *(name + s for s in SIDE_FILES)):
+                self._unlink_regular(self.path / n)
+        self._write_record(set(incoming))
+        staged.clear()
+        with contextlib.suppress(OSError):
+            staged.path.rmdir()                            # kept when something else is in it
+
+    def _write_record(self, names: set[str]) -> None:
+        from perception_model.outputs import replace_text
+
+        replace_text(self.path / RECORD, "".join(f"{n}\n" for n in sorted(names)))
+        self.made = set(names)
+
+    @staticmethod
+    def _unlink_regular(p: Path) -> None:
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return
+        if stat.S_ISREG(st.st_mode):
+            with _ignore_missing():
+                os.unlink(p)
+
     # ------------------------------------------------------------------ cleanup
 
     def clear(self) -> None:
