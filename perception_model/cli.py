@@ -35,8 +35,8 @@ import click
 
 from .commandline import OneLineGroup, force_option, version_option
 from .errors import InputDataError, PerceptionModelError, PerceptionModelWarning
-from .outputs import existing_output
-from .plots import plot_fit
+from .outputs import existing_output, replace_file, replace_text
+from .plots import figure_problem, plot_fit
 from .settings import (
     CI_METHODS,
     METHODS,
@@ -97,9 +97,11 @@ def _version() -> str:
     return version(DIST)
 
 
-def check_output(path: Path, force: bool, *, folder: bool = False, option: str | None = None) -> None:
-    """The output rule of every command (:func:`perception_model.outputs.existing_output`) as an error."""
-    problem = existing_output(path, force, folder=folder, option=option)
+def check_output(path: Path, force: bool, *, folder: bool = False, option: str | None = None,
+                 inputs: tuple[Path | None, ...] = ()) -> None:
+    """The output rule of every command (:func:`perception_model.outputs.existing_output`: never without
+    ``--force`` over an output, never through a link or over one of ``inputs``) as an error."""
+    problem = existing_output(path, force, folder=folder, option=option, inputs=inputs)
     if problem is not None:
         raise InputDataError(problem)
 
@@ -210,19 +212,24 @@ def fit_cmd(
                    "DIR/fit.png)")
         model_path = out
     else:
-        check_output(out, force, folder=True, option="--out")
+        check_output(out, force, folder=True, option="--out", inputs=landmarks)
         model_path = out / "model.json"
         plot = out / "fit.png" if plot is None else plot
-    check_output(model_path, force)
+    check_output(model_path, force, inputs=landmarks)
     if plot is not None:
-        check_output(plot, force)
+        problem = figure_problem(plot)
+        if problem is not None:
+            raise InputDataError(f"--plot {problem}")
+        check_output(plot, force, inputs=(*landmarks, model_path))
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
     settings = FitSettings.from_degrees(
         alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin, min_bin_count=min_bin_count, method=method,
         angle_unit=unit, holdout_fraction=holdout, seed=seed, ci=ci, n_bootstrap=n_bootstrap,
     )  # fmt: skip
     result = fit_observations(obs, settings)
-    model_path.parent.mkdir(parents=True, exist_ok=True)
+    check_output(model_path, force, inputs=landmarks)      # again: the fit may have taken minutes
+    if plot is not None:
+        check_output(plot, force, inputs=(*landmarks, model_path))
     data = obs.describe()
     result.model.save(model_path, fit=result.to_dict(), data=data)
     click.echo(_fit_summary(result, data))
@@ -318,15 +325,16 @@ def evaluate_cmd(
     from .landmarks_file import FIT_FIELDS, read_landmarks_files
     from .model import PerceptionModel
 
+    inputs = (model_path, *landmarks)
     if out is not None:
-        check_output(out, force, folder=True, option="--out")
+        check_output(out, force, folder=True, option="--out", inputs=inputs)
     json_out = None if out is None else out / "evaluation.json"
     if json_flag not in (None, "-"):
         deprecated(f"--json {json_flag}: a file after --json is deprecated; use --out DIR (DIR/evaluation.json) "
                    "or --json alone (JSON on stdout)")
         json_out = Path(json_flag)
     if json_out is not None:
-        check_output(json_out, force)
+        check_output(json_out, force, inputs=inputs)
     model = PerceptionModel.load(model_path)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
     settings = FitSettings.from_degrees(alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin,
@@ -350,8 +358,8 @@ def evaluate_cmd(
         for line in _evaluation_lines(ev):
             click.echo(line)
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(results + "\n")
+        check_output(json_out, force, inputs=inputs)
+        replace_text(json_out, results + "\n")
         click.echo(f"wrote {json_out}", err=json_flag == "-")
 
 
@@ -428,8 +436,9 @@ def resolve_c_bar(c_bar: float | None, delta: float | None) -> float:
     return c_bar_from_delta(delta) if delta is not None else (THESIS_C_BAR if c_bar is None else c_bar)
 
 
-def constraint_output(out: Path | None, force: bool) -> tuple[bool, Path | None]:
-    """``--out``: (the table to stdout?, the CSV file to write or None), its output rule checked."""
+def constraint_output(out: Path | None, force: bool, inputs: tuple[Path | None, ...] = ()) -> tuple[bool, Path | None]:
+    """``--out``: (the table to stdout?, the CSV file to write or None), its output rule checked (never over
+    one of ``inputs``)."""
     to_stdout = out is not None and str(out) == "-"
     csv_path = None
     if out is not None and not to_stdout:
@@ -437,9 +446,9 @@ def constraint_output(out: Path | None, force: bool) -> tuple[bool, Path | None]
             deprecated(f"--out {out}: a CSV file is deprecated; give a folder (--out DIR writes DIR/constraint.csv)")
             csv_path = out
         else:
-            check_output(out, force, folder=True, option="--out")
+            check_output(out, force, folder=True, option="--out", inputs=inputs)
             csv_path = out / "constraint.csv"
-        check_output(csv_path, force)
+        check_output(csv_path, force, inputs=inputs)
     return to_stdout, csv_path
 
 
@@ -490,7 +499,7 @@ def constraint_cmd(
     from .io import read_positions
     from .model import PerceptionModel
 
-    to_stdout, csv_path = constraint_output(out, force)
+    to_stdout, csv_path = constraint_output(out, force, (model_path, landmarks_path, positions_path))
     cbar = resolve_c_bar(c_bar, delta)
     model = PerceptionModel.load(model_path)
     path = read_positions(positions_path)
@@ -536,11 +545,13 @@ def report_constraint(table: Table, l_min: float, cbar: float, to_stdout: bool, 
         writer.writerow(header)
         writer.writerows(rows)
     elif csv_path is not None:
-        csv_path.parent.mkdir(parents=True, exist_ok=True)
-        with csv_path.open("w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(header)
-            writer.writerows(rows)
+        def write(tmp: Path) -> None:
+            with tmp.open("w", newline="") as fh:
+                writer = csv.writer(fh)
+                writer.writerow(header)
+                writer.writerows(rows)
+
+        replace_file(csv_path, write)        # whole, never through a link (refused before the work)
         echo(f"wrote {csv_path}")
 
 

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ModelFileError, PerceptionModelError, PerceptionModelWarning
+from .outputs import replace_text
 from .settings import UNIT_SCALE  # the units the constants may be expressed in (radians -> unit)
 
 #: Thesis constants (c1, c2, c3) for angles in degrees (thesis §7.3.1, fit over 12 km, R^2 = 0.92).
@@ -254,9 +255,10 @@ class PerceptionModel:
     def save(
         self, path: str | Path, *, fit: dict[str, Any] | None = None, data: dict[str, Any] | None = None
     ) -> None:
-        """Write the model as JSON (see ``to_dict``)."""
+        """Write the model as JSON (see ``to_dict``), whole and never through a link at ``path``
+        (:func:`perception_model.outputs.replace_file`)."""
         text = json.dumps(self.to_dict(fit=fit, data=data), indent=2, allow_nan=False)
-        Path(path).write_text(text + "\n")
+        replace_text(path, text + "\n")
 
     @classmethod
     def load(cls, path: str | Path, *, check_range: bool = True) -> PerceptionModel:

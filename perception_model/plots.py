@@ -10,6 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from .outputs import replace_file
+
 #: Resolution and size of the figure, and the probability levels of the fitted surface's contour lines.
 PLOT_DPI = 120
 PLOT_SIZE_IN = (12.0, 4.8)
@@ -79,6 +81,19 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
         f"perception model fit: p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha), angles in {unit}   "
         f"R^2 = {result.r2:.3f}, n = {result.n}"
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=PLOT_DPI)
-    plt.close(fig)
+    try:
+        replace_file(path, lambda tmp: fig.savefig(tmp, dpi=PLOT_DPI))   # never through a link at ``path``
+    finally:
+        plt.close(fig)
+
+
+def figure_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be a figure (its suffix names no format matplotlib writes), as one line, or None."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    formats = FigureCanvasAgg.get_supported_filetypes()
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix in formats:
+        return None
+    return (f"{path}: not a figure file name (the suffix {('.' + suffix) if suffix else '(none)'} is no image "
+            f"format; use one of {', '.join('.' + f for f in sorted(formats))})")

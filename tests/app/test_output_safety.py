@@ -315,3 +315,44 @@ def test_an_edited_run_json_is_one_line(routes, tmp_path):
     run_json.write_text('{"status": "finished", "summary": {"frames": [')
     r = vtr("batch", routes, "--out", out, "--workers", "1")
     one_error_line(r, str(run_json))
+
+
+def test_a_failed_rerun_of_a_finished_run_keeps_its_outputs(routes, tmp_path):
+    """The source of a finished teach changes (image_1/ lost in a partial sync): the rerun is built beside the
+    finished outputs and fails; the taught map (the only copy) and every other output stay byte for byte, the
+    outcome says they were kept, the repeats are blocked and keep theirs. Once the source is whole again the
+    rerun finishes and its outputs replace the old ones (only vtr's; the user's notes stay)."""
+    from vtr.app.batch import BLOCKED, FAILED
+
+    data = tmp_path / "data"
+    shutil.copytree(routes.parent, data)
+    manifest = data / routes.name
+    out = tmp_path / "out"
+    first = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))
+    assert [o.status for o in first.outcomes] == [FINISHED, FINISHED]
+    notes = out / "route_0" / "teach" / "notes.txt"
+    notes.write_text("the user's")
+    finished = tree_bytes(out / "route_0")
+    assert "teach/route.vtrmap" in finished
+
+    shutil.move(data / "route_0" / "teach" / "image_1", tmp_path / "image_1")   # a partial sync
+    failed = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))
+    teach, rep = failed.outcomes
+    assert teach.status == FAILED and "finished outputs of the earlier run are kept" in teach.error
+    assert rep.status == BLOCKED
+    assert tree_bytes(out / "route_0" / "teach") == {k[len("teach/"):]: v for k, v in finished.items()
+                                                     if k.startswith("teach/")}
+    assert tree_bytes(out / "route_0" / "rep_0m") == {k[len("rep_0m/"):]: v for k, v in finished.items()
+                                                      if k.startswith("rep_0m/")}
+
+    shutil.move(tmp_path / "image_1", data / "route_0" / "teach" / "image_1")
+    (data / "route_0" / "teach" / "README.txt").write_text("a new file in the source: it changed")
+    again = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))
+    assert [o.status for o in again.outcomes] == [FINISHED, FINISHED], again.outcomes
+    assert all(o.changed for o in again.outcomes)
+    assert notes.read_text() == "the user's"
+    assert not list((out / "route_0").glob(".vtr-rerun-*"))         # the rerun folders moved in and went
+    made = set((out / "route_0" / "teach" / RECORD).read_text().split())
+    assert {"route.vtrmap", "run.json", "batch_key.json"} <= made and not any(".vtr-tmp-" in n for n in made)
+    third = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))
+    assert [o.status for o in third.outcomes] == [RESUMED, RESUMED]

@@ -37,6 +37,19 @@ def test_batch_runs_and_resumes(kitti_clip, tmp_path):
     r = vtr("batch", m, "--out", tmp_path / "out", "--workers", "1")
     assert r.returncode == 0, r.stderr
     assert "2 resumed" in r.stdout
+    # --fit over a finished repeat whose landmarks.csv was replaced by a link (the /etc/shadow case): the link
+    # is named, its target never read or shown, and a fit asked for and not done is exit code 1
+    secret = tmp_path / "shadow"
+    secret.write_text("root:$6$secret-hash:19000:0:99999:7:::\n")
+    lm = tmp_path / "out" / "clip" / "odd" / "landmarks.csv"
+    lm.unlink()
+    lm.symlink_to(secret)
+    r = vtr("batch", m, "--out", tmp_path / "out", "--workers", "1", "--fit")
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert "2 resumed" in r.stdout
+    assert "fit: not done" in r.stderr and "landmarks.csv: is a symbolic link" in r.stderr
+    assert "secret-hash" not in r.stdout + r.stderr
+    assert not (tmp_path / "out" / "fit" / "model.json").exists()
 
 
 def test_threads_option_is_checked(kitti_clip, tmp_path):

@@ -91,6 +91,20 @@ def test_export_map_writes_a_ply(route_map, tmp_path):
     assert "element vertex 160" in header and "property uchar red" in header
 
 
+def test_export_map_never_writes_through_a_link_or_over_its_map(route_map, tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("the user's file")
+    (tmp_path / "p.ply").symlink_to(victim)
+    r = vtr("export-map", route_map, "--ply", tmp_path / "p.ply", "--force")
+    assert r.returncode == 1 and "p.ply: is a symbolic link" in r.stderr and len(r.stderr.splitlines()) == 1
+    assert victim.read_text() == "the user's file"
+    (tmp_path / "map.ply").symlink_to(route_map)             # the map itself, by another name
+    before = route_map.read_bytes()
+    r = vtr("export-map", route_map, "--ply", tmp_path / "map.ply", "--force")
+    assert r.returncode == 1 and len(r.stderr.splitlines()) == 1, r.stderr
+    assert route_map.read_bytes() == before
+
+
 def test_errors_are_one_line(route_map, tmp_path):
     r = vtr("map", "info", tmp_path / "missing.vtrmap")
     assert r.returncode == 1 and r.stdout == ""

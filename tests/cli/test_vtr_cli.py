@@ -135,3 +135,30 @@ def test_demo_is_the_readme_main_command(tmp_path):
     for f in ("odometry/trajectory.png", "repeat/report.png", "repeat/localization.csv", "repeat/landmarks.csv",
               "repeat/state.csv", "route.vtrmap"):
         assert (tmp_path / "demo" / f).is_file(), f
+
+
+def test_demo_deletes_only_what_its_record_says_it_made(tmp_path):
+    """A user's out/route.vtrmap (a taught map) is refused, never deleted; a rerun replaces the demo's own map and
+    keeps the user's out/route.vtrmap.notes; a user's out/aerial/teach/ is refused before anything is rendered."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "route.vtrmap").write_bytes(b"SQLite format 3\0 the user's taught map")
+    (out / "route.vtrmap.notes").write_text("the user's notes")
+    r = vtr("demo", "--out", out, "--no-aerial")
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "route.vtrmap: was not made by vtr here" in r.stderr
+    assert (out / "route.vtrmap").read_bytes().endswith(b"the user's taught map")
+    (out / "route.vtrmap").unlink()
+    for _ in range(2):                                   # the second run replaces the demo's own outputs
+        r = vtr("demo", "--out", out, "--no-aerial")
+        assert r.returncode == 0, r.stderr
+        assert (out / "route.vtrmap").is_file() and (out / "route.vtrmap.notes").read_text() == "the user's notes"
+    (out / "aerial" / "teach").mkdir(parents=True)
+    (out / "aerial" / "teach" / "mine.txt").write_text("the user's")
+    from vtr.app.mission import run_aerial_mission
+    from vtr.config import Config
+    from vtr.errors import OutputError
+
+    with pytest.raises(OutputError, match="aerial/teach: was not made by vtr here"):
+        run_aerial_mission(out / "aerial", Config(), length_m=9.0, lateral_m=(0.0,), held_out_m=(), ramp_m=2.0)
+    assert (out / "aerial" / "teach" / "mine.txt").read_text() == "the user's"

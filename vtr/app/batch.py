@@ -20,8 +20,11 @@ same file, and give the same result whatever the order they run in).
 Resume: a run is done when its folder's ``run.json`` says ``finished`` (run.json is written last) and its
 ``batch_key.json`` matches what would make it now (source path and size, frames, format, the run's config
 without its thread count, the vtr version, and for a repeat its teach's key): a changed manifest reruns
-what changed, and the summary says what changed. Anything else (no run.json: interrupted; ``failed``;
-changed) has the files vtr made in its folder removed (:mod:`vtr.app.outputs`: only those) and runs again.
+what changed, and the summary says what changed. A finished run whose key changed is rerun beside it
+(``OUT/<route>/.vtr-rerun-<run>/``) and its outputs are moved in only when the rerun finished
+(:meth:`vtr.app.outputs.OutputFolder.adopt`): a failed rerun leaves the finished outputs (a taught map may be
+the only copy) and says so. Anything else (no run.json: interrupted; ``failed``) has the files vtr made in its
+folder removed (:mod:`vtr.app.outputs`: only those) and runs again.
 One batch at a time writes an output folder (``OUT/.vtr-batch.lock``, an ``flock``); ``OUT`` must be apart
 from every source (neither inside one nor holding one), and nothing vtr did not make there (a symbolic
 link as a route folder) is written through.
@@ -59,7 +62,7 @@ import yaml
 
 from .. import __version__
 from ..config import Config
-from ..errors import ConfigError, DataError, OutputError
+from ..errors import ConfigError, DataError, OutputError, VtrError
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
 from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
 
@@ -339,7 +342,8 @@ def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str,
 def key_change(folder: Path, key: dict[str, Any]) -> str | None:
     """None when ``folder``'s run was made with ``key``; else what changed (for the summary)."""
     try:
-        old = json.loads((folder / KEY_NAME).read_text())
+        data = OutputFolder(folder).read_own(KEY_NAME)     # never through a link vtr did not make
+        old = None if data is None else json.loads(data)
     except (OSError, ValueError):
         old = None
     if not isinstance(old, dict):
@@ -369,10 +373,19 @@ def copy_map(src: Path, dst: Path) -> None:
     copy_map_file(src, dst)
 
 
-def prepare_run_folder(out: Path, spec: RunSpec) -> OutputFolder:
-    """The run's folder inside ``out`` without what an earlier attempt made (only the files vtr recorded
-    there; never through a symbolic link: ``OutputError``)."""
-    folder = spec.folder(out)
+#: A rerun of a finished run is built in ``OUT/<route>/<RERUN_PREFIX><run>`` (a run name starts with a letter or
+#: digit, so never one of these) and moved into the run's folder only when it finished.
+RERUN_PREFIX = ".vtr-rerun-"
+
+
+def rerun_folder(out: Path, spec: RunSpec) -> Path:
+    return Path(out) / spec.route / f"{RERUN_PREFIX}{spec.name}"
+
+
+def prepare_run_folder(out: Path, spec: RunSpec, folder: Path | None = None) -> OutputFolder:
+    """The run's folder inside ``out`` (or ``folder``, its rerun folder) without what an earlier attempt made
+    (only the files vtr recorded there; never through a symbolic link: ``OutputError``)."""
+    folder = spec.folder(out) if folder is None else folder
     check_no_links(out, folder)
     folder.mkdir(parents=True, exist_ok=True)
     check_no_links(out, folder)
@@ -395,7 +408,10 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
         return outcome_from_folder(spec, folder, RESUMED)
     if teach is not None and not teach.ok:
         return RunOutcome(spec.route, spec.name, spec.kind, BLOCKED, error=f"teach of {spec.route} {teach.status}")
-    own = prepare_run_folder(Path(out), spec)       # what an interrupted, failed or changed attempt made
+    # A finished run is replaced only by one that finished: a rerun is built beside it and moved in at the end.
+    finished_before = doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED
+    work = rerun_folder(Path(out), spec) if finished_before else folder
+    own = prepare_run_folder(Path(out), spec, work)   # what an interrupted, failed or changed attempt made
     if on_start is not None:
         on_start(spec, folder)
     t0 = time.perf_counter()
@@ -405,18 +421,23 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
         _opencv_threads(config)
         map_path = own.claim(MAP_NAME)
         if spec.is_teach:
-            teach_command(spec.source, map_path, spec.frames, config, folder, spec.fmt)
+            teach_command(spec.source, map_path, spec.frames, config, work, spec.fmt)
         else:
             copy_map(folder.parent / TEACH_FOLDER / MAP_NAME, map_path)
-            repeat_command(spec.source, map_path, folder, spec.frames, config, spec.fmt)
+            repeat_command(spec.source, map_path, work, spec.frames, config, spec.fmt)
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
-        RunLog(folder, spec.kind, config, [spec.source]).write(
+        if finished_before:
+            message += (f" (the rerun failed; the finished outputs of the earlier run are kept in {folder}, the "
+                        f"failed attempt's record is {work / 'run.json'})")
+        RunLog(work, spec.kind, config, [spec.source]).write(
             {"seconds": time.perf_counter() - t0, "traceback": traceback.format_exc(limit=8)},
             status=STATUS_FAILED, error=message)
-        return outcome_from_folder(spec, folder, FAILED, changed)
+        return outcome_from_folder(spec, work, FAILED, changed)
     if key is not None:
         own.write_text(KEY_NAME, json.dumps(key, indent=1))
+    if finished_before:
+        OutputFolder(folder).adopt(own, last=(KEY_NAME, "run.json"))
     return outcome_from_folder(spec, folder, FINISHED, changed)
 
 
@@ -731,10 +752,17 @@ def _run_on(client, pending: list[tuple[RunSpec, dict[str, Any], str | None]], o
 
 
 def repeat_landmark_files(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> Iterator[Path]:
+    """The landmarks.csv of every finished repeat, each checked to be the file vtr made there (never a link:
+    ``OutputError`` naming it, :meth:`vtr.app.outputs.OutputFolder.own_file`)."""
     ok = {(o.route, o.name) for o in outcomes if o.ok and o.kind == "repeat"}
     for spec in manifest.runs():
         if (spec.route, spec.name) in ok:
-            yield spec.folder(out) / "landmarks.csv"
+            folder = spec.folder(out)
+            check_no_links(out, folder)
+            p = OutputFolder(folder).own_file("landmarks.csv")
+            if p is None:
+                raise DataError(f"{folder / 'landmarks.csv'}: missing from a finished repeat")
+            yield p
 
 
 def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> dict[str, Any]:
@@ -746,7 +774,10 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     from perception_model.landmarks_file import FIT_FIELDS, read_landmarks
     from perception_model.plots import plot_fit
 
-    files = list(repeat_landmark_files(manifest, out, outcomes))
+    try:
+        files = list(repeat_landmark_files(manifest, out, outcomes))
+    except VtrError as err:
+        return {"error": str(err)}
     if not files:
         return {"error": "no finished repeat to fit"}
     check_no_links(out, out / FIT_FOLDER)
@@ -755,12 +786,15 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
 
     def chunks():
         for f in files:
-            obs = read_landmarks(f, fields=FIT_FIELDS)
+            own = OutputFolder(f.parent).own_file(f.name)      # again, just before reading it
+            if own is None:
+                raise PerceptionModelError(f"{f}: removed while the batch read it")
+            obs = read_landmarks(own, fields=FIT_FIELDS)
             yield obs.alpha, obs.theta, obs.inlier
 
     try:
         result = fit_binned_stream(chunks, source=f"{len(files)} repeats under {out}")
-    except PerceptionModelError as err:
+    except (PerceptionModelError, VtrError) as err:
         return {"error": str(err), "files": len(files)}
     data = {"files": [str(f) for f in files], "n_observations": result.n, "n_inliers": result.n_inliers}
     fit_folder.write("model.json", result.model.save, fit=result.to_dict(), data=data)

@@ -30,6 +30,7 @@ from ..map import Map
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
+from .outputs import OutputFolder
 from .pipeline import teach_command, write_landmarks_csv
 from .repeat_run import run_repeat
 
@@ -82,9 +83,13 @@ def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_se
 
 
 def teach(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray | None = None) -> Path:
-    """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one), keeping ``gravity_up`` in it."""
-    for f in map_path.parent.glob(map_path.name + "*"):
-        f.unlink()
+    """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one: the map and SQLite's files beside
+    it, nothing else of a similar name), keeping ``gravity_up`` in it."""
+    from ..map.database import SIDE_FILES
+
+    for f in (map_path, *(Path(f"{map_path}{s}") for s in SIDE_FILES)):
+        if f.is_file() and not f.is_symlink():
+            f.unlink()
     teach_command(seq_dir, map_path, None, config, gravity_up=gravity_up)
     return map_path
 
@@ -165,7 +170,9 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     landmarks, compute the localization envelope and compare it with where the repeats localized."""
     from .perception import localization_envelope, write_envelope
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    own = OutputFolder.prepare(out_dir)      # the mission rewrites only the entries it made (see OutputFolder)
+    own.claim_entries(["teach", "route.vtrmap", "model.json", "envelope", "report.html",
+                       *(f"repeat_{dy:g}m" for dy in (*lateral_m, *held_out_m))])
     scene = syn.aerial_scene(MISSION_SCENE_SEED)
     T_teach = syn.aerial_route(length_m, 1.0)
     seq = render(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)

@@ -12,23 +12,26 @@
   recording in ``DATA/route1/teach``).
 
 The checks of :mod:`vtr.io.outputs` (a writable ``--out``, never replacing a single output file
-without ``--force``) run before this one, in the CLI.
+without ``--force``) run before this one, in the CLI. The primitives (what may not be written over, the
+exclusive no-follow create, the temporary names) are :mod:`perception_model.outputs`'s, the owner of the rule;
+this folder adds its record (``tests/test_output_rule.py`` ties the two).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import secrets
 import stat
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
+from perception_model.outputs import TMP_TAG, create_exclusive, entry_problem, temporary_name
+
 from ..errors import OutputError
 
 RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
-TMP_TAG = ".vtr-tmp-"              # temporary names: .vtr-tmp-<hex>-<name>, renamed to <name> when complete
+__all__ = ["RECORD", "TMP_TAG", "OutputFolder", "check_apart", "check_no_links"]
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
 
@@ -141,20 +144,49 @@ class OutputFolder:
             st = os.lstat(p)
         except FileNotFoundError:
             return
-        if stat.S_ISREG(st.st_mode) and name in self.made:
-            return                    # vtr's own earlier output: replaced by a rename, never written through
-        if stat.S_ISLNK(st.st_mode):
-            what = "is a symbolic link"
-        elif stat.S_ISDIR(st.st_mode):
-            what = "is a folder"
-        elif not stat.S_ISREG(st.st_mode):
-            what = "is not a regular file"
-        elif st.st_nlink > 1:
-            what = "has other hard links"
-        else:
-            what = f"was not made by vtr here (not in {RECORD})"
+        what = entry_problem(p)      # the rule's own words: a link, a folder, not a regular file
+        if what is None:
+            if name in self.made:
+                return                # vtr's own earlier output: replaced by a rename, never written through
+            what = "has other hard links" if st.st_nlink > 1 else f"was not made by vtr here (not in {RECORD})"
         raise OutputError(f"{p}: {what}; not writing through or over it (remove it or choose another "
                           f"{self.option})")
+
+    # ------------------------------------------------------------------ reading back
+
+    def own_file(self, name: str) -> Path | None:
+        """``name`` for reading back (a resume, ``batch --fit``): its path when it is a regular file vtr made here
+        (in the record, no other hard links), None when absent. Anything else (a symbolic link planted at
+        ``landmarks.csv``, a file vtr did not make) is an ``OutputError`` naming it: vtr reads back only what
+        it wrote."""
+        p = self.path / name
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return None
+        what = entry_problem(p)
+        if what is None and st.st_nlink > 1:
+            what = "has other hard links"
+        if what is None and name not in self.made:
+            what = f"was not made by vtr here (not in {RECORD})"
+        if what is not None:
+            raise OutputError(f"{p}: {what}; vtr reads back only the files it made (not reading it: remove it "
+                              "to run this again)")
+        return p
+
+    def read_own(self, name: str, limit: int = 1 << 26) -> bytes | None:
+        """The bytes of :meth:`own_file` ``name`` (None when absent), opened without following a link."""
+        p = self.own_file(name)
+        if p is None:
+            return None
+        try:
+            fd = os.open(p, os.O_RDONLY | _NOFOLLOW | _CLOEXEC)
+        except OSError as err:
+            raise OutputError(f"{p}: cannot read it ({err.strerror or err})") from None
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise OutputError(f"{p}: is not a regular file; not reading it")
+            return f.read(limit)
 
     def _remove_own(self, name: str) -> None:
         self.check_writable(name)
@@ -168,14 +200,13 @@ class OutputFolder:
         ``name`` when it returns (so ``name`` is the old content or the new one, never a half-written file,
         and never a file a link pointed to). Returns the final path."""
         self.check_writable(name)
-        tmp_name = f"{TMP_TAG}{secrets.token_hex(4)}-{name}"
+        tmp_name = temporary_name(name)
         tmp = self.path / tmp_name
         self._record(tmp_name)
         os.close(self._create(tmp))
         try:
             writer(tmp, *args, **kwargs)
-            st = os.lstat(tmp)
-            if not stat.S_ISREG(st.st_mode):
+            if entry_problem(tmp) is not None:
                 raise OutputError(f"{tmp}: replaced by something else while vtr wrote it")
             self._record(name)
             os.replace(tmp, self.path / name)
@@ -211,12 +242,96 @@ class OutputFolder:
 
     def _create(self, p: Path) -> int:
         try:
-            return os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o644)
+            return create_exclusive(p)
         except FileExistsError:
             raise OutputError(f"{p}: appeared while vtr was writing (another process?); not writing over it") \
                 from None
         except OSError as err:
             raise OutputError(f"{p}: cannot create it ({err.strerror or err})") from None
+
+    # ------------------------------------------------------------------ whole entries of a command's own
+
+    def claim_entries(self, names: Iterable[str]) -> None:
+        """For a command that rewrites whole entries (files or folders, ``vtr demo``): every ``names`` that exists
+        must be one vtr made here (in the record; never a symbolic link), else ``OutputError`` naming it before
+        anything is touched; then all are recorded. A user's ``route.vtrmap`` or ``aerial/teach/`` is refused,
+        never removed."""
+        names = list(names)
+        for name in names:
+            if not _is_safe_name(name):
+                raise OutputError(f"{self.path}: {name!r} is not a file name")
+            p = self.path / name
+            if not p.exists() and not p.is_symlink():
+                continue
+            what = "is a symbolic link" if p.is_symlink() else (
+                None if name in self.made else f"was not made by vtr here (not in {RECORD})")
+            if what is not None:
+                raise OutputError(f"{p}: {what}; not replacing it (move it away or choose another {self.option})")
+        for name in names:
+            self._record(name)
+
+    def remove_entry(self, name: str) -> None:
+        """Remove entry ``name`` that vtr made here (a file, with a map's SQLite side files, or a whole folder);
+        ``OutputError`` for anything vtr did not make (see :meth:`claim_entries`)."""
+        import shutil
+
+        from ..map.database import SIDE_FILES  # SQLite's files beside a map
+
+        self.claim_entries([name])
+        p = self.path / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            for n in (name, *(name + s for s in SIDE_FILES)):
+                self._unlink_regular(self.path / n)
+
+    # ------------------------------------------------------------------ replacing a finished run
+
+    def adopt(self, staged: OutputFolder, last: Iterable[str] = ()) -> None:
+        """Move the complete outputs of ``staged`` (a run built beside this folder) in, replacing this folder's own
+        files of the same names, then remove this folder's other own files; ``staged`` is removed when empty.
+        Each file moves by one rename (never half a file); ``last`` are moved after every other file, in that
+        order (``run.json`` last: until it moves, this folder still says which run it holds). Files vtr did not
+        make here are kept, and a link or a file vtr did not make at an incoming name stops the move
+        (``OutputError``) before anything is replaced."""
+        from ..map.database import SIDE_FILES  # SQLite's files beside a map
+
+        staged.made, self.made = staged._read_record(), self._read_record()   # other writers recorded files too
+        last = [n for n in last if n in staged.made]
+        incoming = sorted(n for n in staged.made if not n.startswith(TMP_TAG) and n not in last) + last
+        incoming = [n for n in incoming if staged.own_file(n) is not None]
+        for name in incoming:
+            self.check_writable(name)
+        for name in incoming:
+            self._record(name)
+            for side in SIDE_FILES:                          # an old map's SQLite files never meet the new map
+                self._unlink_regular(self.path / (name + side))
+            os.replace(staged.path / name, self.path / name)
+        for name in sorted(self.made - set(incoming)):
+            if name == RECORD:
+                continue
+            for n in (name, *(name + s for s in SIDE_FILES)):
+                self._unlink_regular(self.path / n)
+        self._write_record(set(incoming))
+        staged.clear()
+        with contextlib.suppress(OSError):
+            staged.path.rmdir()                            # kept when something else is in it
+
+    def _write_record(self, names: set[str]) -> None:
+        from perception_model.outputs import replace_text
+
+        replace_text(self.path / RECORD, "".join(f"{n}\n" for n in sorted(names)))
+        self.made = set(names)
+
+    @staticmethod
+    def _unlink_regular(p: Path) -> None:
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return
+        if stat.S_ISREG(st.st_mode):
+            with _ignore_missing():
+                os.unlink(p)
 
     # ------------------------------------------------------------------ cleanup
 

@@ -22,8 +22,8 @@ import numpy as np
 
 from ..config import Config
 from ..sim import synthetic as syn
-from .mission import render, up_in_map
-from .pipeline import repeat_command, teach_command
+from .mission import render, teach, up_in_map
+from .pipeline import repeat_command
 from .runfiles.state_csv import read_state_csv
 
 #: the route: (length m, curvature 1/m) segments: a straight, a 45-degree left arc of 20 m radius, a straight
@@ -112,11 +112,8 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
     T_teach = syn.segmented_aerial_route(segments, spacing)
     say(f"rendering the teach ({len(T_teach)} frames)")
     teach_seq = render(out / "teach" / "images", scene, T_teach, speed_mps=speed_mps)
-    map_path = out / "route.vtrmap"
-    for f in map_path.parent.glob(map_path.name + "*"):
-        f.unlink()
     up = up_in_map(T_teach[0])
-    teach_command(teach_seq, map_path, None, config, gravity_up=up)
+    map_path = teach(teach_seq, out / "route.vtrmap", config, gravity_up=up)
     say(f"taught {map_path} (up {np.round(up, 4).tolist()} in the first camera)")
     flights = {
         # forward: the taught order, from just after the start to just before the end

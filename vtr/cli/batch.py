@@ -70,11 +70,11 @@ def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | N
     click.echo(f"wrote {result.summary_csv}")
     if result.fit is not None:
         if "error" in result.fit:
-            click.echo(f"fit: not done ({result.fit['error']})")
+            click.echo(f"fit: not done ({result.fit['error']})", err=True)
         else:
             f = result.fit
             consts = "  ".join(f"{k} {v:+.4g}" for k, v in f["constants"].items())
             click.echo(f"fit over {f['files']} repeats, {f['observations']} observations: {consts}  "
                        f"R^2 {f['r2']:.3f}; wrote {f['model']}, {f['plot']}")
-    if result.failed:
-        sys.exit(1)
+    if result.failed or (result.fit is not None and "error" in result.fit):
+        sys.exit(1)                             # a failed run, or a fit asked for and not done

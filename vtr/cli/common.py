@@ -146,12 +146,14 @@ def check_out_dir(path: Path, force: bool, option: str = "--out") -> None:
     check_output_folder(path, option, force)
 
 
-def check_out_file(path: Path, force: bool) -> None:
-    """Refuse, before any work starts, an output file that exists (unless ``force``) or is a folder."""
+def check_out_file(path: Path, force: bool, inputs: tuple[Path | None, ...] = ()) -> None:
+    """Refuse, before any work starts, an output file that exists (unless ``force``), is a folder, a link or
+    one of the command's ``inputs`` (:func:`vtr.io.outputs.check_new_output`); write it with
+    :func:`vtr.io.outputs.write_output`."""
     from ..io.outputs import check_new_output
 
     note_outputs(path)
-    check_new_output(path, force)
+    check_new_output(path, force, inputs=inputs)
 
 
 force_out_option = force_option("existing output files (in --out)")

@@ -107,7 +107,7 @@ def export_map_cmd(map_path: Path, ply_path: Path, force: bool, gravity_aligned:
     from ..map.export import export_landmarks_ply
     from .common import check_out_file
 
-    check_out_file(ply_path, force)
+    check_out_file(ply_path, force, inputs=(map_path,))
     with Map.open(map_path, "r") as m:
         summary = export_landmarks_ply(m, ply_path, gravity_aligned=gravity_aligned)
     total = sum(s.points for s in summary)

@@ -72,14 +72,19 @@ def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, confi
 def export_trajectory_cmd(tum_file: Path, out_file: Path, fmt: str, force: bool) -> None:
     """Convert a TUM trajectory (as written by vtr) to KITTI or EuRoC format."""
     from ..errors import DataError
+    from ..io.outputs import write_output
     from ..io.trajectory import read_tum, write_trajectory
 
     if not tum_file.is_file():
         raise DataError(f"{tum_file}: no such file")
-    check_out_file(out_file, force)
+    check_out_file(out_file, force, inputs=(tum_file,))
     t_ns, T = read_tum(tum_file)
-    write_trajectory(out_file, t_ns, T, fmt)
+    write_output(out_file, lambda tmp: write_trajectory(tmp, t_ns, T, fmt), force, inputs=(tum_file,))
     click.echo(f"wrote {len(t_ns)} poses to {out_file} ({fmt})")
+
+
+#: What ``vtr demo`` writes in its ``--out`` (each recorded there; anything else in the folder is left alone).
+DEMO_ENTRIES = ("route.vtrmap", "odometry", "teach", "repeat", "aerial")
 
 
 @main.command("demo")
@@ -91,17 +96,18 @@ def demo_cmd(out: Path, aerial: bool) -> None:
     then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope).
 
     The one command that replaces its outputs without --force: OUT is the demo's own folder, rewritten
-    by every run."""
+    by every run (only what the demo made there: a file or folder of yours at one of its names is refused)."""
+    from ..app.outputs import OutputFolder
     from ..app.pipeline import odometry_command, repeat_command, teach_command
     from ..config import Config
 
     clip = _find_datasets() / DEMO_CLIP
     config = Config()
-    check_out_dir(out, force=True)        # the documented exception: the demo rewrites its own folder
-    out.mkdir(parents=True, exist_ok=True)
+    check_out_dir(out, force=True)        # the documented exception: the demo rewrites its own folder...
+    own = OutputFolder.prepare(out)
+    own.claim_entries(DEMO_ENTRIES)       # ...and only what its record says it made there (not a user's map)
     map_path = out / "route.vtrmap"
-    for stale in out.glob("route.vtrmap*"):
-        stale.unlink()
+    own.remove_entry("route.vtrmap")
     click.echo(f"vtr demo on {clip}")
     click.echo("1/4 stereo odometry over all frames")
     for line in odometry_lines(odometry_command(clip, out / "odometry", None, config, None, progress_bar())):

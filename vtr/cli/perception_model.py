@@ -142,7 +142,7 @@ def constraint_cmd(
     from perception_model.io import read_positions
     from perception_model.model import PerceptionModel
 
-    to_stdout, csv_path = constraint_output(out, force)
+    to_stdout, csv_path = constraint_output(out, force, (model_path, landmarks_path, map_path, positions_path))
     if (landmarks_path is None) == (map_path is None):
         raise InputDataError("give exactly one of --landmarks FILE or --map MAP")
     if map_path is not None and taught_camera is not None:
@@ -245,7 +245,7 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     from ..app.perception import DIRECTIONS, localization_envelope, write_envelope
 
     c_bar = resolve_c_bar(c_bar, delta)
-    check_output(out, force, folder=True, option="--out")
+    check_output(out, force, folder=True, option="--out", inputs=(model_path, map_path))
     model = PerceptionModel.load(model_path)
     up_map = None if up is None else _parse_vector(up, "--up")
     rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m,

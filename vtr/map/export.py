@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from perception_model.outputs import replace_file
+
 from ..errors import MapError
 from .store import Map
 
@@ -47,9 +49,10 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
 
     With ``gravity_aligned`` the points are in the map's gravity frame g (z up, x the first teach camera's forward
     direction made horizontal: ``perception_model.frames.T_g_map_from_up`` of ``Map.gravity_up``, or of a level
-    first camera's up when the map stores none) instead of the map frame. Returns one :class:`RunExport` per run.
-    Raises ``MapError`` when the file name does not end in ``.ply``, the map has no landmark, or open3d cannot
-    write the file.
+    first camera's up when the map stores none) instead of the map frame. The file is written beside and renamed over
+    ``path`` (never through a link there: :func:`perception_model.outputs.replace_file`). Returns one
+    :class:`RunExport` per run. Raises ``MapError`` when the file name does not end in ``.ply``, the map has no
+    landmark, or open3d cannot write the file.
     """
     path = Path(path)
     if path.suffix.lower() != PLY_SUFFIX:
@@ -82,7 +85,10 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
     cloud.colors = o3d.utility.Vector3dVector(np.ascontiguousarray(np.concatenate(cols), dtype=np.float64))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
-        raise MapError(f"{path}: open3d could not write the point cloud")
+
+    def write(tmp: Path) -> None:
+        if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
+            raise MapError(f"{path}: open3d could not write the point cloud")
+
+    replace_file(path, write)           # whole, and never through a link at ``path``
     return summary

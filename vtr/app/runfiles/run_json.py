@@ -81,9 +81,16 @@ class RunLog:
 
 
 def read_run(out: Path) -> dict[str, Any] | None:
-    """The ``run.json`` in folder ``out``, or None when there is none (or it is unreadable: an interrupted write)."""
+    """The ``run.json`` in folder ``out``, or None when there is none (or it is unreadable: an interrupted write).
+    Read back only when vtr made it (:meth:`vtr.app.outputs.OutputFolder.read_own`: a symbolic link there is
+    an ``OutputError``, never followed)."""
+    from ..outputs import OutputFolder
+
     try:
-        doc = json.loads((Path(out) / "run.json").read_text())
+        data = OutputFolder(Path(out)).read_own("run.json")
+        if data is None:
+            return None
+        doc = json.loads(data)
     except (OSError, ValueError):
         return None
     return doc if isinstance(doc, dict) else None
