@@ -39,7 +39,7 @@ def scenario():
 def _fly(field, axis, mode, bound=0.0):
     cfg = ControlConfig()
     ref = TaughtPathReference(field.vehicle_position_g)
-    mpc = PerceptionAwareMPC(ref, cfg, mode=mode, fixed_bound_m=bound, field=field, camera_axis_g=axis)
+    mpc = PerceptionAwareMPC(ref, cfg, mode=mode, fixed_bound_m=bound, field=field, camera=axis)
     return simulate(field, mpc, initial_state(field))
 
 
