@@ -28,10 +28,12 @@ See docs/perception_aware_mpc/README.md.
 from __future__ import annotations
 
 import copy
+import functools
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
@@ -46,6 +48,8 @@ from ..errors import EstimationError, MapError
 from ..geometry import inv_T
 from ..map import Map
 from ..navigation.trunk import BACKWARD, FORWARD, trunk_cost, trunk_window
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 #: The chance constraint's two forms (thesis eqs. 7.7 and 7.8): ``mu - c_bar sigma`` and ``mu - c_bar sqrt(mu)``.
 CONSTRAINT_FORMS = ("normal", "conservative")
@@ -65,6 +69,16 @@ def perception_errors() -> Iterator[None]:
         raise
     except PerceptionModelError as err:
         raise PerceptionFieldError(f"perception model: {err}") from err
+
+
+def translating(method: F) -> F:
+    """``method`` with :func:`perception_errors` around its body (the field's public methods)."""
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with perception_errors():
+            return method(*args, **kwargs)
+
+    return cast(F, wrapper)
 
 
 def check_direction(direction) -> int:
@@ -142,6 +156,7 @@ class FieldEvaluation:
 class TaughtPathField:
     """The perception chance constraint over the whole taught path (value and gradient for a horizon)."""
 
+    @translating
     def __init__(self, model: PerceptionModel, vertices: list[TaughtVertex], *,
                  T_g_map: np.ndarray, mount: CameraMount | None = None,
                  config: LocalizationConfig | None = None, l_min: float = THESIS_L_MIN,
@@ -174,17 +189,16 @@ class TaughtPathField:
         self.vehicle_position_g = positions
         self.vehicle_yaw_g = np.asarray(yaw, float)
         self.pitch_down = np.asarray(pitch, float)
-        with perception_errors():
-            self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
+        self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
 
     @classmethod
+    @translating
     def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=frames.LEVEL_CAMERA_UP,
                  mount: CameraMount | None = None, config: LocalizationConfig | None = None,
                  l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
                  form: str = "normal") -> TaughtPathField:
         """Read every taught vertex of ``vtr_map`` (open) once; ``up_map``: gravity up in the map frame."""
-        with perception_errors():
-            T_g_map = frames.T_g_map_from_up(up_map)
+        T_g_map = frames.T_g_map_from_up(up_map)
         return cls(model, read_taught_vertices(vtr_map), T_g_map=T_g_map, mount=mount,
                    config=config, l_min=l_min, c_bar=c_bar, control=control, form=form)
 
@@ -245,10 +259,12 @@ class TaughtPathField:
         return pos, psi, ax
 
     # ----------------------------------------------------------------- vehicle <-> camera
+    @translating
     def camera_centres(self, positions: np.ndarray, yaw: np.ndarray) -> np.ndarray:
         """Camera centres (N, 3) in g of vehicles at ``positions`` (N, 3) with yaw ``yaw`` (N,)."""
         return frames.camera_position(positions, yaw, self.mount.lever_arm_m)
 
+    @translating
     def camera_poses(self, positions: np.ndarray, yaw: np.ndarray, pitch_down: float | np.ndarray) -> np.ndarray:
         """``T_g_camera`` (N, 4, 4) of level vehicles (camera pitched ``pitch_down`` below the horizon)."""
         yaw = np.asarray(yaw, float)
@@ -265,6 +281,7 @@ class TaughtPathField:
             raise EstimationError(f"position: expected 3 finite numbers, got shape {p.shape}")
         return int(np.argmin(np.linalg.norm(self.vehicle_position_g - p, axis=1)))
 
+    @translating
     def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
                       axes: np.ndarray | None = None, direction: int = FORWARD, *,
                       taught_axes: bool = False) -> np.ndarray:
@@ -304,6 +321,7 @@ class TaughtPathField:
             out[k] = prev
         return out
 
+    @translating
     def route_distances(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(path_distance_m, past_end_m)`` (N,) of vehicle positions (N, 3): distance to the taught path (the
         polyline through the taught vehicles) and how far past its first or last vertex (0 within)."""
@@ -328,6 +346,7 @@ class TaughtPathField:
         return dist[rows, nearest], past
 
     # ----------------------------------------------------------------- evaluation
+    @translating
     def evaluate(self, positions: np.ndarray, yaw: np.ndarray, *, trunk: np.ndarray | None = None,
                  previous: int | None = None, axes: np.ndarray | None = None, taught_axes: bool = False,
                  direction: int = FORWARD, gradient: bool = True) -> FieldEvaluation:
@@ -354,18 +373,18 @@ class TaughtPathField:
         if taught_axes:
             axes = self.T_g_camera[trunk, :3, 2]
         cam = self.camera_centres(pos, psi)
-        with perception_errors():
-            if axes is None:
-                ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
-                                             gradient=gradient)
-            else:
-                ev = self.evaluator.evaluate(cam, trunk, axes_g=axes, gradient=gradient)
+        if axes is None:
+            ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
+                                         gradient=gradient)
+        else:
+            ev = self.evaluator.evaluate(cam, trunk, axes_g=axes, gradient=gradient)
         conservative = self.form == "conservative"
         g = ev.g_conservative if conservative else ev.g
         guarded = ev.mu < 0.25 * self.c_bar**2
         dpos = dyaw = dax = None
         if gradient:
             assert ev.dg_dpos is not None and ev.dgc_dpos is not None and ev.dmu_dpos is not None
+            assert ev.dg_daxis is not None and ev.dgc_daxis is not None and ev.dmu_daxis is not None
             dpos = np.where(guarded[:, None], ev.dmu_dpos, ev.dgc_dpos if conservative else ev.dg_dpos)
             dax = np.where(guarded[:, None], ev.dmu_daxis, ev.dgc_daxis if conservative else ev.dg_daxis)
             lever = np.asarray(self.mount.lever_arm_m, float)

@@ -8,7 +8,7 @@ One quadratic program per outer-loop tick (50 Hz) over the linear flat model
          path rows (one of):
            none        -
            fixed d     |n_left . (p_k - c_k)| <= d + s_k,  |n_up . (p_k - c_k)| <= d + s_k
-           perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) - |grad_p g| dt/2 u_k . v_k >= margin - s_k
+           perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) [- |grad_p g| dt/2 u_k . v_k] >= margin - s_k
          terminal set  v_N = 0, a_N = 0 (hover),   s_k >= 0.
 
 ``r_k`` runs along the taught path at the desired speed from the current along-track position, in the
@@ -24,12 +24,15 @@ linearized about the previous prediction (one SQP iteration a tick, as in the th
 against its own trunk (localizer's rule, in the direction of travel; steps where ``mu < c_bar**2/4`` use
 ``grad mu``, see the field).
 
-**Between the grid points.** The rows hold at the 10 Hz grid points only; at speed the vehicle covers
-``|v| dt`` between them, so the row asks for ``|grad_p g| dt/2 |v_k|`` more (``ControlConfig.intersample``,
-``"velocity"``: first order in the distance to the nearest grid point, ``|v_k|`` linearized as ``u_k . v_k``
-with ``u_k`` the previous prediction's direction of motion). The velocity is a decision variable of the row,
-so where the field is steep the plan slows down as much as it must to keep the constraint between the
-points, and only there (the desired speed does not enter).
+**Slowing down where it must (speed governor).** The linearized row is tangent to ``g`` at the previous
+prediction; on the taught path ``g`` is at its ridge (gradient ~0), so the plan learns of a narrow tube only
+once it has left the ridge, at speed possibly too late to stay inside. When a tick's perception rows need
+more slack than ``perception_margin`` (the plan cannot keep the constraint at this speed), the reference's
+speed is multiplied by ``ControlConfig.speed_governor``; otherwise it recovers toward ``speed_mps`` at
+``accel_max_mps2`` (``reference_speed_mps``). The rows hold at the 10 Hz grid points only;
+``ControlConfig.intersample = "velocity"`` asks each row for ``|grad_p g| dt/2 |v_k|`` more (first order
+between grid points, ``|v_k|`` linearized along the previous prediction's motion; measured: slower and not
+needed with the governor, so off by default).
 
 **Recursive feasibility.** The terminal set is hover: at step N the vehicle is at rest, and a
 resting vehicle stays feasible for every constraint above (all are time-invariant functions of
@@ -212,6 +215,7 @@ class PerceptionAwareMPC:
         self._build(osqp)
         self.z_prev: np.ndarray | None = None
         self.progress_m: float | None = None    # along travel; set by the first tick (start anywhere)
+        self.reference_speed_mps = float(c.speed_mps)   # the speed governor's (module docstring)
 
     def field_kwargs(self, n: int) -> dict:
         """The camera keywords of :meth:`TaughtPathField.evaluate` / ``select_trunks`` for ``n`` steps."""
@@ -371,7 +375,7 @@ class PerceptionAwareMPC:
         # reference along the taught path, in the direction of travel, at the desired speed
         s_now = min(float(self.reference.path.error(z0[:3]).along_track), self.reference.length)
         self.progress_m = s_now if self.progress_m is None else max(self.progress_m, s_now)
-        s_ref = self.progress_m + c.speed_mps * c.dt_s * np.arange(1, n + 1)
+        s_ref = self.progress_m + self.reference_speed_mps * c.dt_s * np.arange(1, n + 1)
         r_pos, r_yaw = self.reference.at(s_ref, c.yaw_reference)
         r_pos = r_pos - origin
         r_yaw = wrap_angle(r_yaw - yaw0)
@@ -416,20 +420,19 @@ class PerceptionAwareMPC:
                 speed0 = np.linalg.norm(v0, axis=1)
                 u = np.divide(v0, speed0[:, None], out=np.zeros_like(v0), where=speed0[:, None] > 0.0)
                 dv = -(0.5 * c.dt_s * np.linalg.norm(ev.dg_dpos, axis=1))[:, None] * u
-            elif c.intersample == "directional":
-                sign = np.sign(np.einsum("nk,nk->n", ev.dg_dpos, guess[:, 3:6]))
-                dv = -(0.5 * c.dt_s * sign)[:, None] * ev.dg_dpos
             # rows with steep gradients are divided by the gradient norm (OSQP conditioning); the
             # slack is then in metres, else in inliers
             unit = np.maximum(np.sqrt(np.einsum("nk,nk->n", ev.dg_dpos, ev.dg_dpos) + ev.dg_dyaw**2), 1.0)
             scale = 1.0 / unit
+            row = rr
             for k in range(n):
                 vals[i0:i0 + 3] = ev.dg_dpos[k] * scale[k]
                 vals[i0 + 3] = ev.dg_dyaw[k] * scale[k]
                 vals[i0 + 4:i0 + 7] = dv[k] * scale[k]
                 vals[i0 + 7] = 1.0
                 i0 += _ROW
-                self.l[rr + k], self.u[rr + k] = rhs[k] * scale[k], np.inf
+                self.l[row], self.u[row] = rhs[k] * scale[k], np.inf
+                row += 1
         self.solver.update(q=self.q, l=self.l, u=self.u, Ax=vals[self._perm])
         res = self.solver.solve(raise_error=False)  # status checked below (max_iter: best iterate)
         status = str(res.info.status)
@@ -446,6 +449,16 @@ class PerceptionAwareMPC:
         slack_m = float(slack.max()) if self.mode == "fixed" and slack.size else 0.0
         slack_inliers = float((slack * unit).max()) if self.mode == "perception" and slack.size else 0.0
         self.z_prev = z_pred
+        plan_low = False
+        if self.mode == "perception" and c.governor_check == "plan":
+            assert self.field is not None and trunks is not None
+            true = self.field.evaluate(z_pred[:, :3], z_pred[:, 9], trunk=trunks, gradient=False,
+                                       **self.field_kwargs(n))
+            plan_low = bool(true.g.min() < 0.0)
+        if plan_low or slack_inliers > c.perception_margin:  # the plan cannot keep the constraint at this speed
+            self.reference_speed_mps *= c.speed_governor
+        else:                                          # recover toward the desired speed at accel_max
+            self.reference_speed_mps = min(c.speed_mps, self.reference_speed_mps + c.accel_max_mps2 / c.rate_hz)
         return MpcSolution(w_pred[0].copy(), z_pred, w_pred, slack_m, slack_inliers, status, int(res.info.iter),
                            trunks, flags)
 
