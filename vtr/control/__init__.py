@@ -1,3 +1,6 @@
 """Control on the taught path: the perception field (``field``), the flat multirotor model
 (``flat_model``), the perception-aware flatness-based MPC (``mpc``) and closed-loop repeat
-simulation (``closed_loop``). Frames and yaw: ``perception_model.frames``."""
+simulation (``closed_loop``). Frames and yaw: ``perception_model.frames``. Every part takes the direction
+of travel (+1 taught order, -1 the route flown back, ``vtr.navigation.trunk``); errors of
+``perception_model`` raised through the field are ``field.PerceptionFieldError`` (a ``vtr.errors.VtrError``).
+See docs/perception_aware_mpc/README.md."""
