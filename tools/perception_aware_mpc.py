@@ -19,9 +19,9 @@ simulation; no rendering in the loop).
 
 Writes OUT/results.json (one row per case, direction, speed and controller: avg_speed_mps, min_bound =
 min of mu - 3 sigma along the flown path, guaranteed = min_bound >= L_min, max path errors, slacks,
-tick times), OUT/results.csv, OUT/flown_paths.png, OUT/bounds.png (the first speed; with a suffix
-``_backward`` flown back), OUT/model.json and prints the table. Rendered sequences and maps are cached
-under OUT (a second run only simulates). See docs/perception_aware_mpc/README.md.
+tick times), OUT/results.csv, OUT/flown_paths.png, OUT/bounds.png (the default speed if swept, else the
+first; with a suffix ``_backward`` flown back), OUT/model.json and prints the table. Rendered sequences
+and maps are cached under OUT (a second run only simulates). See docs/perception_aware_mpc/README.md.
 """
 
 from __future__ import annotations
@@ -247,6 +247,7 @@ def main(argv: list[str] | None = None) -> None:
     maps, ups, model_path, reps = prepare(args.out, cfg)
     print(f"maps and model ready in {time.perf_counter() - t0:.0f} s; repeats: {reps}", file=sys.stderr)
     controllers = ["none", *(f"fixed_{b}m" for b in FIXED_BOUNDS_M), "pa"]
+    plotted = base.speed_mps if base.speed_mps in speeds else speeds[0]
     rows, runs, fields = [], {}, {}
     for case in args.cases.split(","):
         say(f"{case}: building the taught-path field, then flying {len(controllers)} controllers "
@@ -257,7 +258,7 @@ def main(argv: list[str] | None = None) -> None:
             control = dataclasses.replace(base, speed_mps=speed)
             for name in controllers:
                 r = fly(field, control, name, direction)
-                if speed == speeds[0]:
+                if speed == plotted:
                     runs[case][name] = r
                 rows.append(row(case, name, r, control))
                 print(f"{case:7s} {args.direction} {speed:g} {name:9s} speed {rows[-1]['avg_speed_mps']:5.2f} m/s  "
