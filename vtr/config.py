@@ -304,10 +304,12 @@ class ControlConfig:
     # experiment guaranteed forward and back at 10 and 12 m/s (docs/perception_aware_mpc); 6 (the old default)
     # made P-A slower than a fixed 1 m bound, 0.5 missed by 0.2 flown back
     perception_margin: float = setting(1.5, Range(0.0, 1e6))
-    # speed governor: a tick whose perception rows need more slack than perception_margin multiplies the
-    # reference's speed by this (1: off); it recovers at accel_max_mps2. 0.8 measured (0.5: P-A slower than
-    # the fixed 1 m bound at 12 m/s), docs/perception_aware_mpc
+    # speed governor: a tick whose plan cannot keep the constraint (governor_check) multiplies the reference's
+    # speed by this (1: off); it recovers at accel_max_mps2. 0.8 measured (0.5: P-A slower than the fixed 1 m
+    # bound at 12 m/s; off: the mount-camera return of tests/control fell to 9.1), docs/perception_aware_mpc
     speed_governor: float = setting(0.8, Range(0.0, 1.0, lo_open=True))
+    # "plan": the true constraint along the new plan falls below 0 at a step, or its rows need more slack than
+    # perception_margin; "slack": the latter only
     governor_check: str = setting("plan", Choice("plan", "slack"))
     # the chance constraint the perception rows linearize: "normal" mu - c_bar sigma (thesis eq. 7.7) or
     # "conservative" mu - c_bar sqrt(mu) (eq. 7.8, sigma^2 <= mu)

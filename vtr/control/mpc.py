@@ -11,28 +11,20 @@ One quadratic program per outer-loop tick (50 Hz) over the linear flat model
            perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) [- |grad_p g| dt/2 u_k . v_k] >= margin - s_k
          terminal set  v_N = 0, a_N = 0 (hover),   s_k >= 0.
 
-``r_k`` runs along the taught path at the desired speed from the current along-track position, in the
-direction of travel (:class:`TaughtPathReference`: ``direction`` +1 taught order, -1 the route flown
-backward, from wherever the vehicle is); its yaw is ``ControlConfig.yaw_reference``: ``"along_travel"``
-(the path's heading in the direction of travel) or ``"as_taught"`` (the taught vehicle's yaw: a camera on
-its mount looks where it looked in the teach; flown backward, the vehicle flies tail first, the thesis'
-return with the gimbal holding the taught axis). ``c_k``/normals are the travel-order path's closest
-segment to the previous prediction; the perception row is the chance constraint of
-:class:`vtr.control.field.TaughtPathField` (``ControlConfig.constraint_form``: ``"normal"``
-``mu - c_bar sigma - L_min`` or ``"conservative"`` ``mu - c_bar sqrt(mu) - L_min``, eq. 7.8)
-linearized about the previous prediction (one SQP iteration a tick, as in the thesis), each step
-against its own trunk (localizer's rule, in the direction of travel; steps where ``mu < c_bar**2/4`` use
-``grad mu``, see the field).
+``r_k`` runs along the taught path at the desired speed in the direction of travel
+(:class:`TaughtPathReference`, ``direction`` -1 for the route flown back, from wherever the vehicle is), its
+yaw per ``ControlConfig.yaw_reference`` (``"along_travel"``, or ``"as_taught"``: a camera on its mount keeps
+looking as taught, tail first on the way back). The perception row is the field's constraint
+(``constraint_form``: ``mu - c_bar sigma`` or eq. 7.8's ``mu - c_bar sqrt(mu)``, minus ``L_min``) linearized
+about the previous prediction (one SQP iteration a tick, as in the thesis), each step against its own trunk
+(localizer's rule in the direction of travel; ``grad mu`` where ``mu < c_bar**2/4``, see the field).
 
-**Slowing down where it must (speed governor).** The linearized row is tangent to ``g`` at the previous
-prediction; on the taught path ``g`` is at its ridge (gradient ~0), so the plan learns of a narrow tube only
-once it has left the ridge, at speed possibly too late to stay inside. When a tick's perception rows need
-more slack than ``perception_margin`` (the plan cannot keep the constraint at this speed), the reference's
-speed is multiplied by ``ControlConfig.speed_governor``; otherwise it recovers toward ``speed_mps`` at
-``accel_max_mps2`` (``reference_speed_mps``). The rows hold at the 10 Hz grid points only;
-``ControlConfig.intersample = "velocity"`` asks each row for ``|grad_p g| dt/2 |v_k|`` more (first order
-between grid points, ``|v_k|`` linearized along the previous prediction's motion; measured: slower and not
-needed with the governor, so off by default).
+**Speed governor.** On the taught path ``g`` is at its ridge (gradient ~0), so the linearized row learns of a
+narrow tube only once the plan has left the ridge, at speed too late. When the true constraint along a
+tick's new plan falls below 0 (``governor_check = "plan"``) or its rows need more slack than
+``perception_margin``, the reference's speed (``reference_speed_mps``) is multiplied by ``speed_governor``;
+otherwise it recovers toward ``speed_mps`` at ``accel_max_mps2``. ``intersample = "velocity"`` adds
+``|grad_p g| dt/2 |v_k|`` to each row (between grid points; off by default). Measurements: the docs page.
 
 **Recursive feasibility.** The terminal set is hover: at step N the vehicle is at rest, and a
 resting vehicle stays feasible for every constraint above (all are time-invariant functions of
@@ -40,7 +32,8 @@ resting vehicle stays feasible for every constraint above (all are time-invarian
 constraint is exact and the grid aligned. Two things break that guarantee in practice: the
 constraint is linearized (SQP) and the 50 Hz ticks shift a 10 Hz grid. The path rows are
 therefore softened with an exact L1 penalty (``slack_weight``, far above any tracking cost) so the
-QP always has a solution; slacks are reported every tick (``MpcSolution.max_slack``) and are zero
+QP always has a solution; slacks are reported every tick (``MpcSolution.max_slack_m`` /
+``max_slack_inliers``) and are zero
 whenever the hard problem is feasible. The hover terminal set also makes the controller brake
 in time: with a 1.5 s horizon it never plans faster than it can stop.
 
