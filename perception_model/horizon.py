@@ -22,7 +22,9 @@ the gradients are rotated back to ``g``:
 ``g = mu - c_bar sigma - L_min`` (normal approximation) and ``g_conservative = mu - c_bar sqrt(mu)
 - L_min`` (thesis eq. 7.8) with their gradients. A step whose trunk has no landmark, or none
 with ``p > 0`` (all out of view), returns ``mu = sigma = 0`` (``g = -L_min``), zero gradient and
-``flag = EMPTY_TRUNK`` / ``NO_LANDMARK_IN_VIEW``: never an error.
+``flag = EMPTY_TRUNK`` / ``NO_LANDMARK_IN_VIEW``: never an error. ``distance_m`` is each camera's
+distance from its trunk's taught camera. ``OFF_ROUTE`` is set by callers that know the route (the evaluator
+holds trunks, not their order): ``vtr.control.field`` flags steps past the route's ends or too far from it.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from .settings import THESIS_C_BAR, THESIS_L_MIN, THESIS_PITCH_DOWN_RAD
 OK = 0
 EMPTY_TRUNK = 1  # the trunk has no landmark
 NO_LANDMARK_IN_VIEW = 2  # every landmark has p = 0 (outside the model's view cone)
+OFF_ROUTE = 3  # past the route's ends or too far from it (set by the caller that knows the route)
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,9 @@ class HorizonEvaluation:
     dgc_daxis: NDArray[np.float64] | None = None
     dmu_dpos: NDArray[np.float64] | None = None
     dsigma_dpos: NDArray[np.float64] | None = None
+    dmu_dyaw: NDArray[np.float64] | None = None
+    dmu_daxis: NDArray[np.float64] | None = None
+    distance_m: NDArray[np.float64] | None = None  # camera to its trunk's taught camera (m)
 
 
 def _broadcast(values: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
@@ -238,8 +244,9 @@ class HorizonEvaluator:
         flag = np.zeros(n, dtype=np.int8)
         flag[mu <= 0.0] = NO_LANDMARK_IN_VIEW
         flag[self.counts[tr] == 0] = EMPTY_TRUNK
+        distance = np.linalg.norm(X, axis=1)
         if not gradient:
-            return HorizonEvaluation(tr.copy(), mu, sigma, g, gc, flag)
+            return HorizonEvaluation(tr.copy(), mu, sigma, g, gc, flag, distance_m=distance)
         k_sigma = np.divide(0.5, sigma, out=np.zeros_like(sigma), where=sigma > 0.0)
         root = np.sqrt(mu)
         k_sqrt = np.where(root > 0.0, 1.0 - np.divide(0.5 * self.c_bar, root, out=np.zeros_like(mu),
@@ -258,15 +265,18 @@ class HorizonEvaluator:
             out[:, 2] = vec[:, 2]
             return out
 
-        dg_dyaw = dgc_dyaw = None
+        dg_dyaw = dgc_dyaw = dmu_dyaw = None
         if dz is not None:
             dg_dyaw = np.einsum("nk,nk->n", dg_ax_o, dz)
             dgc_dyaw = np.einsum("nk,nk->n", dgc_ax_o, dz)
+            dmu_dyaw = np.einsum("nk,nk->n", dax_mu, dz)
         return HorizonEvaluation(
             tr.copy(), mu, sigma, g, gc, flag,
             dg_dpos=to_g(dg_o), dgc_dpos=to_g(dgc_o), dg_dyaw=dg_dyaw, dgc_dyaw=dgc_dyaw,
             dg_daxis=to_g(dg_ax_o), dgc_daxis=to_g(dgc_ax_o), dmu_dpos=to_g(dmu_o), dsigma_dpos=to_g(dsig_o),
+            dmu_dyaw=dmu_dyaw, dmu_daxis=to_g(dax_mu), distance_m=distance,
         )
 
 
-__all__ = ["EMPTY_TRUNK", "NO_LANDMARK_IN_VIEW", "OK", "HorizonEvaluation", "HorizonEvaluator", "TrunkLandmarks"]
+__all__ = ["EMPTY_TRUNK", "NO_LANDMARK_IN_VIEW", "OFF_ROUTE", "OK", "HorizonEvaluation", "HorizonEvaluator",
+           "TrunkLandmarks"]

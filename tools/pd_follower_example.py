@@ -5,10 +5,11 @@ is simulated as noisy poses ``T_world_vehicle`` at 15 Hz fed to :class:`vtr.stat
 the controller runs at 50 Hz and each tick
 
 1. queries the smoother now (``state_at``: extrapolation from the last keyframe),
-2. finds the trunk (closest taught vertex, searched in a window along the path) and its pose from a
+2. finds the trunk (closest taught vertex, searched in a window around the previous trunk that reaches
+   further ahead in the direction of travel: ``vtr.navigation.trunk.trunk_window``) and its pose from a
    simulated localization chain, ``T_world_trunk = T_world_leaf @ T_leaf_trunk``,
 3. builds the gravity-aligned frame o at the trunk, the controller state ``z = (p, v, a, psi)`` and the
-   reference path (straight segments through the next taught vertices) in o,
+   reference path (straight segments through the next taught vertices *in the direction of travel*) in o,
 4. projects the position on the path for ``p_ref``, sets ``v_ref = s_des * direction`` and applies the PD
    laws; commands ``(z_dot, psi_dot, theta, phi)`` drive the simulated vehicle (first-order attitude
    and climb-rate response).
@@ -17,8 +18,13 @@ The PD laws are written in the standard second-order form ``a = (p_ref - p)/tauÂ
 (the thesis text prints the two gains of eqs. 6.3/6.5 swapped, which is not dimensionally consistent);
 the climb-rate command of eq. 6.3 is ``z_dot_ref + (2 zeta_z / tau_z)(z_ref - z)``.
 
+``--direction backward`` flies the route back from its taught end (the return flight): the window, the
+look-ahead and the remaining distance count along travel, and the yaw law holds the trunk's taught yaw (the
+vehicle flies tail first, as the MPC's ``yaw_reference = "as_taught"``); lateral errors are left of travel.
+
 Prints path-tracking error statistics (true position against the taught path) and the smoother's
-estimation error. Runs in a few seconds: ``python tools/pd_follower_example.py [--speed 3] [--seed 0]``.
+estimation error. Runs in a few seconds:
+``python tools/pd_follower_example.py [--speed 3] [--seed 0] [--direction forward|backward]``.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from vtr.config import SmoothingConfig
 from vtr.conventions import NS_PER_S
 from vtr.geometry import exp_se3, inv_T, make_T
+from vtr.navigation.trunk import BACKWARD, FORWARD, trunk_window
 from vtr.state.controller import ReferencePath, controller_state, gravity_aligned_T_o_t, trunk_in_world
 from vtr.state.smoothing import TrajectorySmoother
 
@@ -110,18 +117,20 @@ def wrap(a: float) -> float:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def run(speed: float, seed: int) -> dict[str, np.ndarray | float]:
+def run(speed: float, seed: int, direction: int = FORWARD) -> dict[str, np.ndarray | float]:
     rng = np.random.default_rng(seed)
     verts = taught_vertices()
-    full_path_world = ReferencePath(verts[:, :3, 3])
-    start = verts[0] @ make_T(np.eye(3), START_OFFSET)
-    veh = Vehicle(start[:3, 3], yaw=0.0)
+    travel = np.arange(len(verts)) if direction == FORWARD else np.arange(len(verts))[::-1]
+    full_path_world = ReferencePath(verts[travel, :3, 3])          # in the order of travel
+    first = int(travel[0])
+    start = verts[first] @ make_T(np.eye(3), START_OFFSET)
+    veh = Vehicle(start[:3, 3], yaw=float(np.arctan2(verts[first, 1, 0], verts[first, 0, 0])))
     vision_cov = np.diag([VISION_SIGMA_ROT**2] * 3 + [VISION_SIGMA_TRANS**2] * 3)
     smoother = TrajectorySmoother(SmoothingConfig())
     dt_ctrl_ns = int(NS_PER_S / CONTROL_HZ)
     vision_period_ns = int(NS_PER_S / VISION_HZ)
     t_ns, next_vision_ns = 0, 0
-    trunk = 0
+    trunk = first
     leaf_t_ns, T_world_leaf_meas = None, None
     log = {k: [] for k in ("lateral", "vertical", "est_err", "speed", "ctrl_us")}
     while t_ns < MAX_TIME_S * NS_PER_S:
@@ -135,14 +144,18 @@ def run(speed: float, seed: int) -> dict[str, np.ndarray | float]:
         c0 = time.perf_counter()
         # -- controller tick
         state = smoother.state_at(t_ns)
-        lo, hi = max(0, trunk - TRUNK_WINDOW_BACK), min(len(verts), trunk + TRUNK_WINDOW_FORWARD + 1)
+        lo, hi = trunk_window(trunk, len(verts), TRUNK_WINDOW_BACK, TRUNK_WINDOW_FORWARD, direction)
         trunk = lo + int(np.argmin(np.linalg.norm(verts[lo:hi, :3, 3] - state.position, axis=1)))
         # simulated localization chain at the leaf: T_leaf_trunk as localization would estimate it
         T_leaf_trunk = inv_T(T_world_leaf_meas) @ verts[trunk]
         T_world_leaf = smoother.state_at(leaf_t_ns, with_covariance=False).pose
         T_world_trunk = trunk_in_world(T_world_leaf, T_leaf_trunk)
         T_o_t = gravity_aligned_T_o_t(T_world_trunk[:3, :3])
-        ahead = verts[max(0, trunk - 1) : trunk + PATH_LOOKAHEAD_VERTICES + 1]
+        # the previous vertex and the next ones, in the direction of travel
+        if direction == FORWARD:
+            ahead = verts[max(0, trunk - 1): trunk + PATH_LOOKAHEAD_VERTICES + 1]
+        else:
+            ahead = verts[max(0, trunk - PATH_LOOKAHEAD_VERTICES): trunk + 2][::-1]
         path = ReferencePath.from_world(ahead, T_world_trunk, T_o_t)
         cs = controller_state(state, T_world_trunk, T_o_t)
         err = path.error(cs.position)
@@ -183,9 +196,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--speed", type=float, default=3.0, help="desired speed s_des (m/s)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--direction", choices=("forward", "backward"), default="forward",
+                    help="fly the route in taught order or back from its end")
     args = ap.parse_args()
     wall = time.perf_counter()
-    r = run(args.speed, args.seed)
+    r = run(args.speed, args.seed, FORWARD if args.direction == "forward" else BACKWARD)
     settle = r["time_s"] > 0 and slice(int(CONTROL_HZ * 3), None)     # skip the initial offset transient
 
     def stats(name: str, a: np.ndarray, unit: str) -> None:
@@ -193,7 +208,8 @@ def main() -> None:
         print(f"  {name:28s} mean {a.mean():6.3f}  rms {np.sqrt(np.mean(a**2)):6.3f}  "
               f"p95 {np.percentile(a, 95):6.3f}  max {a.max():6.3f} {unit}")
 
-    print(f"PD path follower at s_des = {args.speed} m/s, vision {VISION_HZ:.0f} Hz, control {CONTROL_HZ:.0f} Hz")
+    print(f"PD path follower ({args.direction}) at s_des = {args.speed} m/s, vision {VISION_HZ:.0f} Hz, "
+          f"control {CONTROL_HZ:.0f} Hz")
     print(f"route {ROUTE_CORNERS.tolist()} at {ALTITUDE_M} m; finished in {r['time_s']:.1f} s simulated "
           f"({r['remaining_m']:.2f} m from the end), {time.perf_counter() - wall:.1f} s wall")
     print("true path-tracking error after the first 3 s:")

@@ -1,6 +1,7 @@
 """The thesis' perception-aware MPC experiment (§7.4, Fig. 7.6-7.8) on synthetic aerial maps.
 
-usage: python tools/perception_aware_mpc.py --out OUT [--speed 10] [--cases toward,away]
+usage: python tools/perception_aware_mpc.py --out OUT [--speed 8,10,12] [--direction forward|backward]
+       [--cases toward,away]
 
 One geometric path with two corners (east, left corner, north, right corner, east; 12 m above
 ground) is taught twice in a synthetic aerial scene (buildings and trees on both sides, faint ground
@@ -9,21 +10,25 @@ the path's first corner turns toward where it looks) or south (case "away"). Eac
 once off the path (drifting 3 m to one side
 and 1.5 m up) through the real pipeline; the perception model is fitted (MLE) on both repeats'
 landmarks.csv. Each case's map and that model make the taught-path field, and the flatness-based
-MPC (thesis: 10 Hz, N = 15, 50 Hz outer loop, one QP a tick, OSQP) flies the taught path at the
-desired speed with no path constraint ("none"), a fixed path-error bound of 1..6 m ("fixed_Xm"),
-and the perception-aware chance constraint ("pa"). The closed loop uses the perception model as its
-measurement model (as the thesis' simulation; no rendering in the loop).
+MPC (thesis: 10 Hz, N = 15, 50 Hz outer loop, one QP a tick, OSQP; the library's ControlConfig
+defaults) flies the taught path at each desired speed with no path constraint ("none"), a fixed
+path-error bound of 1..6 m ("fixed_Xm"), and the perception-aware chance constraint ("pa"), the gimbal
+holding each trunk's taught axis. ``--direction backward`` flies the route back from its taught end (the
+return flight). The closed loop uses the perception model as its measurement model (as the thesis'
+simulation; no rendering in the loop).
 
-Writes OUT/results.json (one row per case and controller: case, controller, avg_speed_mps,
-min_bound = min of mu - 3 sigma along the flown path, guaranteed = min_bound >= L_min, max path
-errors, tick times), OUT/results.csv, OUT/flown_paths.png, OUT/bounds.png, OUT/model.json and
-prints the table. Rendered sequences and maps are cached under OUT (a second run only simulates).
+Writes OUT/results.json (one row per case, direction, speed and controller: avg_speed_mps, min_bound =
+min of mu - 3 sigma along the flown path, guaranteed = min_bound >= L_min, max path errors, slacks,
+tick times), OUT/results.csv, OUT/flown_paths.png, OUT/bounds.png (the default speed if swept, else the
+first; with a suffix ``_backward`` flown back), OUT/model.json and prints the table. Rendered sequences
+and maps are cached under OUT (a second run only simulates). See docs/perception_aware_mpc/README.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import hashlib
 import json
 import math
@@ -42,6 +47,7 @@ from vtr.control.closed_loop import ClosedLoopResult, initial_state, simulate
 from vtr.control.field import TaughtPathField
 from vtr.control.mpc import PerceptionAwareMPC, TaughtPathReference
 from vtr.map import Map
+from vtr.navigation.trunk import BACKWARD, FORWARD
 from vtr.sim import synthetic as syn
 
 CORNER_RADIUS_M = 5.0  # larger than the repeat offsets (an offset path must not collapse at a corner)
@@ -57,10 +63,6 @@ SCENE_SEED = 3
 #: trunks hold a few hundred landmarks (the thesis: 600-800) and L_min = 30 matters a few metres off the path.
 FEATURES_PER_IMAGE = 175
 GROUND_CONTRAST = 0.2
-#: P-A margin of the linearized constraint (inliers). The taught path itself has mu - 3 sigma of only
-#: 38-48 here (175 features, ~120 landmarks in view), so the library default (6) leaves no room; 0.5 kept
-#: min mu - 3 sigma >= 30 in both cases (measured; smaller margins were not tried).
-PA_MARGIN = 0.5
 PITCH_DOWN_RAD = math.radians(50.0)
 
 
@@ -117,42 +119,43 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
 
 
 def build_field(map_path: Path, up: np.ndarray, model_path: Path, control: ControlConfig,
-                cfg: Config) -> tuple[TaughtPathField, np.ndarray]:
-    """The case's field and its gimbal axis in g (the taught camera's axis, constant along the teach)."""
+                cfg: Config) -> TaughtPathField:
+    """The case's taught-path field."""
     from perception_model.model import PerceptionModel
 
     with Map.open(map_path, "r") as m:
-        field = TaughtPathField.from_map(m, PerceptionModel.load(model_path), up_map=up, config=cfg.localization,
-                                         l_min=control.l_min, c_bar=control.c_bar)
-    axis = field.T_g_camera[:, :3, 2].mean(axis=0)
-    return field, axis / np.linalg.norm(axis)
+        return TaughtPathField.from_map(m, PerceptionModel.load(model_path), up_map=up, config=cfg.localization,
+                                        l_min=control.l_min, c_bar=control.c_bar, control=control)
 
 
-def fly(field: TaughtPathField, axis: np.ndarray, control: ControlConfig, controller: str) -> ClosedLoopResult:
-    ref = TaughtPathReference(field.vehicle_position_g)
+def fly(field: TaughtPathField, control: ControlConfig, controller: str, direction: int) -> ClosedLoopResult:
+    """One closed-loop flight from the route's start in the direction of travel (its taught end flown back)."""
+    ref = TaughtPathReference.from_field(field, direction)
     if controller == "none":
-        mpc = PerceptionAwareMPC(ref, control, mode="none", camera_axis_g=axis)
+        mpc = PerceptionAwareMPC(ref, control, mode="none", camera="taught")
     elif controller == "pa":
-        mpc = PerceptionAwareMPC(ref, control, mode="perception", field=field, camera_axis_g=axis)
+        mpc = PerceptionAwareMPC(ref, control, mode="perception", field=field, camera="taught")
     else:
         bound = float(controller.removeprefix("fixed_").removesuffix("m"))
-        mpc = PerceptionAwareMPC(ref, control, mode="fixed", fixed_bound_m=bound, camera_axis_g=axis)
-    return simulate(field, mpc, initial_state(field))
+        mpc = PerceptionAwareMPC(ref, control, mode="fixed", fixed_bound_m=bound, camera="taught")
+    return simulate(field, mpc, initial_state(field, 0 if direction == FORWARD else -1))
 
 
 def row(case: str, controller: str, r: ClosedLoopResult, control: ControlConfig) -> dict:
-    return {"case": case, "controller": controller, "avg_speed_mps": round(r.avg_speed_mps, 3),
+    return {"case": case, "direction": "forward" if r.direction == FORWARD else "backward",
+            "speed_mps": control.speed_mps, "controller": controller, "avg_speed_mps": round(r.avg_speed_mps, 3),
             "min_bound": round(r.min_bound, 2), "guaranteed": bool(r.min_bound >= control.l_min),
             "completed": r.completed, "duration_s": round(r.duration_s, 2),
             "max_lateral_error_m": round(float(np.abs(r.lateral_m).max()), 2),
             "max_vertical_error_m": round(float(np.abs(r.vertical_m).max()), 2),
-            "max_slack": round(float(r.max_slack.max()) if r.max_slack.size else 0.0, 4),
+            "max_slack_m": round(float(r.max_slack_m.max()) if r.max_slack_m.size else 0.0, 4),
+            "max_slack_inliers": round(float(r.max_slack_inliers.max()) if r.max_slack_inliers.size else 0.0, 3),
             "tick_ms_median": round(float(np.median(r.tick_ms)), 2),
             "tick_ms_p95": round(float(np.percentile(r.tick_ms, 95)), 2),
             "tick_ms_max": round(float(r.tick_ms.max()), 2)}
 
 
-def plot(runs: dict, fields: dict, out: Path, l_min: float) -> None:
+def plot(runs: dict, fields: dict, out: Path, l_min: float, suffix: str = "") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,7 +181,7 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float) -> None:
         ax.legend(fontsize=8)
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    fig.savefig(out / "flown_paths.png", dpi=110)
+    fig.savefig(out / f"flown_paths{suffix}.png", dpi=110)
     plt.close(fig)
     fig, axes = plt.subplots(1, len(runs), figsize=(7 * len(runs), 4), squeeze=False)
     for ax, (case, by_ctrl) in zip(axes[0], runs.items(), strict=True):
@@ -194,61 +197,83 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float) -> None:
         ax.grid(True, alpha=0.3)
     fig.suptitle("perception-aware MPC: localization bound (must stay above L_min)")
     fig.tight_layout()
-    fig.savefig(out / "bounds.png", dpi=110)
+    fig.savefig(out / f"bounds{suffix}.png", dpi=110)
     plt.close(fig)
 
 
 def table(rows: list[dict]) -> str:
-    cols = ["case", "controller", "avg_speed_mps", "min_bound", "guaranteed", "max_lateral_error_m",
-            "max_vertical_error_m", "max_slack", "tick_ms_median", "tick_ms_p95"]
+    cols = ["case", "direction", "speed_mps", "controller", "avg_speed_mps", "min_bound", "guaranteed",
+            "max_lateral_error_m", "max_vertical_error_m", "max_slack_m", "max_slack_inliers", "tick_ms_median",
+            "tick_ms_p95"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
     return "\n".join(lines)
 
 
+def summary(rows: list[dict]) -> list[str]:
+    """Per case, direction and speed: P-A against the fastest guaranteed fixed bound."""
+    out = []
+    for key in dict.fromkeys((r["case"], r["direction"], r["speed_mps"]) for r in rows):
+        group = [r for r in rows if (r["case"], r["direction"], r["speed_mps"]) == key]
+        fixed_ok = [r for r in group if r["controller"].startswith("fixed") and r["guaranteed"]]
+        best = max(fixed_ok, key=lambda r: r["avg_speed_mps"]) if fixed_ok else None
+        pa = next(r for r in group if r["controller"] == "pa")
+        faster = best is None or pa["avg_speed_mps"] > best["avg_speed_mps"]
+        out.append(f"{key[0]} {key[1]} {key[2]:g} m/s: P-A {pa['avg_speed_mps']} m/s (guaranteed {pa['guaranteed']}, "
+                   f"min bound {pa['min_bound']}); fastest guaranteed fixed bound "
+                   f"{best['controller'] + ' ' + str(best['avg_speed_mps']) + ' m/s' if best else 'none'}; "
+                   f"P-A guaranteed and faster: {pa['guaranteed'] and faster}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("out/perception_aware_mpc"))
-    ap.add_argument("--speed", type=float, default=ControlConfig().speed_mps, help="desired speed (m/s)")
+    ap.add_argument("--speed", default=f"{ControlConfig().speed_mps:g}",
+                    help="desired speed(s) (m/s), comma-separated: one sweep of every controller each")
+    ap.add_argument("--direction", choices=("forward", "backward"), default="forward",
+                    help="fly the taught route forward or back from its end (the return flight)")
     ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--margin", type=float, default=PA_MARGIN,
-                    help="P-A: linearized constraint margin (inliers)")
+    ap.add_argument("--margin", type=float, default=None,
+                    help="P-A: linearized constraint margin (inliers; default the library's)")
     args = ap.parse_args(argv)
+    speeds = [float(v) for v in args.speed.split(",")]
+    direction = FORWARD if args.direction == "forward" else BACKWARD
     args.out.mkdir(parents=True, exist_ok=True)
     cfg = Config()
     cfg.features.n_features = FEATURES_PER_IMAGE
-    control = ControlConfig(speed_mps=args.speed, perception_margin=args.margin)
+    base = ControlConfig() if args.margin is None else ControlConfig(perception_margin=args.margin)
     t0 = time.perf_counter()
     maps, ups, model_path, reps = prepare(args.out, cfg)
     print(f"maps and model ready in {time.perf_counter() - t0:.0f} s; repeats: {reps}", file=sys.stderr)
     controllers = ["none", *(f"fixed_{b}m" for b in FIXED_BOUNDS_M), "pa"]
+    plotted = base.speed_mps if base.speed_mps in speeds else speeds[0]
     rows, runs, fields = [], {}, {}
     for case in args.cases.split(","):
-        say(f"{case}: building the taught-path field, then flying {len(controllers)} controllers")
-        field, axis = build_field(maps[case], ups[case], model_path, control, cfg)
-        fields[case] = field
+        say(f"{case}: building the taught-path field, then flying {len(controllers)} controllers "
+            f"{args.direction} at {args.speed} m/s")
+        fields[case] = field = build_field(maps[case], ups[case], model_path, base, cfg)
         runs[case] = {}
-        for name in controllers:
-            r = fly(field, axis, control, name)
-            runs[case][name] = r
-            rows.append(row(case, name, r, control))
-            print(f"{case:7s} {name:9s} speed {rows[-1]['avg_speed_mps']:5.2f} m/s  min(mu-3sigma) "
-                  f"{rows[-1]['min_bound']:7.1f}  guaranteed {rows[-1]['guaranteed']}", file=sys.stderr)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=1))
-    with open(args.out / "results.csv", "w", newline="") as fh:
+        for speed in speeds:
+            control = dataclasses.replace(base, speed_mps=speed)
+            for name in controllers:
+                r = fly(field, control, name, direction)
+                if speed == plotted:
+                    runs[case][name] = r
+                rows.append(row(case, name, r, control))
+                print(f"{case:7s} {args.direction} {speed:g} {name:9s} speed {rows[-1]['avg_speed_mps']:5.2f} m/s  "
+                      f"min(mu-3sigma) {rows[-1]['min_bound']:7.1f}  guaranteed {rows[-1]['guaranteed']}",
+                      file=sys.stderr)
+    suffix = "" if direction == FORWARD else "_backward"
+    (args.out / f"results{suffix}.json").write_text(json.dumps(rows, indent=1))
+    with open(args.out / f"results{suffix}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    plot(runs, fields, args.out, control.l_min)
+    plot(runs, fields, args.out, base.l_min, suffix)
     print(table(rows))
-    for case in runs:
-        case_rows = [r for r in rows if r["case"] == case]
-        fixed_ok = [r for r in case_rows if r["controller"].startswith("fixed") and r["guaranteed"]]
-        best = max(fixed_ok, key=lambda r: r["avg_speed_mps"]) if fixed_ok else None
-        pa = next(r for r in case_rows if r["controller"] == "pa")
-        print(f"{case}: P-A {pa['avg_speed_mps']} m/s (guaranteed {pa['guaranteed']}); fastest guaranteed fixed bound "
-              f"{best['controller'] + ' ' + str(best['avg_speed_mps']) + ' m/s' if best else 'none'}")
-    print(f"wrote {args.out}/results.json, results.csv, flown_paths.png, bounds.png "
+    print("\n".join(summary(rows)))
+    print(f"wrote {args.out}/results{suffix}.json, results{suffix}.csv, flown_paths{suffix}.png, bounds{suffix}.png "
           f"({time.perf_counter() - t0:.0f} s)")
 
 

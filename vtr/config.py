@@ -304,8 +304,31 @@ class ControlConfig:
     speed_mps: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))  # desired speed along the taught path
     l_min: float = setting(THESIS_L_MIN, Range(0.0, 1e6))  # minimum inlier count
     c_bar: float = setting(THESIS_C_BAR, Range(0.0, 100.0))  # normal quantile of the chance constraint (3 sigma)
-    # linearized mu - c sigma - L_min >= this (absorbs one SQP step's error)
-    perception_margin: float = setting(6.0, Range(0.0, 1e6))
+    # linearized mu - c sigma - L_min >= this (inliers; absorbs one SQP step's error). 1.5 keeps the thesis
+    # experiment guaranteed forward and back at 10 and 12 m/s (docs/perception_aware_mpc); 6 (the old default)
+    # made P-A slower than a fixed 1 m bound, 0.5 missed by 0.2 flown back
+    perception_margin: float = setting(1.5, Range(0.0, 1e6))
+    # speed governor: a tick whose plan cannot keep the constraint (governor_check) multiplies the reference's
+    # speed by this (1: off); it recovers at accel_max_mps2. 0.8 measured (0.5: P-A slower than the fixed 1 m
+    # bound at 12 m/s; off: the mount-camera return of tests/control fell to 9.1), docs/perception_aware_mpc
+    speed_governor: float = setting(0.8, Range(0.0, 1.0, lo_open=True))
+    # "plan": the true constraint along the new plan falls below 0 at a step, or its rows need more slack than
+    # perception_margin; "slack": the latter only
+    governor_check: str = setting("plan", Choice("plan", "slack"))
+    # the chance constraint the perception rows linearize: "normal" mu - c_bar sigma (thesis eq. 7.7) or
+    # "conservative" mu - c_bar sqrt(mu) (eq. 7.8, sigma^2 <= mu)
+    constraint_form: str = setting("normal", Choice("normal", "conservative"))
+    # between the 10 Hz grid points: "velocity" asks the perception row for |grad g| dt/2 |v| more (measured:
+    # slower, not needed with the governor), "none" constrains the grid points only (the thesis' row)
+    intersample: str = setting("none", Choice("none", "velocity"))
+    # yaw reference: "along_travel" (the heading of the path in the direction of travel) or "as_taught" (the
+    # taught vehicle's yaw: a camera on its mount looks where it looked when taught, also flown backward)
+    yaw_reference: str = setting("along_travel", Choice("along_travel", "as_taught"))
+    # a field step farther than this from the taught path (m) is OFF_ROUTE (the aerial demo's localization
+    # envelope ends 7-17 m from the path: beyond it nothing taught supports the model)
+    off_route_distance_m: float = setting(10.0, Range(0.0, 1e6, lo_open=True))
+    # ... or more than this past either end of the route (m, along its first/last segment)
+    off_route_past_end_m: float = setting(3.0, Range(0.0, 1e6))
     q_position: float = setting(1.0, Range(0.0, 1e9))  # tracking weight on position error (1/m^2)
     q_yaw: float = setting(10.0, Range(0.0, 1e9))  # tracking weight on yaw error (1/rad^2)
     r_jerk: float = setting(1e-3, Range(0.0, 1e9, lo_open=True))  # input weight on jerk ((s^3/m)^2)

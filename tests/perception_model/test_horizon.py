@@ -9,7 +9,14 @@ import pytest
 
 from perception_model import frames
 from perception_model.constraint import PerceptionConstraint
-from perception_model.horizon import EMPTY_TRUNK, NO_LANDMARK_IN_VIEW, OK, HorizonEvaluator, TrunkLandmarks
+from perception_model.horizon import (
+    EMPTY_TRUNK,
+    NO_LANDMARK_IN_VIEW,
+    OFF_ROUTE,
+    OK,
+    HorizonEvaluator,
+    TrunkLandmarks,
+)
 from perception_model.model import PerceptionModel
 
 MODEL = PerceptionModel.thesis()
@@ -81,3 +88,30 @@ def test_empty_and_out_of_view_trunks_are_flagged_not_errors():
     assert out.flag.tolist() == [OK, NO_LANDMARK_IN_VIEW, EMPTY_TRUNK]
     assert out.mu[1] == out.mu[2] == 0.0 and out.g[2] == pytest.approx(-30.0)
     assert np.all(out.dg_dpos[1:] == 0.0) and np.all(np.isfinite(out.dg_daxis))
+
+
+def test_mu_gradients_and_distances():
+    """``dmu_dyaw`` / ``dmu_daxis`` (the field's guard uses them) by finite differences; ``distance_m`` is the
+    camera's distance from its trunk's taught camera; OFF_ROUTE is a flag of its own."""
+    rng = np.random.default_rng(4)
+    ev = HorizonEvaluator(MODEL, _trunks(rng))
+    tr = np.array([1, 3, 4])
+    taught = ev.camera_centres_g()[tr]
+    pos = taught + rng.normal(0, 1.0, (3, 3))
+    yaw = ev.yaw_g[tr] + 0.15
+    out = ev.evaluate(pos, tr, yaw)
+    assert np.allclose(out.distance_m, np.linalg.norm(pos - taught, axis=1))
+    h = 1e-6
+    fd = (ev.evaluate(pos, tr, yaw + h, gradient=False).mu - ev.evaluate(pos, tr, yaw - h, gradient=False).mu) / (2 * h)
+    assert np.allclose(out.dmu_dyaw, fd, rtol=1e-5, atol=1e-6)
+    z0 = frames.optical_axis(yaw, math.radians(50.0))
+    ax = ev.evaluate(pos, tr, axes_g=z0)
+    for j in range(3):
+        zp, zm = z0.copy(), z0.copy()
+        zp[:, j] += h
+        zm[:, j] -= h
+        fd = (ev.evaluate(pos, tr, axes_g=zp, gradient=False).mu - ev.evaluate(pos, tr, axes_g=zm, gradient=False).mu) \
+            / (2 * h)
+        tangential = ax.dmu_daxis - np.einsum("nk,nk->n", ax.dmu_daxis, z0)[:, None] * z0
+        assert np.allclose(fd, tangential[:, j], rtol=1e-5, atol=1e-6)
+    assert len({OK, NO_LANDMARK_IN_VIEW, EMPTY_TRUNK, OFF_ROUTE}) == 4

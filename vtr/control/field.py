@@ -14,27 +14,79 @@ taught optical axis' heading minus ``mount_yaw_rad`` (the map stores camera pose
 Trunk selection is the localizer's rule (``vtr.navigation.trunk``, as ``vtr.navigation.chain.LocalizationChain.prior``):
 in a window of ``trunk_window_back``/``trunk_window_forward`` vertices around the previous trunk,
 the vertex minimizing ``||rho|| + rotation_weight ||phi||`` of the relative camera pose
-(``config.localization``). Along a horizon the previous trunk of step k is step k-1's.
+(``config.localization``). Along a horizon the previous trunk of step k is step k-1's; ``direction``
+(+1 taught order, -1 the route flown backward) mirrors the window.
+
+Validity (:class:`FieldEvaluation`): each step's distance to its trunk and to the taught path, and the flag
+``perception_model.horizon.OFF_ROUTE`` past the route's ends or too far from it (``ControlConfig.off_route_*``).
+Gradient guard: where ``mu < c_bar**2 / 4`` the constraint's gradient points *away* from the taught landmarks
+(``d(mu - c_bar sqrt(mu))/d mu < 0``), so those steps carry ``grad mu`` instead (``guarded``). Errors of
+``perception_model`` raised through the field are :class:`PerceptionFieldError` (a ``VtrError``).
+See docs/perception_aware_mpc/README.md.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
 from perception_model import frames
-from perception_model.horizon import HorizonEvaluation, HorizonEvaluator, TrunkLandmarks
+from perception_model.errors import PerceptionModelError
+from perception_model.horizon import OFF_ROUTE, HorizonEvaluation, HorizonEvaluator, TrunkLandmarks
 from perception_model.model import PerceptionModel
 from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
-from ..config import LocalizationConfig
+from ..config import ControlConfig, LocalizationConfig
 from ..errors import EstimationError, MapError
 from ..geometry import inv_T
 from ..map import Map
-from ..navigation.trunk import FORWARD, trunk_cost, trunk_window
+from ..navigation.trunk import BACKWARD, FORWARD, trunk_cost, trunk_window
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+#: The chance constraint's two forms (thesis eqs. 7.7 and 7.8): ``mu - c_bar sigma`` and ``mu - c_bar sqrt(mu)``.
+CONSTRAINT_FORMS = ("normal", "conservative")
+
+
+class PerceptionFieldError(EstimationError, PerceptionModelError):
+    """A ``perception_model`` error raised through the field: caught by ``except VtrError`` (and still by
+    ``except PerceptionModelError``); the original is its ``__cause__``."""
+
+
+@contextmanager
+def perception_errors() -> Iterator[None]:
+    """Re-raise ``perception_model`` errors as :class:`PerceptionFieldError` (the ``vtr.control`` boundary)."""
+    try:
+        yield
+    except PerceptionFieldError:
+        raise
+    except PerceptionModelError as err:
+        raise PerceptionFieldError(f"perception model: {err}") from err
+
+
+def translating(method: F) -> F:
+    """``method`` with :func:`perception_errors` around its body (the field's public methods)."""
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with perception_errors():
+            return method(*args, **kwargs)
+
+    return cast(F, wrapper)
+
+
+def check_direction(direction) -> int:
+    """``direction`` as +1 (taught order) or -1 (the route flown backward); EstimationError otherwise."""
+    if isinstance(direction, bool) or direction not in (FORWARD, BACKWARD):
+        raise EstimationError(f"direction: expected {FORWARD} (taught order) or {BACKWARD} (reversed), "
+                              f"got {direction!r}")
+    return int(direction)
 
 
 @dataclass(frozen=True)
@@ -69,9 +121,14 @@ def read_taught_vertices(vtr_map: Map) -> list[TaughtVertex]:
 class FieldEvaluation:
     """Constraint along a horizon of vehicle outputs ``(p, psi)`` in g; gradients w.r.t. the vehicle outputs.
 
-    ``dg_dpos`` (N, 3), ``dg_dyaw`` (N,) (vehicle yaw: axis yaw and lever arm), ``dg_daxis`` (N, 3)
-    (the optical axis, for a gimbal); ``vertex_id`` (N,) each step's trunk; ``flag`` as in
-    ``perception_model.horizon``. ``raw`` is the evaluator's record (camera-centre gradients).
+    ``g`` (N,) is the field's ``form`` (``"normal"``: mu - c_bar sigma - l_min; ``"conservative"``:
+    mu - c_bar sqrt(mu) - l_min). ``dg_dpos`` (N, 3), ``dg_dyaw`` (N,) (vehicle yaw: axis yaw and lever arm),
+    ``dg_daxis`` (N, 3) (the optical axis, for a gimbal): the gradient of ``g``, except on ``guarded`` steps
+    (``mu < c_bar**2 / 4``, where ``g`` grows as ``mu`` falls), which carry the gradient of ``mu``.
+    ``vertex_id`` (N,) each step's trunk; ``flag`` as in ``perception_model.horizon`` (``OFF_ROUTE`` first).
+    ``trunk_distance_m`` (N,): vehicle to its trunk's taught vehicle; ``path_distance_m`` (N,): to the taught
+    path (the polyline through the taught vehicles); ``past_end_m`` (N,): how far beyond the route's first or
+    last vertex along its end segment (0 within). ``raw`` is the evaluator's record (camera-centre gradients).
     """
 
     trunk: np.ndarray
@@ -84,20 +141,36 @@ class FieldEvaluation:
     dg_dyaw: np.ndarray | None
     dg_daxis: np.ndarray | None
     raw: HorizonEvaluation
+    trunk_distance_m: np.ndarray
+    path_distance_m: np.ndarray
+    past_end_m: np.ndarray
+    guarded: np.ndarray
+    form: str = "normal"
+
+    @property
+    def off_route(self) -> np.ndarray:
+        """(N,) bool: the steps flagged ``OFF_ROUTE``."""
+        return self.flag == OFF_ROUTE
 
 
 class TaughtPathField:
     """The perception chance constraint over the whole taught path (value and gradient for a horizon)."""
 
+    @translating
     def __init__(self, model: PerceptionModel, vertices: list[TaughtVertex], *,
                  T_g_map: np.ndarray, mount: CameraMount | None = None,
                  config: LocalizationConfig | None = None, l_min: float = THESIS_L_MIN,
-                 c_bar: float = THESIS_C_BAR) -> None:
+                 c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
+                 form: str = "normal") -> None:
         if not vertices:
             raise MapError("the taught path is empty")
         _check_bounds(l_min, c_bar)
+        self.form = _check_form(form)
         self.mount = mount or CameraMount()
         self.config = config or LocalizationConfig()
+        control = control or ControlConfig()
+        self.off_route_distance_m = float(control.off_route_distance_m)
+        self.off_route_past_end_m = float(control.off_route_past_end_m)
         self.T_g_map = np.asarray(T_g_map, float)
         lever = np.asarray(self.mount.lever_arm_m, float)
         T_g_cam = self.T_g_map[None] @ np.stack([v.T_map_camera for v in vertices])
@@ -119,12 +192,15 @@ class TaughtPathField:
         self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
 
     @classmethod
+    @translating
     def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=frames.LEVEL_CAMERA_UP,
                  mount: CameraMount | None = None, config: LocalizationConfig | None = None,
-                 l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR) -> TaughtPathField:
+                 l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
+                 form: str = "normal") -> TaughtPathField:
         """Read every taught vertex of ``vtr_map`` (open) once; ``up_map``: gravity up in the map frame."""
-        return cls(model, read_taught_vertices(vtr_map), T_g_map=frames.T_g_map_from_up(up_map), mount=mount,
-                   config=config, l_min=l_min, c_bar=c_bar)
+        T_g_map = frames.T_g_map_from_up(up_map)
+        return cls(model, read_taught_vertices(vtr_map), T_g_map=T_g_map, mount=mount,
+                   config=config, l_min=l_min, c_bar=c_bar, control=control, form=form)
 
     def __len__(self) -> int:
         return len(self.vertex_ids)
@@ -137,13 +213,20 @@ class TaughtPathField:
     def c_bar(self) -> float:
         return self.evaluator.c_bar
 
-    def with_bounds(self, l_min: float, c_bar: float) -> TaughtPathField:
-        """The same field (landmarks shared, not copied) with the constraint ``mu - c_bar sigma - l_min``;
-        the MPC uses it so that its ``ControlConfig`` owns ``l_min`` and ``c_bar``."""
+    def with_bounds(self, l_min: float, c_bar: float, form: str | None = None,
+                    control: ControlConfig | None = None) -> TaughtPathField:
+        """The same field (landmarks shared, not copied) with the constraint ``mu - c_bar sigma - l_min``
+        (or ``form``, and the off-route limits of ``control`` when given); the MPC uses it so that its
+        ``ControlConfig`` owns ``l_min``, ``c_bar``, the form and the limits."""
         _check_bounds(l_min, c_bar)
         out = copy.copy(self)
         out.evaluator = copy.copy(self.evaluator)
         out.evaluator.l_min, out.evaluator.c_bar = float(l_min), float(c_bar)
+        if form is not None:
+            out.form = _check_form(form)
+        if control is not None:
+            out.off_route_distance_m = float(control.off_route_distance_m)
+            out.off_route_past_end_m = float(control.off_route_past_end_m)
         return out
 
     def _index(self, value, what: str) -> int:
@@ -176,10 +259,12 @@ class TaughtPathField:
         return pos, psi, ax
 
     # ----------------------------------------------------------------- vehicle <-> camera
+    @translating
     def camera_centres(self, positions: np.ndarray, yaw: np.ndarray) -> np.ndarray:
         """Camera centres (N, 3) in g of vehicles at ``positions`` (N, 3) with yaw ``yaw`` (N,)."""
         return frames.camera_position(positions, yaw, self.mount.lever_arm_m)
 
+    @translating
     def camera_poses(self, positions: np.ndarray, yaw: np.ndarray, pitch_down: float | np.ndarray) -> np.ndarray:
         """``T_g_camera`` (N, 4, 4) of level vehicles (camera pitched ``pitch_down`` below the horizon)."""
         yaw = np.asarray(yaw, float)
@@ -196,28 +281,39 @@ class TaughtPathField:
             raise EstimationError(f"position: expected 3 finite numbers, got shape {p.shape}")
         return int(np.argmin(np.linalg.norm(self.vehicle_position_g - p, axis=1)))
 
+    @translating
     def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
-                      axes: np.ndarray | None = None, direction: int = FORWARD) -> np.ndarray:
+                      axes: np.ndarray | None = None, direction: int = FORWARD, *,
+                      taught_axes: bool = False) -> np.ndarray:
         """Trunk index (N,) of each predicted vehicle pose by the localizer's rule (:mod:`vtr.navigation.trunk`),
         starting from ``previous``; ``direction`` -1 for a route flown backward (the window mirrors).
 
-        The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal).
+        The camera's attitude comes from the vehicle yaw and the mount, or from ``axes`` (N, 3) (gimbal), or,
+        with ``taught_axes``, from a gimbal holding each candidate's taught axis (the relative rotation is then
+        the identity and the rule compares camera centres).
         """
         pos, yaw, axes = self._horizon(positions, yaw, axes)
         previous = self._index(previous, "previous trunk")
-        axes_pitch = None
-        if axes is not None:
-            heading, axes_pitch = frames.heading_of_axis(axes)
-            yaw = heading - self.mount.mount_yaw_rad
+        direction = check_direction(direction)
+        if taught_axes and axes is not None:
+            raise EstimationError("axes: give explicit axes or taught_axes, not both")
         c = self.config
         n = len(pos)
         prev = int(previous)
         # every step's window lies in n windows' reach of prev: one batched cost for all steps
         reach = n * max(c.trunk_window_back, c.trunk_window_forward)
         lo_all, hi_all = trunk_window(prev, len(self), reach, reach)
-        pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
-        T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
-        cost = trunk_cost(T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all], c.rotation_weight)
+        if taught_axes:
+            cam = self.camera_centres(pos, yaw)
+            cost = np.linalg.norm(cam[:, None] - self.T_g_camera[None, lo_all:hi_all, :3, 3], axis=2)
+        else:
+            axes_pitch = None
+            if axes is not None:
+                heading, axes_pitch = frames.heading_of_axis(axes)
+                yaw = heading - self.mount.mount_yaw_rad
+            pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
+            T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
+            cost = trunk_cost(T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all], c.rotation_weight)
         out = np.empty(n, dtype=np.int64)
         for k in range(n):
             lo, hi = trunk_window(prev, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
@@ -225,44 +321,94 @@ class TaughtPathField:
             out[k] = prev
         return out
 
+    @translating
+    def route_distances(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(path_distance_m, past_end_m)`` (N,) of vehicle positions (N, 3): distance to the taught path (the
+        polyline through the taught vehicles) and how far past its first or last vertex (0 within)."""
+        p = np.atleast_2d(np.asarray(positions, float))
+        pts = self.vehicle_position_g
+        if len(pts) == 1:
+            return np.linalg.norm(p - pts[0], axis=1), np.zeros(len(p))
+        a, seg = pts[:-1], np.diff(pts, axis=0)
+        length = np.linalg.norm(seg, axis=1)
+        d = np.divide(seg, length[:, None], out=np.zeros_like(seg), where=length[:, None] > 0.0)
+        rel = p[:, None, :] - a[None]                                   # (N, S, 3)
+        s = np.einsum("nsk,sk->ns", rel, d)
+        closest = a[None] + np.clip(s, 0.0, length[None])[..., None] * d[None]
+        dist = np.linalg.norm(p[:, None, :] - closest, axis=2)
+        nearest = np.argmin(dist, axis=1)
+        rows = np.arange(len(p))
+        s_n = s[rows, nearest]
+        past = np.zeros(len(p))
+        first, last = nearest == 0, nearest == len(seg) - 1
+        past[first] = np.maximum(past[first], -s_n[first])
+        past[last] = np.maximum(past[last], s_n[last] - length[-1])
+        return dist[rows, nearest], past
+
     # ----------------------------------------------------------------- evaluation
+    @translating
     def evaluate(self, positions: np.ndarray, yaw: np.ndarray, *, trunk: np.ndarray | None = None,
-                 previous: int | None = None, axes: np.ndarray | None = None,
-                 gradient: bool = True) -> FieldEvaluation:
+                 previous: int | None = None, axes: np.ndarray | None = None, taught_axes: bool = False,
+                 direction: int = FORWARD, gradient: bool = True) -> FieldEvaluation:
         """Constraint at vehicle outputs ``positions`` (N, 3), ``yaw`` (N,) in g.
 
         Each step's trunk is ``trunk`` (N,) when given, else selected from ``previous`` (default: the
-        nearest vertex to the first position). ``axes`` (N, 3) overrides the mount's optical axes
-        (gimbal: also for the trunk selection); the yaw gradient then covers the lever arm only.
+        nearest vertex to the first position) in the travel ``direction`` (+1 taught order, -1 reversed).
+        ``axes`` (N, 3) overrides the mount's optical axes (gimbal: also for the trunk selection);
+        ``taught_axes``: a gimbal holding each step's trunk's taught axis. With a gimbal the yaw gradient
+        covers the lever arm only.
         """
         pos, psi, axes = self._horizon(positions, yaw, axes)
+        direction = check_direction(direction)
+        if taught_axes and axes is not None:
+            raise EstimationError("axes: give explicit axes or taught_axes, not both")
         if trunk is None:
             start = self.nearest_trunk(pos[0]) if previous is None else self._index(previous, "previous trunk")
-            trunk = self.select_trunks(pos, psi, start, axes=axes)
+            trunk = self.select_trunks(pos, psi, start, axes=axes, direction=direction, taught_axes=taught_axes)
         t = np.asarray(trunk)
         if t.dtype.kind not in "iu" or t.shape not in ((), (len(pos),)) or t.size == 0 \
                 or t.min() < 0 or t.max() >= len(self):
             raise EstimationError(f"trunk: expected {len(pos)} trunk indices from 0 to {len(self) - 1}")
         trunk = np.broadcast_to(t.astype(np.int64), (len(pos),))
+        if taught_axes:
+            axes = self.T_g_camera[trunk, :3, 2]
         cam = self.camera_centres(pos, psi)
         if axes is None:
             ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
                                          gradient=gradient)
         else:
             ev = self.evaluator.evaluate(cam, trunk, axes_g=axes, gradient=gradient)
-        dpos = dyaw = None
+        conservative = self.form == "conservative"
+        g = ev.g_conservative if conservative else ev.g
+        guarded = ev.mu < 0.25 * self.c_bar**2
+        dpos = dyaw = dax = None
         if gradient:
-            assert ev.dg_dpos is not None
-            dpos = ev.dg_dpos
+            assert ev.dg_dpos is not None and ev.dgc_dpos is not None and ev.dmu_dpos is not None
+            assert ev.dg_daxis is not None and ev.dgc_daxis is not None and ev.dmu_daxis is not None
+            dpos = np.where(guarded[:, None], ev.dmu_dpos, ev.dgc_dpos if conservative else ev.dg_dpos)
+            dax = np.where(guarded[:, None], ev.dmu_daxis, ev.dgc_daxis if conservative else ev.dg_daxis)
             lever = np.asarray(self.mount.lever_arm_m, float)
             s, c = np.sin(psi), np.cos(psi)
             dcam_dyaw = np.stack([-s * lever[0] - c * lever[1], c * lever[0] - s * lever[1], np.zeros_like(psi)],
                                  axis=1)
             dyaw = np.einsum("nk,nk->n", dpos, dcam_dyaw)
             if ev.dg_dyaw is not None:
-                dyaw = dyaw + ev.dg_dyaw
-        return FieldEvaluation(trunk=trunk, vertex_id=self.vertex_ids[trunk], mu=ev.mu, sigma=ev.sigma, g=ev.g,
-                               flag=ev.flag, dg_dpos=dpos, dg_dyaw=dyaw, dg_daxis=ev.dg_daxis, raw=ev)
+                assert ev.dgc_dyaw is not None and ev.dmu_dyaw is not None
+                dyaw = dyaw + np.where(guarded, ev.dmu_dyaw, ev.dgc_dyaw if conservative else ev.dg_dyaw)
+        path_distance, past_end = self.route_distances(pos)
+        flag = ev.flag.copy()
+        flag[(path_distance > self.off_route_distance_m) | (past_end > self.off_route_past_end_m)] = OFF_ROUTE
+        return FieldEvaluation(trunk=trunk, vertex_id=self.vertex_ids[trunk], mu=ev.mu, sigma=ev.sigma, g=g,
+                               flag=flag, dg_dpos=dpos, dg_dyaw=dyaw, dg_daxis=dax, raw=ev,
+                               trunk_distance_m=np.linalg.norm(pos - self.vehicle_position_g[trunk], axis=1),
+                               path_distance_m=path_distance, past_end_m=past_end, guarded=guarded,
+                               form=self.form)
+
+
+def _check_form(form: str) -> str:
+    if form not in CONSTRAINT_FORMS:
+        raise EstimationError(f"constraint form: expected one of {', '.join(CONSTRAINT_FORMS)}, got {form!r}")
+    return form
 
 
 def _check_bounds(l_min: float, c_bar: float) -> None:
@@ -272,4 +418,5 @@ def _check_bounds(l_min: float, c_bar: float) -> None:
             raise EstimationError(f"{name} must be a finite number >= 0, got {v!r}")
 
 
-__all__ = ["CameraMount", "FieldEvaluation", "TaughtPathField", "TaughtVertex", "read_taught_vertices"]
+__all__ = ["CONSTRAINT_FORMS", "CameraMount", "FieldEvaluation", "PerceptionFieldError", "TaughtPathField",
+           "TaughtVertex", "check_direction", "perception_errors", "read_taught_vertices"]

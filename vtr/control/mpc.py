@@ -8,14 +8,23 @@ One quadratic program per outer-loop tick (50 Hz) over the linear flat model
          path rows (one of):
            none        -
            fixed d     |n_left . (p_k - c_k)| <= d + s_k,  |n_up . (p_k - c_k)| <= d + s_k
-           perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) >= margin - s_k
+           perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) [- |grad_p g| dt/2 u_k . v_k] >= margin - s_k
          terminal set  v_N = 0, a_N = 0 (hover),   s_k >= 0.
 
-``r_k`` runs along the taught path at the desired speed from the current along-track position;
-``c_k``/normals are the taught path's closest segment to the previous prediction; the perception
-row is the chance constraint ``mu - c_bar sigma - L_min`` of :class:`vtr.control.field.TaughtPathField`
-linearized about the previous prediction (one SQP iteration a tick, as in the thesis), each step
-against its own trunk (localizer's rule).
+``r_k`` runs along the taught path at the desired speed in the direction of travel
+(:class:`TaughtPathReference`, ``direction`` -1 for the route flown back, from wherever the vehicle is), its
+yaw per ``ControlConfig.yaw_reference`` (``"along_travel"``, or ``"as_taught"``: a camera on its mount keeps
+looking as taught, tail first on the way back). The perception row is the field's constraint
+(``constraint_form``: ``mu - c_bar sigma`` or eq. 7.8's ``mu - c_bar sqrt(mu)``, minus ``L_min``) linearized
+about the previous prediction (one SQP iteration a tick, as in the thesis), each step against its own trunk
+(localizer's rule in the direction of travel; ``grad mu`` where ``mu < c_bar**2/4``, see the field).
+
+**Speed governor.** On the taught path ``g`` is at its ridge (gradient ~0), so the linearized row learns of a
+narrow tube only once the plan has left the ridge, at speed too late. When the true constraint along a
+tick's new plan falls below 0 (``governor_check = "plan"``) or its rows need more slack than
+``perception_margin``, the reference's speed (``reference_speed_mps``) is multiplied by ``speed_governor``;
+otherwise it recovers toward ``speed_mps`` at ``accel_max_mps2``. ``intersample = "velocity"`` adds
+``|grad_p g| dt/2 |v_k|`` to each row (between grid points; off by default). Measurements: the docs page.
 
 **Recursive feasibility.** The terminal set is hover: at step N the vehicle is at rest, and a
 resting vehicle stays feasible for every constraint above (all are time-invariant functions of
@@ -23,7 +32,8 @@ resting vehicle stays feasible for every constraint above (all are time-invarian
 constraint is exact and the grid aligned. Two things break that guarantee in practice: the
 constraint is linearized (SQP) and the 50 Hz ticks shift a 10 Hz grid. The path rows are
 therefore softened with an exact L1 penalty (``slack_weight``, far above any tracking cost) so the
-QP always has a solution; slacks are reported every tick (``MpcSolution.max_slack``) and are zero
+QP always has a solution; slacks are reported every tick (``MpcSolution.max_slack_m`` /
+``max_slack_inliers``) and are zero
 whenever the hard problem is feasible. The hover terminal set also makes the controller brake
 in time: with a 1.5 s horizon it never plans faster than it can stop.
 
@@ -40,7 +50,9 @@ the best iterate (finite, within the box bounds up to OSQP's tolerance) with tha
 QPs are solved by OSQP (sparse, warm-started; the constraint matrix keeps one sparsity pattern
 and only its values are updated). Each QP is posed relative to the current position and yaw (OSQP's
 tolerances are absolute: absolute map coordinates in the perception rows cost accuracy and speed).
-Perception rows with gradients steeper than 1 inlier/m are divided by their gradient norm.
+Perception rows with gradients steeper than 1 inlier/m are divided by their gradient norm; the reported
+slacks are in their own units (``MpcSolution.max_slack_m`` for fixed path rows, ``max_slack_inliers`` for
+perception rows). See docs/perception_aware_mpc/README.md.
 """
 
 from __future__ import annotations
@@ -55,12 +67,18 @@ from perception_model.frames import wrap_angle
 
 from ..config import ControlConfig, check_section
 from ..errors import EstimationError
-from ..state.controller import ReferencePath
-from .field import TaughtPathField
+from ..navigation.trunk import FORWARD
+from ..state.controller import MIN_SEGMENT_LENGTH_M, ReferencePath
+from .field import TaughtPathField, check_direction
 from .flat_model import N_INPUT, N_STATE, discrete_model
 
 Mode = Literal["none", "fixed", "perception"]
+#: The camera the perception rows see: on its mount (turns with the yaw), or a gimbal holding each step's
+#: trunk's taught axis; a (3,) array is a gimbal holding that one axis in g.
+CAMERA_MOUNT, CAMERA_TAUGHT_AXIS = "mount", "taught"
 _NZ, _NW = N_STATE, N_INPUT
+_ROW_STATES = (0, 1, 2, 9, 3, 4, 5)        # the states a path row reads (position, yaw, velocity)
+_ROW = len(_ROW_STATES) + 1                # ... and its slack
 ACCEPTED_STATUS = ("solved", "solved inaccurate", "maximum iterations reached")
 
 
@@ -70,50 +88,89 @@ class MpcInfeasible(EstimationError):
 
 @dataclass(frozen=True)
 class MpcSolution:
-    """One tick: the input to apply, the predicted flat states (N, 10), slacks and solver status."""
+    """One tick: the input to apply, the predicted flat states (N, 10), slacks and solver status.
+
+    ``max_slack_m``: the largest slack of the fixed path rows (metres); ``max_slack_inliers``: of the
+    perception rows (inliers). ``trunk`` and ``flag`` (N,): the predicted steps' trunks and field flags
+    (perception mode, else None).
+    """
 
     w: np.ndarray
     z_pred: np.ndarray
     w_pred: np.ndarray
-    max_slack: float
+    max_slack_m: float
+    max_slack_inliers: float
     status: str
     iterations: int
-    trunk: np.ndarray | None  # predicted trunks (perception mode)
+    trunk: np.ndarray | None
+    flag: np.ndarray | None = None
 
 
 class TaughtPathReference:
-    """The taught path (vehicle positions in g) as reference: arc length, points and headings."""
+    """The taught path (vehicle positions in g) as a reference in the direction of travel.
 
-    def __init__(self, positions_g: np.ndarray) -> None:
+    ``direction`` +1 follows the taught order, -1 the route flown backward (the points reversed: arc length,
+    ``path`` errors and progress count along travel; ``path.error(p).lateral`` is left of travel).
+    ``yaw_g`` (K,), the taught vehicles' yaw in taught order, enables the ``"as_taught"`` yaw reference.
+    """
+
+    def __init__(self, positions_g: np.ndarray, direction: int = FORWARD, yaw_g: np.ndarray | None = None) -> None:
         p = np.asarray(positions_g, float)
         if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
             raise EstimationError(f"reference: expected finite positions of shape (K, 3), got {p.shape}")
-        self.path = ReferencePath(p)
+        self.direction = check_direction(direction)
+        order = np.arange(len(p)) if self.direction == FORWARD else np.arange(len(p))[::-1]
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(p[order], axis=0), axis=1) > MIN_SEGMENT_LENGTH_M])
+        self.taught_index = order[keep]          # travel-order point -> taught vertex index
+        self.path = ReferencePath(p[self.taught_index])
         d = self.path.directions
-        self.heading = np.arctan2(d[:, 1], d[:, 0])
+        self.heading = np.arctan2(d[:, 1], d[:, 0])   # along travel, per segment
+        self.taught_yaw = None
+        if yaw_g is not None:
+            y = np.asarray(yaw_g, float)
+            if y.shape != (len(p),) or not np.all(np.isfinite(y)):
+                raise EstimationError(f"reference yaw_g: expected {len(p)} finite angles, got shape {y.shape}")
+            self.taught_yaw = y[self.taught_index]
+
+    @classmethod
+    def from_field(cls, field: TaughtPathField, direction: int = FORWARD) -> TaughtPathReference:
+        """The field's taught vehicles (positions and yaw) in the direction of travel."""
+        return cls(field.vehicle_position_g, direction, field.vehicle_yaw_g)
 
     @property
     def length(self) -> float:
         return self.path.length
 
-    def at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Points (K, 3) and headings (K,) at arc lengths ``s`` (clipped to the path)."""
+    def at(self, s: np.ndarray, yaw: str = "along_travel") -> tuple[np.ndarray, np.ndarray]:
+        """Points (K, 3) and yaw (K,) at travel arc lengths ``s`` (clipped to the path); ``yaw``
+        ``"along_travel"`` (the segment's heading) or ``"as_taught"`` (taught yaw, interpolated)."""
         s = np.clip(np.asarray(s, float), 0.0, self.path.length)
         seg = np.clip(np.searchsorted(self.path.cumulative, s, side="right") - 1, 0, len(self.path.lengths) - 1)
-        pts = self.path.points[seg] + (s - self.path.cumulative[seg])[:, None] * self.path.directions[seg]
-        return pts, self.heading[seg]
+        frac = (s - self.path.cumulative[seg])
+        pts = self.path.points[seg] + frac[:, None] * self.path.directions[seg]
+        if yaw == "along_travel":
+            return pts, self.heading[seg]
+        if yaw != "as_taught":
+            raise EstimationError(f"yaw reference: expected along_travel or as_taught, got {yaw!r}")
+        if self.taught_yaw is None:
+            raise EstimationError("yaw reference as_taught needs the taught yaw (TaughtPathReference(yaw_g=...) "
+                                  "or TaughtPathReference.from_field)")
+        t = frac / self.path.lengths[seg]
+        a, b = self.taught_yaw[seg], self.taught_yaw[seg + 1]
+        return pts, a + t * wrap_angle(b - a)
 
 
 class PerceptionAwareMPC:
     """The MPC of the module docstring for one path-row ``mode``; call :meth:`solve` once per tick.
 
-    ``camera_axis_g`` (3,): a gimbal holding the optical axis fixed in g (the thesis' experiment);
-    default the camera mount of ``field`` (the axis turns with the vehicle's yaw).
+    The direction of travel is the ``reference``'s. ``camera``: ``"mount"`` (default; the camera mount of
+    ``field``, the axis turns with the vehicle's yaw), ``"taught"`` (a gimbal holding each step's trunk's
+    taught optical axis, the thesis' experiment) or a (3,) axis in g (a gimbal holding that one axis).
     """
 
     def __init__(self, reference: TaughtPathReference, config: ControlConfig | None = None, *,
                  mode: Mode = "perception", fixed_bound_m: float = 0.0,
-                 field: TaughtPathField | None = None, camera_axis_g: np.ndarray | None = None) -> None:
+                 field: TaughtPathField | None = None, camera: str | np.ndarray = CAMERA_MOUNT) -> None:
         import osqp
 
         self.cfg = c = config or ControlConfig()
@@ -126,14 +183,23 @@ class PerceptionAwareMPC:
             raise EstimationError(f"a fixed path-error bound must be positive, got {fixed_bound_m}")
         if mode == "fixed" and not np.isfinite(fixed_bound_m):
             raise EstimationError(f"a fixed path-error bound must be finite, got {fixed_bound_m}")
-        if field is not None:           # ControlConfig owns l_min and c_bar (the field's landmarks are shared)
-            field = field.with_bounds(c.l_min, c.c_bar)
+        if field is not None:   # ControlConfig owns l_min, c_bar, the form (the field's landmarks are shared)
+            field = field.with_bounds(c.l_min, c.c_bar, form=c.constraint_form, control=c)
         self.reference, self.mode, self.bound, self.field = reference, mode, float(fixed_bound_m), field
-        if camera_axis_g is not None:
-            axis = np.asarray(camera_axis_g, float)
+        self.direction = reference.direction
+        if c.yaw_reference == "as_taught" and reference.taught_yaw is None:
+            raise EstimationError("yaw_reference as_taught needs the taught yaw: TaughtPathReference.from_field")
+        self.camera_axis_g: np.ndarray | None = None
+        if isinstance(camera, str):
+            if camera not in (CAMERA_MOUNT, CAMERA_TAUGHT_AXIS):
+                raise EstimationError(f"camera: expected {CAMERA_MOUNT!r}, {CAMERA_TAUGHT_AXIS!r} or a 3-vector, "
+                                      f"got {camera!r}")
+            self.camera = camera
+        else:
+            axis = np.asarray(camera, float)
             if axis.shape != (3,) or not np.all(np.isfinite(axis)) or not np.linalg.norm(axis) > 0:
-                raise EstimationError(f"camera_axis_g: expected a finite non-zero 3-vector, got {axis!r}")
-        self.camera_axis_g = None if camera_axis_g is None else np.asarray(camera_axis_g, float)
+                raise EstimationError(f"camera: expected a finite non-zero 3-vector axis, got {axis!r}")
+            self.camera, self.camera_axis_g = "axis", axis
         n = self.n = int(c.horizon)
         self.Ad, self.Bd = discrete_model(c.dt_s)
         self.rows_per_step = {"none": 0, "fixed": 4, "perception": 1}[mode]
@@ -141,7 +207,16 @@ class PerceptionAwareMPC:
         self.nx = n * _NZ + n * _NW + self.n_soft
         self._build(osqp)
         self.z_prev: np.ndarray | None = None
-        self.progress_m = 0.0
+        self.progress_m: float | None = None    # along travel; set by the first tick (start anywhere)
+        self.reference_speed_mps = float(c.speed_mps)   # the speed governor's (module docstring)
+
+    def field_kwargs(self, n: int) -> dict:
+        """The camera keywords of :meth:`TaughtPathField.evaluate` / ``select_trunks`` for ``n`` steps."""
+        if self.camera == CAMERA_TAUGHT_AXIS:
+            return {"taught_axes": True}
+        if self.camera_axis_g is not None:
+            return {"axes": np.broadcast_to(self.camera_axis_g, (n, 3))}
+        return {}
 
     # ------------------------------------------------------------------ indices
     def _iz(self, k: int) -> int:  # state z_{k+1}, k = 0..N-1
@@ -202,12 +277,12 @@ class PerceptionAwareMPC:
             vals.append(1.0)
             r += 1
         self.n_box_end = r
-        # path rows: pattern (x, y, z, psi of z_{k+1}, slack k); values set every tick
+        # path rows: pattern (x, y, z, psi, vx, vy, vz of z_{k+1}, slack k); values set every tick
         self._path_coo_start = len(vals)
         self.path_row0 = r
         for k in range(n):
             for _ in range(self.rows_per_step):
-                for i in (0, 1, 2, 9):
+                for i in _ROW_STATES:
                     rows.append(r)
                     cols.append(self._iz(k) + i)
                     vals.append(1.0)
@@ -290,11 +365,11 @@ class PerceptionAwareMPC:
         z0s = z0.copy()
         z0s[:3] = 0.0
         z0s[9] = 0.0
-        # reference along the taught path at the desired speed
-        s_now = float(self.reference.path.error(z0[:3]).along_track)
-        self.progress_m = max(self.progress_m, min(s_now, self.reference.length))
-        s_ref = self.progress_m + c.speed_mps * c.dt_s * np.arange(1, n + 1)
-        r_pos, r_yaw = self.reference.at(s_ref)
+        # reference along the taught path, in the direction of travel, at the desired speed
+        s_now = min(float(self.reference.path.error(z0[:3]).along_track), self.reference.length)
+        self.progress_m = s_now if self.progress_m is None else max(self.progress_m, s_now)
+        s_ref = self.progress_m + self.reference_speed_mps * c.dt_s * np.arange(1, n + 1)
+        r_pos, r_yaw = self.reference.at(s_ref, c.yaw_reference)
         r_pos = r_pos - origin
         r_yaw = wrap_angle(r_yaw - yaw0)
         for k in range(n):
@@ -302,7 +377,8 @@ class PerceptionAwareMPC:
             self.q[self._iz(k) + 9] = -2.0 * c.q_yaw * r_yaw[k]
         self.l[:_NZ] = self.u[:_NZ] = self.Ad @ z0s
         guess = self._initial_guess(z0)
-        trunks = None
+        trunks = flags = None
+        unit = np.ones(n)           # inliers per unit of each perception row's slack
         vals = self._coo_vals
         i0 = self._path_coo_start
         rr = self.path_row0
@@ -316,30 +392,40 @@ class PerceptionAwareMPC:
                     off = float(normal @ ref_pt)
                     for sign_i, sign in enumerate((1.0, -1.0)):  # n.p + s >= off - d ; -n.p + s >= -off - d
                         row = rr + 4 * k + 2 * j + sign_i
+                        vals[i0:i0 + _ROW] = 0.0
                         vals[i0:i0 + 3] = sign * normal
-                        vals[i0 + 3] = 0.0
-                        vals[i0 + 4] = 1.0
-                        i0 += 5
+                        vals[i0 + _ROW - 1] = 1.0
+                        i0 += _ROW
                         self.l[row], self.u[row] = sign * off - self.bound, np.inf
         elif self.mode == "perception":
             assert self.field is not None
             start = int(trunk) if trunk is not None else self.field.nearest_trunk(z0[:3])
-            axes = None if self.camera_axis_g is None else np.broadcast_to(self.camera_axis_g, (n, 3))
-            ev = self.field.evaluate(guess[:, :3], guess[:, 9], previous=start, axes=axes)
-            trunks = ev.trunk
+            ev = self.field.evaluate(guess[:, :3], guess[:, 9], previous=start, direction=self.direction,
+                                     **self.field_kwargs(n))
+            trunks, flags = ev.trunk, ev.flag
             assert ev.dg_dpos is not None and ev.dg_dyaw is not None
-            # g0 + dg.(y - y0) >= margin - s   <=>   dg.y + s >= margin - g0 + dg.y0
+            # g0 + dg.(y - y0) - b u.v >= margin - s   <=>   dg.y - b u.v + s >= margin - g0 + dg.y0
             rhs = c.perception_margin - ev.g + np.einsum("nk,nk->n", ev.dg_dpos, guess[:, :3] - origin) \
                 + ev.dg_dyaw * (guess[:, 9] - yaw0)
+            dv = np.zeros((n, 3))
+            if c.intersample == "velocity":
+                v0 = guess[:, 3:6]
+                speed0 = np.linalg.norm(v0, axis=1)
+                u = np.divide(v0, speed0[:, None], out=np.zeros_like(v0), where=speed0[:, None] > 0.0)
+                dv = -(0.5 * c.dt_s * np.linalg.norm(ev.dg_dpos, axis=1))[:, None] * u
             # rows with steep gradients are divided by the gradient norm (OSQP conditioning); the
             # slack is then in metres, else in inliers
-            scale = 1.0 / np.maximum(np.sqrt(np.einsum("nk,nk->n", ev.dg_dpos, ev.dg_dpos) + ev.dg_dyaw**2), 1.0)
+            unit = np.maximum(np.sqrt(np.einsum("nk,nk->n", ev.dg_dpos, ev.dg_dpos) + ev.dg_dyaw**2), 1.0)
+            scale = 1.0 / unit
+            row = rr
             for k in range(n):
                 vals[i0:i0 + 3] = ev.dg_dpos[k] * scale[k]
                 vals[i0 + 3] = ev.dg_dyaw[k] * scale[k]
-                vals[i0 + 4] = 1.0
-                i0 += 5
-                self.l[rr + k], self.u[rr + k] = rhs[k] * scale[k], np.inf
+                vals[i0 + 4:i0 + 7] = dv[k] * scale[k]
+                vals[i0 + 7] = 1.0
+                i0 += _ROW
+                self.l[row], self.u[row] = rhs[k] * scale[k], np.inf
+                row += 1
         self.solver.update(q=self.q, l=self.l, u=self.u, Ax=vals[self._perm])
         res = self.solver.solve(raise_error=False)  # status checked below (max_iter: best iterate)
         status = str(res.info.status)
@@ -352,9 +438,22 @@ class PerceptionAwareMPC:
         z_pred[:, :3] += origin
         z_pred[:, 9] += yaw0
         w_pred = x[n * _NZ: n * (_NZ + _NW)].reshape(n, _NW)
-        slack = float(x[self._is(0):].max()) if self.n_soft else 0.0
+        slack = np.maximum(x[self._is(0):], 0.0) if self.n_soft else np.zeros(0)
+        slack_m = float(slack.max()) if self.mode == "fixed" and slack.size else 0.0
+        slack_inliers = float((slack * unit).max()) if self.mode == "perception" and slack.size else 0.0
         self.z_prev = z_pred
-        return MpcSolution(w_pred[0].copy(), z_pred, w_pred, max(slack, 0.0), status, int(res.info.iter), trunks)
+        plan_low = False
+        if self.mode == "perception" and c.governor_check == "plan":
+            assert self.field is not None and trunks is not None
+            true = self.field.evaluate(z_pred[:, :3], z_pred[:, 9], trunk=trunks, gradient=False,
+                                       **self.field_kwargs(n))
+            plan_low = bool(true.g.min() < 0.0)
+        if plan_low or slack_inliers > c.perception_margin:  # the plan cannot keep the constraint at this speed
+            self.reference_speed_mps *= c.speed_governor
+        else:                                          # recover toward the desired speed at accel_max
+            self.reference_speed_mps = min(c.speed_mps, self.reference_speed_mps + c.accel_max_mps2 / c.rate_hz)
+        return MpcSolution(w_pred[0].copy(), z_pred, w_pred, slack_m, slack_inliers, status, int(res.info.iter),
+                           trunks, flags)
 
 
 __all__ = ["MpcInfeasible", "MpcSolution", "PerceptionAwareMPC", "TaughtPathReference"]
