@@ -193,11 +193,15 @@ class TaughtPathField:
 
     @classmethod
     @translating
-    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=frames.LEVEL_CAMERA_UP,
+    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=None,
                  mount: CameraMount | None = None, config: LocalizationConfig | None = None,
                  l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
                  form: str = "normal") -> TaughtPathField:
-        """Read every taught vertex of ``vtr_map`` (open) once; ``up_map``: gravity up in the map frame."""
+        """Read every taught vertex of ``vtr_map`` (open) once. g is the map's gravity frame: up is ``up_map`` when
+        given (an override), else the map's stored gravity (``Map.gravity_up``), else a level first camera's."""
+        if up_map is None:
+            stored = vtr_map.gravity_up
+            up_map = frames.LEVEL_CAMERA_UP if stored is None else stored
         T_g_map = frames.T_g_map_from_up(up_map)
         return cls(model, read_taught_vertices(vtr_map), T_g_map=T_g_map, mount=mount,
                    config=config, l_min=l_min, c_bar=c_bar, control=control, form=form)

@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 
-from perception_model.frames import LEVEL_CAMERA_UP
 from perception_model.model import PerceptionModel
 
 from ..config import Config
@@ -77,8 +76,7 @@ class OnlineRepeat:
             self.estimator = RepeatStateEstimator.for_route(self.repeat.chain.path, config,
                                                             self.map.camera.T_vehicle_sensor, up)
             self.field = None if model is None else TaughtPathField.from_map(
-                self.map, model, up_map=LEVEL_CAMERA_UP if up is None else up, mount=mount,
-                config=config.localization)
+                self.map, model, up_map=up, mount=mount, config=config.localization, control=config.control)
         except BaseException:
             self._tmp.cleanup()
             raise
@@ -168,8 +166,8 @@ class OnlineRepeat:
         previous = int(v.vertex_trunk[-1])
         direction = int(v.vertex_direction[-1])
         pos = np.asarray(positions_g, float)
-        trunks = self.field.select_trunks(pos, yaw_g, previous, axes=axes, direction=direction)
-        return self.field.evaluate(pos, yaw_g, trunk=trunks, axes=axes, gradient=gradient)
+        return self.field.evaluate(pos, yaw_g, previous=previous, axes=axes, direction=direction or 1,
+                                   gradient=gradient)
 
     # -- lifetime ------------------------------------------------------------------------------------------------
 

@@ -154,6 +154,20 @@ def test_export_in_the_map_gravity_frame(tmp_path):
     with Map.open(tmp_path / "m.vtrmap") as m:
         export_landmarks_ply(m, tmp_path / "g.ply", gravity_aligned=True)
         export_landmarks_ply(m, tmp_path / "c.ply")
+    # the field and the controller state share the map's gravity frame: each taught vehicle's position and yaw in g
+    from perception_model.frames import yaw_of
+    from perception_model.model import PerceptionModel
+    from vtr.control.field import TaughtPathField
+
+    with Map.open(tmp_path / "m.vtrmap") as m:
+        field = TaughtPathField.from_map(m, PerceptionModel.thesis())
+        est = RepeatStateEstimator.for_route(m.taught_path(), Config(), m.camera.T_vehicle_sensor, m.gravity_up)
+    for k in range(len(field)):
+        T_g_o = est.route.T_g_o(k)
+        assert np.allclose(T_g_o[:3, 3], field.vehicle_position_g[k], atol=1e-9)
+        # yaw: the rigid mount's x (the state) against each taught optical axis' heading (the field): they differ
+        # only by the taught poses' own roll and pitch wobble (odometry noise, ~1e-4 rad here)
+        assert abs(float(yaw_of(T_g_o[:3, :3])) - field.vehicle_yaw_g[k]) < 1e-3
     z_g = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "g.ply")).points)[:, 2]
     y_cam = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "c.ply")).points)[:, 1]
     # most landmarks lie on the ground, 12 m below the first camera: in g at z = -12, in the camera frame not flat
