@@ -213,3 +213,53 @@ def test_commands_move_the_extrapolation(taught, kitti_clip):
             live.command(t_knot, a_g)
         with pytest.raises(EstimationError, match="finite"):
             live.command(t_knot + 1, [np.nan, 0, 0])
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+
+NEES_3DOF_MEDIAN = 2.366          # median of chi-square with 3 degrees of freedom
+NEES_3DOF_99 = 11.345             # its 99 % quantile
+
+
+def _position_nees(taught, kitti_clip) -> np.ndarray:
+    """NEES of the online state's position (in o, relative to the trunk) at each frame's time against KITTI's ground
+    truth relative to the true trunk pose."""
+    from vtr.geometry import inv_T
+
+    with open_source(kitti_clip) as src:
+        gt = src.ground_truth()
+        frames = [src[i] for i in range(1, 40, 2)]
+    assert gt is not None
+    with Map.open(taught) as m:
+        teach_t = dict(zip(m.taught_path().ids.tolist(), m.taught_path().t_ns.tolist(), strict=True))
+    out = []
+    with OnlineRepeat(taught) as live:
+        for f in frames:
+            live.feed(f)
+            if not live.localized:
+                continue
+            s = live.state(f.t_ns)
+            v = live.view
+            k = int(v.trunk_index_at(np.array([f.t_ns]))[0])
+            T_trunk = gt.T_world_cam[int(np.argmin(np.abs(gt.t_ns - teach_t[int(v.route.path.ids[k])])))]
+            T_rel = inv_T(T_trunk) @ gt.T_world_cam[int(np.argmin(np.abs(gt.t_ns - f.t_ns)))]
+            T_sv = v.route.T_sensor_vehicle
+            p_true = (v.route.trunk(k)[0] @ inv_T(T_sv) @ T_rel @ T_sv)[:3, 3]
+            e = s.position - p_true
+            out.append(float(e @ np.linalg.solve(s.position_covariance, e)))
+    return np.array(out)
+
+
+def test_position_covariance_covers_the_error(taught, kitti_clip):
+    nees = _position_nees(taught, kitti_clip)
+    assert len(nees) >= 15 and np.mean(nees <= NEES_3DOF_99) >= 0.9, nees
+
+
+@pytest.mark.xfail(strict=True, reason="measured on kitti06 (odd frames 1:40:2 against even 0:40:2, the state at each "
+                   "frame's time): position NEES median 1.49 over 19 states, 100 % inside the 99 % bound (the bound: "
+                   "median within 30 % of 3); conservative: the localization's own NEES median is 1.3 (vtr repeat's "
+                   "integrity line), and ticks between frames (tools/bench_online.py) fall to 0.25-0.35 where the WNOA "
+                   "prior's Qc (1 m^2/s^3) dominates the extrapolation")
+def test_position_covariance_is_calibrated(taught, kitti_clip):
+    nees = _position_nees(taught, kitti_clip)
+    assert 0.7 * 3 <= np.median(nees) <= 1.3 * 3, np.median(nees)
