@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from perception_model.model import PerceptionModel
 from vtr.config import Config, LocalizationConfig
@@ -77,3 +79,29 @@ def test_landmarks_are_cached_in_each_trunks_o(l_vertices):
         # taught camera looks along o's +y (mount yaw 90 deg), pitched down: landmarks lie at +y, below
         lm = t.landmarks_o
         assert np.median(lm[:, 1]) > 5.0 and np.all(lm[:, 2] < 0) and abs(np.median(lm[:, 0])) < 5.0
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), backward=st.booleans())
+def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, backward):
+    """select_trunks over a horizon: each step's trunk is the localizer's rule (vtr.navigation.trunk) in the window of
+    the previous step's trunk, in the direction of travel (computed here one step at a time, the window's candidates
+    whole: the field's per-step search gives the same answers)."""
+    from vtr.navigation.trunk import BACKWARD, FORWARD, select_trunk, trunk_window
+
+    field = _field(l_vertices)
+    rng = np.random.default_rng(seed)
+    cfg = field.config
+    direction = BACKWARD if backward else FORWARD
+    start = int(rng.integers(0, len(field)))
+    idx = np.clip(start + direction * np.arange(n) + rng.integers(-1, 2, n), 0, len(field) - 1)
+    pos = field.vehicle_position_g[idx] + rng.normal(0, 1.0, (n, 3))
+    yaw = field.vehicle_yaw_g[idx] + rng.normal(0, 0.2, n)
+    got = field.select_trunks(pos, yaw, start, direction=direction)
+    prev, want = start, []
+    for k in range(n):
+        lo, hi = trunk_window(prev, len(field), cfg.trunk_window_back, cfg.trunk_window_forward, direction)
+        T_g_leaf = field.camera_poses(pos[k:k + 1], yaw[k:k + 1], field.pitch_down[start])[0]
+        prev = select_trunk(np.linalg.inv(T_g_leaf) @ field.T_g_camera[lo:hi], lo, cfg.rotation_weight)
+        want.append(prev)
+    assert got.tolist() == want

@@ -304,24 +304,25 @@ class TaughtPathField:
         c = self.config
         n = len(pos)
         prev = int(previous)
-        # every step's window lies in n windows' reach of prev: one batched cost for all steps
-        reach = n * max(c.trunk_window_back, c.trunk_window_forward)
-        lo_all, hi_all = trunk_window(prev, len(self), reach, reach)
         if taught_axes:
             cam = self.camera_centres(pos, yaw)
-            cost = np.linalg.norm(cam[:, None] - self.T_g_camera[None, lo_all:hi_all, :3, 3], axis=2)
         else:
             axes_pitch = None
             if axes is not None:
                 heading, axes_pitch = frames.heading_of_axis(axes)
                 yaw = heading - self.mount.mount_yaw_rad
             pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
-            T_l_g = np.stack([inv_T(T) for T in self.camera_poses(pos, yaw, pitch)])
-            cost = trunk_cost(T_l_g[:, None] @ self.T_g_camera[None, lo_all:hi_all], c.rotation_weight)
+            T_l_g = inv_T(self.camera_poses(pos, yaw, pitch))
         out = np.empty(n, dtype=np.int64)
+        # each step's cost over its own window only (the window follows the previous step's trunk): the cost of a
+        # horizon does not grow with the route's length
         for k in range(n):
             lo, hi = trunk_window(prev, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
-            prev = lo + int(np.argmin(cost[k, lo - lo_all:hi - lo_all]))
+            if taught_axes:
+                cost = np.linalg.norm(cam[k] - self.T_g_camera[lo:hi, :3, 3], axis=1)
+            else:
+                cost = trunk_cost(T_l_g[k] @ self.T_g_camera[lo:hi], c.rotation_weight)
+            prev = lo + int(np.argmin(cost))
             out[k] = prev
         return out
 
