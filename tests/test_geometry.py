@@ -95,3 +95,21 @@ def test_covariance_validation_and_unknown_estimates():
     asym[0, 1] = 1e-3
     with pytest.raises(EstimationError, match="symmetric"):
         check_covariance(asym)
+
+
+@settings(max_examples=200, deadline=None)
+@given(axis=st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda a: np.linalg.norm(a) > 1e-3),
+       angle=st.one_of(st.floats(0.0, 1e-6), st.floats(0.0, np.pi), st.floats(np.pi - 0.02, np.pi)))
+def test_rotvec_batch_is_scipys(axis, angle):
+    from scipy.spatial.transform import Rotation
+
+    from vtr.geometry import rotvec_batch
+
+    w = np.asarray(axis) / np.linalg.norm(axis) * angle
+    R = Rotation.from_rotvec(w).as_matrix()
+    got = rotvec_batch(R[None])[0]
+    want = Rotation.from_matrix(R).as_rotvec()
+    if angle > np.pi - 1e-6:                   # a half turn: w and -w are the same rotation
+        assert np.allclose(np.abs(got), np.abs(want), atol=1e-6)
+    else:
+        assert np.allclose(got, want, atol=1e-9)

@@ -70,6 +70,29 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     return gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, float)))
 
 
+#: rotations closer than this to a half turn (rad) take scipy's rotation vector (the closed form loses the axis there)
+NEAR_HALF_TURN_RAD = 1e-2
+
+
+def rotvec_batch(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (K, 3) of rotation matrices (K, 3, 3): ``theta / (2 sin theta) vee(R - R')`` with ``theta``
+    from the trace (series near 0), scipy's for rotations within ``NEAR_HALF_TURN_RAD`` of a half turn. Numpy only
+    in the common case: a few microseconds a call instead of scipy's object construction."""
+    R = np.asarray(R, float).reshape(-1, 3, 3)
+    c = np.clip((R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0) / 2.0, -1.0, 1.0)
+    th = np.arccos(c)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    small = th < SMALL_ANGLE_RAD
+    ths = np.where(small, 1.0, th)
+    w = np.where(small, 0.5 + th**2 / 12.0, ths / (2.0 * np.sin(ths)))[:, None] * v
+    half = th > np.pi - NEAR_HALF_TURN_RAD
+    if np.any(half):
+        from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
+
+        w[half] = Rotation.from_matrix(R[half]).as_rotvec()
+    return w
+
+
 def log_se3_batch(T: np.ndarray) -> np.ndarray:
     """Logarithms (K, 6) ``[omega, v]`` of transforms (K, 4, 4): the vectorized ``log_se3`` (same convention).
 
@@ -77,9 +100,7 @@ def log_se3_batch(T: np.ndarray) -> np.ndarray:
     ``W = skew(omega)``, ``th = |omega|`` (series near 0).
     """
     T = np.asarray(T, float).reshape(-1, 4, 4)
-    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
-
-    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    w = rotvec_batch(T[:, :3, :3])
     th = np.linalg.norm(w, axis=1)
     W = np.zeros((len(T), 3, 3))
     W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]

@@ -273,14 +273,15 @@ class RepeatStateView:
         if int(t_ns) < first:
             raise NotLocalizedError(f"no state at t_ns={int(t_ns)}: before the repeat's first state ({first})")
 
-    def _state(self, t_ns: int, k: int, with_covariance: bool) -> ControllerState:
-        """The smoother's state at ``t_ns`` in trunk k's frame o, without validity."""
+    def _state(self, t_ns: int, k: int, with_covariance: bool, fit_acceleration: bool = True) -> ControllerState:
+        """The smoother's state at ``t_ns`` in trunk k's frame o, without validity (``fit_acceleration`` False: the
+        WNOA mean's, for callers that read only the outputs)."""
         self._check_state_at(t_ns)
         T_o_t, _, _ = self.route.trunk(k)
         s = self.trajectory.state_at(int(t_ns), with_covariance=with_covariance)
         cs = controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
         window = self.route.acceleration_window_s
-        if window <= 0.0:
+        if window <= 0.0 or not fit_acceleration:
             return cs
         # the acceleration of the vehicle origin from a fit of the knots' velocities (smoothing.acceleration_window_s)
         a_world, cov_world = self.trajectory.fitted_acceleration(int(t_ns), window, self.route.T_sensor_vehicle)
@@ -330,16 +331,16 @@ class RepeatStateView:
         self._check_state_at(int(t[0]))
         k = int(self.trunk_index_at(np.array([t_end_ns]))[0])
         P, yaw, H = np.zeros((n, 3)), np.zeros(n), np.zeros((4 * n, 12 * n))
-        status = []
         for j, tj in enumerate(t):
-            cs = self.controller_state_at(int(tj), k)
+            cs = self._state(int(tj), k, with_covariance=False, fit_acceleration=False)
             P[j], yaw[j] = cs.position, cs.yaw
-            status.append(cs.status.value)
             H[4 * j:4 * j + 4, 12 * j:12 * j + 12] = output_jacobian(cs.T_o_a, self.route.T_sensor_vehicle)
+        _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
+        along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
-        yaw = np.unwrap(yaw)
-        return OutputWindow(t_ns=t, position=P, yaw=yaw, covariance=0.5 * (cov + cov.T),
-                            trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k), status=np.array(status))
+        return OutputWindow(t_ns=t, position=P, yaw=np.unwrap(yaw), covariance=0.5 * (cov + cov.T),
+                            trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k),
+                            status=self.status_at(t, np.atleast_1d(along)))
 
     def states(self, t_ns: np.ndarray, *, with_covariance: bool = True) -> StateTable:
         """Controller states and path errors at the given times (int64 ns, not before the first vertex); with

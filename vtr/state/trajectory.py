@@ -293,8 +293,11 @@ class KnotTrajectory:
             tw = tw @ Ad.T
             R = R @ np.asarray(T_sensor_point, float)[:3, :3]
         v_world = np.einsum("kij,kj->ki", R, tw[:, 3:])
-        # each knot's velocity variance (trace / 3 of its linear-velocity block, world frame)
-        var = np.array([np.trace(self._knot_cov(lo + k)[9:12, 9:12]) / 3.0 for k in range(hi - lo)])
+        # each knot's linear-velocity covariance (the newest's marginal, the others' from their segment's joint)
+        V = self.seg_cov[lo:hi, 9:12, 9:12].copy()
+        if hi == self.n:
+            V[-1] = self.last_cov[9:12, 9:12]
+        var = np.trace(V, axis1=1, axis2=2) / 3.0
         w = w / np.maximum(var, PSD_RELATIVE_FLOOR)
         if np.count_nonzero(w > 0) < 2:
             return np.zeros(3), np.full((3, 3), np.inf)
@@ -304,8 +307,7 @@ class KnotTrajectory:
             return np.zeros(3), np.full((3, 3), np.inf)
         c = w * (dt - tbar) / sxx                                         # slope = sum c_k v_k
         acc = c @ v_world
-        cov = np.einsum("k,kij,k->ij", c, np.einsum("kab,kbc,kdc->kad", R, np.stack(
-            [self._knot_cov(lo + k)[9:12, 9:12] for k in range(hi - lo)]), R), c)
+        cov = np.einsum("k,kij,k->ij", c, np.einsum("kab,kbc,kdc->kad", R, V, R), c)
         return acc, 0.5 * (cov + cov.T)
 
     def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:
