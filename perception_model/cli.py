@@ -28,6 +28,7 @@ import math
 import os
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,7 +117,7 @@ def main() -> None:
     """Perception model for visual teach and repeat: p = c1 cos(c2 theta) exp(c3 alpha)."""
 
 
-def bin_options(command):
+def bin_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """The (alpha, theta) bin widths used by fitting and by R^2 in evaluation (degrees)."""
     for name, default, what in (("--theta-bin", _FIT.theta_bin_deg, "View-angle"),
                                 ("--alpha-bin", _FIT.alpha_bin_deg, "Parallax")):

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -103,7 +104,7 @@ def _broadcast(values: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[
         raise GeometryError(f"{name}: shape {np.shape(values)} does not fit the horizon {shape}") from None
 
 
-def _kernel():
+def _kernel() -> Any:
     """The compiled loop (numba is imported on first evaluation only)."""
     from . import _horizon_kernel
 

@@ -37,7 +37,7 @@ class UnfinishedRouteError(MapError):
         super().__init__(f"{reason}: its route may be incomplete; refusing to repeat it ({allow} to use its "
                          f"{self.vertices} vertices anyway)")
 
-    def __reduce__(self):          # pickled whole (a batch's worker process hands it back)
+    def __reduce__(self) -> tuple[type, tuple[str, int, str]]:   # pickled whole (a batch's worker hands it back)
         return type(self), (self.reason, self.vertices, self.allow)
 
     def allowed_by(self, allow: str) -> UnfinishedRouteError:

@@ -310,7 +310,8 @@ class TrajectorySmoother:
         params.findUnusedFactorSlots = True
         return gtsam.IncrementalFixedLagSmoother(self.config.lag_s, params)
 
-    def _insert(self, t_ns, T_ws, cov, T_pc, rel_cov) -> None:
+    def _insert(self, t_ns: int, T_ws: np.ndarray | None, cov: np.ndarray | None, T_pc: np.ndarray | None,
+                rel_cov: np.ndarray | None) -> None:
         c = self._cache
         k = c.n
         first = k == 0
@@ -331,9 +332,9 @@ class TrajectorySmoother:
         timestamps: dict[Any, float] = {X(k): t_s, V(k): t_s}
         values.insert(X(k), gtsam.Pose3(T_init))
         values.insert(V(k), v_init)
-        if T_ws is not None:
+        if T_ws is not None and cov is not None:          # given together (add_knot checked)
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T_ws), gtsam.noiseModel.Gaussian.Covariance(cov)))
-        if T_pc is not None:
+        if T_pc is not None and rel_cov is not None:
             graph.add(
                 gtsam.BetweenFactorPose3(
                     X(k - 1), X(k), gtsam.Pose3(T_pc), gtsam.noiseModel.Gaussian.Covariance(rel_cov)
