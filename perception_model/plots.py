@@ -81,6 +81,7 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
         f"perception model fit: p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha), angles in {unit}   "
         f"R^2 = {result.r2:.3f}, n = {result.n}"
     )
+    path.parent.mkdir(parents=True, exist_ok=True)
     try:
         replace_file(path, lambda tmp: fig.savefig(tmp, dpi=PLOT_DPI))   # never through a link at ``path``
     finally:

@@ -61,7 +61,7 @@ from typing import Any
 import yaml
 
 from .. import __version__
-from ..config import Config
+from ..config import Config, DuplicateKeyError, UniqueKeyLoader
 from ..errors import ConfigError, DataError, OutputError, VtrError
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
 from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
@@ -132,8 +132,9 @@ class Manifest:
         return [r for route in self.routes for r in (route.teach, *route.repeats)]
 
 
-class _ManifestLoader(yaml.SafeLoader):
-    """YAML as written: no YAML 1.1 base-60 numbers (an unquoted ``frames: 1:10`` is the string "1:10", not 70)."""
+class _ManifestLoader(UniqueKeyLoader):
+    """YAML as written: no YAML 1.1 base-60 numbers (an unquoted ``frames: 1:10`` is the string "1:10", not 70),
+    and no key given twice (:class:`vtr.config.UniqueKeyLoader`)."""
 
 
 _ManifestLoader.yaml_implicit_resolvers = {
@@ -155,8 +156,12 @@ def load_manifest(path: str | Path) -> Manifest:
         raise DataError(f"{path}: no such manifest file")
     try:
         doc = yaml.load(path.read_text(encoding="utf-8-sig"), Loader=_ManifestLoader)  # noqa: S506 - a SafeLoader
+    except DuplicateKeyError as err:
+        raise ConfigError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: cannot parse YAML ({str(err).splitlines()[0]})") from err
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to read (a manifest is routes, runs and their keys)") from None
     except (UnicodeDecodeError, OSError) as err:
         raise ConfigError(f"{path}: cannot read the manifest ({err})") from err
     if not isinstance(doc, dict) or not isinstance(doc.get("routes"), list) or not doc["routes"]:
@@ -535,6 +540,19 @@ def check_scheduler(address: str | None) -> str | None:
     return address
 
 
+def check_scheduler_tls(address: str | None) -> None:
+    """A ``tls://`` scheduler needs this client's certificates from Dask's configuration; ``ConfigError`` naming the
+    settings when there are none (distributed would fail deep inside with a ``TypeError``)."""
+    if address is None or not address.startswith("tls://"):
+        return
+    from distributed.security import Security
+
+    if Security().get_connection_args("client").get("ssl_context") is None:
+        raise ConfigError(f"--scheduler {address}: tls:// needs this client's TLS certificates in Dask's configuration "
+                          "(distributed.comm.tls.ca-file, distributed.comm.tls.client.cert and .key, e.g. in "
+                          "~/.config/dask/distributed.yaml or DASK_DISTRIBUTED__COMM__TLS__CA_FILE=...); none is set")
+
+
 class BatchLock:
     """``OUT/.vtr-batch.lock`` held (``flock``, exclusive) while a batch writes ``OUT``; a second batch on the
     same folder gets ``OutputError`` at once. The kernel releases it when the process ends, however."""
@@ -581,6 +599,7 @@ def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     from ..parallel import available_cores, resolve_threads
 
     check_inputs(manifest)
+    check_scheduler_tls(opts.scheduler)
     workers = check_workers(opts.workers) if opts.scheduler is None else (opts.workers or available_cores())
     check_scheduler(opts.scheduler)
     if opts.scheduler is None and opts.threads is not None:   # sizes that multiply: processes x threads
@@ -692,7 +711,7 @@ class _DaskClient:
         if self.opts.scheduler:
             try:        # tls:// takes its certificates from Dask's config (distributed.comm.tls.*)
                 self.client = Client(self.opts.scheduler, timeout=30)
-            except (OSError, TimeoutError, ValueError) as err:
+            except (OSError, TimeoutError, ValueError, TypeError) as err:   # TypeError: distributed's TLS setup
                 raise ConfigError(f"--scheduler {self.opts.scheduler}: cannot connect ({one_line(err)})") from None
             return self.client
         security = local_security()
