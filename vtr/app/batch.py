@@ -428,7 +428,8 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
         if spec.is_teach:
             teach_command(spec.source, map_path, spec.frames, config, work, spec.fmt)
         else:
-            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME, map_path)
+            taught = OutputFolder(folder.parent / TEACH_FOLDER).own_file(MAP_NAME)   # never a planted link
+            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME if taught is None else taught, map_path)
             repeat_command(spec.source, map_path, work, spec.frames, config, spec.fmt)
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
