@@ -189,3 +189,15 @@ def test_a_long_constraint_path_is_evaluated_in_chunks_with_the_same_rows(tmp_pa
     monkeypatch.setattr(cli, "MAX_CHUNK_ELEMENTS", 300 * 64)
     assert csv_of(tmp_path / "b") == whole
     assert max(sizes) == 64 and sum(sizes) == n
+
+
+def test_a_config_or_manifest_that_is_a_pipe_is_named_as_one(tmp_path):
+    """Found beyond the issue's list: a named pipe as --config or manifest was reported as "no such file"."""
+    for name in ("c.yaml", "m.yaml"):
+        os.mkfifo(tmp_path / name)
+    with pytest.raises(ConfigError, match="c.yaml: is a named pipe"):
+        Config.load(tmp_path / "c.yaml")
+    from vtr.errors import DataError
+
+    with pytest.raises(DataError, match="m.yaml: is a named pipe"):
+        load_manifest(tmp_path / "m.yaml")

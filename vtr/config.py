@@ -444,9 +444,14 @@ class Config:
 
     @classmethod
     def load(cls, path: str | Path) -> Config:
+        from perception_model.inputs import input_problem
+
         path = Path(path)
-        if not path.is_file():
+        if not path.exists():
             raise ConfigError(f"{path}: no such config file")
+        problem = input_problem(path)            # a folder, a named pipe or a device: never opened
+        if problem is not None:
+            raise ConfigError(f"{path}: {problem}")
         try:
             text = path.read_bytes().decode("utf-8")
         except OSError as err:

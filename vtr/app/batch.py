@@ -151,9 +151,14 @@ for _tag, _pattern, _first in (
 
 def load_manifest(path: str | Path) -> Manifest:
     """Read and check a batch manifest; errors name the file and the field."""
+    from perception_model.inputs import input_problem
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise DataError(f"{path}: no such manifest file")
+    problem = input_problem(path)                # a folder, a named pipe or a device: never opened
+    if problem is not None:
+        raise DataError(f"{path}: {problem}")
     try:
         doc = yaml.load(path.read_text(encoding="utf-8-sig"), Loader=_ManifestLoader)  # noqa: S506 - a SafeLoader
     except DuplicateKeyError as err:
