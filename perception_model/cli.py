@@ -28,7 +28,7 @@ import math
 import os
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -231,6 +231,7 @@ def fit_cmd(
     check_output(model_path, force, inputs=landmarks)      # again: the fit may have taken minutes
     if plot is not None:
         check_output(plot, force, inputs=(*landmarks, model_path))
+    model_path.parent.mkdir(parents=True, exist_ok=True)
     data = obs.describe()
     result.model.save(model_path, fit=result.to_dict(), data=data)
     click.echo(_fit_summary(result, data))
@@ -360,6 +361,7 @@ def evaluate_cmd(
             click.echo(line)
     if json_out is not None:
         check_output(json_out, force, inputs=inputs)
+        json_out.parent.mkdir(parents=True, exist_ok=True)
         replace_text(json_out, results + "\n")
         click.echo(f"wrote {json_out}", err=json_flag == "-")
 
@@ -509,8 +511,9 @@ def constraint_cmd(
     report_constraint(table, l_min, cbar, to_stdout, csv_path)
 
 
-#: A per-position table: header, rows, (column, width, format) of the printed columns, the summary's first words.
-Table = tuple[list[str], list[list[Any]], list[tuple[str, int, str]], str]
+#: A per-position table: header, rows (a list, or an iterator over rows made chunk by chunk), (column, width,
+#: format) of the printed columns, the summary's first words.
+Table = tuple[list[str], Iterable[list[Any]], list[tuple[str, int, str]], str]
 #: The printed columns every constraint table ends with.
 COMMON_FMT = [
     ("mu", 8, ".2f"),
@@ -519,41 +522,78 @@ COMMON_FMT = [
     ("g_conservative", 8, ".2f"),
     ("p_fail_normal", 10, ".3e"),
 ]
+#: With a CSV written (--out DIR), the terminal shows at most this many rows of the table (the CSV has them all).
+MAX_PRINTED_ROWS = 200
+#: Positions evaluated at once are bounded so that positions x landmarks stays below this many elements (the
+#: evaluation's work arrays are a few of that size: a 2 M-position path is done chunk by chunk, not in GiBs).
+MAX_CHUNK_ELEMENTS = 1 << 20
+#: A progress line on stderr after each chunk when the path has more positions than this.
+PROGRESS_ABOVE_POSITIONS = 50_000
 
 
 def report_constraint(table: Table, l_min: float, cbar: float, to_stdout: bool, csv_path: Path | None) -> None:
-    """Print the summary (and the table unless it goes to stdout as CSV), then write the CSV."""
-    import numpy as np
-
+    """Print the summary (and the table unless it goes to stdout as CSV), then write the CSV. Rows are streamed:
+    the CSV is written as they come (whole: a temporary file renamed at the end), the terminal shows at most
+    :data:`MAX_PRINTED_ROWS` of them when a CSV holds them all."""
     from .constraint import delta_from_c_bar
 
     header, rows, fmt, intro = table
     echo = (lambda text: click.echo(text, err=True)) if to_stdout else click.echo
     echo(f"{intro}, L_min = {l_min:g}, c_bar = {cbar:.4g} (delta = {delta_from_c_bar(cbar):.3g})")
-    if not to_stdout:
-        cols = [(name, max(width, len(name)), spec) for name, width, spec in fmt]
-        echo(" ".join(f"{name:>{width}s}" for name, width, _ in cols))
+    cols = [(name, max(width, len(name)), spec) for name, width, spec in fmt]
+    gi = header.index("g")
+    stats = {"n": 0, "violated": 0, "worst": -1, "g_worst": math.inf}
+
+    def consume(writer: Any) -> None:
+        if writer is not None:
+            writer.writerow(header)
+        elif not to_stdout:
+            echo(" ".join(f"{name:>{width}s}" for name, width, _ in cols))
         for r in rows:
-            echo(" ".join(f"{r[header.index(name)]:{width}{spec}}" for name, width, spec in cols))
-    g = np.array([r[header.index("g")] for r in rows])
-    worst = int(np.argmin(g))
-    echo(
-        f"constraint mu - c_bar sigma >= L_min violated at {int((g < 0).sum())} of {len(rows)} positions; "
-        f"smallest margin g = {g[worst]:.2f} at index {worst}"
-    )
+            k = stats["n"]
+            g = r[gi]
+            stats["violated"] += g < 0
+            if g < stats["g_worst"] or stats["worst"] < 0:
+                stats["g_worst"], stats["worst"] = g, k
+            if writer is not None:
+                writer.writerow(r)
+            if not to_stdout and (csv_path is None or k < MAX_PRINTED_ROWS):
+                if k == 0 and writer is not None:
+                    echo(" ".join(f"{name:>{width}s}" for name, width, _ in cols))
+                echo(" ".join(f"{r[header.index(name)]:{width}{spec}}" for name, width, spec in cols))
+            stats["n"] = k + 1
+
     if to_stdout:
-        writer = csv.writer(sys.stdout, lineterminator="\n")
-        writer.writerow(header)
-        writer.writerows(rows)
+        consume(csv.writer(sys.stdout, lineterminator="\n"))
     elif csv_path is not None:
         def write(tmp: Path) -> None:
             with tmp.open("w", newline="") as fh:
-                writer = csv.writer(fh)
-                writer.writerow(header)
-                writer.writerows(rows)
+                consume(csv.writer(fh))
 
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
         replace_file(csv_path, write)        # whole, never through a link (refused before the work)
+    else:
+        consume(None)
+    n = stats["n"]
+    if csv_path is not None and n > MAX_PRINTED_ROWS:
+        echo(f"... {n - MAX_PRINTED_ROWS} more rows in {csv_path}")
+    echo(
+        f"constraint mu - c_bar sigma >= L_min violated at {stats['violated']} of {n} positions; "
+        f"smallest margin g = {stats['g_worst']:.2f} at index {stats['worst']}"
+    )
+    if csv_path is not None:
         echo(f"wrote {csv_path}")
+
+
+def position_chunks(n: int, n_landmarks: int) -> Iterator[slice]:
+    """Slices of ``range(n)`` with at most :data:`MAX_CHUNK_ELEMENTS` position-landmark pairs each; a progress line
+    on stderr after each one when ``n`` is above :data:`PROGRESS_ABOVE_POSITIONS`."""
+    size = max(1, MAX_CHUNK_ELEMENTS // max(n_landmarks, 1))
+    for start in range(0, n, size):
+        stop = min(n, start + size)
+        yield slice(start, stop)
+        if n > PROGRESS_ABOVE_POSITIONS:
+            click.echo(f"constraint: {stop}/{n} positions", err=True)
 
 
 def constraint_on_landmarks(
@@ -567,7 +607,7 @@ def constraint_on_landmarks(
     taught_camera: str | None,
     exact: bool,
 ) -> Table:
-    """Per-position rows for landmarks given in frame o."""
+    """Per-position rows for landmarks given in frame o, evaluated chunk by chunk as they are consumed."""
     import numpy as np
 
     from .constraint import PerceptionConstraint, normal_tail, poisson_binomial_tail
@@ -579,29 +619,32 @@ def constraint_on_landmarks(
     pos = path.positions - origin
     yaw = path.yaw if path.yaw is not None else np.full(pos.shape[0], math.radians(yaw_deg or 0.0))
     con = PerceptionConstraint(model, pts, l_min=l_min, c_bar=cbar, pitch_down=math.radians(pitch))
-    ev = con.evaluate(pos, yaw, gradient=False)
     header = ["index", "x", "y", "z", "yaw_deg", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
     if exact:
         header.append("p_fail_exact")
-    rows = []
-    for i in range(pos.shape[0]):
-        row: list[Any] = [
-            i,
-            *path.positions[i].tolist(),
-            math.degrees(float(yaw[i])),
-            float(ev.mu[i]),
-            float(ev.sigma[i]),
-            float(ev.g[i]),
-            float(ev.g_conservative[i]),
-            normal_tail(float(ev.mu[i]), float(ev.sigma[i]), l_min, lower=True),
-        ]
-        if exact:
-            row.append(poisson_binomial_tail(ev.p[i], l_min, lower=True))
-        rows.append(row)
+
+    def rows() -> Iterator[list[Any]]:
+        for part in position_chunks(pos.shape[0], pts.shape[0]):
+            ev = con.evaluate(pos[part], yaw[part], gradient=False)
+            for j, i in enumerate(range(part.start, part.stop)):
+                row: list[Any] = [
+                    i,
+                    *path.positions[i].tolist(),
+                    math.degrees(float(yaw[i])),
+                    float(ev.mu[j]),
+                    float(ev.sigma[j]),
+                    float(ev.g[j]),
+                    float(ev.g_conservative[j]),
+                    normal_tail(float(ev.mu[j]), float(ev.sigma[j]), l_min, lower=True),
+                ]
+                if exact:
+                    row.append(poisson_binomial_tail(ev.p[j], l_min, lower=True))
+                yield row
+
     fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f")]
     fmt += COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
     intro = f"{pts.shape[0]} landmarks, {pos.shape[0]} positions, pitch {pitch:g} deg"
-    return header, rows, fmt, intro
+    return header, rows(), fmt, intro
 
 
 if __name__ == "__main__":  # pragma: no cover

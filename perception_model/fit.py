@@ -163,6 +163,12 @@ class Evaluation:
         }
 
 
+#: A constant is unidentifiable from the data when one standard error of it changes the model, over the data's angle
+#: range, by more than this: c1 by this much (the probability scale), c2 theta_max by this many radians of the
+#: cosine's argument, c3 alpha_max by this much of the exponent (a factor e). The data then cannot tell its value.
+MAX_IDENTIFIABLE_EFFECT = 1.0
+
+
 @dataclass(frozen=True)
 class FitResult:
     """Outcome of a fit: model, intervals (model unit), quality on training and held-out data."""
@@ -184,6 +190,39 @@ class FitResult:
     holdout: Evaluation | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     c1_at_bound: bool = False
+
+    def effect_of_one_std_err(self) -> dict[str, float]:
+        """How much one standard error of each constant changes the model over the data's angle range (see
+        :data:`MAX_IDENTIFIABLE_EFFECT`); NaN when the fit gave no standard error."""
+        k = UNIT_SCALE[self.model.angle_unit]
+        scale = {"c1": 1.0, "c2": self.model.theta_max * k, "c3": self.model.alpha_max * k}
+        return {c.name: c.std_err * scale[c.name] if math.isfinite(c.std_err) else math.nan for c in self.intervals}
+
+    @property
+    def unidentifiable(self) -> tuple[str, ...]:
+        """The constants these data cannot determine (no finite standard error, or one standard error changes the
+        model by more than :data:`MAX_IDENTIFIABLE_EFFECT` over the data's angle range)."""
+        return tuple(name for name, e in self.effect_of_one_std_err().items()
+                     if not math.isfinite(e) or e > MAX_IDENTIFIABLE_EFFECT)
+
+    def check_identified(self, source: str) -> FitResult:
+        """This result, or ``FitError`` naming every constant the data cannot determine (a degenerate fit is not a
+        result: ``c2 = +7.7e-16`` with a 95 % interval of +-4.7e10 was once printed as one)."""
+        bad = self.unidentifiable
+        if not bad:
+            return self
+        effect = self.effect_of_one_std_err()
+        by = {c.name: c for c in self.intervals}
+        angles = (f"parallax up to {math.degrees(self.model.alpha_max):.3g} deg, view up to "
+                  f"{math.degrees(self.model.theta_max):.3g} deg")
+        if not all(math.isfinite(effect[n]) for n in bad):
+            why = f"the fit's matrix is singular: no standard errors; {angles}"
+        else:
+            why = "; ".join(f"{n} = {by[n].estimate:+.3g}, standard error {by[n].std_err:.2g}" for n in bad) + (
+                f": one standard error changes the model by more than {MAX_IDENTIFIABLE_EFFECT:g} over the data's "
+                f"angles, {angles}")
+        raise FitError(f"{source}: the data cannot identify {', '.join(bad)} ({why}): not a result; collect "
+                       "observations over a wider range of angles")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary for the model file's ``fit`` section."""
@@ -815,7 +854,7 @@ def fit_observations(obs: Observations, settings: FitSettings | None = None, **c
     if held.any():
         holdout = _evaluate(result.model, a[held], t[held], y[held], bins=s.bins, calibration_bins=s.calibration_bins)
     extra = dict(result.extra, holdout_fraction=s.holdout_fraction, seed=s.seed)
-    return FitResult(**{**vars(result), "holdout": holdout, "extra": extra})
+    return FitResult(**{**vars(result), "holdout": holdout, "extra": extra}).check_identified(source)
 
 
 def simulate_labels(
@@ -944,4 +983,4 @@ def fit_binned_stream(
         message=str(res.message),
         extra={"bins": {"alpha_width": spec.alpha_width * k, "theta_width": spec.theta_width * k,
                         "min_count": spec.min_count, "unit": angle_unit}, "streamed": True},
-    )
+    ).check_identified(source)

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputDataError
+from .inputs import input_problem
 from .landmarks_file import check_unique_columns
 
 _POINT_COLUMNS = ("x", "y", "z")
@@ -46,6 +47,9 @@ MAX_POSITION_M = 1e7
 
 def _read_table(path: Path, required: Sequence[str]) -> _Table:
     """Columns of a CSV file as lists of stripped strings, after checking the header."""
+    problem = input_problem(path)
+    if problem is not None:
+        raise InputDataError(f"{path}: {problem}")
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM is not part of the header
             reader = csv.reader(fh)
@@ -109,6 +113,9 @@ def read_points(path: str | Path) -> NDArray[np.float64]:
     """Landmark positions ``(M, 3)`` (metres, frame ``o``) from a CSV with ``x,y,z`` or a ``.npy``."""
     p = Path(path)
     if p.suffix.lower() == ".npy":
+        problem = input_problem(p)
+        if problem is not None:
+            raise InputDataError(f"{p}: {problem}")
         try:
             arr = np.load(p, allow_pickle=False)
         except (OSError, ValueError) as err:

@@ -47,6 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputDataError
+from .inputs import input_problem
 from .records import short_repr
 
 
@@ -635,6 +636,9 @@ def read_landmarks(path: str | Path, fields: Collection[str] | None = None) -> O
     import pyarrow as pa
 
     p = Path(path)
+    problem = input_problem(p)
+    if problem is not None:
+        raise InputDataError(f"{p}: {problem}")
     want = _fields(fields)
     if _is_parquet(p):
         return _read_parquet(p, want)

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ModelFileError, PerceptionModelError, PerceptionModelWarning
+from .inputs import MAX_MODEL_FILE_BYTES, read_small_text
 from .outputs import replace_text
 from .settings import UNIT_SCALE  # the units the constants may be expressed in (radians -> unit)
 
@@ -265,15 +266,21 @@ class PerceptionModel:
         """Read a model JSON file; ``ModelFileError`` on bad content, warnings on suspicious constants."""
         p = Path(path)
         try:
-            text = p.read_text()
+            text = read_small_text(p, MAX_MODEL_FILE_BYTES)
         except OSError as err:
             raise ModelFileError(f"{p}: cannot read model file ({err.strerror or err})") from None
+        except UnicodeDecodeError:
+            raise ModelFileError(f"{p}: not a model file (not UTF-8 text)") from None
+        except ValueError as err:
+            raise ModelFileError(f"{p}: {err}") from None
         try:
             d = json.loads(text)
         except json.JSONDecodeError as err:
             raise ModelFileError(
                 f"{p}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})"
             ) from None
+        except RecursionError:
+            raise ModelFileError(f"{p}: nested too deeply to read (a model file is an object of constants)") from None
         model = cls.from_dict(d, source=str(p))
         if check_range:
             for problem in model.range_problems():
@@ -284,9 +291,11 @@ class PerceptionModel:
 def read_model_sections(path: str | Path) -> dict[str, Any]:
     """The whole JSON object of a model file (for its ``fit``/``data`` sections)."""
     try:
-        out = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
+        out = json.loads(read_small_text(path, MAX_MODEL_FILE_BYTES))
+    except (OSError, ValueError) as err:
         raise ModelFileError(f"{path}: cannot read model file ({err})") from None
+    except RecursionError:
+        raise ModelFileError(f"{path}: nested too deeply to read (a model file is an object of constants)") from None
     if not isinstance(out, dict):
         raise ModelFileError(f"{path}: expected a JSON object at top level")
     return out

@@ -127,13 +127,19 @@ def temporary_name(name: str) -> str:
 def replace_file(path: Path | str, writer: Callable[[Path], Any]) -> Path:
     """Write ``path`` whole: ``writer(tmp)`` writes a new temporary file beside it (created exclusively, never a
     link), which is renamed over ``path`` when ``writer`` returns; on any error the temporary file is removed
-    and ``path`` is untouched. Never follows a link at ``path`` (a rename replaces the name); callers refuse a
-    link there first (:func:`existing_output`) so that a user's link is not silently replaced either.
+    and ``path`` is untouched (its folder must exist). Never follows a link at ``path`` (a rename replaces the
+    name); callers refuse a link there first (:func:`existing_output`) so that a user's link is not silently
+    replaced either.
     ``OSError`` when the folder cannot be written or ``writer`` left something other than a regular file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / temporary_name(path.name)
-    os.close(create_exclusive(tmp))
+    failed: OSError | None = None
+    try:
+        os.close(create_exclusive(tmp))
+    except OSError as err:
+        failed = err
+    if failed is not None:                 # named after the output (its folder is missing, not writable...)
+        raise OSError(failed.errno, failed.strerror, str(path))
     try:
         writer(tmp)
         if entry_problem(tmp) is not None:

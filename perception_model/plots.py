@@ -46,23 +46,25 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(PLOT_SIZE_IN[0] * 1.4, PLOT_SIZE_IN[1]), sharey=True,
                              constrained_layout=True)
     sparse = (counts > 0) & (counts < min_count)
+    contours_drawable = len(a_mid) >= 2 and len(t_mid) >= 2
     for ax, data, title in (
         (axes[0], freq, f"observed inlier frequency (bins with >= {min_count} observations)"),
         (axes[1], fitted, f"fitted model ({result.method})"),
     ):
         mesh = ax.pcolormesh(a_edges * k, t_edges * k, data.T, vmin=0.0, vmax=vmax, cmap="viridis")
-        cs = ax.contour(
-            a_mid * k,
-            t_mid * k,
-            fitted.T,
-            levels=[c for c in PLOT_CONTOURS if c < vmax],
-            colors="k",
-            linewidths=0.8,
-        )
-        ax.clabel(cs, fontsize=7)
+        if contours_drawable:          # contour lines need at least 2 x 2 bins (one view-angle row has none)
+            cs = ax.contour(
+                a_mid * k,
+                t_mid * k,
+                fitted.T,
+                levels=[c for c in PLOT_CONTOURS if c < vmax],
+                colors="k",
+                linewidths=0.8,
+            )
+            ax.clabel(cs, fontsize=7)
         ax.set_xlabel(f"parallax angle alpha [{unit}]")
         ax.set_title(title, fontsize=9)
-    if sparse.any():
+    if sparse.any() and contours_drawable:
         axes[0].contourf(a_mid * k, t_mid * k, sparse.T.astype(float), levels=[0.5, 1.5], colors="none",
                          hatches=["////"])
         axes[0].text(0.01, 0.99, f"hatched: 1-{min_count - 1} observations (not used)",
@@ -81,6 +83,7 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
         f"perception model fit: p = {c1:.3f} cos({c2:.4f} theta) exp({c3:.4f} alpha), angles in {unit}   "
         f"R^2 = {result.r2:.3f}, n = {result.n}"
     )
+    path.parent.mkdir(parents=True, exist_ok=True)
     try:
         replace_file(path, lambda tmp: fig.savefig(tmp, dpi=PLOT_DPI))   # never through a link at ``path``
     finally:

@@ -158,8 +158,10 @@ def test_toml_binary_and_folder(tmp_path: Path):
     t.write_bytes(b"\xff\xfe[features]\n")
     with pytest.raises(ConfigError, match="not UTF-8"):
         Config.load(t)
-    with pytest.raises(ConfigError, match="no such config file"):
+    with pytest.raises(ConfigError, match="is a folder, not a file"):
         Config.load(tmp_path)
+    with pytest.raises(ConfigError, match="no such config file"):
+        Config.load(tmp_path / "absent.toml")
 
 
 def test_cross_field_rules_name_both_keys():

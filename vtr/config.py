@@ -1,7 +1,8 @@
 """One typed configuration for the whole pipeline, with every default documented here.
 
 Defaults follow the open-source VT&R3 stack (docs/README.md); benchmarks decide changes. A config
-loads from YAML (or TOML) holding any subset of the sections below; unknown keys are errors.
+loads from YAML (or TOML) holding any subset of the sections below; unknown keys, a key given twice and
+nesting deeper than a config has are one-line errors.
 Dump the resolved defaults with ``vtr config``.
 
 Every field declares its domain beside its default (``setting(default, Range(...))`` or
@@ -27,6 +28,54 @@ from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
 from .errors import ConfigError
 
+# ------------------------------------------------------------------ reading config and manifest files
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A key given twice in one mapping of a YAML or TOML file (the message names the key and both lines)."""
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader refusing a key given twice in one mapping (PyYAML keeps the last one silently):
+    :class:`DuplicateKeyError` naming the key and both lines. The config and the batch manifest use it."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _value in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                first = seen.get(key)
+            except TypeError:                 # an unhashable key: the base class reports it
+                continue
+            if first is not None:
+                raise DuplicateKeyError(f"key {key!r} given twice (lines {first} and {line}); keep one")
+            seen[key] = line
+        return super().construct_mapping(node, deep)
+
+
+def toml_duplicate_key(text: str) -> str | None:
+    """A key or table given twice in TOML ``text`` (simple ``key = value`` lines and ``[table]`` headers, as a
+    config has), as words naming it and both lines; None when there is none (``tomllib`` checks the rest)."""
+    table, seen = "", dict[str, int]()
+    for lineno, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line.startswith("#") or line.startswith("[["):
+            continue
+        if line.startswith("["):
+            table = line[1:line.find("]")].strip() if "]" in line else line[1:]
+            name, what = f"[{table}]", "table"
+        elif "=" in line:
+            key = line.split("=", 1)[0].strip().strip('"').strip("'")
+            name, what = f"{table}.{key}" if table else key, "key"
+        else:
+            continue
+        if name in seen:
+            return f"{what} {name!r} given twice (lines {seen[name]} and {lineno}); keep one"
+        seen[name] = lineno
+    return None
 
 @dataclass(frozen=True)
 class Range:
@@ -422,9 +471,14 @@ class Config:
 
     @classmethod
     def load(cls, path: str | Path) -> Config:
+        from perception_model.inputs import input_problem
+
         path = Path(path)
-        if not path.is_file():
+        if not path.exists():
             raise ConfigError(f"{path}: no such config file")
+        problem = input_problem(path)            # a folder, a named pipe or a device: never opened
+        if problem is not None:
+            raise ConfigError(f"{path}: {problem}")
         try:
             text = path.read_bytes().decode("utf-8")
         except OSError as err:
@@ -433,12 +487,19 @@ class Config:
             raise ConfigError(f"{path}: not a text config file (not UTF-8; expected YAML or TOML)") from None
         try:
             if path.suffix == ".toml":
+                duplicate = toml_duplicate_key(text)
+                if duplicate is not None:
+                    raise ConfigError(f"{path}: {duplicate}")
                 data = tomllib.loads(text)
             else:
-                data = yaml.safe_load(text)
+                data = yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+        except DuplicateKeyError as err:
+            raise ConfigError(f"{path}: {err}") from None
         except (yaml.YAMLError, tomllib.TOMLDecodeError) as err:
             reason = " ".join(str(err).split())
             raise ConfigError(f"{path}: cannot parse ({reason})") from None
+        except RecursionError:
+            raise ConfigError(f"{path}: nested too deeply to read (a config is two levels: section, key)") from None
         return cls.from_dict({} if data is None else data, str(path))
 
     def validate(self, where: str = "config") -> None:

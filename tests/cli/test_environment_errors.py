@@ -123,13 +123,30 @@ def test_no_room_while_writing_outputs(tmp_path, limit):
 
 @needs_dev_full
 def test_full_disk_export_trajectory(tmp_path):
+    """A link at the output (here to /dev/full) is refused with or without --force (docs/outputs.md); a disk that
+    refuses the write (a file-size limit) is one line naming the output, which is then neither there nor half."""
+    import resource
+    import signal
+    import subprocess
+    import sys
+
     tum = tmp_path / "t.txt"
     tum.write_text("0.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")
     dest = tmp_path / "full.csv"
-    dest.symlink_to(FULL)      # an existing path: export-trajectory replaces it only with --force
-    assert_one_line(["export-trajectory", tum, dest, "--to", "euroc"], str(dest), "already exists")
-    assert_one_line(["export-trajectory", tum, dest, "--to", "euroc", "--force"], str(dest),
-                    "No space left on device")
+    dest.symlink_to(FULL)
+    for force in ([], ["--force"]):
+        assert_one_line(["export-trajectory", tum, dest, "--to", "euroc", *force], str(dest), "symbolic link")
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (60, 60))
+
+    new = tmp_path / "new.csv"
+    r = subprocess.run([sys.executable, "-m", "vtr", "export-trajectory", tum, new, "--to", "euroc"],
+                       capture_output=True, text=True, preexec_fn=small_files)
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert str(new) in r.stderr and "File too large" in r.stderr
+    assert not new.exists() and not list(tmp_path.glob(".vtr-tmp-*"))
 
 
 def test_the_first_error_of_a_chain_is_reported():

@@ -241,3 +241,25 @@ def test_envelope_marks_where_the_model_extrapolates(kitti_map, tmp_path):
         counts[name] = sum(int(row[f"{d}_extrapolated"]) for row in rows for d in ("left", "right", "up", "down"))
         assert ("valid range" in r.stderr) == (counts[name] > 0)
     assert counts["wide"] == 0 and counts["narrow"] > 0
+
+
+def test_envelope_work_is_bounded_before_it_starts_and_reports_progress(kitti_map, tmp_path, monkeypatch):
+    """`envelope --step 0.001` on a 51-vertex map ran for many minutes without a word: the worst-case work
+    (vertices x 4 x max/step) is refused before any is done, naming a step that passes; a run reports progress."""
+    import vtr.app.perception as perception
+
+    model = tmp_path / "thesis.json"
+    PerceptionModel.thesis().save(model)
+    n = len(perception._read(kitti_map)[0])
+    monkeypatch.setattr(perception, "ENVELOPE_MAX_EVALUATIONS", n * 4 * 100)     # 100 cells per direction
+    r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", "--step", "0.01", "--max", "2"])
+    assert r.exit_code == 1, r.output
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and "--step 0.01 m" in line and f"on {n} vertices" in line, line
+    suggested = float(line.split("use --step ")[1].split(" m")[0])
+    perception.check_envelope_work(n, suggested, 2.0)                           # the advice passes
+    assert not (tmp_path / "env" / "envelope.csv").exists()
+    r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", "--step", str(suggested),
+              "--max", "2"])
+    assert r.exit_code == 0, r.output
+    assert f"envelope: {n}/{n} vertices" in r.stderr

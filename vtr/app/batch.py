@@ -61,7 +61,7 @@ from typing import Any
 import yaml
 
 from .. import __version__
-from ..config import Config
+from ..config import Config, DuplicateKeyError, UniqueKeyLoader
 from ..errors import ConfigError, DataError, OutputError, VtrError
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
 from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
@@ -132,8 +132,9 @@ class Manifest:
         return [r for route in self.routes for r in (route.teach, *route.repeats)]
 
 
-class _ManifestLoader(yaml.SafeLoader):
-    """YAML as written: no YAML 1.1 base-60 numbers (an unquoted ``frames: 1:10`` is the string "1:10", not 70)."""
+class _ManifestLoader(UniqueKeyLoader):
+    """YAML as written: no YAML 1.1 base-60 numbers (an unquoted ``frames: 1:10`` is the string "1:10", not 70),
+    and no key given twice (:class:`vtr.config.UniqueKeyLoader`)."""
 
 
 _ManifestLoader.yaml_implicit_resolvers = {
@@ -150,13 +151,22 @@ for _tag, _pattern, _first in (
 
 def load_manifest(path: str | Path) -> Manifest:
     """Read and check a batch manifest; errors name the file and the field."""
+    from perception_model.inputs import input_problem
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise DataError(f"{path}: no such manifest file")
+    problem = input_problem(path)                # a folder, a named pipe or a device: never opened
+    if problem is not None:
+        raise DataError(f"{path}: {problem}")
     try:
         doc = yaml.load(path.read_text(encoding="utf-8-sig"), Loader=_ManifestLoader)  # noqa: S506 - a SafeLoader
+    except DuplicateKeyError as err:
+        raise ConfigError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: cannot parse YAML ({str(err).splitlines()[0]})") from err
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to read (a manifest is routes, runs and their keys)") from None
     except (UnicodeDecodeError, OSError) as err:
         raise ConfigError(f"{path}: cannot read the manifest ({err})") from err
     if not isinstance(doc, dict) or not isinstance(doc.get("routes"), list) or not doc["routes"]:
@@ -423,7 +433,8 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
         if spec.is_teach:
             teach_command(spec.source, map_path, spec.frames, config, work, spec.fmt)
         else:
-            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME, map_path)
+            taught = OutputFolder(folder.parent / TEACH_FOLDER).own_file(MAP_NAME)   # never a planted link
+            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME if taught is None else taught, map_path)
             repeat_command(spec.source, map_path, work, spec.frames, config, spec.fmt)
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
@@ -535,6 +546,19 @@ def check_scheduler(address: str | None) -> str | None:
     return address
 
 
+def check_scheduler_tls(address: str | None) -> None:
+    """A ``tls://`` scheduler needs this client's certificates from Dask's configuration; ``ConfigError`` naming the
+    settings when there are none (distributed would fail deep inside with a ``TypeError``)."""
+    if address is None or not address.startswith("tls://"):
+        return
+    from distributed.security import Security
+
+    if Security().get_connection_args("client").get("ssl_context") is None:
+        raise ConfigError(f"--scheduler {address}: tls:// needs this client's TLS certificates in Dask's configuration "
+                          "(distributed.comm.tls.ca-file, distributed.comm.tls.client.cert and .key, e.g. in "
+                          "~/.config/dask/distributed.yaml or DASK_DISTRIBUTED__COMM__TLS__CA_FILE=...); none is set")
+
+
 class BatchLock:
     """``OUT/.vtr-batch.lock`` held (``flock``, exclusive) while a batch writes ``OUT``; a second batch on the
     same folder gets ``OutputError`` at once. The kernel releases it when the process ends, however."""
@@ -581,6 +605,7 @@ def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     from ..parallel import available_cores, resolve_threads
 
     check_inputs(manifest)
+    check_scheduler_tls(opts.scheduler)
     workers = check_workers(opts.workers) if opts.scheduler is None else (opts.workers or available_cores())
     check_scheduler(opts.scheduler)
     if opts.scheduler is None and opts.threads is not None:   # sizes that multiply: processes x threads
@@ -692,7 +717,7 @@ class _DaskClient:
         if self.opts.scheduler:
             try:        # tls:// takes its certificates from Dask's config (distributed.comm.tls.*)
                 self.client = Client(self.opts.scheduler, timeout=30)
-            except (OSError, TimeoutError, ValueError) as err:
+            except (OSError, TimeoutError, ValueError, TypeError) as err:   # TypeError: distributed's TLS setup
                 raise ConfigError(f"--scheduler {self.opts.scheduler}: cannot connect ({one_line(err)})") from None
             return self.client
         security = local_security()

@@ -11,11 +11,13 @@ says so instead of printing NaN.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ..geometry import inv_T, log_se3, rotation_angle
+from ..navigation.localization import LocalizationStatus
 
 SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
 KITTI_BENCHMARK_SEGMENTS = "100-800 m"
@@ -165,24 +167,38 @@ class Integrity:
     median_error_m: float
     covered: float
     median_nees: float
+    refused_off_route: int = 0      # attempts refused as off the route (beyond an end): counted apart from misses
+
+    @property
+    def missed(self) -> int:
+        """Attempts that did not localize, other than the refusals off the route."""
+        return self.attempts - self.successes - self.refused_off_route
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "missed": self.missed}
 
     def __str__(self) -> str:
         first = "none" if self.first_correct is None else f"attempt {self.first_correct}"
-        return (f"against ground truth: {self.correct} of {self.attempts} attempts correct, {self.wrong} wrong "
-                f"successes (> {100 * WRONG_SUCCESS_M:.0f} cm or {WRONG_SUCCESS_DEG:g} deg); first correct {first}, "
-                f"{100 * self.rate_after:.0f} % correct after it; reported sigma covers "
-                f"{100 * self.covered:.0f} % of errors (3 sigma)")
+        judged = self.attempts - self.refused_off_route
+        refused = (f", {self.refused_off_route} refused as off the route (counted apart, not as misses)"
+                   if self.refused_off_route else "")
+        after = f", {100 * self.rate_after:.0f} % correct after it" if self.first_correct is not None else ""
+        cover = (f"reported sigma covers {100 * self.covered:.0f} % of errors (3 sigma)" if math.isfinite(self.covered)
+                 else "reported sigma not judged (no correct success)")
+        return (f"against ground truth: {self.correct} of {judged} attempts on the route correct{refused}, "
+                f"{self.missed} missed, {self.wrong} wrong successes (> {100 * WRONG_SUCCESS_M:.0f} cm or "
+                f"{WRONG_SUCCESS_DEG:g} deg); first correct {first}{after}; {cover}")
 
 
 def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covariance: np.ndarray,
-                           T_true: np.ndarray) -> Integrity:
+                           T_true: np.ndarray, off_route: np.ndarray | None = None) -> Integrity:
     """Judge attempts (``success`` (N,), estimates and covariances (N, 4, 4), (N, 6, 6) [rot, trans] left
-    perturbation) against the true ``T_leaf_trunk`` (N, 4, 4; NaN where unknown: such a success is wrong)."""
+    perturbation) against the true ``T_leaf_trunk`` (N, 4, 4; NaN where unknown: such a success is wrong).
+    ``off_route`` (N,) marks the attempts refused as off the route: counted apart, neither correct nor missed,
+    and left out of ``rate_after``."""
     success = np.asarray(success, bool)
     n = len(success)
+    refused = np.zeros(n, bool) if off_route is None else (np.asarray(off_route, bool) & ~success)
     correct = np.zeros(n, bool)
     errors, nees = [], []
     for k in np.flatnonzero(success):
@@ -201,10 +217,12 @@ def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covari
             except np.linalg.LinAlgError:
                 nees.append(float("inf"))
     first = int(np.argmax(correct)) if correct.any() else None
-    after = float(correct[first:].mean()) if first is not None else 0.0
+    judged_after = ~refused[first:] if first is not None else np.zeros(0, bool)
+    after = float(correct[first:][judged_after].mean()) if judged_after.any() else 0.0
     nees_a = np.array(nees)
     return Integrity(attempts=n, successes=int(success.sum()), correct=int(correct.sum()),
                      wrong=int(success.sum() - correct.sum()), first_correct=first, rate_after=after,
+                     refused_off_route=int(refused.sum()),
                      median_error_m=float(np.median(errors)) if errors else float("nan"),
                      covered=float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
                      median_nees=float(np.median(nees_a)) if len(nees_a) else float("nan"))
@@ -232,4 +250,5 @@ def integrity_of(locs, trunk_t_ns: np.ndarray, gt_repeat, gt_teach) -> Integrity
                              gt_repeat.T_world_cam, gt_teach.t_ns, gt_teach.T_world_cam)
     return localization_integrity(np.array([loc.success for loc in locs], bool),
                                   np.array([loc.T_leaf_trunk for loc in locs]).reshape(-1, 4, 4),
-                                  np.array([loc.covariance for loc in locs]).reshape(-1, 6, 6), T_true)
+                                  np.array([loc.covariance for loc in locs]).reshape(-1, 6, 6), T_true,
+                                  np.array([loc.status == LocalizationStatus.OFF_ROUTE for loc in locs], bool))

@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,6 +59,10 @@ ENVELOPE_MAX_CELLS = 20_000
 ENVELOPE_LIMIT_M = 10_000.0
 ENVELOPE_CHUNK = 256
 DIRECTIONS = ("left", "right", "up", "down")
+#: Work bound of one envelope: at most this many grid evaluations of the bound in the worst case (vertices x 4
+#: directions x max / step; each costs about half a millisecond, so this is minutes at most). A crossing is refined
+#: by ENVELOPE_BISECTIONS bisections to step / 64 anyway: a finer step rarely changes a figure by a millimetre.
+ENVELOPE_MAX_EVALUATIONS = 1_000_000
 
 
 def open_map(path: str | Path) -> Map:
@@ -208,17 +213,22 @@ def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
 
 def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
                           up_map=None, step_m: float = ENVELOPE_STEP_M,
-                          max_m: float = ENVELOPE_MAX_M) -> list[EnvelopeRow]:
+                          max_m: float = ENVELOPE_MAX_M,
+                          progress: Callable[[int, int], None] | None = None) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring); ``up_map`` overrides the
-    map's gravity (default: the map's stored up, else a level first camera)."""
+    map's gravity (default: the map's stored up, else a level first camera). ``progress(i, n)`` is called after each
+    vertex; the work is bounded (:func:`check_envelope_work`, before any is done)."""
     check_envelope_grid(step_m, max_m)
     check_bounds(l_min, c_bar)
     vertices, camera, stored_up = _read(map_path)
+    check_envelope_work(len(vertices), step_m, max_m)
     T_g_map = frames.T_g_map_from_up(stored_up if up_map is None else up_map)
     R_map_g = T_g_map[:3, :3].T
     grid = np.arange(step_m, max_m + 1e-9, step_m)
     rows = []
-    for v in vertices:
+    for i_vertex, v in enumerate(vertices):
+        if progress is not None and i_vertex:
+            progress(i_vertex, len(vertices))
         centre = v.T_map_camera[:3, 3]
         heading, _pitch = frames.heading_of_axis(T_g_map[:3, :3] @ v.T_map_camera[:3, 2])
         left = np.array([-np.sin(heading), np.cos(heading), 0.0])
@@ -254,7 +264,23 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
                         for name, d_g in dirs_g.items()}
         rows.append(EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped,
                                 extrapolated))
+    if progress is not None:
+        progress(len(vertices), len(vertices))
     return rows
+
+
+def check_envelope_work(n_vertices: int, step_m: float, max_m: float) -> None:
+    """``InputDataError`` (one line naming ``--step``) when the worst case of the scan, ``n_vertices`` x 4
+    directions x ``max_m / step_m`` evaluations, is above :data:`ENVELOPE_MAX_EVALUATIONS`; it names the finest
+    step the map allows."""
+    evaluations = n_vertices * len(DIRECTIONS) * (max_m / step_m)
+    if evaluations > ENVELOPE_MAX_EVALUATIONS:
+        finest = n_vertices * len(DIRECTIONS) * max_m / ENVELOPE_MAX_EVALUATIONS
+        raise InputDataError(
+            f"envelope --step {step_m:g} m with --max {max_m:g} m on {n_vertices} vertices is up to "
+            f"{evaluations:.3g} evaluations of the bound (at most {ENVELOPE_MAX_EVALUATIONS:.0e}, a few minutes); use "
+            f"--step {math.ceil(finest * 1e4) / 1e4:g} m or more (each crossing is refined by bisection to step/"
+            f"{2 ** ENVELOPE_BISECTIONS} anyway) or a smaller --max")
 
 
 def check_envelope_grid(step_m: float, max_m: float) -> None:

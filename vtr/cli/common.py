@@ -37,6 +37,9 @@ def load_config(path: Path | None, threads: int | None = None) -> Config:
 PROGRESS_LINE_EVERY = 100
 
 
+_PLURALS = {"vertex": "vertices"}
+
+
 class LineProgress:
     """Progress for a log or a pipe: ``DESC: k/N UNITs`` lines on stderr at the first item, every ``every``
     items and at the last (no carriage returns); the same methods as the tqdm bars used here."""
@@ -49,7 +52,7 @@ class LineProgress:
         before, self.n = self.n, self.n + n
         if before == 0 or self.n // self.every > before // self.every or self.n == self.total:
             of = f"/{self.total}" if self.total else ""
-            click.echo(f"{self.desc}: {self.n}{of} {self.unit}s{self._postfix}", err=True)
+            click.echo(f"{self.desc}: {self.n}{of} {_PLURALS.get(self.unit, self.unit + 's')}{self._postfix}", err=True)
 
     def set_postfix_str(self, text: str) -> None:
         self._postfix = f" ({text})" if text else ""

@@ -45,6 +45,7 @@ from perception_model.errors import InputDataError
 from perception_model.settings import THESIS_PITCH_DOWN_RAD
 
 from ..errors import VtrError
+from .common import make_bar
 
 #: The package's commands this group holds as they are (``constraint`` is declared here, with ``--map``).
 PACKAGE_COMMANDS = ("fit", "evaluate")
@@ -248,8 +249,17 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     check_output(out, force, folder=True, option="--out", inputs=(model_path, map_path))
     model = PerceptionModel.load(model_path)
     up_map = None if up is None else _parse_vector(up, "--up")
+    bars: list[Any] = []
+
+    def progress(done: int, total: int) -> None:     # a bar on a terminal, a line every 10 vertices in a log
+        if not bars:
+            bars.append(make_bar(total, "envelope", "vertex", every=10))
+        bars[0].update(done - bars[0].n)
+        if done == total:
+            bars[0].close()
+
     rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m,
-                                 max_m=max_m)
+                                 max_m=max_m, progress=progress)
     csv_path, png = write_envelope(rows, out, l_min=l_min, title=f"{map_path.name}: localization envelope")
     for d in DIRECTIONS:
         vals = [r.distance_m[d] for r in rows]

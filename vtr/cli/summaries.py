@@ -37,8 +37,10 @@ def teach_lines(s: TeachSummary) -> list[str]:
 
 
 def repeat_lines(s: RepeatSummary) -> list[str]:
+    rate = f"({100 * s.success_rate:.1f} %)" if math.isfinite(s.success_rate) else "(no vertex)"
+    inliers = f"{s.median_inliers:.0f}" if math.isfinite(s.median_inliers) else "none"
     out = [f"repeat: frames {s.frames}  vertices {s.vertices}  localized {s.localized} "
-           f"({100 * s.success_rate:.1f} %)  median inliers {s.median_inliers:.0f}  "
+           f"{rate}  median inliers {inliers}  "
            f"{_fps(s.frames, s.seconds):.1f} frames/s"]
     if s.statuses:
         out.append(", ".join(f"{k} {v}" for k, v in s.statuses.items()))

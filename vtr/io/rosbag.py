@@ -421,6 +421,9 @@ class RosbagSource(FrameSource):
             raise
         except self._damage_errors as err:
             hint = " (a truncated ROS 1 bag can be repaired with `rosbag reindex`)" if not self.ros2 else ""
+            if "end magic" in str(err).lower():      # an MCAP file whose end (footer, index) is missing
+                hint = (" (the MCAP file does not end as MCAP files do: it was truncated, e.g. a recording or a "
+                        "copy cut short; `mcap recover FILE -o FIXED.mcap` of the mcap CLI rebuilds what is readable)")
             reason = "a record length is absurd (damaged file)" if isinstance(err, MemoryError) else \
                 " ".join(str(err).split()) or type(err).__name__
             raise DataError(f"{self.path}: cannot open bag: {reason}{hint}") from err

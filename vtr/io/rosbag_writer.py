@@ -190,6 +190,8 @@ class RosbagWriter:
         if not self._closed:
             self._closed = True
             self._writer.close()
+            if self.kind == "mcap":
+                add_mcap_chunk_crcs(self.path / f"{self.path.name}.mcap")
 
     def __enter__(self) -> RosbagWriter:
         return self
@@ -197,6 +199,44 @@ class RosbagWriter:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+#: MCAP record opcodes and layout this module reads (https://mcap.dev/spec): magic, Chunk and DataEnd records.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_MCAP_CHUNK, _MCAP_DATA_END = 0x06, 0x0F
+_CHUNK_CRC_AT = 24                 # the uncompressed CRC follows start time, end time and uncompressed size
+
+
+def add_mcap_chunk_crcs(path: Path) -> int:
+    """Fill in the CRC-32 of every uncompressed chunk of the MCAP file ``path`` (rosbags writes 0: "no check"),
+    so that a reader detects a damaged chunk instead of decoding other bytes; returns the number of chunks.
+    Compressed chunks keep their CRC (vtr writes none)."""
+    import struct
+    from binascii import crc32
+
+    n = 0
+    with open(path, "r+b") as f:
+        data = f.read()
+        if not data.startswith(MCAP_MAGIC):
+            raise DataError(f"{path}: not an MCAP file (no magic)")
+        pos = len(MCAP_MAGIC)
+        while pos + 9 <= len(data):
+            op = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            body = pos + 9
+            if op == _MCAP_DATA_END:
+                break
+            if op == _MCAP_CHUNK:
+                (name_len,) = struct.unpack_from("<I", data, body + 28)
+                compression = data[body + 32:body + 32 + name_len]
+                records_at = body + 32 + name_len + 8
+                (size,) = struct.unpack_from("<Q", data, records_at - 8)
+                if compression == b"":
+                    f.seek(body + _CHUNK_CRC_AT)
+                    f.write(struct.pack("<I", crc32(data[records_at:records_at + size])))
+                    n += 1
+            pos = body + length
+    return n
 
 
 def write_bag(path: str | Path, frames: Iterable[StereoImages], camera: StereoCamera, kind: str = "rosbag1",

@@ -29,6 +29,8 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import TypeVar
 
+from perception_model.inputs import input_problem
+
 from ..errors import MapError, VtrError
 from .lock import MapLock
 
@@ -227,6 +229,9 @@ class MapFile:
             raise MapError(f"no map at {path}")
         if path.is_dir():
             raise MapError(f"{path} is a directory, not a map file")
+        problem = input_problem(path)         # a named pipe or a device would block the open below forever
+        if problem is not None:
+            raise MapError(f"{path}: {problem}")
         conn = None
         lock = MapLock.writer(path) if writable else MapLock.reader(path)
         try:

@@ -90,5 +90,6 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
         if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False, print_progress=False):  # type: ignore[arg-type]
             raise MapError(f"{path}: open3d could not write the point cloud")
 
+    path.parent.mkdir(parents=True, exist_ok=True)
     replace_file(path, write)           # whole, and never through a link at ``path``
     return summary

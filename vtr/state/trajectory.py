@@ -180,10 +180,16 @@ class KnotStates:
 # Validation helpers
 
 
+_T_NS_MIN, _T_NS_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
+
+
 def check_time(t_ns: object, what: str = "t_ns") -> int:
     if isinstance(t_ns, bool) or not isinstance(t_ns, int | np.integer):
         raise EstimationError(f"{what}: expected an integer time in nanoseconds, got {type(t_ns).__name__}")
-    return int(t_ns)
+    t = int(t_ns)
+    if not _T_NS_MIN <= t <= _T_NS_MAX:    # times are stored as int64: checked before anything is inserted
+        raise EstimationError(f"{what}={t}: outside the int64 nanosecond range [{_T_NS_MIN}, {_T_NS_MAX}]")
+    return t
 
 
 
