@@ -149,3 +149,31 @@ def test_a_running_scheduler_is_used_unchanged(data, undisturbed, tmp_path):
     got, want = tmp_path / "out" / "route_0" / "rep_1m", out / "route_0" / "rep_1m"
     for f in OUTPUTS:
         assert (got / f).read_bytes() == (want / f).read_bytes(), f
+
+
+@pytest.mark.parametrize("change", ["recalibrated", "swapped"])
+def test_a_changed_source_of_the_same_size_reruns(data, tmp_path, change):
+    """Resume compares what a run read by content: a recalibration of the same size, or two images swapped, rerun the
+    runs that read them (keyed by path, file count and bytes alone, both were 'resumed' with the old results)."""
+    copy_data = tmp_path / "data"
+    shutil.copytree(data.parent, copy_data, symlinks=True)
+    manifest = copy_data / data.name
+    first = run_batch(load_manifest(manifest), tmp_path / "fresh", BatchOptions(workers=1))
+    assert {o.status for o in first.outcomes} <= {FINISHED, FAILED}
+    again = run_batch(load_manifest(manifest), tmp_path / "fresh", BatchOptions(workers=1))
+    assert {o.name: o.status for o in again.outcomes}["rep_0m"] == RESUMED
+    rep = copy_data / "route_0" / "rep_0m"
+    if change == "recalibrated":
+        calib = rep / "calib.txt"
+        text = calib.read_text()
+        flipped = text.replace("0.", "1.", 1)
+        assert len(flipped) == len(text) and flipped != text
+        calib.write_text(flipped)
+    else:
+        a, b = sorted((rep / "image_0").iterdir())[2:4]
+        tmp = a.with_suffix(".tmp")
+        a.rename(tmp), b.rename(a), tmp.rename(b)
+    result = run_batch(load_manifest(manifest), tmp_path / "fresh", BatchOptions(workers=1))
+    status = {o.name: o for o in result.outcomes}
+    assert status["teach"].status == RESUMED and status["rep_1m"].status == RESUMED
+    assert status["rep_0m"].status != RESUMED and "source changed" in (status["rep_0m"].changed or ""), status["rep_0m"]

@@ -63,6 +63,7 @@ import yaml
 from .. import __version__
 from ..config import Config, DuplicateKeyError, UniqueKeyLoader
 from ..errors import ConfigError, DataError, OutputError, VtrError
+from .fingerprint import source_fingerprint
 from .outputs import RECORD, OutputFolder, check_apart, check_no_links
 from .runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog, read_run
 
@@ -333,14 +334,16 @@ def outcome_from_folder(spec: RunSpec, folder: Path, status: str, changed: str |
 
 
 def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str, Any]:
-    """What makes a run's result: its source (path, files, bytes), frames, format, config (without the thread
-    count: results are identical for every count), the vtr version; a repeat's teach key too."""
+    """What makes a run's result: its source (path, files, bytes, and a fingerprint of their content:
+    :func:`vtr.app.fingerprint.source_fingerprint`), frames, format, config (without the thread count: results are
+    identical for every count), the vtr version; a repeat's teach key too."""
     config = run_config(spec, None).to_dict()
     config.get("features", {}).pop("threads", None)
     src = spec.source.resolve()
     files = [src] if src.is_file() else [f for f in src.rglob("*") if f.is_file()]
     key: dict[str, Any] = {
         "source": str(src), "source_files": len(files), "source_bytes": sum(f.stat().st_size for f in files),
+        "source_content": source_fingerprint(src),
         "frames": spec.frames, "format": spec.fmt,
         "config": hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest(),
         "version": __version__}
@@ -361,7 +364,7 @@ def key_change(folder: Path, key: dict[str, Any]) -> str | None:
     diff = [k for k in key if old.get(k) != key[k]]
     if not diff:
         return None
-    names = {"source_files": "source", "source_bytes": "source", "teach": "its teach"}
+    names = {"source_files": "source", "source_bytes": "source", "source_content": "source", "teach": "its teach"}
     what = sorted({names.get(k, k) for k in diff})
     detail = f" ({old.get('frames')!r} -> {key['frames']!r})" if "frames" in diff else ""
     return f"rerun: {', '.join(what)} changed{detail}"
