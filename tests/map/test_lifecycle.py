@@ -351,3 +351,49 @@ def test_an_unfinished_route_error_names_its_way_out_and_survives_pickling():
     back = pickle.loads(pickle.dumps(err))
     assert type(back) is UnfinishedRouteError and str(back) == str(err) and back.vertices == 12
     assert "(--allow-partial to use its 12 vertices anyway)" in str(err.allowed_by("--allow-partial"))
+
+
+def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_path):
+    """After a SIGKILLed writer its vertices live only in the -wal: readers say the map is not closed (map info
+    warns, map check fails naming --repair), a copy of the file alone lacks them; a writer or --repair folds them."""
+    path = tmp_path / "killed.vtrmap"
+    proc = _start_writer(path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for f in (proc.stdin, proc.stdout, proc.stderr):
+        f.close()
+    assert os.path.getsize(f"{path}-wal") > 0
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copyfile(path, alone / "copy.vtrmap")
+    assert states(alone / "copy.vtrmap") == []            # the file alone: the run is only in the log
+    info = CliRunner().invoke(main, ["map", "info", str(path)])
+    assert info.exit_code == 0, info.output
+    assert "warning: not closed:" in info.output and "vtr map check --repair" in info.output
+    check = CliRunner().invoke(main, ["map", "check", str(path)])
+    assert check.exit_code == 1 and "not closed" in check.output and "--repair" in check.output, check.output
+    repaired = CliRunner().invoke(main, ["map", "check", "--repair", str(path)])
+    assert repaired.exit_code == 0, repaired.output
+    assert "folded" in repaired.output and ": ok (" in repaired.output
+    shutil.copyfile(path, alone / "after.vtrmap")
+    [(kind, state, n, _)] = states(alone / "after.vtrmap")   # now the file alone holds the killed run
+    assert (kind, state) == ("teach", "interrupted") and n >= 5
+    assert "not closed" not in CliRunner().invoke(main, ["map", "info", str(path)]).output
+
+
+def test_a_writer_folds_a_killed_writers_log_on_open(tmp_path):
+    path = tmp_path / "killed.vtrmap"
+    proc = _start_writer(path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for f in (proc.stdin, proc.stdout, proc.stderr):
+        f.close()
+    with Map.open(path) as m:
+        assert m.not_closed() is not None and m.file.unfolded_pages() > 0
+    with Map.open(path, "a") as m:
+        assert m.file.unfolded_pages() == 0                 # folded before anything else happens
+        copy = tmp_path / "copy.vtrmap"
+        shutil.copyfile(path, copy)                          # while the writer holds it: the file alone is whole
+    assert [s[:2] for s in states(copy)] == [("teach", "interrupted")]
+    with Map.open(path) as m:
+        assert m.not_closed() is None

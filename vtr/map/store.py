@@ -299,6 +299,20 @@ class Map:
     def closed(self) -> bool:
         return self._file.closed
 
+    def not_closed(self) -> str | None:
+        """Why the map file alone is not the whole map: committed data left in its write-ahead log by a writer
+        that was killed (a copy of the file without its ``-wal`` would lose it). None when the file is whole or a
+        live writer holds the map (its log is expected). A writer (mode ``"a"``) folds such a log on open;
+        ``vtr map check --repair`` does that."""
+        if self.mode == "a" or self._file.writer_alive():
+            return None
+        pages = self._file.unfolded_pages()
+        if not pages:
+            return None
+        return (f"not closed: {pages} page(s) committed in {self.path.name}-wal are not in the map file (its "
+                f"writer was killed); run `vtr map check --repair` to fold them in (until then keep the -wal "
+                "beside it: a copy of the map file alone lacks them)")
+
     @property
     def gravity_up(self) -> np.ndarray | None:
         """Unit up direction (3,) in the map frame (the teach run's first left camera), as taught (``vtr teach
