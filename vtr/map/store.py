@@ -177,7 +177,8 @@ class Map:
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
         self._aborted = False           # this session aborted a run
-        self._checksums = integrity.META_KEY in self.meta   # verified on every read (vtr.map.integrity)
+        assert file.conn is not None   # verified on every read (vtr.map.integrity); damaged metadata refused
+        self._checksums = integrity.checksummed(file.conn, str(file.path))
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
             # the open run (writing to it resumes it) until a new run begins
