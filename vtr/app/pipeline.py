@@ -346,7 +346,7 @@ class RepeatRun:
         _check_path_to_follow(m)
         start = _start_hint(m, self.start_vertex, self.start_distance_m)
         self.repeat = Repeat(m, self.config, source=str(self.source_path), start_index=start,
-                             allow_partial=self.allow_partial)
+                             allow_partial=self.allow_partial, warn=self.warn)
 
     def loop(self) -> RepeatLoop:
         """Every frame through the repeat loop; a row of ``localization.csv`` and the rows of ``landmarks.csv`` (the
