@@ -342,3 +342,35 @@ def test_an_interrupted_repeat_leaves_map_and_reports_in_agreement(kitti_clip, t
         assert len(rows) == repeat.n_vertices            # one row per written vertex
     landmark_leaves = {int(r["leaf_id"]) for r in csv.DictReader(open(out / "landmarks.csv"))}
     assert landmark_leaves == set(reported)
+
+
+def test_a_teach_whose_odometry_fails_on_most_frames_fails(kitti_clip, tmp_path):
+    """Odometry failing on 9 of 10 frames (real featureless images) ends `vtr teach` failed: one line naming the
+    count and the setting, exit 1, the run aborted with that reason, never finished; the threshold is a setting."""
+    import cv2
+
+    clip = tmp_path / "clip"
+    shutil.copytree(kitti_clip, clip)
+    for i in range(1, 10):                         # frames 1..9: a uniform grey image, nothing to track
+        for side in ("image_0", "image_1"):
+            png = clip / side / f"{i:06d}.png"
+            grey = np.full_like(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), 128)
+            assert cv2.imwrite(str(png), grey)
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", clip, "--map", path, "--frames", "0:10")
+    assert r.exit_code == 1, r.output
+    line = one_line_error(r.stderr, "teach failed", "of 10 frames", "odometry.teach_max_failed_fraction")
+    failed = int(re.search(r"failed on (\d+) of 10", line).group(1))
+    assert failed >= 9
+    [run] = taught(path)[0]
+    assert run.state == "aborted" and not run.finished
+    assert run.reason.startswith("TeachFailedError: teach failed: odometry failed on")
+    r = invoke("map", "info", path)
+    assert "aborted" in r.output and "teach failed" in r.output
+    # the same frames with the bound raised to 1 (never fail) finish: the threshold is what decides
+    config = tmp_path / "lenient.yaml"
+    config.write_text("odometry:\n  teach_max_failed_fraction: 1.0\n")
+    lenient = tmp_path / "lenient.vtrmap"
+    r = invoke("teach", clip, "--map", lenient, "--frames", "0:10", "--config", config)
+    assert r.exit_code == 0, r.output
+    assert [x.state for x in taught(lenient)[0]] == ["finished"]
