@@ -171,6 +171,22 @@ def copy_map_file(src: Path, dst: Path) -> None:
         s.close()
 
 
+def copy_map_read_only(src: Path, dst: Path) -> None:
+    """Copy the map ``src`` whole to the new file ``dst`` (SQLite's online backup through a read-only connection:
+    what a killed writer left in its write-ahead log is included; ``src`` and its folder are never written)."""
+    s = connect_readonly(src)
+    try:
+        d = sqlite3.connect(dst)
+        try:
+            s.backup(d)
+        finally:
+            d.close()
+    except sqlite3.Error as err:
+        raise MapError(f"{src}: cannot copy the map to {dst} ({err})") from err
+    finally:
+        s.close()
+
+
 def bytes_on_disk(path: Path) -> int:
     """Size of a map file plus its write-ahead log, bytes."""
     total = 0
