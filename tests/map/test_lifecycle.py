@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -397,3 +398,34 @@ def test_a_writer_folds_a_killed_writers_log_on_open(tmp_path):
     assert [s[:2] for s in states(copy)] == [("teach", "interrupted")]
     with Map.open(path) as m:
         assert m.not_closed() is None
+
+
+def test_not_closed_reads_the_log_as_sqlite_does(tmp_path):
+    """A live writer's log is not reported; a log whose header has a flipped byte is ignored by SQLite (the file
+    alone is the map) and not reported either; a flipped byte in the last frame drops only the last commit."""
+    path = tmp_path / "live.vtrmap"
+    proc = _start_writer(path)
+    try:
+        with Map.open(path) as m:
+            assert m.runs()[0].state == "running" and m.not_closed() is None   # its writer holds it
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        for f in (proc.stdin, proc.stdout, proc.stderr):
+            f.close()
+    wal = Path(f"{path}-wal")
+    with Map.open(path) as m:
+        pages = m.file.unfolded_pages()
+        assert pages > 0
+    data = bytearray(wal.read_bytes())
+    data[-1] ^= 0x01                                    # the last frame's page: its commit is not valid
+    wal.write_bytes(bytes(data))
+    Path(f"{path}-shm").unlink()                        # SQLite rebuilds its index of the log from the log
+    with Map.open(path) as m:
+        fewer = m.file.unfolded_pages()
+        assert 0 < fewer < pages and m.runs()[0].n_vertices == 4   # the fifth vertex's commit dropped
+    data[16] ^= 0x01                                    # salt-1 in the header: SQLite ignores the whole log
+    wal.write_bytes(bytes(data))
+    Path(f"{path}-shm").unlink()
+    with Map.open(path) as m:
+        assert m.not_closed() is None and m.runs() == []
