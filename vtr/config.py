@@ -252,6 +252,10 @@ class OdometryConfig:
     still_rotation_deg: float = setting(0.01, Range(0.0, 180.0))
     # variance put on an edge carried by the motion prior alone
     failure_variance: float = setting(100.0, Range(0.0, 1e12, lo_open=True))
+    # a teach whose odometry fails (FAILURE: the pose carried by the motion prior) on more than this fraction of
+    # its frames ends failed: its run aborted with the count, not finished, since such a map is no route.
+    # 0.5: "most frames" (1 never fails a teach)
+    teach_max_failed_fraction: float = setting(0.5, Range(0.0, 1.0))
     seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
 
 

@@ -45,6 +45,10 @@ class UnfinishedRouteError(MapError):
         return UnfinishedRouteError(self.reason, self.vertices, allow)
 
 
+class TeachFailedError(DataError):
+    """A teach whose odometry failed on too many frames (``odometry.teach_max_failed_fraction``): no route."""
+
+
 class EstimationError(VtrError):
     """An estimator received invalid input (NaN pose, non-SE(3) matrix, non-PSD covariance...)."""
 

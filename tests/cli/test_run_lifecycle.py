@@ -342,3 +342,96 @@ def test_an_interrupted_repeat_leaves_map_and_reports_in_agreement(kitti_clip, t
         assert len(rows) == repeat.n_vertices            # one row per written vertex
     landmark_leaves = {int(r["leaf_id"]) for r in csv.DictReader(open(out / "landmarks.csv"))}
     assert landmark_leaves == set(reported)
+
+
+def test_a_teach_whose_odometry_fails_on_most_frames_fails(kitti_clip, tmp_path):
+    """Odometry failing on 9 of 10 frames (real featureless images) ends `vtr teach` failed: one line naming the
+    count and the setting, exit 1, the run aborted with that reason, never finished; the threshold is a setting."""
+    import cv2
+
+    clip = tmp_path / "clip"
+    shutil.copytree(kitti_clip, clip)
+    for i in range(1, 10):                         # frames 1..9: a uniform grey image, nothing to track
+        for side in ("image_0", "image_1"):
+            png = clip / side / f"{i:06d}.png"
+            grey = np.full_like(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), 128)
+            assert cv2.imwrite(str(png), grey)
+    path = tmp_path / "route.vtrmap"
+    r = invoke("teach", clip, "--map", path, "--frames", "0:10")
+    assert r.exit_code == 1, r.output
+    line = one_line_error(r.stderr, "teach failed", "of 10 frames", "odometry.teach_max_failed_fraction")
+    failed = int(re.search(r"failed on (\d+) of 10", line).group(1))
+    assert failed >= 9
+    [run] = taught(path)[0]
+    assert run.state == "aborted" and not run.finished
+    assert run.reason.startswith("TeachFailedError: teach failed: odometry failed on")
+    r = invoke("map", "info", path)
+    assert "aborted" in r.output and "teach failed" in r.output
+    # the same frames with the bound raised to 1 (never fail) finish: the threshold is what decides
+    config = tmp_path / "lenient.yaml"
+    config.write_text("odometry:\n  teach_max_failed_fraction: 1.0\n")
+    lenient = tmp_path / "lenient.vtrmap"
+    r = invoke("teach", clip, "--map", lenient, "--frames", "0:10", "--config", config)
+    assert r.exit_code == 0, r.output
+    assert [x.state for x in taught(lenient)[0]] == ["finished"]
+
+
+def test_a_killed_read_only_map_repeat_leaves_no_copy_behind(kitti_clip, tmp_path, monkeypatch):
+    """`vtr repeat --read-only-map` SIGKILLed mid-run leaves its private copy of the map in the temporary folder;
+    the next such repeat removes it (its lock is free), never a copy whose process still runs, and its own copy
+    is gone when it ends."""
+    import os
+    import tempfile
+
+    from vtr.app.private_copy import PREFIX, private_copy
+
+    path = tmp_path / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:40:2", Config())
+    before = rows(path)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    env = {**os.environ, "TMPDIR": str(scratch)}
+    proc = subprocess.Popen([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path), "--out",
+                             str(tmp_path / "killed"), "--read-only-map", "--frames", "1::1"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
+    while not (tmp_path / "killed" / "localization.csv").exists():   # copied, and repeating
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    proc.stderr.close()
+    [left] = list(scratch.iterdir())                   # the killed repeat's copy stays ...
+    assert left.name.startswith(PREFIX) and (left / path.name).stat().st_size > 0
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    with private_copy(path) as live:                   # ... and so does one whose process runs
+        r = subprocess.run([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path), "--out",
+                            str(tmp_path / "next"), "--read-only-map", "--frames", "1:8:2"],
+                           capture_output=True, text=True, env=env, timeout=SUBPROCESS_TIMEOUT_S)
+        assert r.returncode == 0, r.stderr
+        assert "removed 1 private map copy folder(s) left by killed --read-only-map repeats" in r.stderr
+        assert list(scratch.iterdir()) == [live.parent]   # the stale one removed, the live one kept, its own gone
+    assert list(scratch.iterdir()) == []
+    assert rows(path) == before                        # the map itself only read
+
+
+UNFOLDED_TEACH = ("import os, sys; from pathlib import Path; from vtr.map import database; "
+                  "database.MapFile.fold_wal = lambda self: os._exit(0); "   # dies where the log would be folded
+                  "from vtr.app.pipeline import teach_command; from vtr.config import Config; "
+                  "teach_command(Path(sys.argv[1]), Path(sys.argv[2]), '0:20:2', Config())")
+
+
+def test_a_read_only_map_repeat_copies_what_is_still_in_the_log(kitti_clip, tmp_path):
+    """A finished teach whose process died before folding its log: the whole route is in the -wal only. A
+    `--read-only-map` repeat copies the map whole (log included) and follows it, leaving the map untouched."""
+    path = tmp_path / "route.vtrmap"
+    r = subprocess.run([sys.executable, "-c", UNFOLDED_TEACH, str(kitti_clip), str(path)], capture_output=True,
+                       text=True, timeout=SUBPROCESS_TIMEOUT_S)
+    assert r.returncode == 0, r.stderr
+    with Map.open(path) as m:
+        assert m.not_closed() is not None and [x.state for x in m.runs()] == ["finished"]
+    before = (path.read_bytes(), Path(f"{path}-wal").read_bytes())
+    r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "ro", "--read-only-map", "--frames", "1:8:2")
+    assert r.exit_code == 0, r.output
+    assert (path.read_bytes(), Path(f"{path}-wal").read_bytes()) == before

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -351,3 +352,80 @@ def test_an_unfinished_route_error_names_its_way_out_and_survives_pickling():
     back = pickle.loads(pickle.dumps(err))
     assert type(back) is UnfinishedRouteError and str(back) == str(err) and back.vertices == 12
     assert "(--allow-partial to use its 12 vertices anyway)" in str(err.allowed_by("--allow-partial"))
+
+
+def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_path):
+    """After a SIGKILLed writer its vertices live only in the -wal: readers say the map is not closed (map info
+    warns, map check fails naming --repair), a copy of the file alone lacks them; a writer or --repair folds them."""
+    path = tmp_path / "killed.vtrmap"
+    proc = _start_writer(path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for f in (proc.stdin, proc.stdout, proc.stderr):
+        f.close()
+    assert os.path.getsize(f"{path}-wal") > 0
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copyfile(path, alone / "copy.vtrmap")
+    assert states(alone / "copy.vtrmap") == []            # the file alone: the run is only in the log
+    info = CliRunner().invoke(main, ["map", "info", str(path)])
+    assert info.exit_code == 0, info.output
+    assert "warning: not closed:" in info.output and "vtr map check --repair" in info.output
+    check = CliRunner().invoke(main, ["map", "check", str(path)])
+    assert check.exit_code == 1 and "not closed" in check.output and "--repair" in check.output, check.output
+    repaired = CliRunner().invoke(main, ["map", "check", "--repair", str(path)])
+    assert repaired.exit_code == 0, repaired.output
+    assert "folded" in repaired.output and ": ok (" in repaired.output
+    shutil.copyfile(path, alone / "after.vtrmap")
+    [(kind, state, n, _)] = states(alone / "after.vtrmap")   # now the file alone holds the killed run
+    assert (kind, state) == ("teach", "interrupted") and n >= 5
+    assert "not closed" not in CliRunner().invoke(main, ["map", "info", str(path)]).output
+
+
+def test_a_writer_folds_a_killed_writers_log_on_open(tmp_path):
+    path = tmp_path / "killed.vtrmap"
+    proc = _start_writer(path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for f in (proc.stdin, proc.stdout, proc.stderr):
+        f.close()
+    with Map.open(path) as m:
+        assert m.not_closed() is not None and m.file.unfolded_pages() > 0
+    with Map.open(path, "a") as m:
+        assert m.file.unfolded_pages() == 0                 # folded before anything else happens
+        copy = tmp_path / "copy.vtrmap"
+        shutil.copyfile(path, copy)                          # while the writer holds it: the file alone is whole
+    assert [s[:2] for s in states(copy)] == [("teach", "interrupted")]
+    with Map.open(path) as m:
+        assert m.not_closed() is None
+
+
+def test_not_closed_reads_the_log_as_sqlite_does(tmp_path):
+    """A live writer's log is not reported; a log whose header has a flipped byte is ignored by SQLite (the file
+    alone is the map) and not reported either; a flipped byte in the last frame drops only the last commit."""
+    path = tmp_path / "live.vtrmap"
+    proc = _start_writer(path)
+    try:
+        with Map.open(path) as m:
+            assert m.runs()[0].state == "running" and m.not_closed() is None   # its writer holds it
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        for f in (proc.stdin, proc.stdout, proc.stderr):
+            f.close()
+    wal = Path(f"{path}-wal")
+    with Map.open(path) as m:
+        pages = m.file.unfolded_pages()
+        assert pages > 0
+    data = bytearray(wal.read_bytes())
+    data[-1] ^= 0x01                                    # the last frame's page: its commit is not valid
+    wal.write_bytes(bytes(data))
+    Path(f"{path}-shm").unlink()                        # SQLite rebuilds its index of the log from the log
+    with Map.open(path) as m:
+        fewer = m.file.unfolded_pages()
+        assert 0 < fewer < pages and m.runs()[0].n_vertices == 4   # the fifth vertex's commit dropped
+    data[16] ^= 0x01                                    # salt-1 in the header: SQLite ignores the whole log
+    wal.write_bytes(bytes(data))
+    Path(f"{path}-shm").unlink()
+    with Map.open(path) as m:
+        assert m.not_closed() is None and m.runs() == []

@@ -184,3 +184,26 @@ def test_times_past_int64_are_a_map_error(tmp_path):
         kf = Keyframe(0, frame(rng, 0), translation(0.0), np.eye(6) * 1e-4, 50)
         with pytest.raises(MapError, match="t_ns"):
             m.add_vertex(run, 2**63, translation(0.0), kf.frame)
+
+
+@pytest.mark.parametrize("damage", ["renamed", "value", "flipped"])
+def test_damaged_checksum_metadata_is_damage_not_an_old_map(tmp_path, damage):
+    """One damaged meta key must not turn verification off: the key renamed (an SQL edit), its value changed, or a
+    real byte flip in its name on disk while the checksum table is there is refused, not read as a map made
+    before checksums."""
+    path = make_map(tmp_path / "m.vtrmap")
+    if damage == "renamed":
+        edit(path, "UPDATE meta SET key = 'checksumz' WHERE key = ?", META_KEY)
+    elif damage == "value":
+        edit(path, "UPDATE meta SET value = 'none' WHERE key = ?", META_KEY)
+    else:
+        flip(path, b"checksumsblake2b", 0, 0x01)        # 'checksums' -> 'bhecksums' in the meta row
+    r = invoke("map", "check", path)
+    text = one_line(r, "checksum")
+    assert "no checksums" not in text
+    with pytest.raises(MapError, match="checksum"):
+        Map.open(path).close()
+    edit(path, f"UPDATE {TABLE} SET row_sum = zeroblob(8)", drop=f"{TABLE}_append_only_update")
+    with pytest.raises(MapError, match="checksum"):     # never served without verification
+        with Map.open(path) as m:
+            m.poses(0)

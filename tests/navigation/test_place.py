@@ -83,7 +83,37 @@ def test_the_route_index_is_stored_at_teach_and_rebuilt_when_missing_or_damaged(
     con.execute("UPDATE derived SET data = ? WHERE key = ?", (b"VTRP\x01garbage", key))
     con.commit()
     con.close()
-    with Map.open(path, "a") as m:
+    with Map.open(path, "a") as m, pytest.warns(RuntimeWarning, match="it is damaged; rebuilt"):
         rebuilt = route_place_index(m, Config().place)
         np.testing.assert_array_equal(rebuilt.word, reference.word)
         assert PlaceIndex.from_bytes(m.derived(key)).indptr.tolist() == reference.indptr.tolist()   # stored again
+
+
+def test_an_index_copied_from_another_map_of_the_same_length_is_rebuilt_with_a_warning(kitti_clip, tmp_path):
+    """The index carries a digest of the vertices it indexes: another map's index of the same length (taught from
+    other frames) is not accepted; it is rebuilt from this map's vertices, stored, and the rebuild is reported."""
+    from vtr.app.pipeline import teach_command
+    from vtr.map import Map
+    from vtr.navigation.place import place_key, route_place_index
+
+    ours, other = tmp_path / "ours.vtrmap", tmp_path / "other.vtrmap"
+    teach_command(kitti_clip, ours, "0:20:2", Config())
+    teach_command(kitti_clip, other, "1:21:2", Config())
+    with Map.open(ours) as m:
+        key = place_key(m.reference_run())
+        reference = PlaceIndex.from_bytes(m.derived(key))
+        n = len(m.taught_path())
+    with Map.open(other) as m:
+        foreign = m.derived(place_key(m.reference_run()))
+        assert len(PlaceIndex.from_bytes(foreign)) == n          # same length: a length check cannot tell
+    with Map.open(ours, "a") as m:
+        m.put_derived(key, foreign)
+    told: list[str] = []
+    with Map.open(ours, "a") as m:
+        assert route_place_index(m, Config().place, warn=told.append).digest == reference.digest
+        assert len(told) == 1 and "does not match the taught vertices" in told[0] and "rebuilt" in told[0]
+        np.testing.assert_array_equal(PlaceIndex.from_bytes(m.derived(key)).word, reference.word)   # stored again
+    told.clear()
+    with Map.open(ours) as m:
+        route_place_index(m, Config().place, warn=told.append)
+    assert told == []                                             # the stored one matches now

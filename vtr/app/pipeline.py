@@ -346,7 +346,7 @@ class RepeatRun:
         _check_path_to_follow(m)
         start = _start_hint(m, self.start_vertex, self.start_distance_m)
         self.repeat = Repeat(m, self.config, source=str(self.source_path), start_index=start,
-                             allow_partial=self.allow_partial)
+                             allow_partial=self.allow_partial, warn=self.warn)
 
     def loop(self) -> RepeatLoop:
         """Every frame through the repeat loop; a row of ``localization.csv`` and the rows of ``landmarks.csv`` (the
@@ -439,19 +439,19 @@ class RepeatRun:
                              integrity=evaluation.integrity)
 
     def _private_copy(self, stack) -> Path:
-        """A copy of the closed map in a temporary folder that ``stack`` removes; the map itself is only read (and
-        checked first, so that its errors name it)."""
-        import shutil
-        import tempfile
-
+        """A whole copy of the map in a private temporary folder that ``stack`` removes (and the next start removes
+        if this process is killed: :mod:`vtr.app.private_copy`); the map itself is only read (and checked first, so
+        that its errors name it)."""
         from ..map import Map
+        from .private_copy import private_copy, remove_stale_copies
 
+        stale = remove_stale_copies()
+        if stale and self.warn is not None:
+            self.warn(f"removed {len(stale)} private map copy folder(s) left by killed --read-only-map repeats "
+                      f"({stale[0]}{', ...' if len(stale) > 1 else ''})")
         with Map.open(self.map_path) as m:      # a map, readable, and not being written by another process
             m.check_taught_route(self.allow_partial)
-        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vtr-repeat-")))
-        copy = tmp / self.map_path.name
-        shutil.copyfile(self.map_path, copy)
-        return copy
+        return stack.enter_context(private_copy(self.map_path))
 
 
 def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> int | None:

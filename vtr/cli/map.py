@@ -39,7 +39,9 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         cam = m.camera
         created = m.meta.get("created", "?")
         up = m.gravity_up
+        unclosed = m.not_closed()
     if as_json:
+        stats["not_closed"] = unclosed
         stats["created"] = created
         stats["camera"] = cam.to_dict()
         stats["gravity_up"] = None if up is None else [float(x) for x in up]
@@ -73,19 +75,35 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         if partial:
             click.echo(f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
                        "this map unless --allow-partial")
+    if unclosed:
+        click.echo(f"warning: {unclosed}")
 
 
 @map_group.command("check")
 @map_argument
-def map_check_cmd(map_path: Path) -> None:
+@click.option("--repair", is_flag=True,
+              help="Fold data a killed writer left in the map's -wal into the map file first (opens it for writing).")
+def map_check_cmd(map_path: Path, repair: bool) -> None:
     """Check MAP for damage: SQLite's integrity check, the runs table, every vertex's checksums (maps made by
     this vtr) and data, the taught path (finite rigid poses, increasing times, existing runs) and every
-    temporal edge against its poses. Prints one line; exit 1 with the first damage found."""
+    temporal edge against its poses, and that the map is closed (no committed data only in its -wal). Prints
+    one line; exit 1 with the first damage found."""
+    from ..errors import MapError
     from ..map import Map
     from ..map.integrity import check_map
 
+    if repair:
+        with Map.open(map_path, "r") as m:
+            pages = m.file.unfolded_pages() if m.not_closed() else 0
+        with Map.open(map_path, "a"):
+            pass   # a writer folds the log on open; closing returns the file to one self-contained file
+        if pages:
+            click.echo(f"{map_path}: folded {pages} page(s) of its -wal into the map file")
     with Map.open(map_path, "r") as m:
         report = check_map(m)
+        unclosed = m.not_closed()
+    if unclosed:
+        raise MapError(f"{map_path}: {unclosed}")
     click.echo(map_check_line(report, map_path))
 
 

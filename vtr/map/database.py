@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import secrets
 import sqlite3
+import struct
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
@@ -42,6 +43,13 @@ SIDE_FILES = ("-wal", "-shm", "-journal")  # SQLite's files beside a map
 CREATING_SUFFIX = ".creating"        # temporary name of a map being created (hard-linked when complete)
 NEW_FILE_MODE = 0o666                # a created map's mode before the umask (as open(2) makes files)
 COPIED_FILE_MODE = 0o644             # mode of a map created by copy where hard links are missing
+# the write-ahead log's format (sqlite.org/fileformat2.html#the_write_ahead_log): a 32-byte header, then frames of
+# a 24-byte header and one page; the magic's last bit says whether checksums are big-endian
+WAL_MAGIC = (0x377F0682, 0x377F0683)
+WAL_HEADER = struct.Struct(">IIIIIIII")   # magic, version, page size, checkpoint seq, salt-1, salt-2, cksum-1, -2
+WAL_FRAME = struct.Struct(">IIIIII")      # page number, db size after commit (0: not a commit), salts, checksums
+WAL_WORD_MASK = 0xFFFFFFFF
+WAL_MIN_PAGE_SIZE = 512                   # SQLite's smallest page: a header with less is not a log
 
 Connection = sqlite3.Connection      # an open map file's SQLite connection (``MapFile.conn``)
 
@@ -85,6 +93,68 @@ def connect_readonly(path: Path) -> Connection:
     return connect(path, readonly=True, immutable=True)
 
 
+def _wal_checksum(data: bytes, s0: int, s1: int, big_endian: bool) -> tuple[int, int]:
+    """SQLite's cumulative WAL checksum over ``data`` (a multiple of 8 bytes), continuing ``(s0, s1)``."""
+    words = struct.unpack(f"{'>' if big_endian else '<'}{len(data) // 4}I", data)
+    for x0, x1 in zip(words[0::2], words[1::2], strict=True):
+        s0 = (s0 + x0 + s1) & WAL_WORD_MASK
+        s1 = (s1 + x1 + s0) & WAL_WORD_MASK
+    return s0, s1
+
+
+def unfolded_wal_pages(path: Path) -> int:
+    """How many pages committed in the write-ahead log beside ``path`` differ from the map file itself: 0 when the
+    file alone holds everything (no log, an empty one, only uncommitted or already folded frames), else the data
+    a copy of the file alone would lose. Reads the log as SQLite's recovery does (salts and checksums, up to its
+    last valid commit); never writes."""
+    wal = Path(f"{path}-wal")
+    try:
+        log = wal.read_bytes()
+    except FileNotFoundError:
+        return 0
+    except OSError as err:
+        raise MapError(f"{wal}: cannot read the map's write-ahead log ({err})") from err
+    if len(log) < WAL_HEADER.size:
+        return 0
+    magic, _version, page_size, _seq, salt1, salt2, c0, c1 = WAL_HEADER.unpack_from(log)
+    if magic not in WAL_MAGIC or page_size < WAL_MIN_PAGE_SIZE or page_size & (page_size - 1):
+        return 0
+    big = magic == WAL_MAGIC[1]
+    s = _wal_checksum(log[:WAL_HEADER.size - 8], 0, 0, big)
+    if s != (c0, c1):
+        return 0                           # SQLite ignores a log whose header is not valid
+    pages: dict[int, int] = {}             # page number -> offset of its latest committed frame
+    pending: dict[int, int] = {}
+    db_pages = 0
+    off = WAL_HEADER.size
+    while off + WAL_FRAME.size + page_size <= len(log):
+        pgno, commit, f1, f2, k0, k1 = WAL_FRAME.unpack_from(log, off)
+        if (f1, f2) != (salt1, salt2):
+            break
+        s = _wal_checksum(log[off:off + 8], *s, big)
+        s = _wal_checksum(log[off + WAL_FRAME.size:off + WAL_FRAME.size + page_size], *s, big)
+        if s != (k0, k1):
+            break
+        pending[pgno] = off + WAL_FRAME.size
+        if commit:
+            pages.update(pending)
+            pending.clear()
+            db_pages = commit
+        off += WAL_FRAME.size + page_size
+    if not pages:
+        return 0
+    differ = 0
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size < db_pages * page_size:
+            return max(1, db_pages - os.fstat(f.fileno()).st_size // page_size)
+        for pgno, at in pages.items():
+            if pgno > db_pages:
+                continue                   # truncated away by a later commit
+            f.seek((pgno - 1) * page_size)
+            differ += f.read(page_size) != log[at:at + page_size]
+    return differ
+
+
 def remove_map_files(path: Path) -> None:
     """Unlink a map and its SQLite side files (only for a map this process created and holds)."""
     for p in (path, *(Path(f"{path}{s}") for s in SIDE_FILES)):
@@ -98,6 +168,22 @@ def copy_map_file(src: Path, dst: Path) -> None:
         s.backup(d)
     finally:
         d.close()
+        s.close()
+
+
+def copy_map_read_only(src: Path, dst: Path) -> None:
+    """Copy the map ``src`` whole to the new file ``dst`` (SQLite's online backup through a read-only connection:
+    what a killed writer left in its write-ahead log is included; ``src`` and its folder are never written)."""
+    s = connect_readonly(src)
+    try:
+        d = sqlite3.connect(dst)
+        try:
+            s.backup(d)
+        finally:
+            d.close()
+    except sqlite3.Error as err:
+        raise MapError(f"{src}: cannot copy the map to {dst} ({err})") from err
+    finally:
         s.close()
 
 
@@ -250,6 +336,8 @@ class MapFile:
                 jm = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
                 if str(jm).lower() != "wal":
                     raise MapError(f"{path}: cannot switch the map to WAL journal mode (got {jm})")
+                # a killed writer's committed log goes into the file now, so the file alone holds it again
+                conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
             return build(cls(path, conn, lock), checked)
         except BaseException as err:
             if conn is not None:
@@ -326,3 +414,7 @@ class MapFile:
     def bytes_on_disk(self) -> int:
         """Size of the map file plus its write-ahead log, bytes."""
         return bytes_on_disk(self.path)
+
+    def unfolded_pages(self) -> int:
+        """Pages committed in the write-ahead log but not in the file (see :func:`unfolded_wal_pages`)."""
+        return unfolded_wal_pages(self.path)

@@ -8,7 +8,9 @@ the vertex id. They are written in the vertex's own transaction and verified whe
 the blob is read (poses, times, the taught path, a vertex), so a flipped byte is a ``MapError``
 naming the vertex instead of a NaN pose or different inliers. A map created before checksums
 existed has no such table (``meta`` has no ``checksums`` key) and is read as before; appending to it
-adds none (its files stay readable by the vtr that wrote them).
+adds none (its files stay readable by the vtr that wrote them). The metadata is checked too
+(:func:`checksummed`): the key without the table, the table without the key or an unknown value is
+damage, so one renamed key does not turn verification off.
 
 **A taught path** must be finite poses with orthonormal rotations (right-handed, last row 0 0 0 1),
 times strictly increasing within each run, and vertices only of runs the runs table holds
@@ -85,10 +87,24 @@ def data_sum(vid: int, blob: object) -> bytes:
     return h.digest()
 
 
-def has_checksums(conn: Connection) -> bool:
-    """The map was created with checksums (its ``meta`` says so; then every vertex must have them)."""
+def checksummed(conn: Connection, where: str) -> bool:
+    """Whether the map's vertices carry checksums (then every vertex must have them): its ``meta`` says so and
+    the table is there. Neither is a map made before checksums existed; one without the other, or a ``meta``
+    value this vtr does not write, is damage (``MapError``): a renamed key must not turn verification off."""
     row = conn.execute("SELECT value FROM meta WHERE key = ?", (META_KEY,)).fetchone()
-    return row is not None
+    table = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (TABLE,)).fetchone()
+    if row is None and table is None:
+        return False
+    if row is None:
+        problem = f"the meta table has no {META_KEY!r} key but the {TABLE} table is present"
+    elif table is None:
+        problem = f"the meta table says {META_KEY} {row[0]!r} but the {TABLE} table is missing"
+    elif row[0] != META_VALUE:
+        problem = f"meta {META_KEY!r} is {row[0]!r}, this vtr writes {META_VALUE!r}"
+    else:
+        return True
+    raise MapError(f"{where}: the map's checksum metadata is damaged ({problem}); the map file was changed after "
+                   "vtr wrote it")
 
 
 def create(conn: Connection) -> None:
@@ -235,7 +251,7 @@ def check_map(m: object) -> CheckReport:
         result = conn.execute("PRAGMA integrity_check").fetchall()
         if [tuple(r) for r in result] != [("ok",)]:
             raise MapError(f"{where}: the SQLite file is damaged ({str(result[0][0]).splitlines()[0]})")
-        sums = has_checksums(conn)
+        sums = checksummed(conn, where)
     runs = m.runs()                           # checks the runs table
     check_vertex_runs_of(m)
     n_vertices = 0

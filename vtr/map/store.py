@@ -177,7 +177,8 @@ class Map:
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
         self._aborted = False           # this session aborted a run
-        self._checksums = integrity.META_KEY in self.meta   # verified on every read (vtr.map.integrity)
+        assert file.conn is not None   # verified on every read (vtr.map.integrity); damaged metadata refused
+        self._checksums = integrity.checksummed(file.conn, str(file.path))
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
             # the open run (writing to it resumes it) until a new run begins
@@ -298,6 +299,20 @@ class Map:
     @property
     def closed(self) -> bool:
         return self._file.closed
+
+    def not_closed(self) -> str | None:
+        """Why the map file alone is not the whole map: committed data left in its write-ahead log by a writer
+        that was killed (a copy of the file without its ``-wal`` would lose it). None when the file is whole or a
+        live writer holds the map (its log is expected). A writer (mode ``"a"``) folds such a log on open;
+        ``vtr map check --repair`` does that."""
+        if self.mode == "a" or self._file.writer_alive():
+            return None
+        pages = self._file.unfolded_pages()
+        if not pages:
+            return None
+        return (f"not closed: {pages} page(s) committed in {self.path.name}-wal are not in the map file (its "
+                f"writer was killed); run `vtr map check --repair` to fold them in (until then keep the -wal "
+                "beside it: a copy of the map file alone lacks them)")
 
     @property
     def gravity_up(self) -> np.ndarray | None:

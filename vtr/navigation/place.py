@@ -7,13 +7,17 @@ features fall into, and a query keyframe is scored against all of them at once (
 a sparse matrix product). The best-scoring vertices are *candidates* only: the localizer verifies them
 geometrically against their landmarks before anything is believed.
 
-The index is learnt at the end of a teach and stored in the map (:meth:`PlaceIndex.to_bytes`); a map
-written before it existed gets one built on open.
+The index is learnt at the end of a teach and stored in the map (:meth:`PlaceIndex.to_bytes`) with a digest of
+the vertices it indexes (:func:`vertices_digest`: their ids, times and poses); a map written before it existed,
+or whose stored index does not match its taught vertices (damaged, or copied from another map), gets one
+rebuilt on open, with a warning for the mismatch.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
+import warnings
 import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -28,6 +32,7 @@ from ..vo.kernels import matching as km
 
 DESCRIPTOR_BYTES = 32          # ORB: 256 bits
 INDEX_MAGIC = b"VTRP\x01"
+DIGEST_BYTES = 16              # BLAKE2b of the indexed vertices (ids, times, poses)
 
 
 def _words(descriptors: np.ndarray) -> np.ndarray:
@@ -107,15 +112,17 @@ class PlaceIndex:
     indptr: np.ndarray
     word: np.ndarray
     weight: np.ndarray
+    digest: bytes = b""        # vertices_digest of the vertices indexed (empty: an index stored before digests)
 
     def __len__(self) -> int:
         return len(self.indptr) - 1
 
     @classmethod
     def build(cls, descriptor_sets: Callable[[], Iterable[np.ndarray]], n_vertices: int, config: PlaceConfig,
-              seed: int = 0) -> PlaceIndex:
+              seed: int = 0, digest: bytes = b"") -> PlaceIndex:
         """From each taught vertex's descriptors, in path order, read twice from ``descriptor_sets()`` (a sample
-        of every vertex to learn the vocabulary, then each vertex's words), so memory does not grow with the route."""
+        of every vertex to learn the vocabulary, then each vertex's words), so memory does not grow with the route.
+        ``digest``: :func:`vertices_digest` of those vertices, kept with the index."""
         if n_vertices <= 0:
             raise MapError("place index: no taught vertex to index")
         rng = np.random.default_rng(seed)
@@ -137,7 +144,7 @@ class PlaceIndex:
         indptr = np.r_[0, np.cumsum([len(w) for w, _ in words])].astype(np.int64)
         word = np.concatenate([w for w, _ in words]).astype(np.int32) if V else np.zeros(0, np.int32)
         weight = np.concatenate([_unit(c * idf[w]) for w, c in words]).astype(np.float32)
-        return cls(vocabulary, idf.astype(np.float32), indptr, word, weight)
+        return cls(vocabulary, idf.astype(np.float32), indptr, word, weight, bytes(digest))
 
     def _matrix(self):
         from scipy.sparse import csr_matrix
@@ -175,7 +182,7 @@ class PlaceIndex:
     def to_bytes(self) -> bytes:
         buf = io.BytesIO()
         np.savez(buf, top=self.vocabulary.top, leaves=self.vocabulary.leaves, idf=self.idf, indptr=self.indptr,
-                 word=self.word, weight=self.weight)
+                 word=self.word, weight=self.weight, digest=np.frombuffer(self.digest, np.uint8))
         return INDEX_MAGIC + buf.getvalue()
 
     @classmethod
@@ -184,7 +191,8 @@ class PlaceIndex:
             raise MapError(f"{where}: not a place index (bad magic)")
         try:
             with np.load(io.BytesIO(data[len(INDEX_MAGIC):]), allow_pickle=False) as z:
-                out = cls(Vocabulary(z["top"], z["leaves"]), z["idf"], z["indptr"], z["word"], z["weight"])
+                digest = z["digest"].astype(np.uint8).tobytes() if "digest" in z.files else b""
+                out = cls(Vocabulary(z["top"], z["leaves"]), z["idf"], z["indptr"], z["word"], z["weight"], digest)
         except (ValueError, KeyError, OSError, zipfile.BadZipFile) as err:
             raise MapError(f"{where}: damaged place index ({err})") from None
         W, B = len(out.vocabulary), len(out.vocabulary.top)
@@ -207,25 +215,51 @@ def place_key(run: int) -> str:
     return f"place_index/{int(run)}"
 
 
-def route_place_index(map_: Map, config: PlaceConfig, seed: int = 0) -> PlaceIndex:
+def vertices_digest(ids: np.ndarray, t_ns: np.ndarray, T_world_vertex: np.ndarray) -> bytes:
+    """The digest tying an index to the vertices it indexes: BLAKE2b of their ids, times and poses (the pose index
+    alone, no feature data read; a vertex's features are tied to its row by the map's own checksums)."""
+    h = hashlib.blake2b(digest_size=DIGEST_BYTES, person=b"vtr-place-index")
+    for a, dtype in ((ids, "<i8"), (t_ns, "<i8"), (T_world_vertex, "<f8")):
+        h.update(np.ascontiguousarray(a, dtype=dtype).tobytes())
+    return h.digest()
+
+
+def route_place_index(map_: Map, config: PlaceConfig, seed: int = 0,
+                      warn: Callable[[str], None] | None = None) -> PlaceIndex:
     """The taught route's place index: stored in the map, else built from its vertices (stored when the map is
-    writable: a map taught before the index existed gets one the first time it is repeated)."""
+    writable: a map taught before the index existed gets one the first time it is repeated).
+
+    A stored index that is damaged or whose digest does not match the taught vertices (copied from another map,
+    or the vertices changed) is rebuilt, and ``warn`` (else :func:`warnings.warn`) is told why."""
     path = map_.taught_path()
     run = map_.reference_run()
     key = place_key(-1 if run is None else run)
+    digest = vertices_digest(path.ids, path.t_ns, path.T_world_vertex)
     data = map_.derived(key)
     if data is not None:
+        problem = None
         try:
             index = PlaceIndex.from_bytes(data, f"{map_.path}: {key}")
+            if not index.digest:
+                problem = "it has no digest of the vertices it indexes (stored by an older vtr)"
+            elif index.digest != digest or len(index) != len(path):
+                problem = ("it does not match the taught vertices (another map's index, or the vertices "
+                           "changed)")
+            else:
+                return index
         except MapError:
-            index = None                  # damaged derived data: rebuilt from the vertices below
-        if index is not None and len(index) == len(path):
-            return index
+            problem = "it is damaged"
+        message = f"{map_.path}: place index {key}: {problem}; rebuilt from the vertices"
+        if warn is not None:
+            warn(f"warning: {message}")
+        else:
+            warnings.warn(message, RuntimeWarning, stacklevel=2)
     index = PlaceIndex.build(lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids), len(path),
-                             config, seed)
+                             config, seed, digest)
     if map_.mode == "a":
         map_.put_derived(key, index.to_bytes())
     return index
 
 
-__all__ = ["PlaceIndex", "PlaceMatch", "Vocabulary", "k_majority", "place_key", "route_place_index", "train_vocabulary"]
+__all__ = ["PlaceIndex", "PlaceMatch", "Vocabulary", "k_majority", "place_key", "route_place_index", "train_vocabulary",
+           "vertices_digest"]

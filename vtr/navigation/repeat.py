@@ -16,7 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Generator, Iterable
+from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -60,11 +60,12 @@ class Repeat:
     ``latest`` holds the latest localization delivered."""
 
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int | None = None,
-                 allow_partial: bool = False):
+                 allow_partial: bool = False, warn: Callable[[str], None] | None = None):
         """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``.
 
         ``start_index`` (optional) is a hint: the taught vertex (path index) the repeat starts near. Without
         it place recognition finds where on the route the repeat is; with it that vertex is tried first.
+        ``warn`` is told when the map's stored place index had to be rebuilt (else a ``RuntimeWarning``).
         """
         config.validate()
         self.map = map_
@@ -73,7 +74,7 @@ class Repeat:
         map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config, start_index)
         self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
-        self.place = route_place_index(map_, config.place, config.odometry.seed)
+        self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
         self.locator = ChainLocalizer(self.chain, self.localizer, self.place, self._submap, config)
         self._odometry_broken = False             # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)

@@ -2,18 +2,20 @@
 odometry window) with a temporal edge to the previous one: the privileged path.
 
 Lifecycle: ``finish`` writes the keyframes still in the window and marks the run finished (a
-complete route); ``abort(exc)`` (on an error, Ctrl-C, SIGTERM, full disk) writes them too, as far
-as it can, and marks the run aborted with the reason, so a repeat does not take it for complete.
+complete route), unless odometry failed on more than ``odometry.teach_max_failed_fraction`` of the
+frames (``TeachFailedError``: the caller aborts the run with it); ``abort(exc)`` (on an error,
+Ctrl-C, SIGTERM, full disk) writes them too, as far as it can, and marks the run aborted with the
+reason, so a repeat does not take it for complete.
 """
 
 from __future__ import annotations
 
 from ..camera import StereoCamera
 from ..config import Config
-from ..errors import MapError
+from ..errors import MapError, TeachFailedError
 from ..map import Map
 from ..map.store import abort_reason
-from ..types import Keyframe, OdometryResult, StereoFrame, StereoImages
+from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 from .place import route_place_index
 
@@ -28,7 +30,10 @@ class Teach:
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._place = config.place
         self._seed = config.odometry.seed
+        self._max_failed = config.odometry.teach_max_failed_fraction
         self.vertices = 0
+        self.frames = 0                 # frames through odometry
+        self.failures = 0               # ... of which odometry failed on (FAILURE)
 
     def process(self, images: StereoImages) -> OdometryResult:
         """Stereo-process a rectified pair, then :meth:`process_frame`."""
@@ -37,13 +42,21 @@ class Teach:
     def process_frame(self, frame: StereoFrame) -> OdometryResult:
         """Odometry on one stereo frame; keyframes leaving the odometry window are written to the map."""
         result = self.odometry.process_frame(frame)
+        self.frames += 1
+        self.failures += result.kind == FrameKind.FAILURE
         for kf in result.finalized:
             self._write(kf)
         return result
 
     def finish(self) -> int:
         """Write the keyframes still in the odometry window and finish the run; returns the number of
-        vertices. ``MapError`` (run left open for ``abort``) when the teach produced no keyframe."""
+        vertices. ``TeachFailedError`` when odometry failed on more than ``odometry.teach_max_failed_fraction``
+        of the frames, ``MapError`` when the teach produced no keyframe (the run left open for ``abort``)."""
+        if self.frames and self.failures > self._max_failed * self.frames:
+            raise TeachFailedError(
+                f"teach failed: odometry failed on {self.failures} of {self.frames} frames (more than "
+                f"odometry.teach_max_failed_fraction = {self._max_failed:g} of them), so the map is no route; "
+                "check the images, the calibration and the frame range")
         self._flush()
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
