@@ -283,3 +283,20 @@ def test_a_repeat_can_leave_the_map_untouched(kitti_clip, kitti_map, tmp_path):
     ro = (tmp_path / "ro" / "localization.csv").read_text()
     rw = (tmp_path / "rw" / "localization.csv").read_text()
     assert ro == rw                                   # the same repeat, whether the map keeps it or not
+
+
+def test_a_repeat_not_judged_against_ground_truth_says_why(kitti_clip, tmp_path):
+    """A reversed copy of the clip has ground truth of its own, but not the teach's source: the summary says the
+    repeat was not judged and why (it used to say nothing)."""
+    from vtr.cli.summaries import repeat_lines
+    from vtr.io.kitti import write_reordered_clip
+
+    path = tmp_path / "route.vtrmap"
+    teach_command(kitti_clip, path, "0:12:2", Config())
+    rev = write_reordered_clip(kitti_clip, tmp_path / "reversed", list(range(11, -1, -1)))
+    summary = repeat_command(rev, path, tmp_path / "r", "1::2", Config(), read_only_map=True)
+    assert summary.integrity is None and summary.ground_truth_note is not None
+    assert "is not the teach's" in summary.ground_truth_note
+    assert any(line.startswith("not judged against ground truth: ") for line in repeat_lines(summary))
+    same = repeat_command(kitti_clip, path, tmp_path / "s", "1:12:2", Config(), read_only_map=True)
+    assert same.integrity is not None and same.ground_truth_note is None

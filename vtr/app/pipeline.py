@@ -229,6 +229,7 @@ class RepeatSummary:
     state: dict | None = None          # state.csv: rate, rows, smoother cost, smoothed path errors
     statuses: dict | None = None       # attempts by localization.csv status
     integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
+    ground_truth_note: str | None = None   # why the repeat was not judged against ground truth (None: it was)
 
     @property
     def success_rate(self) -> float:
@@ -243,7 +244,8 @@ class RepeatSummary:
                 "median_error_m": self.errors.median_translation_m if self.errors else None,
                 "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
                 "state": self.state, "statuses": self.statuses,
-                "integrity": self.integrity.to_dict() if self.integrity else None}
+                "integrity": self.integrity.to_dict() if self.integrity else None,
+                "ground_truth_not_used": self.ground_truth_note}
 
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
@@ -296,6 +298,7 @@ class RepeatEvaluation:
     errors: LocalizationErrors | None
     integrity: Integrity | None
     statuses: dict[str, int]
+    ground_truth_note: str | None = None
 
 
 class RepeatRun:
@@ -392,7 +395,8 @@ class RepeatRun:
         errors[chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
         locs = list(loop.localizations)
         gt_errors = integrity = None
-        if locs and _same_source(source, m):          # ground truth covers the leaves and their trunks
+        note = _ground_truth_note(source, m, locs)
+        if note is None:                              # ground truth covers the leaves and their trunks
             gt = source.ground_truth()
             trunk_t_ns = trunk_times(locs, chain.path)
             integrity = integrity_of(locs, trunk_t_ns, gt, gt)
@@ -402,7 +406,8 @@ class RepeatRun:
         statuses: dict[str, int] = {}
         for loc in locs:
             statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
-        return RepeatEvaluation(path_errors_m=errors, errors=gt_errors, integrity=integrity, statuses=statuses)
+        return RepeatEvaluation(path_errors_m=errors, errors=gt_errors, integrity=integrity, statuses=statuses,
+                                ground_truth_note=note)
 
     def write(self, loop: RepeatLoop, evaluation: RepeatEvaluation) -> StateTable:
         """``state.csv`` (the smoothed state at the output rate), ``trajectory_tum.txt``, ``report.png``."""
@@ -436,7 +441,7 @@ class RepeatRun:
                              median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
                              path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
                              errors=evaluation.errors, state=state_info, statuses=evaluation.statuses,
-                             integrity=evaluation.integrity)
+                             integrity=evaluation.integrity, ground_truth_note=evaluation.ground_truth_note)
 
     def _private_copy(self, stack) -> Path:
         """A whole copy of the map in a private temporary folder that ``stack`` removes (and the next start removes
@@ -488,11 +493,19 @@ def _check_path_to_follow(m) -> None:
                        "positions to follow): teach a longer route") from None
 
 
-def _same_source(source: FrameSource, m) -> bool:
-    """The repeat source's ground truth also covers the taught vertices (teach and repeat taken from one
-    source, e.g. even and odd frames of a clip)."""
+def _ground_truth_note(source: FrameSource, m, locs: list) -> str | None:
+    """None when the repeat source's ground truth also covers the taught vertices (teach and repeat taken from one
+    source, e.g. even and odd frames of a clip), so the repeat can be judged against it; else why it is not."""
+    if not locs:
+        return "no localization was attempted"
+    if source.ground_truth() is None:
+        return f"{source.path} has no ground truth"
     teach = m.reference_run()
-    return source.ground_truth() is not None and teach is not None and str(source.path) == m.run(teach).source
+    taught_from = m.run(teach).source if teach is not None else None
+    if taught_from != str(source.path):
+        return (f"the repeat's source {source.path} is not the teach's ({taught_from or 'unknown'}): their ground "
+                "truths need not share one frame")
+    return None
 
 
 def trunk_times(locs, path: TaughtPath) -> np.ndarray:

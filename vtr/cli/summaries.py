@@ -50,6 +50,8 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
         out.append(str(s.errors))
     if s.integrity is not None:
         out.append(str(s.integrity))
+    elif s.ground_truth_note is not None:
+        out.append(f"not judged against ground truth: {s.ground_truth_note}")
     if s.state:
         lateral = s.state["median_abs_lateral_m"]
         out.append(f"state.csv: {s.state['rows']} rows at {s.state['rate_hz']:g} Hz, smoothed lateral error "
