@@ -177,3 +177,21 @@ def test_a_changed_source_of_the_same_size_reruns(data, tmp_path, change):
     status = {o.name: o for o in result.outcomes}
     assert status["teach"].status == RESUMED and status["rep_1m"].status == RESUMED
     assert status["rep_0m"].status != RESUMED and "source changed" in (status["rep_0m"].changed or ""), status["rep_0m"]
+
+
+def test_the_batch_cluster_serves_no_logs_over_http():
+    """Without the dashboard, the scheduler's HTTP port (loopback) answers /health only: Dask's default routes would
+    serve logs, worker addresses and memory to anyone on the machine."""
+    import urllib.error
+    import urllib.request
+
+    from vtr.app.batch import _DaskClient
+
+    with _DaskClient(BatchOptions(workers=1), 1) as client:
+        port = client.cluster.scheduler.http_server.port
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=10) as r:
+            assert r.status == 200
+        for route in ("/info/main/workers.html", "/json/counts.json", "/metrics", "/info/main/logs.html"):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}{route}", timeout=10)
+            assert err.value.code == 404, route

@@ -74,6 +74,8 @@ FIT_FOLDER = "fit"
 DEFAULT_RETRIES = 2                # extra attempts of a task that raised inside Dask (its worker died: see above)
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")   # route and run names are folder names (fullmatch)
 LOCK_NAME = ".vtr-batch.lock"      # one batch per OUT (flock)
+#: the HTTP routes the batch's own cluster serves when its dashboard is off
+HEALTH_ONLY_ROUTES = ("distributed.http.health",)
 KEY_NAME = "batch_key.json"        # what made a run (resume compares it)
 RESERVED_NAMES = {SUMMARY_CSV, FIT_FOLDER, LOCK_NAME, RECORD}   # OUT's own files: no route may be named so
 MAX_WORKERS_PER_CORE = 4           # --workers above this many per core only thrash (each worker is a process)
@@ -729,9 +731,14 @@ class _DaskClient:
                   # the HTTP server (health, and the dashboard only when asked) on loopback, any free port
                   "dashboard_address": "127.0.0.1:0", "scheduler_kwargs": {"dashboard": self.opts.dashboard},
                   "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
-        # a dead worker's task is given to another one this many times before it counts as failed
-        with dask.config.set({"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}), \
-                _workers_ignore_ctrl_c():
+        # a dead worker's task is given to another one this many times before it counts as failed; without the
+        # dashboard, the scheduler's and workers' HTTP servers answer /health only (not the logs, worker addresses
+        # and memory that Dask's default routes serve to anyone on the machine)
+        settings: dict[str, Any] = {"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}
+        if not self.opts.dashboard:
+            settings.update({"distributed.scheduler.http.routes": list(HEALTH_ONLY_ROUTES),
+                             "distributed.worker.http.routes": list(HEALTH_ONLY_ROUTES)})
+        with dask.config.set(settings), _workers_ignore_ctrl_c():
             self.cluster = LocalCluster(**kwargs)
         self.client = Client(self.cluster, security=security)
         if self.opts.dashboard and self.opts.on_dashboard is not None:
