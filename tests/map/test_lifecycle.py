@@ -429,3 +429,30 @@ def test_not_closed_reads_the_log_as_sqlite_does(tmp_path):
     Path(f"{path}-shm").unlink()
     with Map.open(path) as m:
         assert m.not_closed() is None and m.runs() == []
+
+
+@pytest.mark.parametrize("suffix", ["-wal", "-shm"])
+def test_a_side_file_link_is_named_not_blamed_on_the_map(tmp_path, suffix):
+    """A symbolic link where SQLite keeps the map's log: one line naming that file, for readers and writers; the
+    target is never written (it used to be 'not a readable vtr map', blaming the map)."""
+    from vtr.errors import MapError
+    from vtr.map import Map
+    from vtr.sim import synthetic as syn
+
+    path = tmp_path / "m.vtrmap"
+    with Map.create(path, syn.zed_camera()) as m:
+        m.begin_run("teach")
+    target = tmp_path / "elsewhere"
+    target.write_bytes(b"mine")
+    link = tmp_path / f"m.vtrmap{suffix}"
+    link.symlink_to(target)
+    for mode in ("r", "a"):
+        with pytest.raises(MapError) as err:
+            Map.open(path, mode)
+        assert str(link) in str(err.value) and "symbolic link" in str(err.value) and "\n" not in str(err.value)
+    assert target.read_bytes() == b"mine"
+    fresh = tmp_path / "new.vtrmap"
+    Path(f"{fresh}{suffix}").symlink_to(tmp_path / "dangling")
+    with pytest.raises(MapError, match="symbolic link"):
+        Map.create(fresh, syn.zed_camera())
+    assert not fresh.exists() and not (tmp_path / "dangling").exists()

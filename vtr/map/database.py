@@ -155,6 +155,18 @@ def unfolded_wal_pages(path: Path) -> int:
     return differ
 
 
+def check_side_files(path: Path) -> None:
+    """``MapError`` naming a side file of the map (``-wal``, ``-shm``, ``-journal``) that is a symbolic link or not a
+    regular file: SQLite would follow it (writing the log elsewhere) or fail with a message that blames the map."""
+    for suffix in SIDE_FILES:
+        side = Path(f"{path}{suffix}")
+        if side.is_symlink():
+            raise MapError(f"{side}: SQLite's {suffix[1:]} file beside the map is a symbolic link; a map's side files "
+                           "are never read or written through a link (remove it; the map itself is untouched)")
+        if side.exists() and not side.is_file():
+            raise MapError(f"{side}: SQLite's {suffix[1:]} file beside the map is not a regular file (remove it)")
+
+
 def remove_map_files(path: Path) -> None:
     """Unlink a map and its SQLite side files (only for a map this process created and holds)."""
     for p in (path, *(Path(f"{path}{s}") for s in SIDE_FILES)):
@@ -244,6 +256,7 @@ class MapFile:
         if path.is_dir():
             raise MapError(f"{path} is a directory: a vtr map is one SQLite file, give a file path such as "
                            f"{path / 'route.vtrmap'}")
+        check_side_files(path)               # a dangling link there would take the new map's log elsewhere
         leftovers = [p for p in (path, Path(f"{path}-wal"), Path(f"{path}-journal")) if p.exists()]
         if leftovers:
             raise MapError(f"{leftovers[0]} already exists: refusing to overwrite a map "
@@ -318,6 +331,7 @@ class MapFile:
         problem = input_problem(path)         # a named pipe or a device would block the open below forever
         if problem is not None:
             raise MapError(f"{path}: {problem}")
+        check_side_files(path)
         conn = None
         lock = MapLock.writer(path) if writable else MapLock.reader(path)
         try:
