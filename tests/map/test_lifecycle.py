@@ -298,13 +298,17 @@ class _Failing:
         self._conn.close()
 
 
-def test_sigkill_writer_left_running_then_reader_sees_interrupted_in_new_process(tmp_path):
-    path = tmp_path / "killed.vtrmap"
-    proc = _start_writer(path)
+def _kill_writer(proc) -> None:
+    """SIGKILL a writer started by ``_start_writer`` (its run left running, its log unfolded) and reap it."""
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     for f in (proc.stdin, proc.stdout, proc.stderr):
         f.close()
+
+
+def test_sigkill_writer_left_running_then_reader_sees_interrupted_in_new_process(tmp_path):
+    path = tmp_path / "killed.vtrmap"
+    _kill_writer(_start_writer(path))
     code = "import sys; from vtr.map import Map; m = Map.open(sys.argv[1]); print(m.runs()[0].state); m.close()"
     r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
                        timeout=SUBPROCESS_TIMEOUT_S)
@@ -358,11 +362,7 @@ def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_pa
     """After a SIGKILLed writer its vertices live only in the -wal: readers say the map is not closed (map info
     warns, map check fails naming --repair), a copy of the file alone lacks them; a writer or --repair folds them."""
     path = tmp_path / "killed.vtrmap"
-    proc = _start_writer(path)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    for f in (proc.stdin, proc.stdout, proc.stderr):
-        f.close()
+    _kill_writer(_start_writer(path))
     assert os.path.getsize(f"{path}-wal") > 0
     alone = tmp_path / "alone"
     alone.mkdir()
@@ -384,11 +384,7 @@ def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_pa
 
 def test_a_writer_folds_a_killed_writers_log_on_open(tmp_path):
     path = tmp_path / "killed.vtrmap"
-    proc = _start_writer(path)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    for f in (proc.stdin, proc.stdout, proc.stderr):
-        f.close()
+    _kill_writer(_start_writer(path))
     with Map.open(path) as m:
         assert m.not_closed() is not None and m.file.unfolded_pages() > 0
     with Map.open(path, "a") as m:
