@@ -52,9 +52,11 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
     localized: list[bool] = []
     locs: list[Localization] = []
     t_loc = 0.0
+    last_taken: RepeatStep | None = None
 
     def take(step: RepeatStep) -> None:
-        nonlocal t_loc
+        nonlocal t_loc, last_taken
+        last_taken = step
         t_loc += step.localization_seconds
         clog.add(step)
         t_ns.append(step.odometry.t_ns)
@@ -76,7 +78,8 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
         steps.close()                           # its localizations done: what the map holds but was not delivered
         with held_signals():
             for step in repeat.take_undelivered():
-                take(step)
+                if step is not last_taken:      # the newest step handed out, if the loop took it already
+                    take(step)
         raise
     with held_signals():
         repeat.map.finish_run()                 # every frame is in the map: the run is complete

@@ -25,6 +25,7 @@ import numpy as np
 from ..config import Config
 from ..geometry import inv_T, usable_covariance
 from ..map import Map
+from ..signals import held_signals
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 from .chain import ChainLocalizer, LocalizationChain
@@ -111,7 +112,7 @@ class Repeat:
         the map are whole and in order.
         """
         if self.odometry.stereo.threads <= 1:
-            yield from map(self.process_frame, frames)
+            yield from self._steps_inline(frames)
             return
         failed = threading.Event()
 
@@ -126,28 +127,48 @@ class Repeat:
 
         pending: deque[Future[RepeatStep]] = deque()
         pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-localize")
+        yielded: RepeatStep | None = None       # the newest step handed out (its caller may not have taken it)
         try:
             for frame in frames:
                 pending.append(pool.submit(in_order, *self._odometry(frame)))
                 while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
-                    yield self._deliver(pending.popleft().result())
+                    yielded = self._deliver(pending.popleft().result())
+                    yield yielded
             while pending:
-                yield self._deliver(pending.popleft().result())
+                yielded = self._deliver(pending.popleft().result())
+                yield yielded
+            yielded = None
         finally:
             for future in pending:
                 future.cancel()
             pool.shutdown(wait=True)
             # steps the map already holds but the stream did not deliver (it was closed early): a caller that
             # reports every step takes them with take_undelivered, so the map and its reports agree
-            done = []
+            done = [] if yielded is None else [yielded]
             for future in pending:
                 if future.cancelled() or future.exception() is not None:
                     break
                 done.append(self._deliver(future.result()))
             self._undelivered = done
 
+    def _steps_inline(self, frames: Iterable[StereoFrame]) -> Generator[RepeatStep, None, None]:
+        """:meth:`process_frame` over ``frames`` on this thread. Each frame is processed with Ctrl-C and SIGTERM
+        held, so a vertex written to the map is always localized and its step exists; a signal is delivered as
+        the frame ends, and the step it interrupted (and the newest one handed out, which its caller may not
+        have taken yet) is left for :meth:`take_undelivered`."""
+        yielded: RepeatStep | None = None
+        try:
+            for frame in frames:
+                with held_signals():
+                    yielded = self.process_frame(frame)
+                yield yielded
+            yielded = None
+        finally:
+            self._undelivered = [] if yielded is None else [yielded]
+
     def take_undelivered(self) -> list[RepeatStep]:
-        """Steps written to the map (and localized) that a stream closed early never yielded, in order (once)."""
+        """Steps written to the map (and localized) that a stream closed early may not have delivered, in order
+        (once): those it never yielded, after the last one it yielded (a caller that took that one skips it)."""
         out, self._undelivered = self._undelivered, []
         return out
 
