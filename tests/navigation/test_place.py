@@ -117,3 +117,37 @@ def test_an_index_copied_from_another_map_of_the_same_length_is_rebuilt_with_a_w
     with Map.open(ours) as m:
         route_place_index(m, Config().place, warn=told.append)
     assert told == []                                             # the stored one matches now
+
+
+def test_map_check_names_a_foreign_place_index_and_repair_rebuilds_it(kitti_clip, tmp_path):
+    """`vtr map check` used to say ok with another map's place index (same length) stored: now it exits 1 naming
+    the index and `--repair`; `--repair` rebuilds it from the vertices, and the map then checks ok."""
+    from click.testing import CliRunner
+
+    from vtr.app.pipeline import teach_command
+    from vtr.cli import main
+    from vtr.map import Map
+    from vtr.navigation.place import place_key
+
+    ours, other = tmp_path / "ours.vtrmap", tmp_path / "other.vtrmap"
+    teach_command(kitti_clip, ours, "0:12:2", Config())
+    teach_command(kitti_clip, other, "1:13:2", Config())
+    runner = CliRunner()
+    ok = runner.invoke(main, ["map", "check", str(ours)])
+    assert ok.exit_code == 0 and "place index matches the taught vertices" in ok.output
+    with Map.open(ours) as m:
+        key = place_key(m.reference_run())
+        reference = m.derived(key)
+    with Map.open(other) as m:
+        foreign = m.derived(place_key(m.reference_run()))
+    with Map.open(ours, "a") as m:
+        m.put_derived(key, foreign)
+    bad = runner.invoke(main, ["map", "check", str(ours)])
+    assert bad.exit_code == 1
+    assert "does not match the taught vertices" in bad.stderr and "--repair" in bad.stderr
+    assert bad.stderr.count("\n") == 1
+    fixed = runner.invoke(main, ["map", "check", str(ours), "--repair"])
+    assert fixed.exit_code == 0 and "rebuilt" in fixed.output, fixed.output
+    with Map.open(ours) as m:
+        assert m.derived(key) == reference                     # the same index the teach stored
+    assert "place index matches" in runner.invoke(main, ["map", "check", str(ours)]).output

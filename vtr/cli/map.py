@@ -86,11 +86,14 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
 def map_check_cmd(map_path: Path, repair: bool) -> None:
     """Check MAP for damage: SQLite's integrity check, the runs table, every vertex's checksums (maps made by
     this vtr) and data, the taught path (finite rigid poses, increasing times, existing runs) and every
-    temporal edge against its poses, and that the map is closed (no committed data only in its -wal). Prints
-    one line; exit 1 with the first damage found."""
+    temporal edge against its poses, that the map is closed (no committed data only in its -wal), and that the
+    stored place index is readable and indexes the taught vertices (its digest). Prints one line; exit 1 with
+    the first damage found."""
+    from ..config import Config
     from ..errors import MapError
     from ..map import Map
     from ..map.integrity import check_map
+    from ..navigation.place import rebuild_place_index, stored_place_index
 
     if repair:
         with Map.open(map_path, "r") as m:
@@ -102,9 +105,24 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
     with Map.open(map_path, "r") as m:
         report = check_map(m)
         unclosed = m.not_closed()
+        taught = any(r.privileged and r.n_vertices for r in m.runs())
+        stored = stored_place_index(m) if taught else None
     if unclosed:
         raise MapError(f"{map_path}: {unclosed}")
-    click.echo(map_check_line(report, map_path))
+    place = "no taught route"
+    if stored is not None:
+        place = "place index matches the taught vertices" if stored.index is not None else \
+            "no place index stored (the first repeat builds it)"
+        if stored.problem is not None:
+            if not repair:
+                raise MapError(f"{map_path}: place index {stored.key}: {stored.problem}; `vtr map check --repair` "
+                               "rebuilds it")
+            defaults = Config()
+            with Map.open(map_path, "a") as m:
+                rebuild_place_index(m, defaults.place, defaults.odometry.seed)
+            click.echo(f"{map_path}: place index {stored.key}: {stored.problem}; rebuilt from the vertices")
+            place = "place index rebuilt"
+    click.echo(f"{map_check_line(report, map_path)}; {place}")
 
 
 @main.command("export-map")

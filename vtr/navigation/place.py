@@ -231,35 +231,59 @@ def route_place_index(map_: Map, config: PlaceConfig, seed: int = 0,
 
     A stored index that is damaged or whose digest does not match the taught vertices (copied from another map,
     or the vertices changed) is rebuilt, and ``warn`` (else :func:`warnings.warn`) is told why."""
-    path = map_.taught_path()
-    run = map_.reference_run()
-    key = place_key(-1 if run is None else run)
-    digest = vertices_digest(path.ids, path.t_ns, path.T_world_vertex)
-    data = map_.derived(key)
-    if data is not None:
-        problem = None
-        try:
-            index = PlaceIndex.from_bytes(data, f"{map_.path}: {key}")
-            if not index.digest:
-                problem = "it has no digest of the vertices it indexes (stored by an older vtr)"
-            elif index.digest != digest or len(index) != len(path):
-                problem = ("it does not match the taught vertices (another map's index, or the vertices "
-                           "changed)")
-            else:
-                return index
-        except MapError:
-            problem = "it is damaged"
-        message = f"{map_.path}: place index {key}: {problem}; rebuilt from the vertices"
+    stored = stored_place_index(map_)
+    if stored.index is not None:
+        return stored.index
+    if stored.problem is not None:
+        message = f"{map_.path}: place index {stored.key}: {stored.problem}; rebuilt from the vertices"
         if warn is not None:
             warn(f"warning: {message}")
         else:
             warnings.warn(message, RuntimeWarning, stacklevel=2)
+    return rebuild_place_index(map_, config, seed)
+
+
+@dataclass(frozen=True)
+class StoredPlaceIndex:
+    """The taught route's stored place index checked against its vertices: ``index`` when it is usable, else
+    ``problem`` (why not; None when the map has none stored, as a map taught before the index existed)."""
+
+    key: str
+    index: PlaceIndex | None
+    problem: str | None
+
+
+def stored_place_index(map_: Map) -> StoredPlaceIndex:
+    """The stored place index of ``map_``'s taught route, checked: readable, and its digest that of the taught
+    vertices (:func:`vertices_digest`) with one entry per vertex."""
+    path = map_.taught_path()
+    run = map_.reference_run()
+    key = place_key(-1 if run is None else run)
+    data = map_.derived(key)
+    if data is None:
+        return StoredPlaceIndex(key, None, None)
+    try:
+        index = PlaceIndex.from_bytes(data, f"{map_.path}: {key}")
+    except MapError:
+        return StoredPlaceIndex(key, None, "it is damaged")
+    if not index.digest:
+        return StoredPlaceIndex(key, None, "it has no digest of the vertices it indexes (stored by an older vtr)")
+    if index.digest != vertices_digest(path.ids, path.t_ns, path.T_world_vertex) or len(index) != len(path):
+        return StoredPlaceIndex(key, None, "it does not match the taught vertices (another map's index, or the "
+                                           "vertices changed)")
+    return StoredPlaceIndex(key, index, None)
+
+
+def rebuild_place_index(map_: Map, config: PlaceConfig, seed: int = 0) -> PlaceIndex:
+    """Build the taught route's place index from its vertices; stored when the map is open for writing."""
+    path = map_.taught_path()
+    run = map_.reference_run()
     index = PlaceIndex.build(lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids), len(path),
-                             config, seed, digest)
+                             config, seed, vertices_digest(path.ids, path.t_ns, path.T_world_vertex))
     if map_.mode == "a":
-        map_.put_derived(key, index.to_bytes())
+        map_.put_derived(place_key(-1 if run is None else run), index.to_bytes())
     return index
 
 
-__all__ = ["PlaceIndex", "PlaceMatch", "Vocabulary", "k_majority", "place_key", "route_place_index", "train_vocabulary",
-           "vertices_digest"]
+__all__ = ["PlaceIndex", "PlaceMatch", "StoredPlaceIndex", "Vocabulary", "k_majority", "place_key",
+           "rebuild_place_index", "route_place_index", "stored_place_index", "train_vocabulary", "vertices_digest"]
