@@ -365,6 +365,10 @@ def test_mcap_chunks_carry_crcs_and_a_damaged_one_is_refused(tmp_path):
             chunk = pos
         pos += 9 + length
     assert crcs and all(crcs)
+    from binascii import crc32
+
+    # the data section's CRC (leading magic up to DataEnd), as the MCAP libraries check it
+    assert struct.unpack_from("<I", data, pos + 9)[0] == crc32(data[:pos]) != 0
     with open_source(tmp_path / "m") as src:                # intact: read whole
         assert len([src[i] for i in range(len(src))]) == 3
     bad = bytearray(data)

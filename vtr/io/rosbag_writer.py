@@ -209,14 +209,15 @@ _CHUNK_CRC_AT = 24                 # the uncompressed CRC follows start time, en
 
 def add_mcap_chunk_crcs(path: Path) -> int:
     """Fill in the CRC-32 of every uncompressed chunk of the MCAP file ``path`` (rosbags writes 0: "no check"),
-    so that a reader detects a damaged chunk instead of decoding other bytes; returns the number of chunks.
-    Compressed chunks keep their CRC (vtr writes none)."""
+    so that a reader detects a damaged chunk instead of decoding other bytes, then the data section's CRC-32 in
+    its DataEnd record (every byte from the leading magic up to DataEnd, as the MCAP libraries check it);
+    returns the number of chunks. Compressed chunks keep their CRC (vtr writes none)."""
     import struct
     from binascii import crc32
 
     n = 0
     with open(path, "r+b") as f:
-        data = f.read()
+        data = bytearray(f.read())
         if not data.startswith(MCAP_MAGIC):
             raise DataError(f"{path}: not an MCAP file (no magic)")
         pos = len(MCAP_MAGIC)
@@ -225,6 +226,8 @@ def add_mcap_chunk_crcs(path: Path) -> int:
             (length,) = struct.unpack_from("<Q", data, pos + 1)
             body = pos + 9
             if op == _MCAP_DATA_END:
+                f.seek(body)
+                f.write(struct.pack("<I", crc32(data[:pos])))
                 break
             if op == _MCAP_CHUNK:
                 (name_len,) = struct.unpack_from("<I", data, body + 28)
@@ -232,8 +235,9 @@ def add_mcap_chunk_crcs(path: Path) -> int:
                 records_at = body + 32 + name_len + 8
                 (size,) = struct.unpack_from("<Q", data, records_at - 8)
                 if compression == b"":
+                    struct.pack_into("<I", data, body + _CHUNK_CRC_AT, crc32(data[records_at:records_at + size]))
                     f.seek(body + _CHUNK_CRC_AT)
-                    f.write(struct.pack("<I", crc32(data[records_at:records_at + size])))
+                    f.write(data[body + _CHUNK_CRC_AT:body + _CHUNK_CRC_AT + 4])
                     n += 1
             pos = body + length
     return n
