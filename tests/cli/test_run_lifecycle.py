@@ -435,3 +435,17 @@ def test_a_read_only_map_repeat_copies_what_is_still_in_the_log(kitti_clip, tmp_
     r = invoke("repeat", kitti_clip, "--map", path, "--out", tmp_path / "ro", "--read-only-map", "--frames", "1:8:2")
     assert r.exit_code == 0, r.output
     assert (path.read_bytes(), Path(f"{path}-wal").read_bytes()) == before
+
+
+def test_a_read_only_map_repeat_names_the_users_map_not_its_private_copy(kitti_clip, tmp_path):
+    """An error about the map found while opening a `--read-only-map` repeat (here: another camera) names the map
+    the user gave, not the temporary copy the repeat works on (it named /tmp/vtr-repeat-map-copy-.../...)."""
+    path = tmp_path / "route.vtrmap"
+    assert invoke("teach", kitti_clip, "--map", path, "--frames", "0:8:2").exit_code == 0
+    clip = tmp_path / "recalibrated"
+    shutil.copytree(kitti_clip, clip)
+    calib = clip / "calib.txt"
+    calib.write_text(calib.read_text().replace("7.070912000000e+02", "6.500000000000e+02"))
+    r = invoke("repeat", clip, "--map", path, "--out", tmp_path / "ro", "--read-only-map", "--frames", "1:8:2")
+    line = one_line_error(r.stderr, "map was taught with another camera", f"{path} has")
+    assert "vtr-repeat-map-copy" not in line

@@ -166,6 +166,20 @@ def test_kitti_malformed_poses_refused_at_open(tmp_path):
     _one_line(err, "poses.txt: pose 8", "orthonormal")
 
 
+@pytest.mark.parametrize("value", ["nan", "inf", "1e300"])
+def test_kitti_time_that_is_not_a_time_is_named_by_line(tmp_path, value):
+    """A NaN, infinite or out-of-range time in times.txt used to pass through a numpy cast warning and read as
+    "not strictly increasing"; it is named by its line."""
+    shutil.copytree(KITTI, tmp_path / "k")
+    times = tmp_path / "k" / "times.txt"
+    rows = times.read_text().splitlines()
+    rows[3] = value
+    times.write_text("\n".join(rows) + "\n")
+    with pytest.raises(DataError) as err:
+        open_source(tmp_path / "k")
+    _one_line(err, "times.txt: line 4", "not a time in seconds")
+
+
 # ------------------------------------------------------------------------------ bags
 
 

@@ -4,9 +4,10 @@ with a progress bar, save, summarize). The library never prints; progress goes t
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -14,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..config import Config
-from ..errors import DataError
+from ..errors import DataError, MapError
 from ..geometry import distance_to_polyline, inv_T
 from ..io import open_source, parse_frame_range
 from ..io.base import FrameSource, SourceOptions
@@ -301,6 +302,18 @@ class RepeatEvaluation:
     ground_truth_note: str | None = None
 
 
+@contextlib.contextmanager
+def _naming_the_map(work_map: Path, map_path: Path) -> Iterator[None]:
+    """A ``MapError`` about the private copy of ``--read-only-map`` (a temporary file the user never named) is
+    reported with the user's map instead: what is wrong with the copy is wrong with the map it was copied from."""
+    try:
+        yield
+    except MapError as err:
+        if work_map == map_path:
+            raise
+        raise MapError(str(err).replace(str(work_map), str(map_path))) from None
+
+
 class RepeatRun:
     """``vtr repeat`` as named steps (:meth:`run`): open the source, the map and the outputs; loop every frame
     through the one repeat loop (:func:`~vtr.app.repeat_run.run_repeat`: the run finished in the map at its end),
@@ -319,8 +332,6 @@ class RepeatRun:
         self.start_vertex, self.start_distance_m = start_vertex, start_distance_m
 
     def run(self) -> RepeatSummary:
-        import contextlib
-
         with contextlib.ExitStack() as stack:
             self.open(stack)
             loop = self.loop()
@@ -340,16 +351,17 @@ class RepeatRun:
         from ..navigation.repeat import Repeat
 
         work_map = self._private_copy(stack) if self.read_only_map else self.map_path
-        self.source = stack.enter_context(open_source(self.source_path, self.source_options))
-        self.map = m = stack.enter_context(Map.open(work_map, "a"))
-        m.check_camera(self.source.camera)
-        self.indices = parse_frame_range(self.frames, len(self.source), str(self.source_path))
-        self.folder = OutputFolder.prepare(self.out, [self.source_path], REPEAT_OUTPUTS)
-        self.log = RunLog(self.out, "repeat", self.config, [self.source_path, self.map_path])
-        _check_path_to_follow(m)
-        start = _start_hint(m, self.start_vertex, self.start_distance_m)
-        self.repeat = Repeat(m, self.config, source=str(self.source_path), start_index=start,
-                             allow_partial=self.allow_partial, warn=self.warn)
+        with _naming_the_map(work_map, self.map_path):     # what is wrong with the map names the user's file
+            self.source = stack.enter_context(open_source(self.source_path, self.source_options))
+            self.map = m = stack.enter_context(Map.open(work_map, "a"))
+            m.check_camera(self.source.camera)
+            self.indices = parse_frame_range(self.frames, len(self.source), str(self.source_path))
+            self.folder = OutputFolder.prepare(self.out, [self.source_path], REPEAT_OUTPUTS)
+            self.log = RunLog(self.out, "repeat", self.config, [self.source_path, self.map_path])
+            _check_path_to_follow(m)
+            start = _start_hint(m, self.start_vertex, self.start_distance_m)
+            self.repeat = Repeat(m, self.config, source=str(self.source_path), start_index=start,
+                                 allow_partial=self.allow_partial, warn=self.warn)
 
     def loop(self) -> RepeatLoop:
         """Every frame through the repeat loop; a row of ``localization.csv`` and the rows of ``landmarks.csv`` (the

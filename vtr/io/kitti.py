@@ -99,6 +99,11 @@ class KittiSource(FrameSource):
             raise DataError(f"{times}: malformed ({err})") from err
         if len(t) != n:
             raise DataError(f"{times}: {len(t)} times for {n} images")
+        bad = ~np.isfinite(t) | (np.abs(t) >= 2**63 / NS_PER_S)
+        if bad.any():
+            line = int(np.argmax(bad)) + 1
+            raise DataError(f"{times}: line {line}: {float(t[line - 1])} is not a time in seconds that fits int64 "
+                            "nanoseconds")
         t_ns = np.round(t * NS_PER_S).astype(np.int64)
         if np.any(np.diff(t_ns) <= 0):
             raise DataError(f"{times}: timestamps are not strictly increasing")
