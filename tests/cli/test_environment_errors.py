@@ -258,11 +258,11 @@ def test_map_with_landmarks_behind_the_camera(tmp_path):
         arrays = {"uv": f.features.uv, "octave": f.features.octave, "descriptors": f.features.descriptors,
                   "u_right": f.u_right, "points": f.points * [1.0, 1.0, -1.0]}
         db.execute("UPDATE vertex_data SET data = ? WHERE id = ?", (pack_arrays(arrays, 3), vid))
-    # the vertex's checksum finds the damage first (vtr.map.integrity) ...
+    # the vertex's checksum finds the damage first (vtr.map.checksums) ...
     assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r", "--frames", "1:6:2"],
                     f"{m}: vertex {vid}", "damaged")
     # ... and in a map made before checksums existed the codec's check does
-    from vtr.map.integrity import META_KEY, TABLE
+    from vtr.map.checksums import META_KEY, TABLE
 
     with sqlite3.connect(m) as db:
         db.executescript(f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; "

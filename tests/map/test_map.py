@@ -23,6 +23,7 @@ from vtr.config import MapConfig
 from vtr.errors import MapError, VtrError
 from vtr.geometry import usable_covariance
 from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, split_vertex_id, vertex_id
+from vtr.map.placement import landmarks_in_map_frame, poses_in_map_frame
 from vtr.types import Features, StereoFrame
 
 CAMERA = StereoCamera(fx=718.856, fy=718.856, cx=607.19, cy=185.22, baseline=0.537, width=1226, height=370,
@@ -318,7 +319,7 @@ def test_empty_map_opens_and_has_no_taught_path(tmp_path):
     Map.create(path, CAMERA).close()
     with Map.open(path) as m:
         assert m.runs() == [] and m.edges() == []
-        assert m.stats()["vertices"] == 0 and m.landmarks()[0].shape == (0, 3)
+        assert m.stats()["vertices"] == 0 and landmarks_in_map_frame(m)[0].shape == (0, 3)
         with pytest.raises(MapError, match="map has no taught run"):
             m.taught_path()
     with Map.open(path, "a") as m:
@@ -578,13 +579,13 @@ def test_landmarks_in_the_teach_frame(tmp_path):
     truth = _two_run_map(path)
     with Map.open(path) as m:
         assert m.reference_run() == 0
-        assert m.poses_in_map_frame(0)[2] and m.poses_in_map_frame(1)[2] and not m.poses_in_map_frame(2)[2]
+        assert poses_in_map_frame(m, 0)[2] and poses_in_map_frame(m, 1)[2] and not poses_in_map_frame(m, 2)[2]
         for run in (0, 1):
-            pts, owner = m.landmarks(run)
+            pts, owner = landmarks_in_map_frame(m, run)
             assert np.allclose(pts, truth[run], atol=1e-9) and np.all(owner == run)
-        own, _ = m.landmarks(2)
+        own, _ = landmarks_in_map_frame(m, 2)
         assert own.shape == truth[2].shape and not np.allclose(own, truth[2], atol=1e-3)
-        pts, owner = m.landmarks()
+        pts, owner = landmarks_in_map_frame(m)
         assert len(pts) == sum(len(t) for t in truth.values()) == m.stats()["landmarks"]
         assert np.bincount(owner).tolist() == [len(truth[r]) for r in (0, 1, 2)]
 

@@ -19,8 +19,8 @@ from test_map_cli import CAMERA, frame, translation  # noqa: E402
 from vtr.cli import main  # noqa: E402
 from vtr.errors import MapError  # noqa: E402
 from vtr.map import Map, vertex_id  # noqa: E402
+from vtr.map.checksums import META_KEY, TABLE  # noqa: E402
 from vtr.map.codec import BLOB_MAGIC, decode_frame  # noqa: E402
-from vtr.map.integrity import META_KEY, TABLE  # noqa: E402
 from vtr.types import Keyframe  # noqa: E402
 
 N = 6

@@ -92,7 +92,7 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
     from ..config import Config
     from ..errors import MapError
     from ..map import Map
-    from ..map.integrity import check_map
+    from ..map.check import check_map
     from ..navigation.place import rebuild_place_index, stored_place_index
 
     if repair:

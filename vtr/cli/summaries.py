@@ -13,7 +13,7 @@ if TYPE_CHECKING:
     from ..app.convert import ConvertSummary
     from ..app.mission import MissionReport
     from ..app.pipeline import OdometrySummary, RepeatSummary, TeachSummary
-    from ..map.integrity import CheckReport
+    from ..map.check import CheckReport
 
 
 def _fps(frames: int, seconds: float) -> float:

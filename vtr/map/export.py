@@ -2,7 +2,7 @@
 
 Frame: the world frame of the first teach run (its first left camera: x right, y down, z forward),
 metres. Other runs are placed through their spatial edges to that run (see
-:meth:`vtr.map.Map.poses_in_map_frame`); a run without such an edge stays in its own world frame,
+:func:`vtr.map.placement.poses_in_map_frame`); a run without such an edge stays in its own world frame,
 which the summary reports as ``aligned=False``.
 """
 
@@ -16,6 +16,7 @@ import numpy as np
 from perception_model.outputs import replace_file
 
 from ..errors import MapError
+from .placement import landmarks_in_map_frame, poses_in_map_frame
 from .store import Map
 
 PLY_SUFFIX = ".ply"
@@ -64,8 +65,8 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
             raise MapError(f"{map_.path}: no run {r}")
     pts, cols, summary = [], [], []
     for order, r in enumerate(run_ids):
-        p, _owner = map_.landmarks(r)
-        aligned = map_.poses_in_map_frame(r)[2]
+        p, _owner = landmarks_in_map_frame(map_, r)
+        aligned = poses_in_map_frame(map_, r)[2]
         colour = run_colour(order)
         pts.append(p)
         cols.append(np.broadcast_to(colour, p.shape))

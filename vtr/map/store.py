@@ -48,7 +48,7 @@ from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import ConfigError, MapError, Terminated, UnfinishedRouteError, interruption
 from ..geometry import inv_T
-from . import integrity
+from . import checksums, damage
 from .codec import decode_frame, encode_frame
 from .database import Connection, MapFile
 from .path import TaughtPath
@@ -177,8 +177,8 @@ class Map:
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
         self._aborted = False           # this session aborted a run
-        assert file.conn is not None   # verified on every read (vtr.map.integrity); damaged metadata refused
-        self._checksums = integrity.checksummed(file.conn, str(file.path))
+        assert file.conn is not None   # verified on every read (vtr.map.checksums); damaged metadata refused
+        self._checksums = checksums.checksummed(file.conn, str(file.path))
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
             # the open run (writing to it resumes it) until a new run begins
@@ -217,11 +217,11 @@ class Map:
             "created": _utc_now(),
             "vtr_version": __version__,
             "compress_level": str(level),
-            integrity.META_KEY: integrity.META_VALUE,   # every vertex has checksums (vtr.map.integrity)
+            checksums.META_KEY: checksums.META_VALUE,   # every vertex has checksums (vtr.map.checksums)
         }
         if up is not None:
             meta[GRAVITY_META_KEY] = json.dumps([float(x) for x in up])
-        return MapFile.create(path, SCHEMA + integrity.SCHEMA, meta,
+        return MapFile.create(path, SCHEMA + checksums.SCHEMA, meta,
                               lambda file: cls(file, "a", camera, meta, cache_size, created=True))
 
     @classmethod
@@ -482,7 +482,7 @@ class Map:
             )
             conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
             if self._checksums:
-                integrity.write(conn, vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs),
+                checksums.write(conn, vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs),
                                 encoded.n_features, encoded.n_landmarks, encoded.frame.index, encoded.blob)
             if edge is not None and last is not None:
                 C, inliers = edge
@@ -605,7 +605,7 @@ class Map:
             rows = conn.execute("SELECT id, T_world_vertex FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
                                 (lo, hi)).fetchall()
             if self._checksums:
-                integrity.verify_rows(conn, str(self.path), lo, hi)
+                checksums.verify_rows(conn, str(self.path), lo, hi)
         return self._pose_arrays(rows)
 
     @staticmethod
@@ -622,42 +622,38 @@ class Map:
             rows = conn.execute("SELECT id, t_ns FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
                                 (lo, hi)).fetchall()
             if self._checksums:
-                integrity.verify_rows(conn, str(self.path), lo, hi)
+                checksums.verify_rows(conn, str(self.path), lo, hi)
         return (np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1] for r in rows], dtype=np.int64))
 
-    def vertex(self, vid: int) -> VertexRecord:
-        """The keyframe ``vid`` with its features (decoded once, then served from a bounded LRU cache)."""
+    def vertex(self, vid: int, cached: bool = True) -> VertexRecord:
+        """The keyframe ``vid`` with its features, checksums verified: decoded once, then served from a bounded LRU
+        cache; ``cached=False`` reads it from the file and leaves the cache alone (a full check, a stream)."""
         vid = _check_int(vid, "vertex id", 0)
+        if not cached:
+            return self._read_vertex(vid)
         with self._lock:
             record = self._cache.get(vid)
             if record is not None:
                 self._cache.move_to_end(vid)
                 return record
-            with self._db() as conn:
-                row = conn.execute(
-                    "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
-                    "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (vid,)).fetchone()
-            if row is None:
-                run, index = split_vertex_id(vid)
-                raise MapError(f"{self.path}: no vertex {vid} (run {run}, index {index})")
-            record = self._decode_vertex(vid, row)
+            record = self._read_vertex(vid)
             self._cache_put(record)
             return record
 
-    def _read_vertex_uncached(self, vid: int) -> VertexRecord:
-        """Vertex ``vid`` read and decoded (checksums verified), without the cache (``vtr map check``)."""
+    def _read_vertex(self, vid: int) -> VertexRecord:
         with self._db() as conn:
             row = conn.execute(
                 "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
                 "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (vid,)).fetchone()
         if row is None:
-            raise MapError(f"{self.path}: vertex {vid} has no data (a damaged map)")
+            run, index = split_vertex_id(vid)
+            raise MapError(f"{self.path}: no vertex {vid} (run {run}, index {index}) with data")
         return self._decode_vertex(vid, row)
 
     def _decode_vertex(self, vid: int, row) -> VertexRecord:
         if self._checksums:
             with self._db() as conn:
-                integrity.verify_rows(conn, str(self.path), vid, vid, data=True)
+                checksums.verify_rows(conn, str(self.path), vid, vid, data=True)
         t_ns, T_wv, T_vs, frame_index, data = row
         frame = decode_frame(data, t_ns, frame_index, f"{self.path} vertex {vid}")
         return VertexRecord.of(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), frame)
@@ -722,15 +718,15 @@ class Map:
                 rows = conn.execute(
                     "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
                     "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
-                integrity.check_vertex_runs(conn, str(self.path))
+                damage.check_vertex_runs(conn, str(self.path))
                 if self._checksums:
                     for (run,) in conn.execute("SELECT id FROM runs WHERE privileged = 1").fetchall():
-                        integrity.verify_rows(conn, str(self.path), *_run_range(int(run)))
+                        checksums.verify_rows(conn, str(self.path), *_run_range(int(run)))
             ids, T = self._pose_arrays(rows)
             path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
-            integrity.check_taught_path(str(self.path), path)
+            damage.check_taught_path(str(self.path), path)
             with self._db() as conn:
-                integrity.check_path_edges(conn, str(self.path), path)
+                damage.check_path_edges(conn, str(self.path), path)
             self._path_cache = (self._generation, path)
             return path
 
@@ -752,73 +748,6 @@ class Map:
             if info.privileged:
                 return info.id
         return None
-
-    def poses_in_map_frame(self, run: int) -> tuple[np.ndarray, np.ndarray, bool]:
-        """``(ids, T_map_vertex (N, 4, 4), aligned)`` of a run in the map frame (first teach run's world).
-
-        A run other than the reference is placed through its spatial edges to the reference run:
-        each vertex goes through the localized vertex nearest to it in index order
-        (``T_map_v = T_map_t T_t_l T_l_v``, with ``T_l_v`` from the run's own odometry). Without any
-        such edge the run stays in its own world frame and ``aligned`` is false.
-        """
-        ids, T_run_v = self.poses(run)
-        ref = self.reference_run()
-        if ref == run:
-            return ids, T_run_v, True
-        if ref is None or len(ids) == 0:
-            return ids, T_run_v, False
-        ref_ids, T_map_t = self.poses(ref)
-        links = []  # (index in run, T_map_run via this edge, inliers)
-        for e in self.edges(run=run, kind="spatial"):
-            rf, rt = e.from_id >> RUN_SHIFT, e.to_id >> RUN_SHIFT
-            if rf == run and rt == ref:
-                l_id, t_id, T_l_t = e.from_id, e.to_id, e.T_from_to
-            elif rf == ref and rt == run:
-                l_id, t_id, T_l_t = e.to_id, e.from_id, inv_T(e.T_from_to)
-            else:
-                continue
-            i_l = int(np.searchsorted(ids, l_id))
-            i_t = int(np.searchsorted(ref_ids, t_id))
-            T_map_run = T_map_t[i_t] @ inv_T(T_l_t) @ inv_T(T_run_v[i_l])
-            links.append((i_l, T_map_run, e.inliers))
-        if not links:
-            return ids, T_run_v, False
-        links.sort(key=lambda x: (x[0], -x[2]))
-        link_idx = np.array([x[0] for x in links])
-        keep = np.concatenate([[True], np.diff(link_idx) > 0])
-        link_idx = link_idx[keep]
-        link_T = np.stack([x[1] for x, k in zip(links, keep, strict=True) if k])
-        # for each vertex, the link nearest in index order
-        ar = np.arange(len(ids))
-        right = np.clip(np.searchsorted(link_idx, ar), 0, len(link_idx) - 1)
-        left = np.clip(right - 1, 0, len(link_idx) - 1)
-        choice = np.where(np.abs(ar - link_idx[left]) <= np.abs(link_idx[right] - ar), left, right)
-        return ids, link_T[choice] @ T_run_v, True
-
-    def landmarks(self, run: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(points (M, 3) metres, run_of_point (M,) int64)``: every vertex landmark in the map frame.
-
-        The map frame is the world frame of the first teach run; other runs are placed through
-        their spatial edges (see :meth:`poses_in_map_frame`), or left in their own world frame when
-        unlinked. Streams feature data vertex by vertex (no cache pollution).
-        """
-        run_ids = [r.id for r in self.runs()] if run is None else [self._run_id(run)]
-        pts, owner = [], []
-        for r in run_ids:
-            ids, T_map_v, _aligned = self.poses_in_map_frame(r)
-            for i, rec in enumerate(self.iter_vertices(r)):
-                p = rec.frame.points[rec.landmark_mask]
-                pts.append(p @ T_map_v[i, :3, :3].T + T_map_v[i, :3, 3])
-                owner.append(np.full(len(p), r, dtype=np.int64))
-        if not pts:
-            return np.empty((0, 3)), np.empty(0, dtype=np.int64)
-        return np.concatenate(pts), np.concatenate(owner)
-
-    def _run_id(self, run: int) -> int:
-        run = _check_int(run, "run", 0)
-        with self._db() as conn:
-            self._run_row(conn, run)
-        return run
 
     # ------------------------------------------------------------ derived data
 
