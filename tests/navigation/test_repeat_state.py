@@ -84,15 +84,15 @@ def test_state_matches_localized_poses(kitti_run):
     loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
     with Map.open(d / "route.vtrmap") as m:
         taught = m.taught_path()
-        clog = RepeatStateEstimator.for_route(taught, Config(), m.camera.T_vehicle_sensor)
+        state_estimator = RepeatStateEstimator.for_route(taught, Config(), m.camera.T_vehicle_sensor)
     ids = taught.ids
     index = {int(v): i for i, v in enumerate(ids)}
     offsets = []
     for t, trunk, ok in zip(loc["t_ns"], loc["trunk_id"], loc["success"], strict=True):
         if not ok:
             continue
-        T_wt, T_o_t = clog.trunk_frame(index[int(trunk)])
-        T_w_a = T_teach[np.flatnonzero(t_frames == t)[0]] @ clog.T_sensor_vehicle
+        T_wt, T_o_t = state_estimator.trunk_frame(index[int(trunk)])
+        T_w_a = T_teach[np.flatnonzero(t_frames == t)[0]] @ state_estimator.T_sensor_vehicle
         p_chain = (T_o_t @ inv_T(T_wt) @ T_w_a)[:3, 3]
         rows = s.trunk_id == trunk
         assert s.t_ns[rows][0] <= t <= s.t_ns[rows][-1]
@@ -159,9 +159,9 @@ def test_level_camera_frame_o():
     c, s = np.cos(yaw), np.sin(yaw)
     R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
     T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
-    clog = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, Config(), np.eye(4))
+    state_estimator = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, Config(), np.eye(4))
     for k in range(2):
-        T_wt, T_o_t = clog.trunk_frame(k)
+        T_wt, T_o_t = state_estimator.trunk_frame(k)
         C_world_o = T_wt[:3, :3] @ T_o_t[:3, :3].T
         assert np.allclose(C_world_o[:, 2], [0, -1, 0])
         assert np.allclose(C_world_o[:, 0], T_priv[k][:3, 2])
@@ -205,11 +205,11 @@ def _synthetic_steps(n: int, failed: set[int]):
 def test_anchored_at_first_localization(T_vehicle_sensor):
     """The first three localizations fail: the vertices wait and are placed by the first success."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})
-    clog = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), T_vehicle_sensor)
+    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), T_vehicle_sensor)
     for step in steps:
-        clog.add(step)
-    clog.finish()
-    s = clog.output(RATE_HZ)
+        state_estimator.add(step)
+    state_estimator.finish()
+    s = state_estimator.output(RATE_HZ)
     assert len(s) == int((len(steps) - 1) * DT_NS * 1e-9 * RATE_HZ) + 1
     # the waiting vertices are placed through odometry from the first success (the smoothed state is whole), but
     # only from the chain's first success on is the state localized: before it, unknown and no path error
@@ -226,11 +226,11 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
 
 def test_never_localized_uses_chain_assumption():
     ids, T_priv, steps = _synthetic_steps(10, failed=set(range(10)))
-    clog = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), np.eye(4))
+    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), np.eye(4))
     for step in steps:
-        clog.add(step)
-    clog.finish()
-    s = clog.output(RATE_HZ)
+        state_estimator.add(step)
+    state_estimator.finish()
+    s = state_estimator.output(RATE_HZ)
     # the smoother runs on the chain's assumption (started at the first taught vertex), but no path error is
     # reported: the repeat never localized
     assert s.localized is not None and not s.localized.any() and np.all(np.isnan(s.lateral))

@@ -426,7 +426,7 @@ class RepeatRun:
         from .report import plot_repeat
         from .runfiles.state_csv import write_state_csv
 
-        state = loop.controller.output(self.rate_hz)
+        state = loop.state_estimator.output(self.rate_hz)
         self.folder.write("state.csv", write_state_csv, state)
         self.folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
         self.folder.write("report.png", plot_repeat, list(loop.localizations), self.repeat.chain.path, loop.T_teach,
@@ -441,12 +441,12 @@ class RepeatRun:
         ok = [loc for loc in loop.localizations if loc.success]
         lateral, vertical = np.abs(state.lateral), np.abs(state.vertical)
         state_info = {"rate_hz": self.rate_hz, "rows": len(state),
-                      "smoother_ms_per_frame": 1000 * loop.controller.seconds / max(len(loop.t_ns), 1),
+                      "smoother_ms_per_frame": 1000 * loop.state_estimator.seconds / max(len(loop.t_ns), 1),
                       "median_abs_lateral_m": float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
                       "median_abs_vertical_m": float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None,
                       "statuses": ({str(k): int(v) for k, v in zip(*np.unique(state.status, return_counts=True),
                                                                    strict=True)} if state.status is not None else {}),
-                      "pauses_s": [round(p, 3) for p in loop.controller.pauses_s]}
+                      "pauses_s": [round(p, 3) for p in loop.state_estimator.pauses_s]}
         errors = evaluation.path_errors_m
         return RepeatSummary(frames=len(loop.t_ns), vertices=len(loop.localizations), localized=len(ok),
                              seconds=loop.seconds + seconds_after_loop, localization_seconds=loop.localization_seconds,

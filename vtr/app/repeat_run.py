@@ -34,7 +34,7 @@ class RepeatLoop:
     T_teach: np.ndarray
     localized: np.ndarray
     localizations: tuple[Localization, ...]
-    controller: RepeatStateEstimator
+    state_estimator: RepeatStateEstimator
     seconds: float
     localization_seconds: float
 
@@ -46,7 +46,8 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
     ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route).
     ``gravity_up`` overrides the map's stored gravity (``Map.gravity_up``) for the controller state."""
     up = repeat.map.gravity_up if gravity_up is None else gravity_up
-    clog = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor, up)
+    state_estimator = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor,
+                                                     up)
     t_ns: list[int] = []
     T_teach: list[np.ndarray] = []
     localized: list[bool] = []
@@ -58,7 +59,7 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
         nonlocal t_loc, last_taken
         last_taken = step
         t_loc += step.localization_seconds
-        clog.add(step)
+        state_estimator.add(step)
         t_ns.append(step.odometry.t_ns)
         T_teach.append(step.T_teach_frame)
         localized.append(step.localized)
@@ -83,9 +84,9 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
         raise
     with held_signals():
         repeat.map.finish_run()                 # every frame is in the map: the run is complete
-        clog.finish()
+        state_estimator.finish()
     return RepeatLoop(np.array(t_ns, np.int64), np.array(T_teach).reshape(-1, 4, 4), np.array(localized, bool),
-                      tuple(locs), clog, time.perf_counter() - t0, t_loc)
+                      tuple(locs), state_estimator, time.perf_counter() - t0, t_loc)
 
 
 __all__ = ["RepeatLoop", "run_repeat"]
