@@ -199,9 +199,11 @@ class Repeat:
         record = None
         if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
             sub = self._submap(attempt.trunk)
-            record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
-                                     sub.trunk_features(est.matched), sub.trunk_features(est.matched[est.inlier]),
-                                     t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
+            with self.localizer.timer("landmark_record"):
+                record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
+                                         sub.trunk_features(est.matched),
+                                         sub.trunk_features(est.matched[est.inlier]),
+                                         t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
         s = c.state
         return Localization(t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id, twig_id=twig, branch_id=branch,
                             success=attempt.success, matches=est.matches, inliers=est.inliers,
@@ -216,6 +218,10 @@ class Repeat:
         sub = self._submaps.get(trunk)
         if sub is not None:
             return sub
+        with self.localizer.timer("submap"):
+            return self._build_submap(trunk)
+
+    def _build_submap(self, trunk: int) -> TaughtSubmap:
         path, n = self.chain.path, self.config.localization.neighbour_vertices
         slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(path.ids)))
         ids = [int(i) for i in path.ids[slots]]
