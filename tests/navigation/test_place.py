@@ -166,6 +166,8 @@ def test_a_long_route_is_queried_in_two_passes_and_finds_the_place(long_route):
         best = index.query(d, 3).indices
         assert abs(int(best[0]) - x) <= 1.5, (x, best)
         assert best[0] == exact.query(d, 3).indices[0]
+        far = slice(int(x + 200) % 600, int(x + 200) % 600 + 20)   # a window elsewhere: scored on request
+        np.testing.assert_allclose(index.scores(d, also=far)[far], all_s[far], rtol=1e-9, atol=1e-12)
 
 
 def test_a_short_route_is_scored_whole_and_the_inverted_file_is_stored(index, descriptors):

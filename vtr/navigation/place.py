@@ -221,15 +221,18 @@ class PlaceIndex:
         v = np.bincount(w, minlength=len(self.vocabulary)).astype(np.float64) * self.idf
         return _unit(v)
 
-    def scores(self, descriptors: np.ndarray) -> np.ndarray:
+    def scores(self, descriptors: np.ndarray, also: np.ndarray | slice | None = None) -> np.ndarray:
         """Cosine score (V,) of the taught vertices against a query's descriptors: of every vertex on a route of
         up to ``shortlist`` vertices; on a longer one of the ``shortlist`` vertices sharing the query's most
-        telling words (:meth:`shortlisted`), 0 for the others."""
+        telling words (:meth:`shortlisted`) and of the vertices ``also`` (path indices or a slice: e.g. the
+        window a tracked leaf is in, whose scores a check compares), 0 for the others."""
         q = self.vector(descriptors)
         if len(self) <= self.shortlist:
             return np.asarray(self._csr @ q, np.float64).ravel()
         out = np.zeros(len(self))
         rows = self.shortlisted(q)
+        if also is not None:
+            rows = np.union1d(rows, np.arange(len(self))[also])
         out[rows] = self._row_scores(rows, q)
         return out
 
