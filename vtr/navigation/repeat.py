@@ -195,7 +195,8 @@ class Repeat:
         if attempt.success:
             assert est.T_leaf_trunk is not None
             covariance = usable_covariance(est.covariance, self.config.odometry.failure_variance)
-            self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
+            with self.localizer.timer("spatial_edge"):      # a map transaction of its own
+                self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
         record = None
         if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
             sub = self._submap(attempt.trunk)
