@@ -176,7 +176,9 @@ class Localizer:
         self.config = config
         self.odometry = odometry
         self.pixel_sigma = pixel_sigma
-        self.timer = timer or StageTimer()    # seconds in "match", "ransac" and "refine" (tools/bench_repeat.py)
+        # seconds in "match", "ransac" and "refine" (Repeat adds its submap reads, landmark records and spatial
+        # edges): the split tools/bench_repeat.py prints
+        self.timer = timer or StageTimer()
 
     def localize(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                  seed: int = 0, trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:

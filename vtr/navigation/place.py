@@ -37,6 +37,7 @@ from ..vo.kernels import matching as km
 DESCRIPTOR_BYTES = 32          # ORB: 256 bits
 INDEX_MAGIC = b"VTRP\x01"
 DIGEST_BYTES = 16              # BLAKE2b of the indexed vertices (ids, times, poses)
+ROWS_PER_BLOCK = 4096          # rows sorted at once when the inverted file is derived (bounds its temporary arrays)
 
 
 def _words(descriptors: np.ndarray) -> np.ndarray:
@@ -118,7 +119,7 @@ class CoarseFile:
 
     @classmethod
     def of_rows(cls, indptr: np.ndarray, word: np.ndarray, weight: np.ndarray, n_words: int, vertex_words: int,
-                rows_per_block: int = 4096) -> CoarseFile:
+                rows_per_block: int = ROWS_PER_BLOCK) -> CoarseFile:
         """From the unit TF-IDF rows (CSR): each row's ``vertex_words`` heaviest words (ties: the lower word),
         in blocks of rows so memory stays that of the rows."""
         vs, ws, xs = [], [], []
