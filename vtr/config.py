@@ -326,8 +326,8 @@ class PlaceConfig:
     # ``vertex_words`` heaviest words, looked up with the query's ``query_words`` heaviest, shortlists this many
     # vertices, and only they are scored exactly (the others score 0); up to ``shortlist`` vertices every one is
     # scored. On a synthetic 50 000-vertex route (tools/bench_place.py, 200 queries) 200 / 128 / 128 found the
-    # place as often as scoring every vertex (99.5 %), the same best vertex for every query, in ~3 ms of CPU
-    # against ~40 ms; 200 / 64 / 64 found 97.5 %, 100 / 32 / 64 86.5 %
+    # place as often as scoring every vertex (99.5 %), the same best vertex for every query, in 2.4-2.9 ms of CPU
+    # against 59 ms (shortlist / vertex_words / query_words: 200 / 64 / 64 found 97.5 %, 100 / 32 / 64 86.5 %)
     shortlist: int = setting(200, Range(1, 10_000_000, integer=True))
     vertex_words: int = setting(128, Range(1, 1_000_000, integer=True))
     query_words: int = setting(128, Range(1, 1_000_000, integer=True))
