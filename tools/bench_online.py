@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import threading
 import time
 from pathlib import Path
@@ -210,10 +211,18 @@ def main() -> None:
     ap.add_argument("--control-hz", type=float, default=100.0)
     ap.add_argument("--horizon", type=int, default=15)
     ap.add_argument("--speed", type=float, default=6.0, help="aerial flight speed (m/s)")
+    ap.add_argument("--cases", default="aerial,kitti06", help="comma-separated: aerial, kitti06")
+    ap.add_argument("--switch-interval-ms", type=float, default=None,
+                    help="Python's thread switch interval for the run (sys.setswitchinterval; default: Python's, 5 ms)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.switch_interval_ms is not None:
+        sys.setswitchinterval(args.switch_interval_ms / 1000)
+    print(f"thread switch interval {1000 * sys.getswitchinterval():g} ms")
     rows = []
-    cases = (("aerial backward", lambda: aerial_case(args.out, args)), ("kitti06", lambda: kitti_case(args.out)))
+    cases = [(name, case) for name, case in (("aerial backward", lambda: aerial_case(args.out, args)),
+                                             ("kitti06", lambda: kitti_case(args.out)))
+             if name.split()[0] in args.cases.split(",")]
     for name, case in cases:
         map_path, source, indices, truth = case()
         print(f"{name}: {len(indices)} frames at {args.camera_hz:g} Hz, control at {args.control_hz:g} Hz ...")

@@ -151,3 +151,70 @@ def test_map_check_names_a_foreign_place_index_and_repair_rebuilds_it(kitti_clip
     with Map.open(ours) as m:
         assert m.derived(key) == reference                     # the same index the teach stored
     assert "place index matches" in runner.invoke(main, ["map", "check", str(ours)]).output
+
+
+def _route_views(pool: np.ndarray, n: int, seed: int = 0):
+    """A synthetic route of ``n`` vertices over real descriptors: landmark k is a pool descriptor with 24 bits
+    flipped; position x sees the 1000 landmarks born over its last 10 vertices, each with 12 more bits flipped
+    (tools/bench_place.py builds its routes the same way)."""
+    rng = np.random.default_rng(seed)
+    base = pool[rng.integers(0, len(pool), 100 * (n + 10))]
+    bits = np.zeros((len(base), 256), np.uint8)
+    bits[np.arange(len(base))[:, None], rng.integers(0, 256, (len(base), 24))] = 1
+    world = base ^ np.packbits(bits, axis=1)
+
+    def view(x: float, salt: int) -> np.ndarray:
+        r = np.random.default_rng([seed, salt, int(1000 * x)])
+        first = max(int(round((x - 9) * 100)), 0)
+        d = world[first:first + 1000].copy()
+        noise = np.zeros((len(d), 256), np.uint8)
+        noise[np.arange(len(d))[:, None], r.integers(0, 256, (len(d), 12))] = 1
+        return d ^ np.packbits(noise, axis=1)
+    return view
+
+
+@pytest.fixture(scope="module")
+def long_route(descriptors):
+    """A 600-vertex route indexed with a shortlist of 100: every query takes the two-pass path."""
+    import dataclasses
+
+    view = _route_views(np.unique(np.concatenate(descriptors), axis=0), 600)
+    config = dataclasses.replace(Config().place, shortlist=100)
+    index = PlaceIndex.build(lambda: (view(i, 0) for i in range(600)), 600, config)
+    return index, view
+
+
+def test_a_long_route_is_queried_in_two_passes_and_finds_the_place(long_route):
+    """Beyond ``place.shortlist`` vertices only the shortlist is scored, exactly; the best candidates are still
+    where the query was taken and the same as scoring every vertex finds."""
+    import dataclasses
+
+    index, view = long_route
+    exact = dataclasses.replace(index, shortlist=len(index))
+    for x in np.arange(12.5, 596, 37.0):           # (the first 10 vertices all see the same landmarks)
+        d = view(x, 1)
+        s, all_s = index.scores(d), exact.scores(d)
+        rows = np.flatnonzero(s)
+        assert 0 < len(rows) <= index.shortlist
+        np.testing.assert_allclose(s[rows], all_s[rows], rtol=1e-9, atol=1e-12)   # the shortlist scored exactly
+        best = index.query(d, 3).indices
+        assert abs(int(best[0]) - x) <= 1.5, (x, best)
+        assert best[0] == exact.query(d, 3).indices[0]
+        far = slice(int(x + 200) % 600, int(x + 200) % 600 + 20)   # a window elsewhere: scored on request
+        np.testing.assert_allclose(index.scores(d, also=far)[far], all_s[far], rtol=1e-9, atol=1e-12)
+
+
+def test_a_short_route_is_scored_whole_and_the_inverted_file_is_stored(index, descriptors):
+    """Up to ``place.shortlist`` vertices every vertex is scored (the sparse product); the inverted file of the
+    first pass reads back with the index, and an index stored without it (an older vtr) derives the same one."""
+    assert len(index) <= index.shortlist
+    q = index.vector(descriptors[7])
+    np.testing.assert_array_equal(index.scores(descriptors[7]), np.asarray(index._csr @ q).ravel())
+    again = PlaceIndex.from_bytes(index.to_bytes())
+    assert again.coarse is not None
+    for name in ("indptr", "vertex", "weight"):
+        np.testing.assert_array_equal(getattr(again.coarse, name), getattr(index.coarse, name))
+    import dataclasses
+
+    older = dataclasses.replace(index, coarse=None)
+    np.testing.assert_array_equal(older._coarse().vertex, index.coarse.vertex)

@@ -18,6 +18,7 @@ from perception_model.records import short_repr
 from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T
+from ..timing import StageTimer
 from ..types import StereoFrame
 from ..vo.estimation import bundle_adjust, odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
@@ -170,11 +171,14 @@ class Localizer:
     """Matches a leaf's features to a taught submap's landmarks and estimates ``T_leaf_trunk``."""
 
     def __init__(self, camera: StereoCamera, config: LocalizationConfig, odometry: OdometryConfig,
-                 pixel_sigma: float):
+                 pixel_sigma: float, timer: StageTimer | None = None):
         self.camera = camera
         self.config = config
         self.odometry = odometry
         self.pixel_sigma = pixel_sigma
+        # seconds in "match", "ransac" and "refine" (Repeat adds its submap reads, landmark records and spatial
+        # edges): the split tools/bench_repeat.py prints
+        self.timer = timer or StageTimer()
 
     def localize(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                  seed: int = 0, trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:
@@ -192,17 +196,20 @@ class Localizer:
         S = LocalizationStatus
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
         radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
-        li, lj = self._match(leaf, submap, T_prior, radius)
+        with self.timer("match"):
+            li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
             return LocalizationEstimate.failed(li, S.TOO_FEW_MATCHES)
-        rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
-                        c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
+        with self.timer("ransac"):
+            rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
+                            c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
         if rs is None or len(rs.inliers) < min_inliers:
             return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS)
         sel = rs.inliers
         depth = submap.points_trunk[li[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         sel = sel[depth > MIN_DEPTH_M]
-        T, cov, ok, err_sq = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
+        with self.timer("refine"):
+            T, cov, ok, err_sq = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
         inlier = np.zeros(len(li), bool)
         inlier[sel[ok]] = True
         n_in = int(inlier.sum())

@@ -130,7 +130,9 @@ class Repeat:
         yielded: RepeatStep | None = None       # the newest step handed out (its caller may not have taken it)
         try:
             for frame in frames:
-                pending.append(pool.submit(in_order, *self._odometry(frame)))
+                with held_signals():            # Ctrl-C between frames, never inside a compiled kernel
+                    result = self._odometry(frame)
+                pending.append(pool.submit(in_order, *result))
                 while pending and (len(pending) > LOCALIZATION_LOOKAHEAD or pending[0].done()):
                     yielded = self._deliver(pending.popleft().result())
                     yield yielded
@@ -216,13 +218,16 @@ class Repeat:
         if attempt.success:
             assert est.T_leaf_trunk is not None
             covariance = usable_covariance(est.covariance, self.config.odometry.failure_variance)
-            self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
+            with self.localizer.timer("spatial_edge"):      # a map transaction of its own
+                self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
         record = None
         if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
             sub = self._submap(attempt.trunk)
-            record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
-                                     sub.trunk_features(est.matched), sub.trunk_features(est.matched[est.inlier]),
-                                     t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
+            with self.localizer.timer("landmark_record"):
+                record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
+                                         sub.trunk_features(est.matched),
+                                         sub.trunk_features(est.matched[est.inlier]),
+                                         t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
         s = c.state
         return Localization(t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id, twig_id=twig, branch_id=branch,
                             success=attempt.success, matches=est.matches, inliers=est.inliers,
@@ -237,6 +242,10 @@ class Repeat:
         sub = self._submaps.get(trunk)
         if sub is not None:
             return sub
+        with self.localizer.timer("submap"):
+            return self._build_submap(trunk)
+
+    def _build_submap(self, trunk: int) -> TaughtSubmap:
         path, n = self.chain.path, self.config.localization.neighbour_vertices
         slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(path.ids)))
         ids = [int(i) for i in path.ids[slots]]
