@@ -310,7 +310,7 @@ def odometry_table(work: Path, clips: list[str], config: Config) -> list[dict]:
             clip, frames, _ = build_repeat_clip(dataclasses.replace(case, name=f"odometry {label}"), work)
             first, stride = (int(x) for x in frames.split("::"))
             e = np.abs(newest_keyframe_errors(clip, first, stride, config))
-            rows.append({"case": label, "first_steps_pct": [round(100 * x, 1) for x in e[:3]],
+            rows.append({"case": label, "first_steps_pct": [round(100 * float(x), 1) for x in e[:3]],
                          "max_pct": round(100 * float(e.max()), 1), "median_pct": round(100 * float(np.median(e)), 1)})
             print(f"{label:<36} |along-motion error| of the newest keyframe: median {rows[-1]['median_pct']:5.1f} %, "
                   f"max {rows[-1]['max_pct']:5.1f} %, first three steps {rows[-1]['first_steps_pct']} %", flush=True)
@@ -319,7 +319,7 @@ def odometry_table(work: Path, clips: list[str], config: Config) -> list[dict]:
 
 # -- output ----------------------------------------------------------------------------------------
 
-HEADER = (f"{'case':<26} {'att':>4} {'succ':>4} {'wrong':>5} {'first':>5} {'avail':>6} {'reentry':>7} "
+HEADER = (f"{'case':<32} {'att':>4} {'succ':>4} {'wrong':>5} {'first':>5} {'avail':>6} {'reentry':>7} "
           f"{'med cm':>6} {'pass':>4}  refused although right (median inliers)")
 
 
@@ -327,7 +327,7 @@ def print_row(r: Result) -> None:
     refused = ", ".join(f"{k} {v}" for k, v in r.refused_right.items()) or "-"
     if r.refused_right:
         refused += f" ({r.median_inliers_refused_right:.0f})"
-    print(f"{r.case:<26} {r.attempts:>4} {r.successes:>4} {r.wrong:>5} {str(r.first_correct):>5} "
+    print(f"{r.case:<32} {r.attempts:>4} {r.successes:>4} {r.wrong:>5} {str(r.first_correct):>5} "
           f"{100 * r.availability:>5.0f}% {('-' if r.reentry is None else str(r.reentry)):>7} "
           f"{r.median_error_cm:>6.1f} {'yes' if r.passes else 'NO':>4}  {refused}", flush=True)
 

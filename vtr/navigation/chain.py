@@ -242,9 +242,13 @@ class LocalizationChain:
     def chain_prediction(self, T_world_leaf: np.ndarray, trunk: int) -> tuple[np.ndarray, np.ndarray] | None:
         """What the last localization (twig and branch) predicts for a leaf at ``T_world_leaf`` against taught
         ``trunk``, with covariance (as :meth:`prior`, against a trunk of the caller's choice, across the time odometry
-        did not see since); None before the first success and once the periodic place check doubted it."""
+        did not see since). None when the last success says nothing of where the leaf is: before the first success,
+        once the periodic place check doubted it, after more than ``lost_after_distance_m`` of failed leaves, or more
+        than ``smoothing.max_extrapolation_s`` that odometry did not see (the motion prior alone is not extrapolated
+        further)."""
         s = self.state
-        if s.branch < 0 or s.doubted:
+        if (s.branch < 0 or s.doubted or s.distance_since_success_m > self.config.lost_after_distance_m
+                or s.coast_s > self._drift.max_extrapolation_s):
             return None
         T_l_w = inv_T(T_world_leaf) @ s.T_world_twig
         T_pred = self.rebased(T_l_w @ s.T_twig_branch, s.branch, trunk)
