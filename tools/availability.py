@@ -2,10 +2,11 @@
 
 On the shipped clips (datasets/kitti06_clip, datasets/kitti00_ramp_clip) a teach on the even frames is
 repeated on the odd ones: forward, backward (the clip reversed, the camera facing as taught), started at 1/3
-and 2/3 of the route, with a 10-frame gap mid-route (odometry loses track across it), under gamma 0.5 and 2.0,
-dusk and moving cloud shadows (tools/appearance_clip.py), each of those also backward. On synthetic aerial
-routes (vtr.sim: teach at 1 m spacing, repeat half a metre along and 1 m aside): forward, backward, a gap, a
-gentle turn; and a route through another scene (every success there is wrong).
+and 2/3 of the route, with a 10-frame gap mid-route, under gamma 0.5 and 2.0, dusk, moving cloud shadows and
++-1 gray level of noise (tools/appearance_clip.py), at twice the speed, each of those also backward; and kidnapped
+(a third of the route skipped with no time passing: integrity alone is judged). On synthetic aerial routes (vtr.sim:
+teach at 1 m spacing, repeat half a metre along and 1 m aside), straight and turning: forward, backward, across a
+gap; and a route through another scene (every success there is wrong).
 
 Each attempt is judged as the team's integrity check judges it: ``T_true = inv(G_leaf) @ G_trunk`` from the clips'
 ground truth (nearest time), *correct* within 0.30 m and 2 deg, *wrong* a success that is not correct;
@@ -47,7 +48,7 @@ GAP_FRAMES = 10
 AVAILABILITY_BOUND = 0.97                # after the first correct
 REENTRY_BOUND = 3                        # keyframes after a gap, the first correct included
 APPEARANCE = {"gamma0.5": ("gamma", 0.5), "gamma2.0": ("gamma", 2.0), "dusk": ("dusk", 1.0),
-              "shadows": ("shadows", 1.0)}
+              "shadows": ("shadows", 1.0), "noise": ("noise", 1.0)}      # value: gamma, or noise sigma (gray levels)
 AERIAL_LENGTH_M = 30.0
 AERIAL_SPEED_MPS = 4.0
 AERIAL_ASIDE_M = 1.0
@@ -184,7 +185,7 @@ def build_repeat_clip(case: ClipCase, work: Path) -> tuple[Path, str, int | None
         kind, value = APPEARANCE[case.appearance]
         changed = work / f"{case.clip}_{case.appearance}"
         if not changed.exists():
-            _appearance_module().appearance_clip(src, changed, kind, g=value, seed=1)
+            _appearance_module().appearance_clip(src, changed, kind, g=value, sigma=value, seed=1)
         src = changed
     order = list(range(n - 1, -1, -1)) if case.backward else list(range(n))
     gap_at = None

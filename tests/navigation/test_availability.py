@@ -189,3 +189,30 @@ def test_the_summary_counts_refusals_by_reason():
     line = refusals_line({"localized": 20, "unconfirmed": 1, "inconsistent_with_odometry": 3, "off_route": 0})
     assert line == "localization attempts: localized 20; refused by reason: inconsistent_with_odometry 3, unconfirmed 1"
     assert refusals_line({"localized": 5}).endswith("refused by reason: none")
+
+
+def test_the_case_runner_judges_as_the_integrity_check_does():
+    """tools/availability.py: correct within 0.30 m and 2 deg, wrong a success that is not, availability from the first
+    correct on, re-entry counted from the first keyframe after the gap, refusals whose estimate was right by status."""
+    from vtr.navigation.localization import Localization
+    from vtr.navigation.localization import LocalizationStatus as S
+
+    judge = _tool("availability").judge
+    t = np.arange(5, dtype=np.int64) * 10**8
+    G = np.tile(np.eye(4), (5, 1, 1))
+    G[:, 0, 3] = np.arange(5.0)
+    off = np.eye(4)
+    off[0, 3] = 0.5                                          # half a metre off: a wrong success
+
+    def loc(k, status, T):
+        return Localization(t_ns=int(t[k]), leaf_id=k, trunk_id=k, twig_id=-1, branch_id=-1,
+                            success=status == S.LOCALIZED, matches=100, inliers=90 + k, T_leaf_trunk=T,
+                            covariance=np.eye(6), consecutive_failures=0, distance_since_success_m=0.0, status=status)
+
+    locs = [loc(0, S.UNCONFIRMED, np.eye(4)), loc(1, S.LOCALIZED, np.eye(4)), loc(2, S.LOCALIZED, off),
+            loc(3, S.TOO_FEW_INLIERS, np.eye(4)), loc(4, S.LOCALIZED, np.eye(4))]
+    r = judge("case", locs, t, (t, G), (t, G), gap_t_ns=int(t[3]))
+    assert (r.attempts, r.successes, r.correct, r.wrong, r.first_correct) == (5, 3, 2, 1, 1)
+    assert r.availability == pytest.approx(0.5) and r.reentry == 2 and not r.passes
+    assert r.refused_right == {"unconfirmed": 1} and r.median_inliers_refused_right == 90
+    assert judge("foreign", locs, t, (t, G), (t, G), foreign=True).wrong == 3
