@@ -117,6 +117,16 @@ def test_a_jump_along_the_route_is_not_vouched_for_by_the_chain(ramp_map, kitti_
     assert after[0].status.value == "unconfirmed" and after[1].success, [loc.status.value for loc in after]
 
 
+@pytest.mark.xfail(strict=True, reason="measured: 1 wrong of 12 successes (35.8 cm along track, 988 inliers, "
+                   "1 m from its trunk; backward 35.6 cm): the taught path itself is off along track (vertex steps "
+                   "4 m apart 38 and 67 cm short at the ramp's end), so prior and estimate share one error")
+def test_a_route_taught_on_every_4th_frame_has_no_wrong_success(kitti_ramp_clip, tmp_path):
+    sparse = tmp_path / "sparse.vtrmap"
+    teach_command(kitti_ramp_clip, sparse, "0::4", Config())
+    _, _, integrity = _repeat(sparse, kitti_ramp_clip, kitti_ramp_clip, "1::2", tmp_path)
+    assert integrity.wrong == 0, integrity
+
+
 # -- the gate's model, without images ----------------------------------------------------------------
 
 N = 12
