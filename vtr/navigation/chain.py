@@ -19,7 +19,9 @@ chi-square gate on its innovation against the prior (both covariances). **Search
 repeat, odometry broken, ``lost_after_failures`` failures in a row or ``lost_after_distance_m`` since the
 last success): place recognition proposes taught vertices, each verified by unguided matching against its
 landmarks; a verified candidate is only *unconfirmed* until the next keyframe's candidate agrees with it
-through odometry (the same gate). Anywhere, a pose beyond either end of the route is *off the route*.
+through odometry (the same gate), unless it is verified beyond doubt and the chain's last success, carried by
+odometry, predicts it (re-entry at once after a gap). The prediction's covariance allows for odometry's scale error
+along its motion and for time odometry did not see. Anywhere, a pose beyond either end of the route is *off the route*.
 
 Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's first camera
 frame; those of repeat vertices in the repeat run's own first camera frame; the chain only composes
@@ -571,9 +573,9 @@ class ChainLocalizer:
 
     def _chain_confirms(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
         """A place candidate verified beyond doubt (``CLEAR_VERIFICATION`` times ``min_inliers_unlocalized`` inliers,
-        found without any prior) that the last success, carried here by odometry (and across a break by the motion
-        prior), predicts inside the innovation gate: two independent witnesses agree, so the leaf needs no second
-        keyframe (re-entry after a gap, a long step, failures in a row)."""
+        found without the chain's prior) that the last success, carried here by odometry (and across a break by the
+        motion prior), predicts inside the innovation gate: two independent witnesses agree, so the leaf needs no
+        second keyframe (re-entry after a gap, a long step, failures in a row)."""
         ch = self.chain
         if est.inliers < CLEAR_VERIFICATION * self.config.localization.min_inliers_unlocalized:
             return False
