@@ -36,6 +36,14 @@ def teach_lines(s: TeachSummary) -> list[str]:
             f"{_fps(s.frames, s.seconds):.1f} frames/s  -> {s.map_path}", up]
 
 
+def refusals_line(statuses: dict[str, int]) -> str:
+    """The attempts that did not localize, counted by their reason (``localization.csv``'s ``status``), most
+    frequent first: ``refused: none`` when every attempt localized."""
+    refused = sorted(((k, v) for k, v in statuses.items() if k != "localized" and v), key=lambda kv: (-kv[1], kv[0]))
+    counts = ", ".join(f"{k} {v}" for k, v in refused) if refused else "none"
+    return f"localization attempts: localized {statuses.get('localized', 0)}; refused by reason: {counts}"
+
+
 def repeat_lines(s: RepeatSummary) -> list[str]:
     rate = f"({100 * s.success_rate:.1f} %)" if math.isfinite(s.success_rate) else "(no vertex)"
     inliers = f"{s.median_inliers:.0f}" if math.isfinite(s.median_inliers) else "none"
@@ -43,7 +51,7 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
            f"{rate}  median inliers {inliers}  "
            f"{_fps(s.frames, s.seconds):.1f} frames/s"]
     if s.statuses:
-        out.append(", ".join(f"{k} {v}" for k, v in s.statuses.items()))
+        out.append(refusals_line(s.statuses))
     out.append(f"path-tracking error to the taught path (localized frames): median {s.path_error_m:.3f} m"
                if math.isfinite(s.path_error_m) else "path-tracking error: none (never localized)")
     if s.errors is not None:
@@ -109,5 +117,5 @@ def batch_table(result: BatchResult) -> list[str]:
     return lines
 
 
-__all__ = ["batch_table", "convert_line", "map_check_line", "mission_lines", "odometry_lines", "repeat_lines",
-           "teach_lines"]
+__all__ = ["batch_table", "convert_line", "map_check_line", "mission_lines", "odometry_lines", "refusals_line",
+           "repeat_lines", "teach_lines"]

@@ -19,7 +19,9 @@ chi-square gate on its innovation against the prior (both covariances). **Search
 repeat, odometry broken, ``lost_after_failures`` failures in a row or ``lost_after_distance_m`` since the
 last success): place recognition proposes taught vertices, each verified by unguided matching against its
 landmarks; a verified candidate is only *unconfirmed* until the next keyframe's candidate agrees with it
-through odometry (the same gate). Anywhere, a pose beyond either end of the route is *off the route*.
+through odometry (the same gate), unless it is verified beyond doubt and the chain's last success, carried by
+odometry, predicts it (re-entry at once after a gap). The prediction's covariance allows for odometry's scale error
+along its motion and for time odometry did not see. Anywhere, a pose beyond either end of the route is *off the route*.
 
 Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's first camera
 frame; those of repeat vertices in the repeat run's own first camera frame; the chain only composes
@@ -35,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
+from ..conventions import NS_PER_S
 from ..errors import MapError
 from ..geometry import inv_T, log_se3
 from ..map import TaughtPath
@@ -82,6 +85,8 @@ class ChainState:
     candidate: Candidate | None = None
     leaves_since_check: int = 0
     along_track_m: float | None = None       # of the last success
+    coast_s: float = 0.0                     # time odometry did not see since the last success (it broke)
+    doubted: bool = False                    # the periodic place check found a better place: the chain predicts nothing
 
 
 @dataclass(frozen=True)
@@ -228,21 +233,55 @@ class LocalizationChain:
 
     def prior(self, T_world_leaf: np.ndarray) -> Prior:
         """Trunk and ``T_leaf_trunk`` of a leaf at repeat-odometry pose ``T_world_leaf`` through the twig and the
-        branch, with the covariance of the last localization moved to the leaf plus odometry drift."""
+        branch, with the covariance of the last localization moved to the leaf plus odometry's error over the motion
+        (:meth:`drift_covariance`) and, across the time odometry did not see since (``state.coast_s``), the motion
+        prior's (:meth:`coast_covariance`)."""
         s = self.state
         T_l_w = inv_T(T_world_leaf) @ s.T_world_twig
         trunk, T_l_t = self.nearest_trunk(T_l_w @ s.T_twig_branch, max(s.branch, 0), *self.window(s.trunk))
-        A = adjoint(T_l_w)
-        distance = float(np.linalg.norm((T_l_w)[:3, 3]))
-        P = A @ s.twig_covariance @ A.T + self.drift_covariance(distance)
-        return Prior(trunk, T_l_t, P)
+        return Prior(trunk, T_l_t, self._carried(T_l_w, s.twig_covariance, s.coast_s))
 
-    def drift_covariance(self, distance_m: float) -> np.ndarray:
-        """Odometry drift over ``distance_m`` plus the prior's floor ([rot, trans])."""
+    def chain_prediction(self, T_world_leaf: np.ndarray, trunk: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """What the last localization (twig and branch) predicts for a leaf at ``T_world_leaf`` against taught
+        ``trunk``, with covariance (as :meth:`prior`, against a trunk of the caller's choice, across the time odometry
+        did not see since). None when the last success says nothing of where the leaf is: before the first success,
+        once the periodic place check doubted it, after more than ``lost_after_distance_m`` of failed leaves, or more
+        than ``smoothing.max_extrapolation_s`` that odometry did not see (the motion prior alone is not extrapolated
+        further)."""
+        s = self.state
+        if (s.branch < 0 or s.doubted or s.distance_since_success_m > self.config.lost_after_distance_m
+                or s.coast_s > self._drift.max_extrapolation_s):
+            return None
+        T_l_w = inv_T(T_world_leaf) @ s.T_world_twig
+        T_pred = self.rebased(T_l_w @ s.T_twig_branch, s.branch, trunk)
+        return T_pred, self._carried(T_l_w, s.twig_covariance, s.coast_s)
+
+    def _carried(self, T_leaf_from: np.ndarray, P_from: np.ndarray, coast_s: float = 0.0) -> np.ndarray:
+        """Covariance at the leaf of a localization made at a repeat vertex ``T_leaf_from`` away (left perturbations
+        move with the adjoint) plus the error of the odometry that carried it."""
+        A = adjoint(T_leaf_from)
+        return A @ P_from @ A.T + self.drift_covariance(T_leaf_from[:3, 3]) + self.coast_covariance(coast_s)
+
+    def drift_covariance(self, motion_m: np.ndarray) -> np.ndarray:
+        """Odometry's error over a motion whose other end lies at ``motion_m`` (3,) in the leaf frame, plus the
+        prior's floor ([rot, trans]): drift per metre in every direction (``smoothing.odometry_*_sigma_per_m``) and
+        a scale error along the motion (``localization.odometry_scale_sigma`` of its length): odometry's newest
+        keyframe is short or long along its motion far more than it drifts sideways (docs/localization.md)."""
         d, c = self._drift, self.config
+        t = np.asarray(motion_m, float)
+        distance_m = float(np.linalg.norm(t))
         rot = (d.odometry_rotation_sigma_per_m * distance_m) ** 2 + np.radians(c.prior_floor_rotation_deg) ** 2
         trans = (d.odometry_translation_sigma_per_m * distance_m) ** 2 + c.prior_floor_translation_m**2
-        return np.diag(np.r_[[rot] * 3, [trans] * 3])
+        P = np.diag(np.r_[[rot] * 3, [trans] * 3])
+        P[3:, 3:] += c.odometry_scale_sigma**2 * np.outer(t, t)
+        return P
+
+    def coast_covariance(self, coast_s: float) -> np.ndarray:
+        """The motion prior's error over ``coast_s`` seconds that odometry did not see (it carried the pose at
+        constant velocity across them): the smoother's white-noise-acceleration model, ``Qc t^3 / 3`` per axis."""
+        d = self._drift
+        tau3 = max(float(coast_s), 0.0) ** 3 / 3.0
+        return np.diag(np.r_[[d.qc_rotation * tau3] * 3, [d.qc_translation * tau3] * 3])
 
     def consistent(self, est: LocalizationEstimate, T_pred: np.ndarray, P_pred: np.ndarray) -> bool:
         """The innovation gate."""
@@ -256,8 +295,7 @@ class LocalizationChain:
             return None
         T_l_c = inv_T(T_world_leaf) @ cand.T_world_leaf
         T_pred = self.rebased(T_l_c @ cand.T_leaf_trunk, cand.trunk, trunk)
-        A = adjoint(T_l_c)
-        return T_pred, A @ cand.covariance @ A.T + self.drift_covariance(float(np.linalg.norm(T_l_c[:3, 3])))
+        return T_pred, self._carried(T_l_c, cand.covariance)
 
     def searching(self, odometry_broken: bool, distance_m: float) -> bool:
         """Whether this leaf is localized by place recognition rather than through the chain."""
@@ -328,6 +366,11 @@ class LocalizationChain:
         self.state = dataclasses.replace(s, T_world_twig=s.T_world_twig if twig is None else np.array(twig, float),
                                          candidate=cand)
 
+    def coasted(self, seconds: float) -> None:
+        """Odometry broke: it carried the pose across ``seconds`` it did not see at constant velocity (the pending
+        candidate is dropped; the last success is carried on, less certain by :meth:`coast_covariance`)."""
+        self.state = dataclasses.replace(self.state, candidate=None, coast_s=self.state.coast_s + max(seconds, 0.0))
+
     def checked(self) -> None:
         self.state = dataclasses.replace(self.state, leaves_since_check=0)
 
@@ -372,6 +415,7 @@ class ChainLocalizer:
         self.config = config
         self._seed = config.odometry.seed
         self._attempts = 0
+        self._last_t_ns: int | None = None       # the previous leaf's time
 
     def _localize(self, kf: Keyframe, trunk: int, T_prior: np.ndarray | None, trusted: bool,
                   failures: int = 0) -> LocalizationEstimate:
@@ -387,8 +431,9 @@ class ChainLocalizer:
         them and the leaf is one adjustment's."""
         ch = self.chain
         ch.refresh(current or {})
-        if odometry_broken:
-            ch.state = dataclasses.replace(ch.state, candidate=None)
+        last_t_ns, self._last_t_ns = self._last_t_ns, kf.t_ns
+        if odometry_broken:                 # carried at constant velocity since (at most) the previous leaf
+            ch.coasted(0.0 if last_t_ns is None else (kf.t_ns - last_t_ns) / NS_PER_S)
         if ch.searching(odometry_broken, ch.step_distance(kf.T_world_kf)):
             return self._search(leaf_id, kf)
         return self._track(leaf_id, kf)
@@ -414,6 +459,7 @@ class ChainLocalizer:
         if ch.beyond_end_m(pr.trunk, est.T_leaf_trunk) > c.off_route_distance_m:
             return self._fail(kf, pr.trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
         if ch.state.leaves_since_check + 1 >= c.place_check_every and self._elsewhere(kf, pr.trunk, est):
+            ch.state = dataclasses.replace(ch.state, doubted=True)
             return self._fail(kf, pr.trunk, est, S.INCONSISTENT, est.T_leaf_trunk, lost=True)
         ch.succeeded(leaf_id, kf.T_world_kf, pr.trunk, est.T_leaf_trunk, est.covariance)
         return Attempt(pr.trunk, est, S.LOCALIZED, est.T_leaf_trunk)
@@ -519,8 +565,22 @@ class ChainLocalizer:
             ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
                          along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
             return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+        if self._chain_confirms(kf, trunk, est):
+            ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance)
+            return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
         new = Candidate(leaf_id, np.array(kf.T_world_kf, float), trunk, est.T_leaf_trunk, est.covariance)
         return self._fail(kf, trunk, est, S.UNCONFIRMED, est.T_leaf_trunk, lost=True, candidate=new)
+
+    def _chain_confirms(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
+        """A place candidate verified beyond doubt (``CLEAR_VERIFICATION`` times ``min_inliers_unlocalized`` inliers,
+        found without the chain's prior) that the last success, carried here by odometry (and across a break by the
+        motion prior), predicts inside the innovation gate: two independent witnesses agree, so the leaf needs no
+        second keyframe (re-entry after a gap, a long step, failures in a row)."""
+        ch = self.chain
+        if est.inliers < CLEAR_VERIFICATION * self.config.localization.min_inliers_unlocalized:
+            return False
+        pred = ch.chain_prediction(kf.T_world_kf, trunk)
+        return pred is not None and ch.consistent(est, *pred)
 
     def _nearest_trunk(self, kf: Keyframe, cand: int, est: LocalizationEstimate) -> tuple[int, LocalizationEstimate]:
         """Re-localize against the taught vertex nearest to a verified candidate's estimate, guided by it."""
