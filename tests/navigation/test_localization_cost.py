@@ -107,9 +107,9 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
     def record(rp):
         real_scores = rp.place.scores
 
-        def scores(descriptors):
+        def scores(descriptors, also=None):
             calls["tracking" if in_track["on"] else "searching"] += 1
-            return real_scores(descriptors)
+            return real_scores(descriptors, also=also)
 
         object.__setattr__(rp.place, "scores", scores)        # this repeat's index only
 

@@ -470,7 +470,7 @@ class ChainLocalizer:
         ch = self.chain
         ch.checked()
         lo, hi = ch.window(trunk)
-        scores = self.place.scores(kf.frame.features.descriptors)
+        scores = self.place.scores(kf.frame.features.descriptors, also=slice(lo, hi))   # the window scored exactly
         inside = float(scores[lo:hi].max())
         outside = np.r_[np.arange(0, lo), np.arange(hi, len(scores))]
         rivals = outside[scores[outside] > inside]
@@ -508,11 +508,12 @@ class ChainLocalizer:
         nearest taught vertex: a success when place recognition also scores that part of the route close to its
         best for this leaf and the estimate passes the gate of the prediction; None otherwise (search the places)."""
         ch, c = self.chain, self.config.localization
-        pending = ch.state.candidate
-        if pending is None:
+        trunk = self._pending_trunk(kf)
+        if trunk is None:
             return None
-        trunk, _ = ch.nearest_trunk(inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk, pending.trunk)
-        near = scores[max(0, trunk - c.neighbour_vertices - 1):trunk + c.neighbour_vertices + 2]
+        pending = ch.state.candidate
+        assert pending is not None
+        near = scores[self._near(trunk)]
         if near.max() < CONFIRM_SCORE_RATIO * scores.max():     # place recognition sees that part of the route too
             return None
         pred = ch.candidate_prediction(kf.T_world_kf, trunk)
@@ -525,9 +526,22 @@ class ChainLocalizer:
                      along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
         return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
 
+    def _pending_trunk(self, kf: Keyframe) -> int | None:
+        """The taught vertex nearest to the pending candidate carried to this leaf by odometry (None: none pending)."""
+        ch = self.chain
+        pending = ch.state.candidate
+        if pending is None:
+            return None
+        return ch.nearest_trunk(inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk, pending.trunk)[0]
+
+    def _near(self, trunk: int) -> slice:
+        n = self.config.localization.neighbour_vertices
+        return slice(max(0, trunk - n - 1), trunk + n + 2)
+
     def _search(self, leaf_id: int, kf: Keyframe) -> Attempt:
         ch, c = self.chain, self.config.localization
-        scores = self.place.scores(kf.frame.features.descriptors)
+        carried = self._pending_trunk(kf)      # its part of the route scored exactly (a long route's shortlist)
+        scores = self.place.scores(kf.frame.features.descriptors, also=None if carried is None else self._near(carried))
         k = min(self.config.place.candidates, len(scores))
         places = [int(i) for i in np.argsort(-scores, kind="stable")[:k]]
         confirmed = self._confirm(leaf_id, kf, scores)
