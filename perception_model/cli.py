@@ -341,15 +341,7 @@ def evaluate_cmd(
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
     settings = FitSettings.from_degrees(alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin,
                                         min_bin_count=min_bin_count, calibration_bins=calibration_bins)
-    ev = evaluate(
-        model,
-        obs.alpha,
-        obs.theta,
-        obs.inlier,
-        bins=settings.bins,
-        calibration_bins=settings.calibration_bins,
-        source=obs.source_names,
-    )
+    ev = evaluate(model, obs.samples(), settings)
     c1, c2, c3 = model.constants
     results = json.dumps({"model": str(model_path), "data": obs.describe(), "evaluation": ev.to_dict()}, indent=2)
     if json_flag == "-":

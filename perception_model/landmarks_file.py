@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from .errors import InputDataError
 from .inputs import input_problem
 from .records import short_repr
+from .samples import Samples
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,10 @@ class Observations:
             out[span.start : span.start + span.count] = ids + next_id
             next_id += int(ids.max()) + 1
         return out
+
+    def samples(self) -> Samples:
+        """The labelled angles a fit reads, checked (``FitError`` naming the files on bad data)."""
+        return Samples(self.alpha, self.theta, self.inlier, self.source_names)
 
     def take(self, index: NDArray[Any]) -> Observations:
         """Subset by boolean mask or integer index (``sources`` are dropped)."""

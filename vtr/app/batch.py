@@ -825,7 +825,7 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
             if own is None:
                 raise PerceptionModelError(f"{f}: removed while the batch read it")
             obs = read_landmarks(own, fields=FIT_FIELDS)
-            yield obs.alpha, obs.theta, obs.inlier
+            yield obs.samples()
 
     try:
         result = fit_binned_stream(chunks, source=f"{len(files)} repeats under {out}")
