@@ -19,7 +19,6 @@ crossing is refined by bisection; a side that never crosses reports ``max_m`` (`
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 from collections.abc import Callable
@@ -48,6 +47,7 @@ from ..camera import StereoCamera
 from ..control.field import TaughtPathField, TaughtVertex, read_taught_vertices
 from ..errors import VtrError
 from ..map import Map
+from .runfiles.envelope_csv import DIRECTIONS, envelope_row, write_envelope_rows
 
 #: Envelope defaults: grid step and largest offset scanned (m), bisection steps on a crossing.
 ENVELOPE_STEP_M = 0.25
@@ -58,7 +58,6 @@ ENVELOPE_BISECTIONS = 6
 ENVELOPE_MAX_CELLS = 20_000
 ENVELOPE_LIMIT_M = 10_000.0
 ENVELOPE_CHUNK = 256
-DIRECTIONS = ("left", "right", "up", "down")
 #: Work bound of one envelope: at most this many grid evaluations of the bound in the worst case (vertices x 4
 #: directions x max / step; each costs about half a millisecond, so this is minutes at most). A crossing is refined
 #: by ENVELOPE_BISECTIONS bisections to step / 64 anyway: a finer step rarely changes a figure by a millimetre.
@@ -306,15 +305,8 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
 
     folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
     with folder.open("envelope.csv") as fh:
-        w = csv.writer(fh)
-        w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
-                    "down_m", "left_capped", "right_capped", "up_capped", "down_capped", "left_extrapolated",
-                    "right_extrapolated", "up_extrapolated", "down_extrapolated"])
-        for r in rows:
-            w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
-                        round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
-                        *(int(r.capped[d]) for d in DIRECTIONS),
-                        *(int(r.extrapolated.get(d, False)) for d in DIRECTIONS)])
+        write_envelope_rows(fh, [envelope_row(r.vertex_id, r.position_g, r.yaw_g, r.bound_taught, r.distance_m,
+                                              r.capped, r.extrapolated) for r in rows])
     png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
     return out_dir / "envelope.csv", png
 
