@@ -14,8 +14,9 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import StereoCamera
 from ..conventions import NS_PER_S
-from ..errors import DataError, OutputError
+from ..errors import DataError
 from ..types import StereoImages
+from .outputs import check_new_output
 from .rosbag import (
     _COMPRESSED_FORMATS,
     _MONO8,
@@ -66,8 +67,7 @@ class RosbagWriter:
         if encoding not in (*_MONO8[:1], *_MONO16[:1], "bgr8", "rgb8", *_COMPRESSED_FORMATS):
             raise DataError(f"encoding {encoding!r} not supported for writing")
         self.path = Path(path)
-        if self.path.exists():
-            raise OutputError(f"{self.path}: already exists (not overwriting)")
+        check_new_output(self.path, can_force=False)       # the rule's owner: nothing is replaced, no link followed
         if kind == "rosbag1" and self.path.suffix != ROS1_SUFFIX:
             raise DataError(f"{self.path}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
         self.kind, self.encoding, self.camera = kind, encoding, camera

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import ConfigError, DataError
-from ..outputs import OutputFolder, check_apart, check_no_links
+from ...io.outputs import check_apart, check_no_links
+from ..outputs import OutputFolder
 from ..runfiles.run_json import STATUS_FINISHED
 from .cluster import MAX_WORKERS_PER_CORE, _DaskClient, _run_on, check_scheduler, check_workers
 from .layout import RESUMED, SUMMARY_CSV, TEACH_FOLDER

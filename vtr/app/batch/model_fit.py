@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import DataError, VtrError
-from ..outputs import OutputFolder, check_no_links
+from ...io.outputs import check_no_links
+from ..outputs import OutputFolder
 from .layout import FIT_FOLDER
 from .manifest import Manifest
 from .outcome import RunOutcome

@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from ... import __version__
+from ...io.outputs import check_no_links
 from ..fingerprint import source_fingerprint
-from ..outputs import OutputFolder, check_no_links
+from ..outputs import OutputFolder
 from .layout import KEY_NAME, RERUN_PREFIX
 from .manifest import RunSpec, run_config
 
