@@ -7,7 +7,7 @@
 - ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation, on
   ``Samples`` (``samples``, checked when built) and ``FitSettings``, returning ``FitResult``;
 - ``constraint``: the chance constraint ``mu - c_bar sigma >= L_min`` with analytic gradients over
-  an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
+  an MPC horizon; ``tails``: the exact Poisson-binomial tail of the inlier count and a Monte Carlo check;
 - ``landmarks_file``: the ``landmarks.csv``/``.parquet`` format (schema, ``Observations``, writer,
   columnar reader); ``io``: landmark/camera position readers; ``synthetic``: synthetic data;
 - ``plots``: the figure of a fit;
@@ -32,8 +32,8 @@ _LAZY = {
     "ConstraintEvaluation": "constraint",
     "Linearization": "constraint",
     "PerceptionConstraint": "constraint",
-    "c_bar_from_delta": "constraint",
-    "poisson_binomial_tail": "constraint",
+    "c_bar_from_delta": "tails",
+    "poisson_binomial_tail": "tails",
     "FitResult": "fit",
     "Samples": "samples",
     "evaluate": "fit",

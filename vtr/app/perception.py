@@ -28,13 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from perception_model import frames
-from perception_model.constraint import (
-    PerceptionConstraint,
-    check_bounds,
-    inlier_moments,
-    normal_tail,
-    poisson_binomial_tail,
-)
+from perception_model.constraint import PerceptionConstraint, check_bounds
 from perception_model.errors import GeometryError, InputDataError
 from perception_model.map_landmarks import (
     MapConstraintTable,
@@ -42,6 +36,7 @@ from perception_model.map_landmarks import (
     yaw_pitch_of_axis,
 )
 from perception_model.model import PerceptionModel
+from perception_model.tails import inlier_moments, normal_tail, poisson_binomial_tail
 
 from ..camera import StereoCamera
 from ..control.field import TaughtPathField, TaughtVertex, read_taught_vertices
@@ -204,14 +199,15 @@ def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_ma
     return float(p[outside].sum() / p.sum())
 
 
-def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
+def _bound(model: PerceptionModel, vertex: TaughtVertex, camera: StereoCamera, centres_map: np.ndarray, l_min: float,
+           c_bar: float) -> np.ndarray:
     R = np.broadcast_to(vertex.T_map_camera[:3, :3], (len(centres_map), 3, 3))
     rows = moments_at(model, vertex, centres_map, R, camera, l_min=l_min, c_bar=c_bar)
     return np.array([float(inlier_moments(p)[0]) - c_bar * float(np.sqrt(inlier_moments(p)[1])) for p in rows])
 
 
 def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
-                          up_map=None, step_m: float = ENVELOPE_STEP_M,
+                          up_map: np.ndarray | None = None, step_m: float = ENVELOPE_STEP_M,
                           max_m: float = ENVELOPE_MAX_M,
                           progress: Callable[[int, int], None] | None = None) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring); ``up_map`` overrides the
