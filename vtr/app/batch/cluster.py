@@ -93,11 +93,12 @@ def _workers_ignore_ctrl_c() -> Iterator[None]:
 class _DaskClient:
     """A Dask client on ``scheduler`` or on a new local cluster (closed on exit)."""
 
-    def __init__(self, opts: BatchOptions, workers: int):
+    def __init__(self, opts: BatchOptions, workers: int) -> None:
         self.opts, self.workers = opts, workers
-        self.cluster = None
+        self.cluster: Any = None      # distributed.LocalCluster
+        self.client: Any = None       # distributed.Client
 
-    def __enter__(self):
+    def __enter__(self) -> Any:
         import dask
         from distributed import Client, LocalCluster
 
@@ -127,13 +128,14 @@ class _DaskClient:
             self.opts.on_dashboard(str(self.cluster.dashboard_link))
         return self.client
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
 
 
-def _run_on(client, pending: list[tuple[RunSpec, dict[str, Any], str | None]], outcomes: dict, out: Path,
+def _run_on(client: Any, pending: list[tuple[RunSpec, dict[str, Any], str | None]], outcomes: dict[RunSpec, RunOutcome],
+            out: Path,
             threads: int | None, opts: BatchOptions, report: Callable[[RunSpec, RunOutcome], None]) -> None:
     from distributed import as_completed
 

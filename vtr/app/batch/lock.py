@@ -17,7 +17,7 @@ class BatchLock:
     """``OUT/.vtr-batch.lock`` held (``flock``, exclusive) while a batch writes ``OUT``; a second batch on the
     same folder gets ``OutputError`` at once. The kernel releases it when the process ends, however."""
 
-    def __init__(self, out: Path):
+    def __init__(self, out: Path) -> None:
         self.path = Path(out) / LOCK_NAME
         self.fd: int | None = None
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ...errors import DataError, VtrError
 from ...io.outputs import check_no_links
@@ -15,6 +15,9 @@ from ..outputs import OutputFolder
 from .layout import FIT_FOLDER
 from .manifest import Manifest
 from .outcome import RunOutcome
+
+if TYPE_CHECKING:
+    from perception_model.samples import Samples
 
 
 def repeat_landmark_files(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> Iterator[Path]:
@@ -50,7 +53,7 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     fit_folder = OutputFolder.prepare(out / FIT_FOLDER, names=["model.json", "fit.png"])
     folder = fit_folder.path
 
-    def chunks():
+    def chunks() -> Iterator[Samples]:
         for f in files:
             own = OutputFolder(f.parent).own_file(f.name)      # again, just before reading it
             if own is None:

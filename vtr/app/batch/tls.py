@@ -8,6 +8,8 @@ never written to disk): only the batch's own client and workers can connect. See
 
 from __future__ import annotations
 
+from typing import Any
+
 from ...errors import ConfigError
 
 
@@ -25,7 +27,7 @@ def check_scheduler_tls(address: str | None) -> None:
 
 
 
-def local_security():
+def local_security() -> Any:
     """TLS with credentials made for this batch alone (a temporary CA-less key pair, never written to disk):
     a process without them cannot connect to the local scheduler or its workers."""
     try:
