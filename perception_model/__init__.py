@@ -4,9 +4,10 @@
 - ``model``: ``PerceptionModel`` ``p = c1 cos(c2 theta) exp(c3 alpha)`` with JSON save/load;
 - ``settings``: ``FitSettings`` (the fit's settings record: defaults, domains) and the thesis ``L_min``,
   ``c_bar``;
-- ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation;
+- ``fit``: binned least squares (thesis protocol) and Bernoulli maximum likelihood, evaluation, on
+  ``Samples`` (``samples``, checked when built) and ``FitSettings``, returning ``FitResult``;
 - ``constraint``: the chance constraint ``mu - c_bar sigma >= L_min`` with analytic gradients over
-  an MPC horizon, the exact Poisson-binomial tail and a Monte Carlo check;
+  an MPC horizon; ``tails``: the exact Poisson-binomial tail of the inlier count and a Monte Carlo check;
 - ``landmarks_file``: the ``landmarks.csv``/``.parquet`` format (schema, ``Observations``, writer,
   columnar reader); ``io``: landmark/camera position readers; ``synthetic``: synthetic data;
 - ``plots``: the figure of a fit;
@@ -31,9 +32,10 @@ _LAZY = {
     "ConstraintEvaluation": "constraint",
     "Linearization": "constraint",
     "PerceptionConstraint": "constraint",
-    "c_bar_from_delta": "constraint",
-    "poisson_binomial_tail": "constraint",
+    "c_bar_from_delta": "tails",
+    "poisson_binomial_tail": "tails",
     "FitResult": "fit",
+    "Samples": "samples",
     "evaluate": "fit",
     "fit_binned": "fit",
     "fit_mle": "fit",
@@ -72,6 +74,7 @@ __all__ = [
     "PerceptionModel",
     "PerceptionModelError",
     "PerceptionModelWarning",
+    "Samples",
     "c_bar_from_delta",
     "evaluate",
     "fit_binned",

@@ -94,7 +94,7 @@ def monotonic_checks(obs: Any) -> dict[str, Any]:
     trends within bands of the other angle; ``<angle>_falls`` and ``<angle>_monotone`` verdicts."""
     a_deg, t_deg, y = np.degrees(obs.alpha), np.degrees(obs.theta), obs.inlier
     s = SETTINGS
-    grid = bin_observations(obs.alpha, obs.theta, y, s.bins)
+    grid = bin_observations(obs.samples(), s.bins)
     out: dict[str, Any] = {
         "alpha_marginal": trend_1d(a_deg, y, s.alpha_bin_deg, s.min_bin_count),
         "theta_marginal": trend_1d(t_deg, y, s.theta_bin_deg, s.min_bin_count),

@@ -30,7 +30,9 @@ only job is the one-line error naming the file, line and column — the same mes
 Parquet errors name the file, data row (1-based) and column.
 
 ``Observations`` is the one in-memory record: ``vtr`` builds it for each localization and hands
-it to ``LandmarksWriter``; the reader returns it; the fits consume it.
+it to ``LandmarksWriter``; the reader returns it; the fits consume it (``Observations.samples()``). The schema and
+the record live in :mod:`perception_model.landmarks_schema` (re-exported here); this module holds the writer and the
+readers.
 """
 
 from __future__ import annotations
@@ -38,7 +40,6 @@ from __future__ import annotations
 import csv
 from array import array
 from collections.abc import Collection, Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -48,194 +49,25 @@ from numpy.typing import NDArray
 
 from .errors import InputDataError
 from .inputs import input_problem
-from .records import short_repr
-
-
-@dataclass(frozen=True)
-class Column:
-    """One column of the file: name, kind (``int``, ``bool``, ``angle``, ``float``) and unit."""
-
-    name: str
-    kind: str
-    unit: str
-    field: str  # the ``Observations`` field it fills
-    required: bool = True
-
-
-#: The landmarks file schema, in the order the writer writes it.
-SCHEMA: tuple[Column, ...] = (
-    Column("t_ns", "int", "ns", "t_ns"),
-    Column("leaf_id", "int", "", "leaf_id"),
-    Column("trunk_id", "int", "", "trunk_id"),
-    Column("landmark_id", "int", "", "landmark_id"),
-    Column("inlier", "bool", "", "inlier"),
-    Column("parallax_deg", "angle", "deg", "alpha"),
-    Column("view_deg", "angle", "deg", "theta"),
-    Column("range_m", "float", "m", "range_m"),
-    Column("matched", "bool", "", "matched", required=False),
+from .landmarks_schema import (  # noqa: F401 - re-exported: the schema and the record belong to the file
+    ALL_FIELDS,
+    BY_FIELD,
+    BY_NAME,
+    CSV_BLOCK_BYTES,
+    FALSE_WORDS,
+    FIT_FIELDS,
+    LANDMARK_COLUMNS,
+    MAX_ANGLE_DEG,
+    PARQUET_BATCH_ROWS,
+    PARQUET_ROW_GROUP_ROWS,
+    PARQUET_SUFFIX,
+    SCHEMA,
+    TRUE_WORDS,
+    Column,
+    Observations,
+    SourceSpan,
+    is_parquet,
 )
-_BY_NAME = {c.name: c for c in SCHEMA}
-_BY_FIELD = {c.field: c for c in SCHEMA}
-#: Columns every landmarks file must have (header check).
-LANDMARK_COLUMNS = tuple(c.name for c in SCHEMA if c.required)
-#: ``Observations`` fields a fit needs (groups by ``t_ns``, labels, both angles).
-FIT_FIELDS = ("t_ns", "inlier", "alpha", "theta")
-ALL_FIELDS = tuple(c.field for c in SCHEMA)
-_TRUE = ("1", "true", "yes")
-_FALSE = ("0", "false", "no")
-_MAX_ANGLE_DEG = 180.0
-#: Bytes of CSV the fast reader parses per block, and Parquet rows per batch (bounded memory).
-CSV_BLOCK_BYTES = 1 << 24
-PARQUET_BATCH_ROWS = 1 << 20
-#: The Parquet writer gathers small blocks (one localization each in ``vtr repeat``) into row groups of this size.
-PARQUET_ROW_GROUP_ROWS = 1 << 17
-PARQUET_SUFFIX = ".parquet"
-
-
-# --------------------------------------------------------------------------- the record
-@dataclass(frozen=True)
-class SourceSpan:
-    """Rows ``[start, start + count)`` of an ``Observations`` came from ``path``."""
-
-    path: str
-    start: int
-    count: int
-
-
-@dataclass(frozen=True)
-class Observations:
-    """Landmark match records: one entry per (localization, taught landmark in view).
-
-    Angles in radians (``alpha`` parallax, ``theta`` view); ``inlier`` and ``matched`` are bool.
-    ``leaf_id``, ``trunk_id``, ``landmark_id``, ``range_m`` and ``matched`` are None when not
-    read (a fit reads only ``FIT_FIELDS``) or, for ``matched``, not recorded. ``sources`` maps row
-    ranges back to files.
-    """
-
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
-
-    alpha: NDArray[np.float64]
-    theta: NDArray[np.float64]
-    inlier: NDArray[np.bool_]
-    t_ns: NDArray[np.int64]
-    leaf_id: NDArray[np.int64] | None = None
-    trunk_id: NDArray[np.int64] | None = None
-    landmark_id: NDArray[np.int64] | None = None
-    range_m: NDArray[np.float64] | None = None
-    sources: tuple[SourceSpan, ...] = ()
-    matched: NDArray[np.bool_] | None = None
-
-    def __len__(self) -> int:
-        return int(self.alpha.shape[0])
-
-    @property
-    def source_names(self) -> str:
-        """Comma-separated file names (for messages)."""
-        return ", ".join(s.path for s in self.sources) or "<memory>"
-
-    def frame_groups(self) -> NDArray[np.int64]:
-        """Integer group per row: one group per (source file, t_ns) localization, numbered in that order."""
-        n = len(self)
-        spans = self.sources or (SourceSpan("<memory>", 0, n),)
-        out = np.zeros(n, dtype=np.int64)
-        next_id = 0
-        for span in spans:
-            t = self.t_ns[span.start : span.start + span.count]
-            if t.size == 0:
-                continue
-            if np.all(t[1:] >= t[:-1]):  # written in time order: one pass, no sort
-                ids = np.empty(t.size, dtype=np.int64)
-                ids[0] = 0
-                np.cumsum(t[1:] != t[:-1], out=ids[1:])
-            else:
-                ids = np.unique(t, return_inverse=True)[1].reshape(-1).astype(np.int64)
-            out[span.start : span.start + span.count] = ids + next_id
-            next_id += int(ids.max()) + 1
-        return out
-
-    def take(self, index: NDArray[Any]) -> Observations:
-        """Subset by boolean mask or integer index (``sources`` are dropped)."""
-
-        def sub(x: NDArray[Any] | None) -> NDArray[Any] | None:
-            return None if x is None else x[index]
-
-        return Observations(
-            self.alpha[index],
-            self.theta[index],
-            self.inlier[index],
-            self.t_ns[index],
-            sub(self.leaf_id),
-            sub(self.trunk_id),
-            sub(self.landmark_id),
-            sub(self.range_m),
-            (),
-            sub(self.matched),
-        )
-
-    def describe(self, groups: NDArray[np.int64] | None = None) -> dict[str, Any]:
-        """Summary for model files and reports (angles in degrees); ``groups`` = ``frame_groups()`` if known."""
-        n = len(self)
-        if n and groups is None:
-            groups = self.frame_groups()
-        return {
-            "files": [{"path": s.path, "rows": s.count} for s in self.sources],
-            "n_observations": n,
-            "n_inliers": int(self.inlier.sum()),
-            "n_localizations": int(groups.max()) + 1 if n and groups is not None else 0,
-            "parallax_deg_range": [float(np.degrees(self.alpha.min())), float(np.degrees(self.alpha.max()))]
-            if n
-            else None,
-            "view_deg_range": [float(np.degrees(self.theta.min())), float(np.degrees(self.theta.max()))]
-            if n
-            else None,
-        }
-
-    @staticmethod
-    def concatenate(parts: Sequence[Observations]) -> Observations:
-        """Join several observation sets, keeping their source spans (optional fields kept if all have them)."""
-        if not parts:
-            raise InputDataError("no observations given")
-        if len(parts) == 1:
-            return parts[0]
-        spans: list[SourceSpan] = []
-        offset = 0
-        for part in parts:
-            spans.extend(SourceSpan(s.path, s.start + offset, s.count) for s in part.sources)
-            offset += len(part)
-
-        def cat(name: str) -> Any:
-            arrays = [getattr(p, name) for p in parts]
-            return None if any(a is None for a in arrays) else np.concatenate(arrays)
-
-        return Observations(
-            cat("alpha"),
-            cat("theta"),
-            cat("inlier"),
-            cat("t_ns"),
-            cat("leaf_id"),
-            cat("trunk_id"),
-            cat("landmark_id"),
-            cat("range_m"),
-            tuple(spans),
-            cat("matched"),
-        )
-
-    @staticmethod
-    def from_arrays(alpha: Any, theta: Any, inlier: Any, *, name: str = "<memory>") -> Observations:
-        """Observations from angle arrays (radians) and labels; ids are zero, one localization."""
-        a = np.asarray(alpha, dtype=np.float64).reshape(-1)
-        t = np.asarray(theta, dtype=np.float64).reshape(-1)
-        y = np.asarray(inlier).reshape(-1).astype(bool)
-        if not (a.shape == t.shape == y.shape):
-            raise InputDataError(f"{name}: alpha, theta and inlier must have the same length")
-        zeros = np.zeros(a.shape, dtype=np.int64)
-        return Observations(
-            a, t, y, zeros, zeros, zeros, zeros, np.full(a.shape, np.nan), (SourceSpan(name, 0, a.size),)
-        )
-
-
-def _is_parquet(path: Path) -> bool:
-    return path.suffix.lower() == PARQUET_SUFFIX
 
 
 # --------------------------------------------------------------------------- writer
@@ -261,7 +93,7 @@ class LandmarksWriter:
                 for c in SCHEMA
             ]
         )
-        if _is_parquet(self.path):
+        if is_parquet(self.path):
             import pyarrow.parquet as pq
 
             self._writer: Any = pq.ParquetWriter(self.path, self._schema)
@@ -297,7 +129,7 @@ class LandmarksWriter:
                 values[c.name] = x
         batch = pa.record_batch(values, schema=self._schema)
         self.rows += n
-        if not _is_parquet(self.path):
+        if not is_parquet(self.path):
             self._writer.write_batch(batch)
             return
         self._pending.append(batch)
@@ -314,7 +146,7 @@ class LandmarksWriter:
 
     def close(self) -> None:
         """Finish the file (an empty CSV still has its header)."""
-        if _is_parquet(self.path):
+        if is_parquet(self.path):
             self._flush()
         self._writer.close()
         file = getattr(self, "_file", None)
@@ -375,13 +207,13 @@ class _Bad(Exception):
 def _check_block(cols: dict[str, NDArray[Any]], offset: int) -> None:
     """Value checks of one block of converted columns (by file column name); raises ``_Bad``."""
     for name, x in cols.items():
-        c = _BY_NAME[name]
+        c = BY_NAME[name]
         if c.kind == "angle":
             bad = ~np.isfinite(x)
             if bad.any():
                 k = int(np.argmax(bad))
                 raise _Bad(offset + k, f"column {name} is {str(x[k])!r}")  # nan/inf: empty cells were caught before
-            out = (x < 0.0) | (x > _MAX_ANGLE_DEG)
+            out = (x < 0.0) | (x > MAX_ANGLE_DEG)
             if out.any():
                 k = int(np.argmax(out))
                 raise _Bad(offset + k, f"column {name} = {x[k]} outside [0, 180] deg")
@@ -392,7 +224,7 @@ def _finish(path: Path, parts: dict[str, list[NDArray[Any]]], n: int, fields: tu
         raise InputDataError(f"{path}: no data rows")
     got: dict[str, Any] = {}
     for f in fields:
-        c = _BY_FIELD[f]
+        c = BY_FIELD[f]
         chunks = parts.get(c.name)
         if chunks is None:  # optional column absent
             got[f] = None
@@ -423,14 +255,14 @@ def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Obs
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    wanted = [_BY_FIELD[f].name for f in fields if _BY_FIELD[f].name in names]
+    wanted = [BY_FIELD[f].name for f in fields if BY_FIELD[f].name in names]
     types = {}
     for name in wanted:
-        kind = _BY_NAME[name].kind
+        kind = BY_NAME[name].kind
         types[name] = pa.int64() if kind == "int" else pa.bool_() if kind == "bool" else pa.float64()
     # the strict reader takes any case; these spellings cover what writers produce
-    true_values = [v for s in _TRUE for v in (s, s.capitalize(), s.upper())]
-    false_values = [v for s in _FALSE for v in (s, s.capitalize(), s.upper())]
+    true_values = [v for s in TRUE_WORDS for v in (s, s.capitalize(), s.upper())]
+    false_values = [v for s in FALSE_WORDS for v in (s, s.capitalize(), s.upper())]
     reader = pacsv.open_csv(
         str(path),
         read_options=pacsv.ReadOptions(column_names=names, skip_rows=1, block_size=CSV_BLOCK_BYTES),
@@ -450,7 +282,7 @@ def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Obs
         block: dict[str, NDArray[Any]] = {}
         for name in wanted:
             col = batch.column(name)
-            kind = _BY_NAME[name].kind
+            kind = BY_NAME[name].kind
             if col.null_count:
                 if name == "matched":  # unknown in some rows: not recorded
                     parts.pop(name, None)
@@ -477,7 +309,7 @@ def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Obs
 # ----------------------------------------------------------------- strict CSV reader (the messages)
 def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
     """Row-by-row reader with the exact one-line messages (file, line, column); numeric buffers only."""
-    wanted = [(_BY_FIELD[f].name, _BY_FIELD[f].kind) for f in fields]
+    wanted = [(BY_FIELD[f].name, BY_FIELD[f].kind) for f in fields]
     bufs: dict[str, array[Any]] = {}
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM is not a header
@@ -508,9 +340,9 @@ def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
                             ) from None
                     elif kind == "bool":
                         low = v.lower()
-                        if low in _TRUE:
+                        if low in TRUE_WORDS:
                             bufs[name].append(1)
-                        elif low in _FALSE:
+                        elif low in FALSE_WORDS:
                             bufs[name].append(0)
                         elif name == "matched" and not v:
                             matched_known = False
@@ -525,7 +357,7 @@ def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
                         if kind == "angle":
                             if not np.isfinite(x):
                                 raise InputDataError(f"{path}, line {line}: column {name} is {v or 'empty'!r}")
-                            if x < 0.0 or x > _MAX_ANGLE_DEG:
+                            if x < 0.0 or x > MAX_ANGLE_DEG:
                                 raise InputDataError(f"{path}, line {line}: column {name} = {x} outside [0, 180] deg")
                         bufs[name].append(x)
     except OSError as err:
@@ -539,7 +371,7 @@ def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
     for name, buf in bufs.items():
         if name == "matched" and not matched_known:
             continue
-        kind = _BY_NAME[name].kind
+        kind = BY_NAME[name].kind
         dtype = np.int64 if kind == "int" else np.float64
         column = np.frombuffer(buf, dtype=np.int8).astype(bool) if kind == "bool" else np.frombuffer(buf, dtype=dtype)
         parts[name] = [column.copy()]
@@ -566,10 +398,10 @@ def _read_parquet(path: Path, fields: tuple[str, ...]) -> Observations:
         raise InputDataError(f"{path}: not a Parquet file ({' '.join(str(err).split())})") from None
     names = list(pf.schema_arrow.names)
     _check_header(path, names)
-    wanted = [_BY_FIELD[f].name for f in fields if _BY_FIELD[f].name in names]
+    wanted = [BY_FIELD[f].name for f in fields if BY_FIELD[f].name in names]
     for name in wanted:
         t = pf.schema_arrow.field(name).type
-        kind = _BY_NAME[name].kind
+        kind = BY_NAME[name].kind
         ok = pa.types.is_integer(t) or (kind == "bool" and pa.types.is_boolean(t))
         if kind in ("angle", "float"):
             ok = ok or pa.types.is_floating(t)
@@ -583,7 +415,7 @@ def _read_parquet(path: Path, fields: tuple[str, ...]) -> Observations:
             block: dict[str, NDArray[Any]] = {}
             for name in wanted:
                 col = batch.column(name)
-                kind = _BY_NAME[name].kind
+                kind = BY_NAME[name].kind
                 nulls = col.is_null().to_numpy(zero_copy_only=False) if col.null_count else None
                 if nulls is not None and kind in ("int", "bool", "angle") and name != "matched":
                     k = int(np.argmax(nulls))
@@ -640,7 +472,7 @@ def read_landmarks(path: str | Path, fields: Collection[str] | None = None) -> O
     if problem is not None:
         raise InputDataError(f"{p}: {problem}")
     want = _fields(fields)
-    if _is_parquet(p):
+    if is_parquet(p):
         return _read_parquet(p, want)
     names = _csv_header(p)
     _check_header(p, names)

@@ -166,5 +166,9 @@ class BinSpec:
         check_bins(self.alpha_width, self.theta_width, self.min_count)
 
 
-__all__ = ["CI_METHODS", "METHODS", "THESIS_C_BAR", "THESIS_L_MIN", "THESIS_PITCH_DOWN_RAD", "UNIT_SCALE",
-           "BinSpec", "CiMethod", "FitSettings", "Method"]
+#: The thesis protocol: the settings of a fit or an evaluation when the caller gives none.
+DEFAULT_SETTINGS = FitSettings()
+
+
+__all__ = ["CI_METHODS", "DEFAULT_SETTINGS", "METHODS", "THESIS_C_BAR", "THESIS_L_MIN", "THESIS_PITCH_DOWN_RAD",
+           "UNIT_SCALE", "BinSpec", "CiMethod", "FitSettings", "Method"]

@@ -28,3 +28,32 @@ def euroc_micro() -> Path:
 @pytest.fixture(scope="session")
 def euroc_pairs() -> Path:
     return DATASETS / "euroc_revisit_pairs"
+
+
+#: The long end-to-end modules (runs on imagery, Dask clusters, subprocess commands): marked ``slow``, so
+#: ``python3 -m pytest -q -m "not slow"`` is the quick subset (the README gives both times). The full command
+#: ``python3 -m pytest -q`` runs everything, as CI does.
+SLOW_MODULES = frozenset({
+    "tests/app/test_batch.py",
+    "tests/app/test_output_safety.py",
+    "tests/app/test_mission.py",
+    "tests/cli/test_batch_cli.py",
+    "tests/cli/test_run_lifecycle.py",
+    "tests/cli/test_vtr_cli.py",
+    "tests/control/test_return_flight.py",
+    "tests/navigation/test_teach_repeat.py",
+    "tests/navigation/test_repeat_pipeline.py",
+    "tests/navigation/test_return_flight_state.py",
+    "tests/navigation/test_synthetic_repeat.py",
+    "tests/perception_model/test_end_to_end.py",
+    "tests/vo/test_far_structure.py",
+    "tests/vo/test_odometry_kitti.py",
+    "tests/test_readme.py",
+})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    root = Path(__file__).resolve().parents[1]
+    for item in items:
+        if item.path.resolve().relative_to(root).as_posix() in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)

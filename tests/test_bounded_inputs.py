@@ -161,6 +161,7 @@ def test_a_long_constraint_path_is_evaluated_in_chunks_with_the_same_rows(tmp_pa
     from click.testing import CliRunner
 
     import perception_model.cli as cli
+    import perception_model.cli.constraint_commands as constraint_commands
     from perception_model.constraint import PerceptionConstraint
 
     rng = np.random.default_rng(3)
@@ -186,7 +187,7 @@ def test_a_long_constraint_path_is_evaluated_in_chunks_with_the_same_rows(tmp_pa
         return evaluate(self, positions, *args, **kwargs)
 
     monkeypatch.setattr(PerceptionConstraint, "evaluate", spy)
-    monkeypatch.setattr(cli, "MAX_CHUNK_ELEMENTS", 300 * 64)
+    monkeypatch.setattr(constraint_commands, "MAX_CHUNK_ELEMENTS", 300 * 64)
     assert csv_of(tmp_path / "b") == whole
     assert max(sizes) == 64 and sum(sizes) == n
 

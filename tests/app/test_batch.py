@@ -185,7 +185,7 @@ def test_the_batch_cluster_serves_no_logs_over_http():
     import urllib.error
     import urllib.request
 
-    from vtr.app.batch import _DaskClient
+    from vtr.app.batch.cluster import _DaskClient
 
     with _DaskClient(BatchOptions(workers=1), 1) as client:
         port = client.cluster.scheduler.http_server.port

@@ -58,13 +58,13 @@ def test_envelope_figure_marks_capped_values_and_shows_headings(saved, tmp_path)
 
 
 def test_fit_figure_shows_counts(saved, tmp_path):
-    from perception_model.fit import fit_observations
+    from perception_model.fit import FitSettings, fit_observations
     from perception_model.model import PerceptionModel
     from perception_model.plots import plot_fit
     from perception_model.synthetic import simulate_observations
 
     obs = simulate_observations(PerceptionModel.thesis(), 20_000, np.random.default_rng(0), name="r")
-    result = fit_observations(obs, method="binned", holdout_fraction=0.0)
+    result = fit_observations(obs, FitSettings(method="binned", holdout_fraction=0.0))
     plot_fit(result, tmp_path / "fit.png", 10)
     (fig,) = saved
     check_labels(fig)

@@ -20,7 +20,6 @@ from vtr.app.batch import (
     RESUMED,
     BatchLock,
     BatchOptions,
-    _DaskClient,
     check_scheduler,
     check_workers,
     load_manifest,
@@ -153,6 +152,8 @@ def test_clear_removes_exactly_what_vtr_made(tmp_path):
 
 
 def test_another_process_cannot_use_the_batch_cluster(tmp_path):
+    from vtr.app.batch.cluster import _DaskClient
+
     with _DaskClient(BatchOptions(), 1) as client:
         address = client.scheduler.address
         assert address.startswith("tls://127.0.0.1:")
@@ -188,7 +189,8 @@ def test_dashboard_only_when_asked_and_on_loopback(dashboard):
     only with dashboard=True, and only on 127.0.0.1."""
     probe = textwrap.dedent(f"""
         import urllib.error, urllib.request
-        from vtr.app.batch import BatchOptions, _DaskClient
+        from vtr.app.batch import BatchOptions
+        from vtr.app.batch.cluster import _DaskClient
         links = []
         with _DaskClient(BatchOptions(dashboard={dashboard}, on_dashboard=links.append), 1) as client:
             server = client.cluster.scheduler.http_server

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vtr.app.runfiles import frames_csv, localization_csv, state_csv
+from vtr.app.runfiles import envelope_csv, frames_csv, localization_csv, state_csv, summary_csv
 from vtr.errors import DataError
 from vtr.geometry import exp_se3
 from vtr.navigation.localization import Localization, LocalizationStatus
@@ -102,3 +102,35 @@ def test_a_damaged_state_csv_is_one_line_naming_it(tmp_path, damage, named):
         state_csv.read_state_csv(path)
     message = str(err.value)
     assert "\n" not in message and str(path) in message and named in message, message
+
+
+def test_summary_csv_reads_back_what_it_wrote(tmp_path):
+    from vtr.app.batch import RunOutcome
+
+    rows = [RunOutcome("r", "teach", "teach", "finished", frames=9, vertices=5, seconds=1.25),
+            RunOutcome("r", "rep", "repeat", "finished", 7, 5, 4, 33.5, 2.0, None, "rerun: config, frames changed"),
+            RunOutcome("r", "bad", "repeat", "failed", error='DataError: x, "y"\nline two')]
+    summary_csv.write_summary_csv(tmp_path / "summary.csv", rows)
+    back = summary_csv.read_summary_csv(tmp_path / "summary.csv")
+    assert [b["name"] for b in back] == ["teach", "rep", "bad"]
+    assert back[1] == {"route": "r", "name": "rep", "kind": "repeat", "status": "finished", "frames": 7, "vertices": 5,
+                       "localized": 4, "median_inliers": 33.5, "seconds": 2.0, "error": None,
+                       "changed": "rerun: config, frames changed", "localized_pct": 80.0}
+    assert back[2]["error"] == 'DataError: x, "y"\nline two' and back[2]["frames"] is None
+    (tmp_path / "summary.csv").write_text((tmp_path / "summary.csv").read_text().replace(",9,5,", ",nine,5,"))
+    with pytest.raises(DataError, match=r"summary.csv:2: column frames: 'nine' is not an integer"):
+        summary_csv.read_summary_csv(tmp_path / "summary.csv")
+
+
+def test_envelope_csv_reads_back_what_it_wrote(tmp_path):
+    directions = envelope_csv.DIRECTIONS
+    rows = [envelope_csv.envelope_row(7, np.array([1.23456, -2.0, 0.5]), 0.25, 4.56789,
+                                      dict(zip(directions, [1.0, 2.5, 0.25, 3.0], strict=True)),
+                                      dict(zip(directions, [True, False, False, True], strict=True)), {"up": True})]
+    with open(tmp_path / "envelope.csv", "w", newline="") as fh:
+        envelope_csv.write_envelope_rows(fh, rows)
+    c = envelope_csv.read_envelope_csv(tmp_path / "envelope.csv")
+    assert c["vertex_id"].tolist() == [7] and c["x_m"].tolist() == [1.2346] and c["bound_taught"].tolist() == [4.568]
+    assert c["heading_deg"][0] == pytest.approx(np.degrees(0.25), abs=1e-3)
+    assert c["right_m"].tolist() == [2.5] and c["down_capped"].tolist() == [True]
+    assert c["up_extrapolated"].tolist() == [True] and c["left_extrapolated"].tolist() == [False]

@@ -10,7 +10,8 @@ import pytest
 from perception_model.errors import FitError, PerceptionModelWarning
 from perception_model.fit import (
     PROB_EPS,
-    BinSpec,
+    FitSettings,
+    Samples,
     calibration_table,
     evaluate,
     fit_binned,
@@ -39,12 +40,12 @@ def synthetic():
 
 @pytest.fixture(scope="module")
 def binned_fit(synthetic):
-    return fit_binned(*synthetic)
+    return fit_binned(Samples(*synthetic))
 
 
 @pytest.fixture(scope="module")
 def mle_fit(synthetic):
-    return fit_mle(*synthetic)
+    return fit_mle(Samples(*synthetic))
 
 
 def _report(result):
@@ -74,7 +75,7 @@ def test_mle_interval_contains_true_constants(mle_fit):
 
 def test_mle_and_binned_agree_and_are_as_good_as_truth(synthetic, binned_fit, mle_fit):
     a, t, y = synthetic
-    truth = evaluate(TRUE, a, t, y)
+    truth = evaluate(TRUE, Samples(a, t, y))
     for r in (binned_fit, mle_fit):
         assert r.log_loss == pytest.approx(truth.log_loss, abs=2e-3)
     # the MLE maximizes the likelihood, so its training log-loss is the lowest
@@ -100,15 +101,15 @@ def test_log_likelihood_gradient_matches_finite_differences(synthetic):
 
 def test_radian_fit_is_the_same_model(synthetic):
     a, t, y = (v[:50_000] for v in synthetic)
-    deg = fit_binned(a, t, y)
-    rad = fit_binned(a, t, y, angle_unit="rad")
+    deg = fit_binned(Samples(a, t, y))
+    rad = fit_binned(Samples(a, t, y), FitSettings(angle_unit="rad"))
     assert rad.model.angle_unit == "rad"
     assert rad.model.in_unit("deg").constants == pytest.approx(deg.model.constants, rel=1e-5)
 
 
 def test_bootstrap_intervals(synthetic):
     a, t, y = (v[:30_000] for v in synthetic)
-    r = fit_binned(a, t, y, ci="bootstrap", n_bootstrap=20, seed=1)
+    r = fit_binned(Samples(a, t, y), FitSettings(ci="bootstrap", n_bootstrap=20, seed=1))
     assert r.ci_method == "bootstrap"
     for c in r.intervals:
         assert c.low <= c.high and c.std_err > 0
@@ -119,7 +120,7 @@ def test_fit_observations_holds_out_whole_localizations_and_evaluates():
     held = holdout_split(obs.frame_groups(), 0.25, seed=3)
     groups = obs.frame_groups()
     assert not set(groups[held]) & set(groups[~held])
-    r = fit_observations(obs, method="binned", holdout_fraction=0.25, seed=3)
+    r = fit_observations(obs, FitSettings(method="binned", holdout_fraction=0.25, seed=3))
     assert r.holdout is not None and r.n + r.holdout.n == len(obs)
     assert r.holdout.r2 > 0.5
     for row in r.holdout.calibration:
@@ -134,7 +135,7 @@ def test_calibration_table_and_log_loss_edges():
     y = np.array([0, 0, 1, 1])
     rows = calibration_table(p, y, 10)
     assert [r.n for r in rows] == [2, 1, 1]  # p = 1 falls in the last bin
-    ev = evaluate(TRUE, [0.1, 0.2], [0.1, 0.2], [0, 1])
+    ev = evaluate(TRUE, Samples([0.1, 0.2], [0.1, 0.2], [0, 1]))
     assert math.isfinite(ev.log_loss) and ev.log_loss < -math.log(PROB_EPS)
 
 
@@ -143,28 +144,28 @@ def test_single_label_data_is_refused(labels, match):
     a, t = sample_angles(1000, np.random.default_rng(0))
     y = np.full(1000, labels)
     with pytest.raises(FitError, match=match):
-        fit_binned(a, t, y, source="run.csv")
+        fit_binned(Samples(a, t, y, source="run.csv"))
     with pytest.raises(FitError, match=match):
-        fit_mle(a, t, y)
+        fit_mle(Samples(a, t, y))
 
 
 def test_bad_inputs_are_refused():
     a, t = sample_angles(1000, np.random.default_rng(0))
     y = simulate_labels(TRUE, a, t, np.random.default_rng(1))
     with pytest.raises(FitError, match="no observations"):
-        fit_binned([], [], [])
+        Samples([], [], [])
     a_nan = a.copy()
     a_nan[17] = np.nan
     with pytest.raises(FitError, match="row 17"):
-        fit_mle(a_nan, t, y)
+        Samples(a_nan, t, y)
     with pytest.raises(FitError, match="lengths"):
-        fit_binned(a[:10], t, y)
+        Samples(a[:10], t, y)
     with pytest.raises(FitError, match="0/1"):
-        fit_binned(a, t, y * 2)
+        Samples(a, t, y * 2)
     with pytest.raises(FitError, match="bins"):
-        fit_binned(a[:50], t[:50], y[:50], bins=BinSpec(min_count=10))
+        fit_binned(Samples(a[:50], t[:50], y[:50]), FitSettings(min_bin_count=10))
     with pytest.raises(FitError, match="negative"):
-        fit_binned(-a, t, y)
+        Samples(-a, t, y)
 
 
 def test_fit_warns_when_the_fitted_surface_is_cut_inside_the_data_range():
@@ -176,5 +177,5 @@ def test_fit_warns_when_the_fitted_surface_is_cut_inside_the_data_range():
         with pytest.warns(
             PerceptionModelWarning, match=r"synthetic\.csv: fitted model: cos\(c2\*theta\) reaches 0"
         ):
-            r = fitter(a, t, y, source="synthetic.csv")
+            r = fitter(Samples(a, t, y, source="synthetic.csv"))
         assert r.model.c2 == pytest.approx(0.05, rel=0.05)

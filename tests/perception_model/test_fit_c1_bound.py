@@ -12,7 +12,17 @@ from hypothesis import strategies as st
 from scipy import optimize
 
 from perception_model.cli import main
-from perception_model.fit import C1_MAX, bin_observations, fit_binned, fit_mle, fit_observations, simulate_labels
+from perception_model.fit import (
+    C1_MAX,
+    BinSpec,
+    FitSettings,
+    Samples,
+    bin_observations,
+    fit_binned,
+    fit_mle,
+    fit_observations,
+    simulate_labels,
+)
 from perception_model.landmarks_file import write_landmarks
 from perception_model.model import PerceptionModel
 from perception_model.synthetic import sample_angles, simulate_observations
@@ -31,7 +41,7 @@ def _data(c1: float, seed: int, n: int = N_OBS):
 
 @pytest.mark.parametrize("fitter", [fit_binned, fit_mle], ids=["binned", "mle"])
 def test_c1_below_one_is_recovered_and_the_bound_is_inactive(fitter):
-    r = fitter(*_data(0.9, seed=11))
+    r = fitter(Samples(*_data(0.9, seed=11)))
     c1 = r.intervals[0]
     assert not r.c1_at_bound and r.to_dict()["c1_at_bound"] is False
     assert abs(c1.estimate - 0.9) < 0.02 and c1.contains(0.9)
@@ -45,7 +55,7 @@ def test_labels_that_push_c1_above_one_stop_at_the_bound(c1_true, seed):
     a, t, y = _data(c1_true, seed, n=30_000)
     assert _unconstrained_binned_c1(a, t, y) > 1.0  # the data do push c1 above 1
     for fitter in (fit_binned, fit_mle):
-        r = fitter(a, t, y)
+        r = fitter(Samples(a, t, y))
         assert r.model.c1 == C1_MAX and r.c1_at_bound, (fitter.__name__, r.model)
         assert r.intervals[0].estimate == 1.0 and r.intervals[0].high <= 1.0
         assert r.model.probability(a, t).max() <= 1.0
@@ -54,7 +64,7 @@ def test_labels_that_push_c1_above_one_stop_at_the_bound(c1_true, seed):
 
 def _unconstrained_binned_c1(a, t, y) -> float:
     """c1 of a weighted least-squares fit of c1 cos(c2 theta) exp(c3 alpha) to bin frequencies, no bounds."""
-    b = bin_observations(a, t, y)
+    b = bin_observations(Samples(a, t, y), BinSpec())
     a_deg, t_deg, w = np.degrees(b.alpha), np.degrees(b.theta), np.sqrt(b.count)
 
     def resid(c):
@@ -65,7 +75,7 @@ def _unconstrained_binned_c1(a, t, y) -> float:
 
 def test_bound_reported_in_fit_observations_cli_summary_and_model_file(tmp_path):
     obs = simulate_observations(PerceptionModel(1.4, C2, C3), 40_000, np.random.default_rng(2), name="hi")
-    r = fit_observations(obs, method="mle")
+    r = fit_observations(obs, FitSettings(method="mle"))
     assert r.c1_at_bound and r.model.c1 == 1.0
     write_landmarks(tmp_path / "hi.parquet", obs)
     out = tmp_path / "model.json"

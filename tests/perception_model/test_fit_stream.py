@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from perception_model.errors import FitError
-from perception_model.fit import BinAccumulator, bin_observations, fit_binned, fit_binned_stream, simulate_labels
+from perception_model.fit import (
+    BinAccumulator,
+    BinSpec,
+    Samples,
+    bin_observations,
+    fit_binned,
+    fit_binned_stream,
+    simulate_labels,
+)
 from perception_model.model import THESIS_CONSTANTS_DEG, PerceptionModel
 
 
@@ -27,10 +35,10 @@ def test_streamed_fit_equals_the_fit_of_everything(data):
     cuts = [0, 7_000, 31_000, len(alpha)]
 
     def chunks():
-        return ((alpha[a:b], theta[a:b], y[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True))
+        return (Samples(alpha[a:b], theta[a:b], y[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True))
 
-    whole = fit_binned(alpha, theta, y)
-    streamed = fit_binned_stream(chunks)
+    whole = fit_binned(Samples(alpha, theta, y))
+    streamed = fit_binned_stream(chunks, source="3 chunks")
     assert np.allclose(streamed.model.constants, whole.model.constants, rtol=1e-7, atol=1e-10)
     assert np.allclose(streamed.covariance, whole.covariance, rtol=1e-5, atol=1e-14)
     assert streamed.n == whole.n and streamed.n_inliers == whole.n_inliers and streamed.n_bins == whole.n_bins
@@ -41,10 +49,10 @@ def test_streamed_fit_equals_the_fit_of_everything(data):
 
 def test_accumulator_bins_like_bin_observations(data):
     alpha, theta, y = data
-    acc = BinAccumulator()
-    acc.add(alpha[:100], theta[:100], y[:100])     # a small first chunk: the grid grows afterwards
-    acc.add(alpha[100:], theta[100:], y[100:])
-    got, want = acc.binned(), bin_observations(alpha, theta, y)
+    acc = BinAccumulator(BinSpec())
+    acc.add(Samples(alpha[:100], theta[:100], y[:100]))     # a small first chunk: the grid grows afterwards
+    acc.add(Samples(alpha[100:], theta[100:], y[100:]))
+    got, want = acc.binned(), bin_observations(Samples(alpha, theta, y), BinSpec())
     assert np.array_equal(got.count_grid, want.count_grid) and np.array_equal(got.inlier_grid, want.inlier_grid)
     assert np.allclose(got.alpha, want.alpha) and np.allclose(got.theta, want.theta)
 
@@ -54,4 +62,4 @@ def test_streamed_fit_rejects_empty_or_one_label(data):
         fit_binned_stream(lambda: [], source="none")
     alpha, theta, _ = data
     with pytest.raises(FitError, match="same inlier label"):
-        fit_binned_stream(lambda: [(alpha, theta, np.ones(len(alpha), bool))])
+        fit_binned_stream(lambda: [Samples(alpha, theta, np.ones(len(alpha), bool))], source="ones")

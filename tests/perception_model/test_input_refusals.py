@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from perception_model.cli import main
 from perception_model.errors import FitError, InputDataError, ModelFileError
-from perception_model.fit import fit_mle
+from perception_model.fit import Samples, fit_mle
 from perception_model.io import read_positions
 from perception_model.model import FILE_VERSION, PerceptionModel
 
@@ -84,7 +84,7 @@ def test_mle_on_degenerate_data(tmp_path, alpha, theta, p, match):
     assert not (tmp_path / "m").exists()
     a = np.radians(np.full(10, 1.0))
     with pytest.raises(FitError, match="same parallax angle"):
-        fit_mle(a, np.radians(np.linspace(0, 50, 10)), np.arange(10) % 2)
+        fit_mle(Samples(a, np.radians(np.linspace(0, 50, 10)), np.arange(10) % 2))
 
 
 @pytest.mark.parametrize("bad", ["1e308", "-2e7", "inf", "nan"])

@@ -12,12 +12,18 @@ says so instead of printing NaN.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import inv_T, log_se3, rotation_angle
 from ..navigation.localization import LocalizationStatus
+
+if TYPE_CHECKING:
+    from ..io.base import GroundTruth
+    from ..navigation.localization import Localization
 
 SEGMENT_LENGTHS_M = (10.0, 20.0, 30.0, 40.0)
 KITTI_BENCHMARK_SEGMENTS = "100-800 m"
@@ -243,7 +249,8 @@ def true_leaf_trunk(leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray, gt_repeat_t_n
     return out
 
 
-def integrity_of(locs, trunk_t_ns: np.ndarray, gt_repeat, gt_teach) -> Integrity:
+def integrity_of(locs: Sequence[Localization], trunk_t_ns: np.ndarray, gt_repeat: GroundTruth,
+                 gt_teach: GroundTruth) -> Integrity:
     """:func:`localization_integrity` of ``Localization`` records whose trunks were taught at ``trunk_t_ns``, with
     the repeat's and the teach's ground truth (``GroundTruth``: ``t_ns``, ``T_world_cam``, one world)."""
     T_true = true_leaf_trunk(np.array([loc.t_ns for loc in locs], np.int64), trunk_t_ns, gt_repeat.t_ns,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from perception_model.model import PerceptionModel
-from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
+from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN, Method
 
 from ..config import Config
 from ..io import open_source
@@ -107,12 +107,12 @@ def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip
     return MissionRepeat(name=out_dir.name, landmarks_csv=out_dir / "landmarks.csv", localizations_list=tuple(kept))
 
 
-def fit_model(landmark_files: list[Path], method: str = "mle") -> PerceptionModel:
+def fit_model(landmark_files: list[Path], method: Method = "mle") -> PerceptionModel:
     """The perception model fitted on repeat logs (``perception-model fit`` with a held-out split)."""
-    from perception_model.fit import fit_observations
+    from perception_model.fit import FitSettings, fit_observations
     from perception_model.landmarks_file import FIT_FIELDS, read_landmarks_files
 
-    return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), method=method).model
+    return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), FitSettings(method=method)).model
 
 
 __all__ = ["MissionRepeat", "fit_model", "render", "repeat", "teach", "up_in_map"]

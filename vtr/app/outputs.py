@@ -11,10 +11,10 @@
 - It refuses an output folder that contains, or is inside, any of its inputs (``--out DATA`` with the
   recording in ``DATA/route1/teach``).
 
-The checks of :mod:`vtr.io.outputs` (a writable ``--out``, never replacing a single output file
-without ``--force``) run before this one, in the CLI. The primitives (what may not be written over, the
-exclusive no-follow create, the temporary names) are :mod:`perception_model.outputs`'s, the owner of the rule;
-this folder adds its record (``tests/test_output_rule.py`` ties the two).
+Every refusal (a writable ``--out``, never replacing an output without ``--force``, an output folder apart
+from the inputs, no link on the way into a run folder) is :mod:`vtr.io.outputs`'s, vtr's one owner of the rule,
+built on :mod:`perception_model.outputs`'s primitives; this folder adds its record (``tests/test_output_rule.py``
+ties the two). See ``docs/outputs.md``.
 """
 
 from __future__ import annotations
@@ -29,50 +29,12 @@ from typing import IO, Any
 from perception_model.outputs import TMP_TAG, create_exclusive, entry_problem, temporary_name
 
 from ..errors import OutputError
+from ..io.outputs import check_apart
 
 RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
-__all__ = ["RECORD", "TMP_TAG", "OutputFolder", "check_apart", "check_no_links"]
+__all__ = ["RECORD", "TMP_TAG", "OutputFolder"]
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
-
-
-def _inside(a: Path, b: Path) -> bool:
-    """``a`` is ``b`` or below it (both resolved)."""
-    return a == b or b in a.parents
-
-
-def check_apart(out: Path, inputs: Iterable[Path | None], option: str = "--out") -> None:
-    """``OutputError`` when output folder ``out`` contains, is, or is inside an input (symlinks resolved)."""
-    o = Path(out).resolve()
-    for inp in inputs:
-        if inp is None:
-            continue
-        i = Path(inp).resolve()
-        if _inside(i, o):
-            raise OutputError(f"{option} {out}: contains the input {inp} (an output folder must be apart from "
-                              "the data it reads; choose another folder)")
-        if _inside(o, i) and i.is_dir():
-            raise OutputError(f"{option} {out}: is inside the input {inp} (an output folder must be apart from "
-                              "the data it reads; choose another folder)")
-
-
-def check_no_links(base: Path, folder: Path, option: str = "--out") -> None:
-    """``OutputError`` when a folder between ``base`` (excluded) and ``folder`` (included) is a symbolic link
-    (or not a folder): a run folder inside an output folder is made by vtr, a link there is not."""
-    base, folder = Path(base), Path(folder)
-    rel = folder.relative_to(base)
-    p = base
-    for part in rel.parts:
-        p = p / part
-        try:
-            st = os.lstat(p)
-        except FileNotFoundError:
-            return
-        if stat.S_ISLNK(st.st_mode):
-            raise OutputError(f"{option} {base}: {p} is a symbolic link that vtr did not make (not writing through "
-                              "it); remove it or choose another folder")
-        if not stat.S_ISDIR(st.st_mode):
-            raise OutputError(f"{option} {base}: {p} exists and is not a folder")
 
 
 def _is_safe_name(name: str) -> bool:

@@ -19,7 +19,6 @@ crossing is refined by bisection; a side that never crosses reports ``max_m`` (`
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 from collections.abc import Callable
@@ -29,13 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from perception_model import frames
-from perception_model.constraint import (
-    PerceptionConstraint,
-    check_bounds,
-    inlier_moments,
-    normal_tail,
-    poisson_binomial_tail,
-)
+from perception_model.constraint import PerceptionConstraint, check_bounds
 from perception_model.errors import GeometryError, InputDataError
 from perception_model.map_landmarks import (
     MapConstraintTable,
@@ -43,11 +36,13 @@ from perception_model.map_landmarks import (
     yaw_pitch_of_axis,
 )
 from perception_model.model import PerceptionModel
+from perception_model.tails import inlier_moments, normal_tail, poisson_binomial_tail
 
 from ..camera import StereoCamera
 from ..control.field import TaughtPathField, TaughtVertex, read_taught_vertices
 from ..errors import VtrError
 from ..map import Map
+from .runfiles.envelope_csv import DIRECTIONS, envelope_row, write_envelope_rows
 
 #: Envelope defaults: grid step and largest offset scanned (m), bisection steps on a crossing.
 ENVELOPE_STEP_M = 0.25
@@ -58,7 +53,6 @@ ENVELOPE_BISECTIONS = 6
 ENVELOPE_MAX_CELLS = 20_000
 ENVELOPE_LIMIT_M = 10_000.0
 ENVELOPE_CHUNK = 256
-DIRECTIONS = ("left", "right", "up", "down")
 #: Work bound of one envelope: at most this many grid evaluations of the bound in the worst case (vertices x 4
 #: directions x max / step; each costs about half a millisecond, so this is minutes at most). A crossing is refined
 #: by ENVELOPE_BISECTIONS bisections to step / 64 anyway: a finer step rarely changes a figure by a millimetre.
@@ -205,14 +199,15 @@ def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_ma
     return float(p[outside].sum() / p.sum())
 
 
-def _bound(model, vertex, camera, centres_map, l_min, c_bar) -> np.ndarray:
+def _bound(model: PerceptionModel, vertex: TaughtVertex, camera: StereoCamera, centres_map: np.ndarray, l_min: float,
+           c_bar: float) -> np.ndarray:
     R = np.broadcast_to(vertex.T_map_camera[:3, :3], (len(centres_map), 3, 3))
     rows = moments_at(model, vertex, centres_map, R, camera, l_min=l_min, c_bar=c_bar)
     return np.array([float(inlier_moments(p)[0]) - c_bar * float(np.sqrt(inlier_moments(p)[1])) for p in rows])
 
 
 def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
-                          up_map=None, step_m: float = ENVELOPE_STEP_M,
+                          up_map: np.ndarray | None = None, step_m: float = ENVELOPE_STEP_M,
                           max_m: float = ENVELOPE_MAX_M,
                           progress: Callable[[int, int], None] | None = None) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring); ``up_map`` overrides the
@@ -306,15 +301,8 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
 
     folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
     with folder.open("envelope.csv") as fh:
-        w = csv.writer(fh)
-        w.writerow(["vertex_id", "x_m", "y_m", "z_m", "heading_deg", "bound_taught", "left_m", "right_m", "up_m",
-                    "down_m", "left_capped", "right_capped", "up_capped", "down_capped", "left_extrapolated",
-                    "right_extrapolated", "up_extrapolated", "down_extrapolated"])
-        for r in rows:
-            w.writerow([r.vertex_id, *np.round(r.position_g, 4).tolist(), round(float(np.degrees(r.yaw_g)), 3),
-                        round(r.bound_taught, 3), *(round(r.distance_m[d], 4) for d in DIRECTIONS),
-                        *(int(r.capped[d]) for d in DIRECTIONS),
-                        *(int(r.extrapolated.get(d, False)) for d in DIRECTIONS)])
+        write_envelope_rows(fh, [envelope_row(r.vertex_id, r.position_g, r.yaw_g, r.bound_taught, r.distance_m,
+                                              r.capped, r.extrapolated) for r in rows])
     png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
     return out_dir / "envelope.csv", png
 

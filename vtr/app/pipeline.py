@@ -7,10 +7,11 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,7 +19,7 @@ from ..config import Config
 from ..errors import DataError, MapError
 from ..geometry import distance_to_polyline, inv_T
 from ..io import open_source, parse_frame_range
-from ..io.base import FrameSource, SourceOptions
+from ..io.base import FrameSource, GroundTruth, SourceOptions
 from ..io.trajectory import write_tum
 from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
@@ -41,7 +42,7 @@ from .runfiles.run_json import RunLog
 if TYPE_CHECKING:
     from perception_model.landmarks_file import LandmarksWriter
 
-    from ..map import TaughtPath
+    from ..map import Map, TaughtPath
     from ..navigation.localization import Localization
     from ..navigation.repeat import RepeatStep
     from ..navigation.repeat_state import StateTable
@@ -68,7 +69,7 @@ class OdometrySummary:
         return d
 
 
-def iterate(items: Iterable, total: int, progress: Callable | None, desc: str):
+def iterate(items: Iterable[Any], total: int, progress: Callable[..., Any] | None, desc: str) -> Iterable[Any]:
     """Wrap an iterable with a progress bar factory (e.g. tqdm) when given."""
     return progress(items, total=total, desc=desc) if progress else items
 
@@ -344,7 +345,7 @@ class RepeatRun:
 
     # -- the steps ----------------------------------------------------------------------------------------------
 
-    def open(self, stack) -> None:
+    def open(self, stack: ExitStack) -> None:
         """The source, the map (or its private copy) and the output folder, checked before any work; the
         :class:`~vtr.navigation.repeat.Repeat` at the start hint."""
         from ..map import Map
@@ -410,6 +411,7 @@ class RepeatRun:
         note = _ground_truth_note(source, m, locs)
         if note is None:                              # ground truth covers the leaves and their trunks
             gt = source.ground_truth()
+            assert gt is not None                     # a note says when there is none
             trunk_t_ns = trunk_times(locs, chain.path)
             integrity = integrity_of(locs, trunk_t_ns, gt, gt)
             ok = np.array([loc.success for loc in locs])
@@ -455,7 +457,7 @@ class RepeatRun:
                              errors=evaluation.errors, state=state_info, statuses=evaluation.statuses,
                              integrity=evaluation.integrity, ground_truth_note=evaluation.ground_truth_note)
 
-    def _private_copy(self, stack) -> Path:
+    def _private_copy(self, stack: ExitStack) -> Path:
         """A whole copy of the map in a private temporary folder that ``stack`` removes (and the next start removes
         if this process is killed: :mod:`vtr.app.private_copy`); the map itself is only read (and checked first, so
         that its errors name it)."""
@@ -471,7 +473,7 @@ class RepeatRun:
         return stack.enter_context(private_copy(self.map_path))
 
 
-def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> int | None:
+def _start_hint(m: Map, start_vertex: int | None, start_distance_m: float | None) -> int | None:
     """The path index a start hint names; ``MapError`` for a vertex or distance beyond the taught route."""
     from ..errors import ConfigError, MapError
 
@@ -491,7 +493,7 @@ def _start_hint(m, start_vertex: int | None, start_distance_m: float | None) -> 
     return None
 
 
-def _check_path_to_follow(m) -> None:
+def _check_path_to_follow(m: Map) -> None:
     """``MapError`` unless the taught path has a segment: path-tracking errors (and the controller's
     reference path) are undefined on a single point."""
     from ..errors import EstimationError, MapError
@@ -505,7 +507,7 @@ def _check_path_to_follow(m) -> None:
                        "positions to follow): teach a longer route") from None
 
 
-def _ground_truth_note(source: FrameSource, m, locs: list) -> str | None:
+def _ground_truth_note(source: FrameSource, m: Map, locs: list[Localization]) -> str | None:
     """None when the repeat source's ground truth also covers the taught vertices (teach and repeat taken from one
     source, e.g. even and odd frames of a clip), so the repeat can be judged against it; else why it is not."""
     if not locs:
@@ -520,12 +522,12 @@ def _ground_truth_note(source: FrameSource, m, locs: list) -> str | None:
     return None
 
 
-def trunk_times(locs, path: TaughtPath) -> np.ndarray:
+def trunk_times(locs: Sequence[Localization], path: TaughtPath) -> np.ndarray:
     """(N,) int64 times of the localizations' trunks, vertices of the taught ``path`` (no vertex is read)."""
     return path.t_ns[[path.index(loc.trunk_id) for loc in locs]].astype(np.int64)
 
 
-def chain_errors(locs, trunk_t_ns: np.ndarray, gt) -> LocalizationErrors:
+def chain_errors(locs: Sequence[Localization], trunk_t_ns: np.ndarray, gt: GroundTruth) -> LocalizationErrors:
     """Errors of localizations ``T_leaf_trunk`` against ground truth ``gt`` that covers both the leaf times and
     the trunk times ``trunk_t_ns`` (:func:`trunk_times`)."""
     return localization_errors(np.array([loc.T_leaf_trunk for loc in locs]), np.array([loc.t_ns for loc in locs]),

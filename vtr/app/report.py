@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 if TYPE_CHECKING:
     from ..map import TaughtPath
+    from ..navigation.localization import Localization
+    from ..navigation.repeat_state import StateTable
 
 
-def _pyplot():
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -56,8 +59,9 @@ def _spans(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2], edges[1::2], strict=True))
 
 
-def plot_repeat(path: Path, locs, taught: TaughtPath, T_teach: np.ndarray, t_ns: np.ndarray,
-                path_error_m: np.ndarray, state=None, *, localized: np.ndarray | None = None, title: str = "repeat",
+def plot_repeat(path: Path, locs: Sequence[Localization], taught: TaughtPath, T_teach: np.ndarray, t_ns: np.ndarray,
+                path_error_m: np.ndarray, state: StateTable | None = None, *, localized: np.ndarray | None = None,
+                title: str = "repeat",
                 min_inliers: int | None = None) -> None:
     """Repeat report: localization inliers per keyframe by outcome, the error to the taught path over time and
     the taught and repeated paths in plan view (teach run's first camera frame: x right, z forward), with

@@ -100,7 +100,7 @@ def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarra
 
 
 def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.0, past_start_m: float = 10.0,
-                      segments=ROUTE_SEGMENTS, config: Config | None = None,
+                      segments: tuple[tuple[float, float], ...] = ROUTE_SEGMENTS, config: Config | None = None,
                       progress: Callable[[str], None] | None = None) -> list[FlightCheck]:
     """Teach the route, fly it forward and back ``offset_m`` to the left of the taught heading, judge both."""
     config = config or Config()

@@ -9,6 +9,7 @@ Subcommands live in sibling modules and register on ``main``.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import click
 
@@ -38,7 +39,7 @@ def _versions() -> str:
 
 
 class _Group(OneLineGroup):
-    def invoke(self, ctx: click.Context):
+    def invoke(self, ctx: click.Context) -> Any:
         try:
             with sigterm_as_exception():
                 return super().invoke(ctx)

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from . import main
 from .common import make_bar
 from .summaries import batch_table
+
+if TYPE_CHECKING:
+    from ..app.batch import RunOutcome
 
 
 @main.command("batch")
@@ -40,14 +44,14 @@ def batch_cmd(manifest: Path, out: Path, workers: int | None, scheduler: str | N
     check_scheduler(scheduler)
     spec = load_manifest(manifest)
     n_runs = len(spec.runs())
-    bars: list = []             # the progress bar, made at the first report (errors before it stay one line)
+    bars: list[Any] = []             # the progress bar, made at the first report (errors before it stay one line)
 
-    def bar():
+    def bar() -> Any:
         if not bars:            # without a terminal: a line per run
             bars.append(make_bar(n_runs, "runs", "run", every=1, leave=True))
         return bars[0]
 
-    def progress(outcome, done: int, total: int) -> None:
+    def progress(outcome: RunOutcome, done: int, total: int) -> None:
         bar().set_postfix_str(f"{outcome.route}/{outcome.name} {outcome.status}")
         bar().update(1)
 

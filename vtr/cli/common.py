@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -14,6 +14,8 @@ from perception_model.commandline import force_option
 from ..errors import VtrError
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from ..config import Config
 
 # Nothing numerical is imported here or by any vtr.cli module at import time (a help page must start
@@ -90,11 +92,11 @@ def make_bar(total: int | None, desc: str, unit: str = "frame", *, disable: bool
     return LineProgress(total, desc, unit, every)
 
 
-def progress_bar(unit: str = "frame"):
+def progress_bar(unit: str = "frame") -> Callable[[Iterable[Any], int | None, str], Iterator[Any]]:
     """A progress factory ``bar(items, total, desc)`` (as ``vtr.app.pipeline`` takes): :func:`make_bar`
     around the items."""
 
-    def bar(items, total, desc):
+    def bar(items: Iterable[Any], total: int | None, desc: str) -> Iterator[Any]:
         with_bar = make_bar(total, desc, unit)
         try:
             for item in items:
@@ -162,7 +164,7 @@ def check_out_file(path: Path, force: bool, inputs: tuple[Path | None, ...] = ()
 force_out_option = force_option("existing output files (in --out)")
 
 
-def frame_progress(desc: str):
+def frame_progress(desc: str) -> Callable[[int, int], None]:
     """A ``progress(i, n)`` callback (as ``vtr.sim.synthetic.write_sequence`` takes) drawing a :func:`make_bar`.
     The bar starts with the first call, once its total is known (a cached sequence never calls it and so
     leaves no bar standing at 0)."""
@@ -218,7 +220,7 @@ def source_options(command: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-def _parse_up(ctx, param, value: str | None):
+def _parse_up(ctx: click.Context, param: click.Parameter, value: str | None) -> np.ndarray | None:
     """``--up X,Y,Z`` as a unit 3-vector (None when not given); a one-line usage error otherwise."""
     if value is None:
         return None
@@ -233,7 +235,7 @@ def _parse_up(ctx, param, value: str | None):
                                  + (f" ({err})" if isinstance(err, ConfigError) else "")) from None
 
 
-def up_option(help_text: str):
+def up_option(help_text: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """``--up X,Y,Z``: the up direction (opposite to gravity) in the teach run's first left camera frame."""
     return click.option("--up", "gravity_up", default=None, metavar="X,Y,Z", callback=_parse_up, help=help_text)
 

@@ -24,6 +24,8 @@ from .common import (
 from .summaries import repeat_lines, teach_lines
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from ..io.base import SourceOptions
 
 map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), required=True,
@@ -44,7 +46,8 @@ map_option = click.option("--map", "map_path", type=click.Path(path_type=Path), 
 @source_options
 @threads_option
 def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None, force: bool,
-              gravity_up, config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
+              gravity_up: np.ndarray | None, config_path: Path | None, source_options: SourceOptions,
+              threads: int | None) -> None:
     """Teach a route: odometry over SOURCE, keyframes written to a new map MAP.
 
     The teach run ends finished, or aborted with the reason (error, Ctrl-C, SIGTERM, full disk) after
@@ -90,7 +93,8 @@ def teach_cmd(source: Path, map_path: Path, frames: str | None, out: Path | None
 @threads_option
 def repeat_cmd(source: Path, map_path: Path, out: Path, force: bool, frames: str | None, rate_hz: float | None,
                allow_partial: bool, start_vertex: int | None, start_distance: float | None, read_only_map: bool,
-               gravity_up, config_path: Path | None, source_options: SourceOptions, threads: int | None) -> None:
+               gravity_up: np.ndarray | None, config_path: Path | None, source_options: SourceOptions,
+               threads: int | None) -> None:
     """Repeat a taught route: localize every new keyframe of SOURCE against the map.
 
     The repeat may start anywhere on the route and travel it either way. Refuses a map whose teach run did

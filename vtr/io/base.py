@@ -109,7 +109,7 @@ class FrameSource(ABC, Sequence):
     def __enter__(self) -> FrameSource:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def check_image(self, img: np.ndarray | None, where: str | Path) -> np.ndarray:

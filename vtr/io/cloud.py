@@ -42,10 +42,11 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import DataError
 from .base import GroundTruth
@@ -95,7 +96,7 @@ def _transform() -> Any:
 # geodesy
 
 
-def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
+def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> np.ndarray:
     """WGS84 latitude/longitude (deg) and ellipsoidal height (m) -> ECEF (N, 3) in metres."""
     lat, lon = np.radians(np.asarray(lat_deg, float)), np.radians(np.asarray(lon_deg, float))
     h = np.asarray(alt_m, float)
@@ -129,13 +130,15 @@ def R_enu_ecef(lat0_deg: float, lon0_deg: float) -> np.ndarray:
     return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
 
 
-def geodetic_to_enu(lat_deg, lon_deg, alt_m, lat0_deg: float, lon0_deg: float, alt0_m: float) -> np.ndarray:
+def geodetic_to_enu(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike, lat0_deg: float, lon0_deg: float,
+                    alt0_m: float) -> np.ndarray:
     """WGS84 fixes -> ENU positions (N, 3) in metres relative to the origin fix (exact, no flat-earth)."""
     d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m)
     return d @ R_enu_ecef(lat0_deg, lon0_deg).T
 
 
-def enu_to_geodetic(p_enu: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: float):
+def enu_to_geodetic(p_enu: np.ndarray, lat0_deg: float, lon0_deg: float,
+                    alt0_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ENU positions (N, 3) m relative to an origin fix -> WGS84 latitude, longitude (deg), height (m)."""
     p = geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m) + np.asarray(p_enu, float) @ R_enu_ecef(lat0_deg, lon0_deg)
     return ecef_to_geodetic(p)
@@ -151,7 +154,7 @@ def vehicle_yaw_ned(R_enu_vehicle: np.ndarray) -> np.ndarray:
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
-def rotation_from_gimbal_angles(roll, pitch, yaw_rel, R_enu_vehicle: np.ndarray,
+def rotation_from_gimbal_angles(roll: ArrayLike, pitch: ArrayLike, yaw_rel: ArrayLike, R_enu_vehicle: np.ndarray,
                                 R_vehicle_base: np.ndarray | None = None,
                                 R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA) -> np.ndarray:
     """``R_base_camera`` (N, 3, 3) from gimbal angles (rad; roll/pitch w.r.t. NED, yaw relative to the
@@ -167,7 +170,8 @@ def rotation_from_gimbal_angles(roll, pitch, yaw_rel, R_enu_vehicle: np.ndarray,
 
 def gimbal_angles_from_rotation(R_base_camera: np.ndarray, R_enu_vehicle: np.ndarray,
                                 R_vehicle_base: np.ndarray | None = None,
-                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA):
+                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Inverse of ``rotation_from_gimbal_angles``: (roll, pitch, yaw_rel) in rad, yaw wrapped to (-pi, pi]."""
     R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
     R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)
@@ -347,7 +351,7 @@ def is_cloud_run(path: Path) -> bool:
     return (path / IMAGES_DIR).is_dir() and any(find_stream(path, n) is not None for n in STREAM_FILES)
 
 
-def refuse_cloud_stereo(path: Path):
+def refuse_cloud_stereo(path: Path) -> NoReturn:
     """``open_source`` opener for CLOUD folders: always raises (they hold no stereo pairs)."""
     raise DataError(
         f"{path}: CLOUD runs are monocular (left camera only): stereo odometry, teach and repeat need a "
@@ -575,7 +579,7 @@ class CloudRunWriter:
         (self.path / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
         self.quat_order = quat_order
 
-    def _write(self, name: str, t_ns: np.ndarray, cols: list[np.ndarray], fmt: str) -> Path:
+    def _write(self, name: str, t_ns: ArrayLike, cols: Sequence[ArrayLike], fmt: str) -> Path:
         f = self.path / STREAM_FILES[name][0]
         t_ns = np.asarray(t_ns, np.int64)
         vals = np.column_stack([np.asarray(c, float) for c in cols])
@@ -584,7 +588,7 @@ class CloudRunWriter:
                 fh.write(f"{int(t)}," + ",".join(fmt % x for x in row) + "\n")
         return f
 
-    def _q(self, R: np.ndarray) -> np.ndarray:
+    def _q(self, R: ArrayLike) -> np.ndarray:
         q = _transform().Rotation.from_matrix(np.asarray(R, float).reshape(-1, 3, 3)).as_quat()
         return q[:, [3, 0, 1, 2]] if self.quat_order == "wxyz" else q
 
@@ -598,27 +602,27 @@ class CloudRunWriter:
             for t, i in zip(np.asarray(t_ns, np.int64), ids, strict=True):
                 fh.write(f"{int(t)},{i}\n")
 
-    def write_velocities(self, t_ns, v_enu) -> None:
+    def write_velocities(self, t_ns: ArrayLike, v_enu: ArrayLike) -> None:
         """Velocity (m/s) in ground ENU."""
         self._write("velocities", t_ns, list(np.asarray(v_enu, float).T), "%.9f")
 
-    def write_acceleration(self, t_ns, a_vehicle) -> None:
+    def write_acceleration(self, t_ns: ArrayLike, a_vehicle: ArrayLike) -> None:
         """Specific force (m/s^2) in vehicle FLU."""
         self._write("acceleration", t_ns, list(np.asarray(a_vehicle, float).T), "%.9f")
 
-    def write_attitude(self, t_ns, R_enu_vehicle) -> None:
+    def write_attitude(self, t_ns: ArrayLike, R_enu_vehicle: ArrayLike) -> None:
         """Attitude rotations vehicle FLU -> ENU (N, 3, 3)."""
         self._write("attitude", t_ns, list(self._q(R_enu_vehicle).T), "%.12f")
 
-    def write_gps(self, t_ns, lat_deg, lon_deg, alt_m) -> None:
+    def write_gps(self, t_ns: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> None:
         """WGS84 fixes (deg, deg, m)."""
         self._write("gps", t_ns, [lat_deg, lon_deg, alt_m], "%.12f")
 
-    def write_gimbal_state(self, t_ns, T_base_camera) -> None:
+    def write_gimbal_state(self, t_ns: ArrayLike, T_base_camera: ArrayLike) -> None:
         """Camera poses on the base (N, 4, 4)."""
         T = np.asarray(T_base_camera, float).reshape(-1, 4, 4)
         self._write("gimbal_state", t_ns, [*T[:, :3, 3].T, *self._q(T[:, :3, :3]).T], "%.12f")
 
-    def write_gimbal_angles(self, t_ns, roll, pitch, yaw) -> None:
+    def write_gimbal_angles(self, t_ns: ArrayLike, roll: ArrayLike, pitch: ArrayLike, yaw: ArrayLike) -> None:
         """Gimbal angles given in rad, written in degrees."""
         self._write("gimbal_angles", t_ns, [np.degrees(roll), np.degrees(pitch), np.degrees(yaw)], "%.9f")

@@ -4,7 +4,9 @@ reader's types and checks, so a run file's format is written once (:mod:`vtr.app
 A :class:`CsvSchema` is a tuple of :class:`Column` (name, kind, write format, unit). Writing formats each
 value with its column's format (``format(value, spec)``; an empty cell for None); reading checks the
 header and parses every column into a numpy array of its kind, with one-line errors naming the file, the
-line and the column. Rows are written with the schema's line end (``csv.writer`` writes ``\\r\\n``).
+line and the column. Rows are written with the schema's line end (``csv.writer`` writes ``\\r\\n``); a text cell
+holding a comma, a quote or a line break is quoted as ``csv.writer`` quotes it. An ``optional`` column may be empty
+(None): it is read as an object array with None there.
 """
 
 from __future__ import annotations
@@ -21,17 +23,21 @@ from ..errors import DataError
 
 Kind = Literal["int", "float", "bool", "str"]
 _DTYPES = {"int": np.int64, "float": np.float64, "bool": np.bool_, "str": object}
+_PARSE = {"int": int, "float": float, "str": str}
+_QUOTE_IF = (",", '"', "\r", "\n")           # csv.writer's minimal quoting (delimiter, quote, line breaks)
 
 
 @dataclass(frozen=True)
 class Column:
     """One column: its header name, kind (``int``, ``float``, ``bool`` written 0/1, ``str``), the format spec
-    its values are written with (``""``: ``str(value)``) and its unit (for documentation)."""
+    its values are written with (``""``: ``str(value)``), its unit (for documentation) and whether a cell may be
+    empty (``optional``: None)."""
 
     name: str
     kind: Kind = "float"
     spec: str = ""
     unit: str = ""
+    optional: bool = False
 
     def text(self, value: Any) -> str:
         """The cell of ``value`` (empty for None)."""
@@ -43,10 +49,15 @@ class Column:
             return format(int(value), self.spec)
         if self.kind == "float":
             return format(float(value), self.spec)
-        return str(value)
+        text = str(value)
+        if any(c in text for c in _QUOTE_IF):
+            return '"' + text.replace('"', '""') + '"'
+        return text
 
     def parse(self, cells: Sequence[str], where: Path, first_line: int) -> np.ndarray:
         """The column's cells as an array of its kind; ``DataError`` naming the file, line and column."""
+        if self.optional and self.kind != "bool":
+            return self._parse_optional(cells, where, first_line)
         if self.kind == "str":
             return np.array(cells, dtype=object)
         if self.kind == "bool":
@@ -64,6 +75,18 @@ class Column:
                     raise DataError(f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
                                     f"{'an integer' if self.kind == 'int' else 'a number'}") from None
             raise DataError(f"{where}: column {self.name}: unreadable values") from None
+
+    def _parse_optional(self, cells: Sequence[str], where: Path, first_line: int) -> np.ndarray:
+        """An object array: None for an empty cell, else the value of the column's kind."""
+        out = np.empty(len(cells), dtype=object)
+        parse = _PARSE[self.kind]
+        for i, c in enumerate(cells):
+            try:
+                out[i] = None if c == "" else parse(c)
+            except ValueError:
+                raise DataError(f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
+                                f"{'an integer' if self.kind == 'int' else 'a number'}") from None
+        return out
 
 
 @dataclass(frozen=True)

@@ -1,16 +1,18 @@
-"""The rules for output paths a command writes, checked before any work starts.
+"""May vtr write here: the one owner in ``vtr`` of the output rule, every refusal as one ``OutputError`` line.
 
-The rule itself (never replace an existing output unless ``--force``; never write through a link or over an
-input, with or without it; whole files written beside and renamed) is owned by :mod:`perception_model.outputs`
-(shared by the ``vtr`` and ``perception-model`` commands); these are its ``OutputError`` forms.
-:func:`check_new_output`: a new output file (``vtr convert`` always refuses, the other commands replace it
-with ``--force``); :func:`write_output` writes it by that rule. :func:`check_output_folder`: an ``--out``
-folder must be a writable folder, or creatable; one that already holds files is refused unless ``--force``.
+Built on :mod:`perception_model.outputs` (the primitives both console scripts share: never replace an existing
+output unless ``--force``; never write through a link or over an input, with or without it; whole files written
+beside and renamed). :func:`check_new_output` / :func:`write_output`: one output file (``vtr convert`` and the bag
+writer always refuse, the other commands replace it with ``--force``); :func:`check_output_folder`: an ``--out``
+folder; :func:`check_apart`: an output folder apart from the inputs; :func:`check_no_links`: no link on the way
+into a run folder. The CLI, the batch, ``OutputFolder`` (:mod:`vtr.app.outputs`, the record of what vtr made) and
+the writers call these. See ``docs/outputs.md``.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -61,3 +63,42 @@ def check_output_folder(path: Path, option: str = "--out", force: bool = True) -
         raise OutputError(f"{option} {path}: {parent} is not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{option} {path}: cannot create it ({parent} is not writable)")
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """``a`` is ``b`` or below it (both resolved)."""
+    return a == b or b in a.parents
+
+
+def check_apart(out: Path, inputs: Iterable[Path | None], option: str = "--out") -> None:
+    """``OutputError`` when output folder ``out`` contains, is, or is inside an input (symlinks resolved)."""
+    o = Path(out).resolve()
+    for inp in inputs:
+        if inp is None:
+            continue
+        i = Path(inp).resolve()
+        if _inside(i, o):
+            raise OutputError(f"{option} {out}: contains the input {inp} (an output folder must be apart from "
+                              "the data it reads; choose another folder)")
+        if _inside(o, i) and i.is_dir():
+            raise OutputError(f"{option} {out}: is inside the input {inp} (an output folder must be apart from "
+                              "the data it reads; choose another folder)")
+
+
+def check_no_links(base: Path, folder: Path, option: str = "--out") -> None:
+    """``OutputError`` when a folder between ``base`` (excluded) and ``folder`` (included) is a symbolic link
+    (or not a folder): a run folder inside an output folder is made by vtr, a link there is not."""
+    base, folder = Path(base), Path(folder)
+    rel = folder.relative_to(base)
+    p = base
+    for part in rel.parts:
+        p = p / part
+        try:
+            st = os.lstat(p)
+        except FileNotFoundError:
+            return
+        if stat.S_ISLNK(st.st_mode):
+            raise OutputError(f"{option} {base}: {p} is a symbolic link that vtr did not make (not writing through "
+                              "it); remove it or choose another folder")
+        if not stat.S_ISDIR(st.st_mode):
+            raise OutputError(f"{option} {base}: {p} exists and is not a folder")

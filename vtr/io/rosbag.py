@@ -271,7 +271,7 @@ def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
     return sec * NS_PER_S + nsec
 
 
-def _field(msg: Any, *names: str):
+def _field(msg: Any, *names: str) -> Any:
     for n in names:
         if hasattr(msg, n):
             return getattr(msg, n)
@@ -436,7 +436,8 @@ class RosbagSource(FrameSource):
 
     # -- opening
 
-    def _setup(self, left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired, rectify):
+    def _setup(self, left_topic: str | None, right_topic: str | None, left_info_topic: str | None,
+               right_info_topic: str | None, allow_unpaired: bool, rectify: bool | None) -> None:
         reader = self._reader
         where = str(self.path)
         conns: dict[str, list] = {}
@@ -578,7 +579,7 @@ class RosbagSource(FrameSource):
     def timestamps(self) -> np.ndarray:
         return self._t_ns
 
-    def _decode(self, side: _Side, raw, index: int) -> np.ndarray:
+    def _decode(self, side: _Side, raw: bytes, index: int) -> np.ndarray:
         where = f"{self.path} [{side.topic} frame {index}]"
         try:
             msg = self._reader.deserialize(raw, side.msgtype)
@@ -586,7 +587,7 @@ class RosbagSource(FrameSource):
             raise DataError(f"{where}: corrupt message: {err}") from err
         return self.check_image(decode_image(msg, side.msgtype, where, self.mono16_shift), where)
 
-    def _pair_images(self, index: int, raw_left, raw_right) -> StereoImages:
+    def _pair_images(self, index: int, raw_left: bytes, raw_right: bytes) -> StereoImages:
         left = self._decode(self._left, raw_left, index)
         right = self._decode(self._right, raw_right, index)
         if self._maps is not None:
@@ -594,7 +595,7 @@ class RosbagSource(FrameSource):
             right = cv2.remap(right, *self._maps[1], cv2.INTER_LINEAR)  # type: ignore[call-overload]
         return StereoImages(int(self._t_ns[index]), index, left, right)
 
-    def _read_one(self, side: _Side, log_ns: int, stamp_ns: int, index: int):
+    def _read_one(self, side: _Side, log_ns: int, stamp_ns: int, index: int) -> bytes:
         try:
             for _c, _t, raw in self._reader.messages(connections=side.conn, start=log_ns, stop=log_ns + 1):
                 if header_stamp_ns(raw, self.ros2) == stamp_ns:

@@ -14,8 +14,9 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import StereoCamera
 from ..conventions import NS_PER_S
-from ..errors import DataError, OutputError
+from ..errors import DataError
 from ..types import StereoImages
+from .outputs import check_new_output
 from .rosbag import (
     _COMPRESSED_FORMATS,
     _MONO8,
@@ -66,8 +67,7 @@ class RosbagWriter:
         if encoding not in (*_MONO8[:1], *_MONO16[:1], "bgr8", "rgb8", *_COMPRESSED_FORMATS):
             raise DataError(f"encoding {encoding!r} not supported for writing")
         self.path = Path(path)
-        if self.path.exists():
-            raise OutputError(f"{self.path}: already exists (not overwriting)")
+        check_new_output(self.path, can_force=False)       # the rule's owner: nothing is replaced, no link followed
         if kind == "rosbag1" and self.path.suffix != ROS1_SUFFIX:
             raise DataError(f"{self.path}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
         self.kind, self.encoding, self.camera = kind, encoding, camera
@@ -106,14 +106,14 @@ class RosbagWriter:
         self._messages = 0
         self._closed = False
 
-    def _header(self, t_ns: int, frame_id: str):
+    def _header(self, t_ns: int, frame_id: str) -> Any:
         T = self.ts.types
         stamp = T["builtin_interfaces/msg/Time"](sec=t_ns // NS_PER_S, nanosec=t_ns % NS_PER_S)
         if self.ros2:
             return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
         return T["std_msgs/msg/Header"](seq=self._messages, stamp=stamp, frame_id=frame_id)
 
-    def _image_msg(self, t_ns: int, img: np.ndarray, frame_id: str):
+    def _image_msg(self, t_ns: int, img: np.ndarray, frame_id: str) -> Any:
         T = self.ts.types
         img = np.asarray(img)
         header = self._header(t_ns, frame_id)
@@ -137,7 +137,7 @@ class RosbagWriter:
         return T[IMAGE_MSGTYPE](header=header, height=h, width=w, encoding=self.encoding, is_bigendian=0,
                                 step=data.size // h, data=data)
 
-    def _info_msg(self, t_ns: int, info: CameraInfoData):
+    def _info_msg(self, t_ns: int, info: CameraInfoData) -> Any:
         T = self.ts.types
         roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
         mats = {"d": np.asarray(info.D, float), "k": np.asarray(info.K, float).ravel(),
@@ -148,7 +148,7 @@ class RosbagWriter:
                                distortion_model=info.distortion_model, binning_x=0, binning_y=0, roi=roi,
                                **mats)
 
-    def _tf_msg(self, t_ns: int):
+    def _tf_msg(self, t_ns: int) -> Any:
         T = self.ts.types
         Tm = self.T_base_left
         q = Rotation.from_matrix(Tm[:3, :3]).as_quat()
@@ -159,7 +159,7 @@ class RosbagWriter:
                                                      child_frame_id=self.infos[0].frame_id, transform=tr)
         return T[TF_MSGTYPE](transforms=[ts])
 
-    def _write(self, key: str, t_ns: int, msg) -> None:
+    def _write(self, key: str, t_ns: int, msg: Any) -> None:
         conn = self._conn[key]
         self._writer.write(conn, t_ns, self._serialize(msg, conn.msgtype))
 
@@ -244,7 +244,7 @@ def add_mcap_chunk_crcs(path: Path) -> int:
 
 
 def write_bag(path: str | Path, frames: Iterable[StereoImages], camera: StereoCamera, kind: str = "rosbag1",
-              **kwargs) -> int:
+              **kwargs: Any) -> int:
     """Write ``frames`` to a new bag; returns the number of frames written."""
     with RosbagWriter(path, camera, kind=kind, **kwargs) as w:
         for f in frames:

@@ -11,6 +11,8 @@ file                        what                                                
 ``run.json``/``config.yaml``  provenance and summary, written last                 :mod:`.run_json`
 ``trajectory_tum.txt``      camera poses (TUM; also read as ground truth)          :mod:`vtr.io.trajectory`
 ``landmarks.csv``           landmark match records (``perception-model fit``)      ``perception_model.landmarks_file``
+``summary.csv``             ``vtr batch``: one row per run                         :mod:`.summary_csv`
+``envelope.csv``            the localization envelope, one row per vertex          :mod:`.envelope_csv`
 ==========================  =====================================================  ==========================
 
 The names below are what each command writes (checked before any work starts: :mod:`vtr.app.outputs`).

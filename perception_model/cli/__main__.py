@@ -1,0 +1,5 @@
+"""``python -m perception_model.cli``: the ``perception-model`` command."""
+
+from . import main
+
+main()
