@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
+import pytest
 import yaml
 
 
@@ -85,3 +87,29 @@ def test_ctrl_c_of_a_batch_leaves_no_worker_tracebacks(tmp_path):
     r = vtr("batch", manifest, "--out", out, "--workers", "2")
     assert r.returncode == 0, r.stderr
     assert "0 failed" in r.stdout and (out / "route_0" / "rep_1m" / "run.json").is_file()
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="needs POSIX file size limits")
+@pytest.mark.parametrize("limit_bytes", [500_000, 1_000_000])
+def test_a_full_disk_under_a_batch_is_one_line_per_run_naming_the_file(kitti_clip, tmp_path, limit_bytes):
+    """The batch's files cannot grow past ``limit_bytes`` (a full disk, as the workers see it): the run that hit
+    it fails naming its file, a repeat of a failed teach is blocked, nothing is retried and no worker prints a
+    traceback (round 4: tracebacks in the log, the task retried twice, no path named)."""
+    import resource
+
+    def full_disk() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)          # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    m = tmp_path / "m.yaml"
+    m.write_text(yaml.safe_dump({"routes": [{"name": "clip", "teach": {"source": str(kitti_clip), "frames": "0:12:2"},
+                                             "repeats": [{"source": str(kitti_clip), "frames": "1:12:2",
+                                                          "name": "odd"}]}]}))
+    r = subprocess.run([sys.executable, "-m", "vtr", "batch", str(m), "--out", str(tmp_path / "out"), "--workers",
+                        "1"], capture_output=True, text=True, preexec_fn=full_disk, timeout=600)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert "Traceback" not in r.stdout + r.stderr
+    failed = [line for line in r.stdout.splitlines() if " failed " in line and line.startswith("clip")]
+    assert len(failed) == 1 and "route.vtrmap" in failed[0] and "MapError" in failed[0], r.stdout
+    assert "0 finished" in r.stdout or "1 finished" in r.stdout
+    assert "retr" not in (r.stdout + r.stderr).lower()
