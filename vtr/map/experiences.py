@@ -153,19 +153,21 @@ class Retention:
     remove: list[int]
 
 
-def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: float) -> Retention:
+def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: float,
+              neighbours: int = 1) -> Retention:
     """The retention rule: of the trusted experiences keep, at every taught vertex, the ``keep_last`` newest localized
-    there, plus the ``keep_most_used`` most used (ties: the newer); every other repeat run that is not running (older
-    experiences, untrusted repeats: aborted, interrupted, localized too little) is removed."""
+    within ``neighbours`` taught vertices of it (the vertices whose experiences a submap there may use), plus the
+    ``keep_most_used`` most used (ties: the newer); every other repeat run that is not running (older experiences,
+    untrusted repeats: aborted, interrupted, localized too little) is removed."""
     infos = experiences(m, min_localized_share, exclude=[m.open_run] if m.open_run is not None else [])
     trusted = [e.run for e in infos if e.trusted]
     keep: dict[int, str] = {}
     links = experience_links(m, trusted)
     if keep_last > 0 and len(links):
-        order = np.lexsort((-links.run, links.taught_id))        # by taught vertex, newest run first
-        taught, run = links.taught_id[order], links.run[order]
-        pairs = np.unique(np.stack([taught, run], 1), axis=0)    # one per (taught vertex, run)
-        pairs = pairs[np.lexsort((-pairs[:, 1], pairs[:, 0]))]
+        slot = np.searchsorted(m.taught_path().ids, links.taught_id)   # path index of each link's taught vertex
+        near = np.concatenate([slot + d for d in range(-neighbours, neighbours + 1)])
+        pairs = np.unique(np.stack([near, np.tile(links.run, 2 * neighbours + 1)], 1), axis=0)  # (vertex, run)
+        pairs = pairs[np.lexsort((-pairs[:, 1], pairs[:, 0]))]           # by taught vertex, newest run first
         first = np.r_[0, np.flatnonzero(np.diff(pairs[:, 0])) + 1]
         rank = np.arange(len(pairs)) - np.repeat(first, np.diff(np.r_[first, len(pairs)]))
         for r in np.unique(pairs[rank < keep_last, 1]):
@@ -180,7 +182,8 @@ def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: 
 def prune(m: Map, runs: Iterable[int]) -> int:
     """Remove repeat ``runs`` from a map opened for writing: their vertices, data, checksums, edges and use, in one
     transaction (the append-only triggers are lifted inside it and restored before it commits), then ``VACUUM``
-    to give the space back. Returns the bytes the file shrank by. Refuses taught runs and the open run."""
+    to give the space back (the file shrinks when the map is closed, which folds the log). Returns the number of
+    vertices removed. Refuses taught runs and the open run."""
     runs = sorted({int(r) for r in runs})
     if m.mode != "a":
         raise MapError(f"{m.path}: map opened read-only (open it with mode='a' to prune)")
@@ -195,7 +198,7 @@ def prune(m: Map, runs: Iterable[int]) -> int:
             raise MapError(f"{m.path}: run {r} is a taught run: prune removes repeats only")
         if r == m.open_run:
             raise MapError(f"{m.path}: run {r} is the open run")
-    before = m.bytes_on_disk()
+    removed = sum(by_id[r].n_vertices for r in runs)
     with m.file.transaction() as conn:
         saved = conn.execute(
             f"SELECT name, sql FROM sqlite_master WHERE type = 'trigger' AND name IN "
@@ -220,7 +223,7 @@ def prune(m: Map, runs: Iterable[int]) -> int:
             conn.execute(sql)
     with m.file.connection() as conn:
         conn.execute("VACUUM")
-    return before - m.bytes_on_disk()
+    return removed
 
 
 __all__ = ["ExperienceInfo", "ExperienceLinks", "Retention", "experience_links", "experiences", "prune",
