@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 from ..config import Config
 from ..io import open_source
 from ..map import Map
+from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..navigation.teach import Teach
 from ..sim import synthetic as syn
@@ -41,7 +41,8 @@ class Truth:
 @dataclass(frozen=True)
 class Flight:
     """One repeat flight: its change, direction, integrity against ground truth, the localizations that used an
-    experience, the distinct experiences used, and localization seconds per keyframe."""
+    experience, the distinct experiences used, localization seconds per keyframe, its map run and its localizations
+    (without landmark records)."""
 
     change: float
     backward: bool
@@ -50,6 +51,7 @@ class Flight:
     experiences_used: tuple[int, ...]
     seconds_per_keyframe: float
     run: int
+    localizations: tuple[Localization, ...] = ()
 
 
 def route(length_m: float) -> np.ndarray:
@@ -90,17 +92,15 @@ def fly(map_path: Path, folder: Path, truth: Truth, taught: Truth, change: float
     """Repeat the flight in ``folder`` against the map (its run is appended to it) and judge it."""
     with open_source(folder) as src, Map.open(map_path, "a") as m:
         rp = Repeat(m, config, str(folder))
-        t0 = time.perf_counter()
-        steps = [s for s in (rp.process(im) for im in src)]
-        locs = [s.localization for s in steps if s.localization is not None]
+        steps = [rp.process(im) for im in src]
+        locs = [dataclasses.replace(s.localization, landmarks=None) for s in steps if s.localization is not None]
         seconds = sum(s.localization_seconds for s in steps)
-        del t0
         trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
         run = rp.run
     integrity = integrity_of(locs, trunk_t, truth, taught)
     used = sorted({e for loc in locs for e in loc.experiences})
     return Flight(change, backward, integrity, sum(1 for loc in locs if loc.experiences), tuple(used),
-                  seconds / max(len(locs), 1), run)
+                  seconds / max(len(locs), 1), run, tuple(locs))
 
 
 def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, backward: bool = False,
