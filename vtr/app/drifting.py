@@ -17,6 +17,7 @@ import numpy as np
 from ..config import Config
 from ..io import open_source
 from ..map import Map
+from ..navigation.experiences import single_experience
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..navigation.teach import Teach
@@ -52,6 +53,7 @@ class Flight:
     seconds_per_keyframe: float
     run: int
     localizations: tuple[Localization, ...] = ()
+    keyframe_seconds: tuple[float, ...] = ()     # localization seconds of each keyframe, in order
 
 
 def route(length_m: float) -> np.ndarray:
@@ -94,13 +96,14 @@ def fly(map_path: Path, folder: Path, truth: Truth, taught: Truth, change: float
         rp = Repeat(m, config, str(folder))
         steps = [rp.process(im) for im in src]
         locs = [dataclasses.replace(s.localization, landmarks=None) for s in steps if s.localization is not None]
-        seconds = sum(s.localization_seconds for s in steps)
+        per_keyframe = tuple(s.localization_seconds for s in steps if s.localization is not None)
+        seconds = sum(per_keyframe)
         trunk_t = np.array([m.vertex(loc.trunk_id).t_ns for loc in locs], np.int64)
         run = rp.run
     integrity = integrity_of(locs, trunk_t, truth, taught)
     used = sorted({e for loc in locs for e in loc.experiences})
     return Flight(change, backward, integrity, sum(1 for loc in locs if loc.experiences), tuple(used),
-                  seconds / max(len(locs), 1), run, tuple(locs))
+                  seconds / max(len(locs), 1), run, tuple(locs), per_keyframe)
 
 
 def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, backward: bool = False,
@@ -110,7 +113,7 @@ def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, b
     (with experiences, teach alone). The grown map is ``root/experiences.vtrmap``."""
     root.mkdir(parents=True, exist_ok=True)
     config = config or Config()
-    single = dataclasses.replace(config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=0))
+    single = single_experience(config)
     taught_map = root / "teach.vtrmap"
     if not taught_map.exists():
         taught = teach(root / "teach", taught_map, length_m, scene_seed, config)

@@ -15,6 +15,7 @@ At most ``experiences.max_per_keyframe`` experiences, one vertex each, are match
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections import deque
 from collections.abc import Callable
@@ -33,6 +34,13 @@ from .localization import LocalizationEstimate, TaughtSubmap
 from .place import PlaceIndex
 
 FRAMES_KEPT = 96            # decoded frames held for submaps before the cache starts again (memory stays flat)
+
+
+def single_experience(config: Config) -> Config:
+    """``config`` localizing against the teach alone (``experiences.max_per_keyframe`` 0): for experiments that
+    characterise localization against the taught landmarks (offsets, the perception model's data), where earlier
+    repeats appended to the same map must not help."""
+    return dataclasses.replace(config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=0))
 
 
 class Recommender:
@@ -284,4 +292,4 @@ class ExperienceSubmaps:
         record_use(self.map, repeat_run, {e: 1 for e in used})
 
 
-__all__ = ["ExperiencePlaces", "ExperienceSubmaps", "Recommender"]
+__all__ = ["ExperiencePlaces", "ExperienceSubmaps", "Recommender", "single_experience"]
