@@ -230,3 +230,30 @@ def test_prune_command_dry_run_changes_nothing(tmp_path_factory, forward):
     assert f"removed {len(multi) - 1} run(s)" in r.output and path.stat().st_size < len(before)
     r = _vtr("map", "prune", path, "--keep-last", -1)
     assert r.exit_code != 0 and "--keep-last" in r.output
+
+
+def test_a_damaged_experience_is_dropped_with_a_warning(tmp_path_factory, forward):
+    """An experience whose vertex data no longer matches its checksum (a flipped byte on disk) is left out of the
+    repeat, which says so once and localizes through the others."""
+    import sqlite3
+
+    root, multi, _ = forward
+    path = tmp_path_factory.mktemp("damaged") / "m.vtrmap"
+    shutil.copyfile(root / "experiences.vtrmap", path)
+    bad = multi[-1].run
+    with sqlite3.connect(path) as c:
+        c.execute("DROP TRIGGER vertex_data_append_only_update")
+        rows = c.execute("SELECT id, data FROM vertex_data WHERE id >> 32 = ?", (bad,)).fetchall()
+        for vid, data in rows:
+            flipped = bytearray(data)
+            flipped[-1] ^= 0x10
+            c.execute("UPDATE vertex_data SET data = ? WHERE id = ?", (bytes(flipped), vid))
+    warnings: list[str] = []
+    folder = root / f"fwd_{CHANGES[-1]:.2f}"
+    with open_source(folder) as src, Map.open(path, "a") as m:
+        rp = Repeat(m, Config(), str(folder), warn=warnings.append)
+        locs = [s.localization for s in (rp.process(im) for im in src) if s.localization is not None]
+    assert len(warnings) == 1 and f"experience run(s) [{bad}] not used" in warnings[0], warnings
+    assert not any(bad in loc.experiences for loc in locs)
+    ok = [loc for loc in locs if loc.success]
+    assert len(ok) >= MIN_RATE_AFTER * (len(locs) - MAX_FIRST_CORRECT) and all(loc.experiences for loc in ok)

@@ -104,18 +104,16 @@ class ExperiencePlaces:
         from scipy.sparse import csr_matrix
 
         if self._matrix is None:
-            sm = self._submaps
-            rows = np.flatnonzero(sm._link_slot >= 0)
-            vectors = [sm._vector(int(v)) for v in sm.links.vertex_id[rows]]
-            dense = np.array(vectors, np.float32).reshape(len(rows), len(self.vocabulary))
-            self._matrix = csr_matrix(dense)
-            self._slots = sm._link_slot[rows]
+            slots, vids = self._submaps.placed_vertices()
+            vectors = [self._submaps.vector(int(v)) for v in vids]
+            self._matrix = csr_matrix(np.array(vectors, np.float32).reshape(len(vids), len(self.vocabulary)))
+            self._slots = slots
         return self._matrix
 
     def scores(self, descriptors: np.ndarray) -> np.ndarray:
         """Cosine score (V,) of every taught vertex against a query: the best of the vertex's and its experiences'."""
+        out = self.index.scores(descriptors)
         q = self.index.vector(descriptors)
-        out = np.asarray(self.index._csr @ q, np.float64).ravel()
         E = self._experience_matrix()
         if E.shape[0]:
             np.maximum.at(out, self._slots, np.asarray(E @ q, np.float64).ravel())
@@ -156,6 +154,7 @@ class ExperienceSubmaps:
         self._leaf: StereoFrame | None = None
         self._leaf_vector: np.ndarray | None = None
         self._chosen: dict[int, tuple[int, ...]] = {}          # this leaf's choice per trunk
+        self._leaf_submaps: dict[int, TaughtSubmap] = {}       # this leaf's submap per trunk
         self._used: dict[int, int] = {}                        # keyframes each experience gave inliers to
 
     @property
@@ -179,7 +178,7 @@ class ExperienceSubmaps:
 
     def set_leaf(self, leaf: StereoFrame) -> None:
         """The keyframe about to be localized (its submaps may choose other experiences than the last one's)."""
-        self._leaf, self._leaf_vector, self._chosen = leaf, None, {}
+        self._leaf, self._leaf_vector, self._chosen, self._leaf_submaps = leaf, None, {}, {}
 
     # -- the recommender's inputs ------------------------------------------------------------------
 
@@ -202,14 +201,37 @@ class ExperienceSubmaps:
             return np.zeros(len(rows))
         if self._leaf_vector is None:
             self._leaf_vector = self.place.vector(self._leaf.features.descriptors)
-        return np.array([float(self._vector(int(vid)) @ self._leaf_vector) for vid in self.links.vertex_id[rows]])
+        return np.array([float(self.vector(int(vid)) @ self._leaf_vector) for vid in self.links.vertex_id[rows]])
 
-    def _vector(self, vid: int) -> np.ndarray:
+    def placed_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(taught path index, experience vertex id) of every trusted experience vertex localized on the path."""
+        rows = np.flatnonzero(self._link_slot >= 0)
+        return self._link_slot[rows], self.links.vertex_id[rows]
+
+    def vector(self, vid: int) -> np.ndarray:
         """Place-recognition vector of an experience vertex (computed once)."""
         v = self._vectors.get(vid)
+        if v is None and vid >> RUN_SHIFT in self._damaged:
+            return np.zeros(len(self.place.vocabulary))
         if v is None:
-            v = self._vectors[vid] = self.place.vector(self.map.vertex(vid).frame.features.descriptors)
+            try:
+                v = self.place.vector(self.map.vertex(vid).frame.features.descriptors)
+            except MapError as err:     # a vertex that does not read back whole: its experience is never used
+                self._drop({vid >> RUN_SHIFT}, err)
+                v = np.zeros(len(self.place.vocabulary))
+            self._vectors[vid] = v
         return v
+
+    def _drop(self, runs: set[int], err: MapError) -> None:
+        runs = runs - self._damaged         # said once per experience
+        if not runs:
+            return
+        self._damaged |= runs
+        message = f"experience run(s) {sorted(runs)} not used: {err}"
+        if self._warn is not None:
+            self._warn(message)
+        else:
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
 
     def places(self) -> ExperiencePlaces:
         """Place recognition over the taught vertices and the experiences localized at them."""
@@ -220,6 +242,9 @@ class ExperienceSubmaps:
     def submap(self, trunk: int) -> TaughtSubmap:
         """The trunk, its ``neighbour_vertices`` taught neighbours on each side, and one vertex of each chosen
         experience, in the trunk's frame."""
+        sub = self._leaf_submaps.get(trunk)
+        if sub is not None:
+            return sub
         chosen = self._chosen.get(trunk)
         runs, rows = self._near(trunk)
         if chosen is None:
@@ -229,6 +254,7 @@ class ExperienceSubmaps:
         key = (trunk, chosen)
         sub = self._submaps.get(key)
         if sub is not None:
+            self._leaf_submaps[trunk] = sub
             return sub
         try:
             sub = self._build(trunk, [int(rows[np.flatnonzero(runs == e)[0]]) for e in chosen])
@@ -236,15 +262,10 @@ class ExperienceSubmaps:
             bad = {e for e in chosen if not self._readable(int(rows[np.flatnonzero(runs == e)[0]]))}
             if not bad:
                 raise
-            self._damaged |= bad
-            message = f"experience run(s) {sorted(bad)} not used: {err}"
-            if self._warn is not None:
-                self._warn(message)
-            else:
-                warnings.warn(message, RuntimeWarning, stacklevel=2)
+            self._drop(bad, err)
             self._chosen.pop(trunk, None)
             return self.submap(trunk)
-        self._submaps[key] = sub
+        self._submaps[key] = self._leaf_submaps[trunk] = sub
         return sub
 
     def _readable(self, row: int) -> bool:
@@ -284,8 +305,7 @@ class ExperienceSubmaps:
 
     def chosen_submap(self, trunk: int) -> TaughtSubmap | None:
         """The submap this leaf was localized against at ``trunk`` (None when none was built)."""
-        chosen = self._chosen.get(trunk)
-        return None if chosen is None else self._submaps.get((trunk, chosen))
+        return self._leaf_submaps.get(trunk)
 
     def record(self, repeat_run: int, used: tuple[int, ...]) -> None:
         """Count one keyframe of ``repeat_run`` for each of ``used`` in the map's ``experience_use``."""
