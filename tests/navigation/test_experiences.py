@@ -257,3 +257,27 @@ def test_a_damaged_experience_is_dropped_with_a_warning(tmp_path_factory, forwar
     assert not any(bad in loc.experiences for loc in locs)
     ok = [loc for loc in locs if loc.success]
     assert len(ok) >= MIN_RATE_AFTER * (len(locs) - MAX_FIRST_CORRECT) and all(loc.experiences for loc in ok)
+
+
+def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
+    from vtr.geometry import exp_se3
+    from vtr.navigation.experiences import experience_covariance
+    from vtr.navigation.localization import LocalizationEstimate, TaughtSubmap
+    from vtr.state.trajectory import adjoint
+
+    taught, exp_a, exp_b = 5, (3 << 32) | 7, (4 << 32) | 2
+    T_x_trunk = np.stack([np.eye(4), exp_se3(np.array([0.01, 0.02, 0.0, 0.3, -0.1, 0.2])),
+                          exp_se3(np.array([0.0, -0.02, 0.01, -0.2, 0.1, 0.1]))])
+    slot = np.array([0, 0, 1, 1, 2])
+    n = len(slot)
+    sub = TaughtSubmap(np.array([taught, exp_a, exp_b]), T_x_trunk, 0, np.zeros((n, 3)), np.zeros((n, 32), np.uint8),
+                       slot, np.zeros((n, 3)), np.arange(n), np.ones(n), np.zeros(n, bool))
+    np.testing.assert_array_equal(sub.experience, [0, 0, 3, 3, 4])
+    P = {exp_a: np.diag([1e-6] * 3 + [1e-4] * 3), exp_b: np.diag([4e-6] * 3 + [9e-4] * 3)}
+    T = exp_se3(np.array([0.02, 0.0, -0.01, 0.5, 0.0, 1.0]))
+    matched = np.arange(n)
+    est = LocalizationEstimate(T, np.eye(6) * 1e-6, n, matched, np.array([True, True, True, False, False]))
+    A = adjoint(T @ np.linalg.inv(T_x_trunk[1]))
+    np.testing.assert_allclose(experience_covariance(sub, est, P.get), A @ P[exp_a] @ A.T, atol=1e-15)  # b: no inlier
+    only_taught = LocalizationEstimate(T, np.eye(6), n, matched, np.array([True, True, False, False, False]))
+    assert not experience_covariance(sub, only_taught, P.get).any()

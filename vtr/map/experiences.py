@@ -52,12 +52,13 @@ class ExperienceLinks:
     """Experience vertices placed on the taught path, one row per spatial edge (arrays of equal length):
     ``vertex_id`` (the experience's vertex), ``run``, ``taught_id`` (the taught vertex it localized against),
     ``T_vertex_taught`` (4x4: taught-vertex camera coordinates into the experience vertex's camera, the stored
-    ``T_leaf_trunk``) and ``inliers``."""
+    ``T_leaf_trunk``), its 6x6 ``covariance`` ([rot, trans], as stored) and ``inliers``."""
 
     vertex_id: np.ndarray
     run: np.ndarray
     taught_id: np.ndarray
     T_vertex_taught: np.ndarray
+    covariance: np.ndarray
     inliers: np.ndarray
 
     def __len__(self) -> int:
@@ -124,12 +125,14 @@ def experience_links(m: Map, runs: Iterable[int]) -> ExperienceLinks:
         marks = ",".join("?" * len(runs))
         with m.file.connection() as conn:
             rows = conn.execute(
-                "SELECT e.from_id, e.to_id, e.T_from_to, e.inliers FROM edges e JOIN runs t ON t.id = (e.to_id >> 32) "
+                "SELECT e.from_id, e.to_id, e.T_from_to, e.inliers, e.covariance FROM edges e "
+                "JOIN runs t ON t.id = (e.to_id >> 32) "
                 f"WHERE e.kind = 'spatial' AND t.privileged = 1 AND (e.from_id >> 32) IN ({marks}) "
                 "ORDER BY e.from_id, e.to_id", runs).fetchall()
     vid = np.array([r[0] for r in rows], np.int64)
     T = np.stack([blob_matrix(r[2], (4, 4)) for r in rows]) if rows else np.zeros((0, 4, 4))
-    return ExperienceLinks(vid, vid >> RUN_SHIFT, np.array([r[1] for r in rows], np.int64), T,
+    C = np.stack([blob_matrix(r[4], (6, 6)) for r in rows]) if rows else np.zeros((0, 6, 6))
+    return ExperienceLinks(vid, vid >> RUN_SHIFT, np.array([r[1] for r in rows], np.int64), T, C,
                            np.array([r[3] for r in rows], np.int64))
 
 

@@ -29,8 +29,8 @@ from ..map import Map
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 from .chain import ChainLocalizer, LocalizationChain
-from .experiences import ExperienceSubmaps
-from .localization import Localization, Localizer, TaughtSubmap, landmark_record
+from .experiences import ExperienceLocalizer, ExperienceSubmaps
+from .localization import Localization, TaughtSubmap, landmark_record
 from .place import PlaceIndex, route_place_index
 
 
@@ -74,7 +74,8 @@ class Repeat:
         self.config = config
         map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config, start_index)
-        self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
+        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.odometry,
+                                             config.stereo.pixel_sigma)
         self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
         self._odometry_broken = False             # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
@@ -83,6 +84,7 @@ class Repeat:
         # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
         self.submaps = ExperienceSubmaps(map_, self.chain.path, config, self.camera, self.place, (self.run,), warn)
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
+        self.localizer.experiences = self.submaps
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
         self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config)
         self.latest: Localization | None = None
