@@ -20,7 +20,8 @@ from vtr.config import Config
 def _cell(f: Flight) -> str:
     i = f.integrity
     first = "-" if i.first_correct is None else str(i.first_correct)
-    return f"{i.correct} / {i.attempts} | {i.wrong} | {first} | {100 * i.rate_after:.0f} %"
+    covers = f"{100 * i.covered:.0f} %" if i.correct else "-"
+    return f"{i.correct} / {i.attempts} | {i.wrong} | {first} | {100 * i.rate_after:.0f} % | {covers}"
 
 
 def main() -> None:
@@ -45,10 +46,10 @@ def main() -> None:
                             "experiences_used": list(m.experiences_used),
                             "ms_per_keyframe_alone": 1000 * a.seconds_per_keyframe,
                             "ms_per_keyframe_experiences": 1000 * m.seconds_per_keyframe})
-    head = ("| direction | change | teach alone: correct | wrong | first correct | correct after | "
-            "with experiences: correct | wrong | first correct | correct after | used an experience | "
+    head = ("| direction | change | teach alone: correct | wrong | first correct | correct after | 3-sigma covers | "
+            "with experiences: correct | wrong | first correct | correct after | 3-sigma covers | used an experience | "
             "experiences used | ms per keyframe (alone / experiences) |")
-    table = "\n".join([head, "|" + "---|" * 13, *rows])
+    table = "\n".join([head, "|" + "---|" * 15, *rows])
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "drifting.md").write_text(table + "\n")

@@ -16,7 +16,10 @@ At most ``experiences.max_per_keyframe`` experiences, one vertex each, are match
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import io
 import warnings
+import zipfile
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -79,6 +82,36 @@ def single_experience(config: Config) -> Config:
     characterise localization against the taught landmarks (offsets, the perception model's data), where earlier
     repeats appended to the same map must not help."""
     return dataclasses.replace(config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=0))
+
+
+WORDS_KEY = "experience_words"   # derived data: the words of an experience's vertices (ExperienceSubmaps.run_words)
+DIGEST_BYTES = 8                 # of the vocabulary the words are of
+
+
+def _encode_words(words: dict[int, np.ndarray]) -> bytes:
+    vids = np.array(sorted(words), np.int64)
+    top = max((int(w.max()) for w in words.values() if len(w)), default=0)
+    dtype = np.uint16 if top <= np.iinfo(np.uint16).max else np.int32          # 1024 words: two bytes a feature
+    parts = [np.asarray(words[int(v)], dtype) for v in vids]
+    buf = io.BytesIO()
+    np.savez(buf, vertex_id=vids, indptr=np.r_[0, np.cumsum([len(p) for p in parts])].astype(np.int64),
+             words=np.concatenate(parts) if parts else np.zeros(0, dtype))
+    return buf.getvalue()
+
+
+def _decode_words(data: bytes | None) -> dict[int, np.ndarray] | None:
+    """The stored words, or None when absent or unreadable (derived data: rebuilt from the vertices)."""
+    if data is None:
+        return None
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            vids, indptr, words = z["vertex_id"], z["indptr"], z["words"]
+        if len(indptr) != len(vids) + 1 or indptr[-1] != len(words):
+            return None
+        words = words.astype(np.int64)
+        return {int(v): words[indptr[i]:indptr[i + 1]] for i, v in enumerate(vids)}
+    except (ValueError, KeyError, OSError, zipfile.BadZipFile):
+        return None
 
 
 class Recommender:
@@ -191,6 +224,7 @@ class ExperienceSubmaps:
         self._frames: dict[int, StereoFrame] = {}
         self._submaps: dict[tuple[int, tuple[int, ...]], TaughtSubmap] = {}
         self._vectors: dict[int, np.ndarray] = {}
+        self._words: dict[int, dict[int, np.ndarray]] = {}
         self._damaged: set[int] = set()
         self._leaf: StereoFrame | None = None
         self._leaf_vector: np.ndarray | None = None
@@ -256,18 +290,46 @@ class ExperienceSubmaps:
         return self._link_slot[rows], self.links.vertex_id[rows]
 
     def vector(self, vid: int) -> np.ndarray:
-        """Place-recognition vector of an experience vertex (computed once)."""
+        """Place-recognition vector of an experience vertex: its words (:meth:`run_words`) weighted by the taught
+        index's inverse document frequencies, unit length (what ``PlaceIndex.vector`` gives its descriptors)."""
         v = self._vectors.get(vid)
-        if v is None and vid >> RUN_SHIFT in self._damaged:
-            return np.zeros(len(self.place.vocabulary))
         if v is None:
-            try:
-                v = self.place.vector(self.map.vertex(vid).frame.features.descriptors)
-            except MapError as err:     # a vertex that does not read back whole: its experience is never used
-                self._drop({vid >> RUN_SHIFT}, err)
-                v = np.zeros(len(self.place.vocabulary))
+            words = self.run_words(vid >> RUN_SHIFT).get(vid)
+            v = np.zeros(len(self.place.vocabulary))
+            if words is not None and len(words):
+                v = np.bincount(words, minlength=len(self.place.vocabulary)) * np.asarray(self.place.idf, float)
+                v = v / max(float(np.linalg.norm(v)), np.finfo(float).tiny)
             self._vectors[vid] = v
         return v
+
+    def run_words(self, run: int) -> dict[int, np.ndarray]:
+        """The vocabulary words of every placed vertex of an experience (vertex id -> word per feature): stored in the
+        map's derived data (``experience_words/<run>/<vocabulary digest>``) the first time a repeat needs them, so a
+        later repeat reads them instead of reading and describing every experience vertex again. {} for a damaged
+        experience."""
+        words = self._words.get(run)
+        if words is not None:
+            return words
+        key = f"{WORDS_KEY}/{run}/{self._vocabulary_digest()}"
+        words = _decode_words(self.map.derived(key)) if run not in self._damaged else {}
+        if words is None:
+            vids = np.unique(self.links.vertex_id[self.links.run == run])
+            try:
+                words = {int(v): self.place.vocabulary.words_of(self.map.vertex(int(v)).frame.features.descriptors)
+                         for v in vids}
+            except MapError as err:     # a vertex that does not read back whole: its experience is never used
+                self._drop({run}, err)
+                words = {}
+            else:
+                if self.map.mode == "a":
+                    self.map.put_derived(key, _encode_words(words))
+        self._words[run] = words
+        return words
+
+    def _vocabulary_digest(self) -> str:
+        voc = self.place.vocabulary
+        return hashlib.blake2b(np.ascontiguousarray(voc.top).tobytes() + np.ascontiguousarray(voc.leaves).tobytes(),
+                               digest_size=DIGEST_BYTES).hexdigest()
 
     def _drop(self, runs: set[int], err: MapError) -> None:
         runs = runs - self._damaged         # said once per experience
