@@ -281,3 +281,23 @@ def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
     np.testing.assert_allclose(experience_covariance(sub, est, P.get), A @ P[exp_a] @ A.T, atol=1e-15)  # b: no inlier
     only_taught = LocalizationEstimate(T, np.eye(6), n, matched, np.array([True, True, False, False, False]))
     assert not experience_covariance(sub, only_taught, P.get).any()
+
+
+def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
+    """A repeat stores the place-recognition words of the experiences it scored (derived data), and the vectors
+    made from them are those of the vertices' own descriptors."""
+    from vtr.navigation.experiences import WORDS_KEY, _decode_words
+    from vtr.navigation.place import route_place_index
+
+    root, multi, _ = forward
+    cfg = Config()
+    with Map.open(root / "experiences.vtrmap") as m:
+        place = route_place_index(m, cfg.place, cfg.odometry.seed)
+        sub = ExperienceSubmaps(m, m.taught_path(), cfg, m.camera, place)
+        digest = sub._vocabulary_digest()
+        stored = [r for r in sub.trusted if m.derived(f"{WORDS_KEY}/{r}/{digest}") is not None]
+        assert set(stored) == {f.run for f in multi[:-1]}          # scored by the flights after them
+        vid = int(sub.links.vertex_id[sub.links.run == multi[0].run][3])
+        np.testing.assert_allclose(sub.vector(vid), place.vector(m.vertex(vid).frame.features.descriptors),
+                                   atol=1e-12)
+    assert _decode_words(b"not an archive") is None and _decode_words(None) is None
