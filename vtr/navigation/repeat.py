@@ -83,8 +83,8 @@ class Repeat:
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
         self.submaps = ExperienceSubmaps(map_, self.chain.path, config, self.camera, self.place, (self.run,), warn)
+        self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
-        self.localizer.experiences = self.submaps
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
         self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config)
         self.latest: Localization | None = None
