@@ -104,10 +104,10 @@ def test_another_place_never_localizes_against_ten_experiences(tmp_path_factory,
     grown = work / "grown.vtrmap"
     shutil.copyfile(root / "teach.vtrmap", grown)
     taught = render(root / "teach", 0, route(LENGTH_M), 0.0)
-    folder = root / f"fwd_{CHANGES[0]:.2f}"
-    truth = render(folder, 0, repeat_route(LENGTH_M, False), CHANGES[0])
-    for _ in range(10):
-        fly(grown, folder, truth, taught, CHANGES[0], False, Config())
+    for k in range(10):                                   # the drifting flights again and again, in order
+        change = CHANGES[k % len(CHANGES)]
+        folder = root / f"fwd_{change:.2f}"
+        fly(grown, folder, render(folder, 0, repeat_route(LENGTH_M, False), change), taught, change, False, Config())
     with Map.open(grown) as m:
         assert sum(e.trusted for e in experiences(m, Config().experiences.min_localized_share)) == 10
     other = render(work / "other", 7, route(LENGTH_M - 4.0), 0.0)         # another scene
