@@ -298,6 +298,12 @@ def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
         stored = [r for r in sub.trusted if m.derived(f"{WORDS_KEY}/{r}/{digest}") is not None]
         assert set(stored) == {f.run for f in multi[:-1]}          # scored by the flights after them
         vid = int(sub.links.vertex_id[sub.links.run == multi[0].run][3])
-        np.testing.assert_allclose(sub.vector(vid), place.vector(m.vertex(vid).frame.features.descriptors),
-                                   atol=1e-12)
+        d = m.vertex(vid).frame.features.descriptors
+        np.testing.assert_allclose(sub.vector(vid), place.vector(d), atol=1e-12)
+        # place recognition with experiences: every taught vertex scores at least its own score, and better where
+        # the experience vertex was localized
+        places = sub.places()
+        s, own = places.scores(d), place.scores(d)
+        assert np.all(s >= own - 1e-12) and s.max() > own.max()
+        assert places.query(d, 3).indices[0] == int(np.argmax(s)) and len(places) == len(place)
     assert _decode_words(b"not an archive") is None and _decode_words(None) is None

@@ -35,7 +35,7 @@ from ..map.experiences import ExperienceInfo, ExperienceLinks, experience_links,
 from ..map.records import RUN_SHIFT
 from ..types import StereoFrame
 from .localization import LocalizationEstimate, Localizer, TaughtSubmap
-from .place import PlaceIndex
+from .place import PlaceIndex, PlaceMatch
 
 FRAMES_KEPT = 96            # decoded frames held for submaps before the cache starts again (memory stays flat)
 
@@ -167,6 +167,17 @@ class ExperiencePlaces:
 
     def __len__(self) -> int:
         return len(self.index)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "index":                    # not set yet (copying): no recursion
+            raise AttributeError(name)
+        return getattr(self.index, name)       # anything else is the taught index's
+
+    def query(self, descriptors: np.ndarray, k: int) -> PlaceMatch:
+        """The ``k`` best-scoring taught vertices (path indices) by :meth:`scores`, best first."""
+        s = self.scores(descriptors)
+        top = np.argsort(-s, kind="stable")[:min(int(k), len(s))]
+        return PlaceMatch(top.astype(np.int64), s[top])
 
     def vector(self, descriptors: np.ndarray) -> np.ndarray:
         return self.index.vector(descriptors)
