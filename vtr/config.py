@@ -420,6 +420,23 @@ class ControlConfig:
 
 
 @dataclass
+class ExperienceConfig:
+    """Multi-experience localization (docs/map.md, "Experiences"): earlier repeats matched besides the teach."""
+
+    # experiences (earlier finished repeats) whose landmarks a keyframe is matched against besides the teach's, at
+    # most; 0 localizes against the teach alone (single experience). Bounds the matching cost per keyframe
+    max_per_keyframe: int = setting(3, Range(0, 100, integer=True))
+    # a repeat is an experience only when at least this share of its keyframes localized (and it finished)
+    min_localized_share: float = setting(0.5, Range(0.0, 1.0))
+    # the recommender ranks experiences first by the inliers they gave the localizations of this many last keyframes
+    history_keyframes: int = setting(5, Range(1, 1_000_000, integer=True))
+    # `vtr map prune`: keep the newest this many experiences localized at each taught vertex ...
+    keep_last: int = setting(5, Range(0, 1_000_000, integer=True))
+    # ... plus this many most used ones (keyframes of later repeats they gave inliers to)
+    keep_most_used: int = setting(5, Range(0, 1_000_000, integer=True))
+
+
+@dataclass
 class MapConfig:
     """On-disk map."""
 
@@ -438,6 +455,7 @@ class Config:
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     map: MapConfig = field(default_factory=MapConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
+    experiences: ExperienceConfig = field(default_factory=ExperienceConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

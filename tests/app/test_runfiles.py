@@ -29,7 +29,8 @@ def localizations(draw) -> Localization:
                         consecutive_failures=draw(st.integers(0, 100)),
                         distance_since_success_m=draw(st.floats(0.0, 1e4)),
                         status=draw(st.sampled_from(list(LocalizationStatus))),
-                        direction=draw(st.sampled_from([1, -1])))
+                        direction=draw(st.sampled_from([1, -1])),
+                        experiences=tuple(draw(st.lists(st.integers(1, 2**31 - 1), max_size=3, unique=True))))
 
 
 @settings(max_examples=25, deadline=None)
@@ -44,7 +45,7 @@ def test_localization_csv_reads_back_what_it_wrote(tmp_path_factory, locs):
     assert len(back) == len(locs)
     for a, b in zip(locs, back, strict=True):
         for name in ("t_ns", "leaf_id", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers",
-                     "consecutive_failures", "status", "direction"):
+                     "consecutive_failures", "status", "direction", "experiences"):
             assert getattr(a, name) == getattr(b, name), name
         assert b.distance_since_success_m == pytest.approx(a.distance_since_success_m, abs=5e-4)
         np.testing.assert_allclose(b.T_leaf_trunk, a.T_leaf_trunk, atol=1e-8)          # 9 decimals

@@ -73,12 +73,16 @@ def test_map_info(route_map):
     assert "vertices: 8  edges: 7 (temporal 4, spatial 3)  landmarks: 160  features: 240" in out
     assert "size on disk:" in out and f"({route_map.stat().st_size} bytes)" in out
     assert "camera: 1226x370 fx=700.00" in out
-    rows = [line.split() for line in out.splitlines() if line.startswith("  ") and "source" not in line]
+    runs_part, experiences_part = out.split("\nexperiences")
+    rows = [line.split() for line in runs_part.splitlines() if line.startswith("  ") and "source" not in line]
     assert rows == [["0", "teach", "yes", "finished", "5", "datasets/kitti06_clip"],
                     ["1", "repeat", "no", "finished", "3", "odd", "frames"]]
+    # the repeat as an experience: its 3 vertices localized, trusted, not used yet
+    assert [line.split() for line in experiences_part.splitlines()[2:]] == [["1", "3", "/", "3", "yes", "0", "0"]]
     j = json.loads(invoke("map", "info", route_map, "--json").output)
     assert (j["vertices"], j["edges"], j["landmarks"], j["format_version"]) == (8, 7, 160, MAP_FORMAT_VERSION)
     assert [r["kind"] for r in j["run_list"]] == ["teach", "repeat"] and j["camera"]["fx"] == 700.0
+    assert [(e["run"], e["localized"], e["trusted"]) for e in j["experiences"]] == [(1, 3, True)]
 
 
 def test_export_map_writes_a_ply(route_map, tmp_path):

@@ -27,6 +27,7 @@ from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN, Method
 from ..config import Config
 from ..io import open_source
 from ..map import Map
+from ..navigation.experiences import single_experience
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
@@ -98,7 +99,9 @@ def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip
            spacing_m: float = 1.0) -> MissionRepeat:
     """Repeat ``seq_dir`` against the map; ``out_dir/landmarks.csv`` holds the localizations after ``skip_first_m``."""
     with open_source(seq_dir) as src, Map.open(map_path, "a") as m:
-        rp = Repeat(m, config, str(seq_dir))
+        # against the teach alone: the model is fitted on taught landmarks, and the other offsets' repeats appended
+        # to this map must not help (docs/map.md, "Experiences")
+        rp = Repeat(m, single_experience(config), str(seq_dir))
         locs = list(run_repeat(rp, rp.odometry.stereo.frames(iter(src)), keep_landmarks=True).localizations)
     skip = int(np.ceil(skip_first_m / spacing_m))
     kept = locs[skip:]

@@ -17,6 +17,7 @@ from ..config import Config
 from ..geometry import inv_T
 from ..io import open_source
 from ..map import Map, split_vertex_id
+from ..navigation.experiences import single_experience
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
 from .mission import teach
@@ -64,7 +65,8 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
             T_w_teach[:, :3, :] = teach_world
             taught = m.taught_path()
             src_times = np.loadtxt(teach_dir / "times_ns.txt", dtype=np.int64)
-            rp = Repeat(m, cfg, str(rep_dir))
+            # each offset against the teach alone: the earlier offsets' repeats in this map must not help
+            rp = Repeat(m, single_experience(cfg), str(rep_dir))
             loop = run_repeat(rp, rp.odometry.stereo.frames(iter(src)), keep_landmarks=True)
             locs, seconds = list(loop.localizations), loop.seconds
         est = []

@@ -232,6 +232,7 @@ class RepeatSummary:
     statuses: dict | None = None       # attempts by localization.csv status
     integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
     ground_truth_note: str | None = None   # why the repeat was not judged against ground truth (None: it was)
+    experiences: dict | None = None    # trusted experiences available, successes that used one, keyframes per run
 
     @property
     def success_rate(self) -> float:
@@ -247,7 +248,7 @@ class RepeatSummary:
                 "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
                 "state": self.state, "statuses": self.statuses,
                 "integrity": self.integrity.to_dict() if self.integrity else None,
-                "ground_truth_not_used": self.ground_truth_note}
+                "ground_truth_not_used": self.ground_truth_note, "experiences": self.experiences}
 
 
 def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
@@ -450,12 +451,19 @@ class RepeatRun:
                                                                    strict=True)} if state.status is not None else {}),
                       "pauses_s": [round(p, 3) for p in loop.state_estimator.pauses_s]}
         errors = evaluation.path_errors_m
+        used: dict[str, int] = {}
+        for loc in ok:
+            for e in loc.experiences:
+                used[str(e)] = used.get(str(e), 0) + 1
+        experiences = {"available": len(self.repeat.submaps.trusted),
+                       "localized_with_experience": sum(1 for loc in ok if loc.experiences), "used": used}
         return RepeatSummary(frames=len(loop.t_ns), vertices=len(loop.localizations), localized=len(ok),
                              seconds=loop.seconds + seconds_after_loop, localization_seconds=loop.localization_seconds,
                              median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
                              path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
                              errors=evaluation.errors, state=state_info, statuses=evaluation.statuses,
-                             integrity=evaluation.integrity, ground_truth_note=evaluation.ground_truth_note)
+                             integrity=evaluation.integrity, ground_truth_note=evaluation.ground_truth_note,
+                             experiences=experiences)
 
     def _private_copy(self, stack: ExitStack) -> Path:
         """A whole copy of the map in a private temporary folder that ``stack`` removes (and the next start removes

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import click
 
 from . import main
+from .common import config_option, load_config
 from .summaries import map_check_line
 
 map_argument = click.argument("map_path", metavar="MAP", type=click.Path(path_type=Path))
@@ -31,7 +33,9 @@ def map_group() -> None:
 def map_info_cmd(map_path: Path, as_json: bool) -> None:
     """Runs (with their state: running, finished, aborted and why, or interrupted when the writing
     process was killed), vertex/edge/landmark counts, size on disk and format version of MAP."""
+    from ..config import Config
     from ..map import Map
+    from ..map.experiences import experiences
 
     with Map.open(map_path, "r") as m:
         stats = m.stats()
@@ -40,6 +44,7 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         created = m.meta.get("created", "?")
         up = m.gravity_up
         unclosed = m.not_closed()
+        exps = experiences(m, Config().experiences.min_localized_share)
     if as_json:
         stats["not_closed"] = unclosed
         stats["created"] = created
@@ -50,6 +55,7 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
              "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created}
             for r in runs
         ]
+        stats["experiences"] = [dataclasses.asdict(e) for e in exps]
         click.echo(json.dumps(stats, indent=2))
         return
     click.echo(f"map: {map_path}")
@@ -75,8 +81,53 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         if partial:
             click.echo(f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
                        "this map unless --allow-partial")
+    if exps:
+        click.echo(f"experiences (repeats a later repeat may localize against; trusted: finished and at least "
+                   f"{Config().experiences.min_localized_share:.0%} of its keyframes localized):")
+        click.echo(f"  {'run':>4}  {'localized':>13}  {'trusted':<7}  {'used':>9}  {'by':>3}")
+        for e in exps:
+            click.echo(f"  {e.run:>4}  {e.localized:>5} / {e.n_vertices:<5}  {'yes' if e.trusted else 'no':<7}  "
+                       f"{e.used_keyframes:>9}  {e.used_by:>3}" + ("" if e.trusted else f"  ({e.why_not})"))
     if unclosed:
         click.echo(f"warning: {unclosed}")
+
+
+@map_group.command("prune")
+@map_argument
+@click.option("--keep-last", type=int, default=None,
+              help="Keep the newest this many experiences at each taught vertex (default: experiences.keep_last).")
+@click.option("--keep-most-used", type=int, default=None,
+              help="... plus this many most used (default: experiences.keep_most_used).")
+@config_option
+@click.option("--dry-run", is_flag=True, help="Say what would be removed; change nothing.")
+def map_prune_cmd(map_path: Path, keep_last: int | None, keep_most_used: int | None, config_path: Path | None,
+                  dry_run: bool) -> None:
+    """Remove the repeat runs of MAP the retention rule does not keep: of the trusted experiences the newest
+    KEEP_LAST localized at each taught vertex plus the KEEP_MOST_USED most used stay; older experiences and
+    untrusted repeats (aborted, interrupted, localized too little) go. Taught runs are never removed."""
+    from ..errors import ConfigError
+    from ..map import Map
+    from ..map.experiences import prune, retention
+
+    loaded = load_config(config_path)
+    config = loaded.experiences
+    k_last = config.keep_last if keep_last is None else keep_last
+    k_used = config.keep_most_used if keep_most_used is None else keep_most_used
+    for name, value in (("--keep-last", k_last), ("--keep-most-used", k_used)):
+        if value < 0:
+            raise ConfigError(f"{name}: expected a count >= 0, got {value}")
+    before = map_path.stat().st_size if map_path.is_file() else 0
+    with Map.open(map_path, "r" if dry_run else "a") as m:
+        plan = retention(m, k_last, k_used, config.min_localized_share, loaded.localization.neighbour_vertices)
+        for run, why in sorted(plan.keep.items()):
+            click.echo(f"keep run {run}: {why}")
+        if dry_run:
+            click.echo(f"would remove {len(plan.remove)} run(s)" + (f": {plan.remove}" if plan.remove else ""))
+            return
+        vertices = prune(m, plan.remove)
+    after = map_path.stat().st_size
+    click.echo(f"removed {len(plan.remove)} run(s)" + (f" {plan.remove}" if plan.remove else "")
+               + f", {vertices} vertices; the map is {_size(after)} (was {_size(before)})")
 
 
 @map_group.command("check")

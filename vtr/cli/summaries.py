@@ -52,6 +52,10 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
            f"{_fps(s.frames, s.seconds):.1f} frames/s"]
     if s.statuses:
         out.append(refusals_line(s.statuses))
+    if s.experiences and s.experiences["available"]:
+        e = s.experiences
+        out.append(f"experiences: {e['available']} in the map, {e['localized_with_experience']} localization(s) used "
+                   "one" + (" (" + ", ".join(f"run {k}: {v}" for k, v in e["used"].items()) + ")" if e["used"] else ""))
     out.append(f"path-tracking error to the taught path (localized frames): median {s.path_error_m:.3f} m"
                if math.isfinite(s.path_error_m) else "path-tracking error: none (never localized)")
     if s.errors is not None:

@@ -18,6 +18,7 @@ from perception_model.records import short_repr
 from ..camera import MIN_DEPTH_M, StereoCamera
 from ..config import LocalizationConfig, OdometryConfig
 from ..geometry import inv_T
+from ..map.records import RUN_SHIFT
 from ..timing import StageTimer
 from ..types import StereoFrame
 from ..vo.estimation import bundle_adjust, odometry_row_weights, ransac_pnp
@@ -49,7 +50,8 @@ class Localization:
     taught landmarks in the leaf's view as the ``landmarks.csv`` record (``perception_model``'s
     ``Observations``: one row per landmark, angles in radians), written as is by ``vtr repeat``.
     ``status`` says why an attempt failed; ``direction`` is the chain's direction of travel along the
-    taught path after this attempt.
+    taught path after this attempt; ``experiences`` the earlier repeats whose landmarks gave a success inliers
+    besides the teach's (docs/map.md, "Experiences").
     """
 
     t_ns: int
@@ -67,6 +69,7 @@ class Localization:
     landmarks: Observations | None = None
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     direction: int = 1                      # +1 the route travelled as taught, -1 backward, 0 not yet decided
+    experiences: tuple[int, ...] = ()       # the experiences (repeat runs) that gave this success inliers
 
     __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
 
@@ -132,6 +135,12 @@ class TaughtSubmap:
     def of_frame(cls, frame: StereoFrame, camera: StereoCamera, vertex_id: int = 0) -> TaughtSubmap:
         """A submap of one stereo frame (a single taught view)."""
         return cls.build([frame], np.array([vertex_id]), np.eye(4)[None], 0, camera)
+
+    @property
+    def experience(self) -> np.ndarray:
+        """(M,) int64: per landmark the map run (experience) of the vertex that observed it: the teach run for
+        taught landmarks, a repeat run for an experience's (:mod:`vtr.navigation.experiences`)."""
+        return np.asarray(self.vertex_ids, np.int64)[self.slot] >> RUN_SHIFT
 
     def trunk_features(self, landmarks: np.ndarray) -> np.ndarray:
         """Feature indices in the trunk vertex of those of ``landmarks`` that the trunk observed."""

@@ -19,18 +19,20 @@ from collections import deque
 from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from ..config import Config
-from ..geometry import inv_T, usable_covariance
+from ..geometry import usable_covariance
 from ..map import Map
 from ..signals import held_signals
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import StereoOdometry
 from .chain import ChainLocalizer, LocalizationChain
-from .localization import Localization, Localizer, TaughtSubmap, landmark_record
-from .place import route_place_index
+from .experiences import ExperienceLocalizer, ExperienceSubmaps
+from .localization import Localization, TaughtSubmap, landmark_record
+from .place import PlaceIndex, route_place_index
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,6 @@ class RepeatStep:
     direction: int = 0
 
 
-SUBMAP_FRAMES_KEPT = 64     # taught frames held for submaps before the cache starts again (memory stays flat)
 LOCALIZATION_LOOKAHEAD = 2   # frames the odometry may run ahead of the localization thread in ``steps``
 
 
@@ -74,17 +75,21 @@ class Repeat:
         self.config = config
         map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config, start_index)
-        self.localizer = Localizer(self.camera, config.localization, config.odometry, config.stereo.pixel_sigma)
+        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.odometry,
+                                             config.stereo.pixel_sigma)
         self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
-        self.locator = ChainLocalizer(self.chain, self.localizer, self.place, self._submap, config)
         self._odometry_broken = False             # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, config, keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
+        # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
+        self.submaps = ExperienceSubmaps(map_, self.chain.path, config, self.camera, self.place, (self.run,), warn)
+        self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
+        # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
+        places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
+        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
-        self._frames: dict[int, StereoFrame] = {}   # taught frames of recent submaps (kept while they slide)
-        self._submaps: dict[int, TaughtSubmap] = {}
         self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf
         self._undelivered: list[RepeatStep] = []
 
@@ -211,6 +216,7 @@ class Repeat:
         # the leaves still in the odometry window where its latest adjustment put them
         current = {leaf: window[k] for leaf, k in self._kf_of_leaf.items() if k in window}
         self._kf_of_leaf = {leaf: k for leaf, k in self._kf_of_leaf.items() if k in window}
+        self.submaps.set_leaf(kf.frame)
         attempt = self.locator.localize(leaf_id, kf, broken, current)
         est = attempt.estimate
         trunk_id = int(c.path.ids[attempt.trunk])
@@ -220,11 +226,14 @@ class Repeat:
             covariance = usable_covariance(est.covariance, self.config.odometry.failure_variance)
             with self.localizer.timer("spatial_edge"):      # a map transaction of its own
                 self.map.add_edge(leaf_id, trunk_id, est.T_leaf_trunk, covariance, "spatial", est.inliers)
+        used = self.submaps.observe(self.submaps.chosen_submap(attempt.trunk), est, attempt.success)
+        if used:
+            self.submaps.record(self.run, used)
         record = None
         if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
             sub = self._submap(attempt.trunk)
             with self.localizer.timer("landmark_record"):
-                record = landmark_record(self._frames[trunk_id], attempt.T_report, self.camera,
+                record = landmark_record(self.submaps.frame(trunk_id), attempt.T_report, self.camera,
                                          sub.trunk_features(est.matched),
                                          sub.trunk_features(est.matched[est.inlier]),
                                          t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
@@ -234,29 +243,10 @@ class Repeat:
                             T_leaf_trunk=attempt.T_report, covariance=covariance,
                             consecutive_failures=s.consecutive_failures,
                             distance_since_success_m=s.distance_since_success_m, landmarks=record,
-                            status=attempt.status, direction=s.direction)
+                            status=attempt.status, direction=s.direction, experiences=used)
 
     def _submap(self, trunk: int) -> TaughtSubmap:
-        """The trunk and its ``neighbour_vertices`` taught neighbours on each side, as a submap (the submaps of
-        the latest leaf's attempts are kept, and the taught frames they use)."""
-        sub = self._submaps.get(trunk)
-        if sub is not None:
-            return sub
+        """The trunk and its ``neighbour_vertices`` taught neighbours on each side, with the experiences the
+        recommender picks, as a submap in the trunk's frame (:class:`~vtr.navigation.experiences.ExperienceSubmaps`)."""
         with self.localizer.timer("submap"):
-            return self._build_submap(trunk)
-
-    def _build_submap(self, trunk: int) -> TaughtSubmap:
-        path, n = self.chain.path, self.config.localization.neighbour_vertices
-        slots = np.arange(max(trunk - n, 0), min(trunk + n + 1, len(path.ids)))
-        ids = [int(i) for i in path.ids[slots]]
-        if len(self._frames) > SUBMAP_FRAMES_KEPT:
-            self._frames = {}
-            self._submaps = {}
-        for i in ids:
-            if i not in self._frames:
-                self._frames[i] = self.map.vertex(i).frame
-        T_vertex_trunk = inv_T(path.T_world_vertex[slots]) @ path.T_world_vertex[trunk]
-        sub = TaughtSubmap.build([self._frames[i] for i in ids], path.ids[slots], T_vertex_trunk,
-                                 int(np.flatnonzero(slots == trunk)[0]), self.camera)
-        self._submaps[trunk] = sub
-        return sub
+            return self.submaps.submap(trunk)

@@ -4,7 +4,9 @@ The columns (:data:`SCHEMA`): ``t_ns`` (leaf time, ns), ``leaf_id``, ``trunk_id`
 ids; twig and branch before the attempt, -1 before the first success), ``success`` (0/1), ``matches``,
 ``inliers``, ``x y z qx qy qz qw`` (``T_leaf_trunk`` as TUM: metres and a unit quaternion), ``var_rx var_ry var_rz
 var_x var_y var_z`` (the diagonal of its covariance: rad² and m²), ``consecutive_failures``,
-``distance_since_success_m``, ``status`` (``LocalizationStatus``) and ``direction`` (+1 as taught, -1 backward).
+``distance_since_success_m``, ``status`` (``LocalizationStatus``), ``direction`` (+1 as taught, -1 backward) and
+``experiences`` (the earlier repeats, map run ids joined by ``;``, whose landmarks gave a success inliers besides the
+teach's; empty when none: docs/map.md, "Experiences").
 """
 
 from __future__ import annotations
@@ -32,7 +34,9 @@ SCHEMA = CsvSchema("localization.csv", (
     Column("distance_since_success_m", "float", ".3f", "m"),
     Column("status", "str"),
     Column("direction", "int"),
+    Column("experiences", "str"),
 ))
+EXPERIENCE_SEPARATOR = ";"
 
 
 class LocalizationWriter:
@@ -44,7 +48,8 @@ class LocalizationWriter:
     def write(self, loc: Localization) -> None:
         self._rows.write((loc.t_ns, loc.leaf_id, loc.trunk_id, loc.twig_id, loc.branch_id, loc.success,
                           loc.matches, loc.inliers, *T_to_tum(loc.T_leaf_trunk), *np.diag(loc.covariance),
-                          loc.consecutive_failures, loc.distance_since_success_m, loc.status.value, loc.direction))
+                          loc.consecutive_failures, loc.distance_since_success_m, loc.status.value, loc.direction,
+                          EXPERIENCE_SEPARATOR.join(str(e) for e in loc.experiences)))
 
 
 def read_localization_csv(path: Path) -> list[Localization]:
@@ -59,7 +64,8 @@ def read_localization_csv(path: Path) -> list[Localization]:
                          T_leaf_trunk=poses[i], covariance=np.diag(variances[i]),
                          consecutive_failures=int(c["consecutive_failures"][i]),
                          distance_since_success_m=float(c["distance_since_success_m"][i]),
-                         status=LocalizationStatus(c["status"][i]), direction=int(c["direction"][i]))
+                         status=LocalizationStatus(c["status"][i]), direction=int(c["direction"][i]),
+                         experiences=tuple(int(e) for e in str(c["experiences"][i]).split(EXPERIENCE_SEPARATOR) if e))
             for i in range(len(c["t_ns"]))]
 
 
