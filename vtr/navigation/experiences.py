@@ -192,9 +192,10 @@ class ExperiencePlaces:
             self._slots = slots
         return self._matrix
 
-    def scores(self, descriptors: np.ndarray) -> np.ndarray:
-        """Cosine score (V,) of every taught vertex against a query: the best of the vertex's and its experiences'."""
-        out = self.index.scores(descriptors)
+    def scores(self, descriptors: np.ndarray, also: np.ndarray | slice | None = None) -> np.ndarray:
+        """Cosine score (V,) of the taught vertices against a query (those the taught index scores, ``also``
+        included: :meth:`PlaceIndex.scores`): the best of the vertex's and its experiences'."""
+        out = self.index.scores(descriptors, also=also)
         q = self.index.vector(descriptors)
         E = self._experience_matrix()
         if E.shape[0]:
