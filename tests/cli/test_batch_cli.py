@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
@@ -113,3 +114,41 @@ def test_a_full_disk_under_a_batch_is_one_line_per_run_naming_the_file(kitti_cli
     assert len(failed) == 1 and "route.vtrmap" in failed[0] and "MapError" in failed[0], r.stdout
     assert "0 finished" in r.stdout or "1 finished" in r.stdout
     assert "retr" not in (r.stdout + r.stderr).lower()
+
+
+def test_a_route_with_experiences_flies_its_repeats_in_order_on_one_growing_map(kitti_clip, tmp_path):
+    """`experiences: true`: the second repeat starts from the map the first grew (teach + both repeats in its map,
+    in the order listed), resumes as a whole, and a change to the first repeat reruns the second too."""
+    from vtr.map import Map
+
+    def manifest(first_frames: str) -> Path:
+        m = tmp_path / "m.yaml"
+        m.write_text(yaml.safe_dump({"routes": [{
+            "name": "clip", "experiences": True, "teach": {"source": str(kitti_clip), "frames": "0:16:2"},
+            "repeats": [{"source": str(kitti_clip), "frames": first_frames, "name": "week1"},
+                        {"source": str(kitti_clip), "frames": "1:16:2", "name": "week2"}]}]}))
+        return m
+
+    out = tmp_path / "out"
+    r = vtr("batch", manifest("1:16:2"), "--out", out, "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    assert "3 finished" in r.stdout
+    with Map.open(out / "clip" / "week2" / "route.vtrmap") as m:
+        runs = m.runs()
+        assert [x.kind for x in runs] == ["teach", "repeat", "repeat"]
+        assert [x.state for x in runs] == ["finished"] * 3
+        assert runs[1].source == runs[2].source == str(kitti_clip)
+    with Map.open(out / "clip" / "week1" / "route.vtrmap") as m:
+        assert [x.kind for x in m.runs()] == ["teach", "repeat"]
+    r = vtr("batch", manifest("1:16:2"), "--out", out, "--workers", "2")
+    assert r.returncode == 0 and "3 resumed" in r.stdout, r.stdout
+    r = vtr("batch", manifest("1:14:2"), "--out", out, "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    assert "2 finished, 1 resumed" in r.stdout, r.stdout      # week1 changed: week2, flown after it, reruns
+
+
+def test_experiences_must_be_true_or_false(tmp_path):
+    m = tmp_path / "m.yaml"
+    m.write_text("routes:\n  - {name: r, teach: /x, experiences: yes-please}\n")
+    r = vtr("batch", m, "--out", tmp_path / "out")
+    assert r.returncode == 1 and "experiences: expected true or false" in r.stderr, r.stderr

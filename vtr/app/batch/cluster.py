@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from ...errors import ConfigError
-from .layout import FAILED
+from .layout import FAILED, TEACH_FOLDER
 from .manifest import RunSpec
 from .options import BatchOptions
 from .outcome import RunOutcome
@@ -140,19 +140,20 @@ def _run_on(client: Any, pending: list[tuple[RunSpec, dict[str, Any], str | None
     from distributed import as_completed
 
     futures: dict[Any, RunSpec] = {}
-    teach_of: dict[str, Any] = {}
+    submitted: dict[tuple[str, str], Any] = {}
     for spec, key, changed in pending:          # teaches come before their repeats (Manifest.runs order)
-        teach: Any = None
-        if not spec.is_teach:                      # its teach's future, or its outcome when resumed
-            teach = teach_of.get(spec.route)
-            if teach is None:
-                teach = next(o for s, o in outcomes.items() if s.route == spec.route and s.is_teach)
-        fut = client.submit(execute_run, spec, str(out), threads, teach, opts.on_start, key, changed,
+        def prior(name: str, spec: RunSpec = spec) -> Any:   # its future, or its outcome when resumed
+            fut = submitted.get((spec.route, name))
+            return fut if fut is not None else next(o for s, o in outcomes.items()
+                                                    if s.route == spec.route and s.name == name)
+
+        teach: Any = None if spec.is_teach else prior(TEACH_FOLDER)
+        earlier = [prior(name) for name in spec.after]   # flown before it: it waits for them (experiences)
+        fut = client.submit(execute_run, spec, str(out), threads, teach, opts.on_start, key, changed, earlier,
                             retries=opts.retries,
                             key=f"{spec.route}/{spec.name}-{time.time_ns()}", pure=False)
         futures[fut] = spec
-        if spec.is_teach:
-            teach_of[spec.route] = fut
+        submitted[spec.route, spec.name] = fut
     try:
         for fut in as_completed(list(futures)):
             spec = futures[fut]

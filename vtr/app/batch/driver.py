@@ -92,8 +92,11 @@ def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOpti
     pending: list[tuple[RunSpec, dict[str, Any], str | None]] = []
     resumed: list[tuple[RunSpec, RunOutcome]] = []     # every run.json is checked before anything is reported
     teach_keys: dict[str, dict[str, Any]] = {}
+    keys: dict[tuple[str, str], dict[str, Any]] = {}
     for spec in runs:
-        key = run_key(spec, None if spec.is_teach else teach_keys[spec.route])
+        key = run_key(spec, None if spec.is_teach else teach_keys[spec.route],
+                      [keys[spec.route, name] for name in spec.after])
+        keys[spec.route, spec.name] = key
         if spec.is_teach:
             teach_keys[spec.route] = key
         folder = spec.folder(out)

@@ -1,13 +1,17 @@
 """The batch manifest (YAML): routes, each a teach source and any number of repeat sources, read and checked.
 
 A run given as a mapping takes ``source`` and optionally ``name`` (its output folder), ``frames``, ``config`` and
-``format``; a route (or the top level) may set ``frames``, ``config`` and ``format`` for its own runs. Relative paths
+``format``; a route (or the top level) may set ``frames``, ``config`` and ``format`` for its own runs. A route with
+``experiences: true`` flies its repeats in the order listed, each on the map the earlier ones grew (every finished
+repeat an experience for the next: docs/map.md "Experiences"); without it they run side by side, each against the
+teach's map alone. Relative paths
 are relative to the manifest's folder; errors name the file and the field. See the README's "Batches" section and
 ``docs/outputs.md``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +25,7 @@ from .layout import RESERVED_NAMES, TEACH_FOLDER
 
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")   # route and run names are folder names (fullmatch)
 RUN_KEYS = {"source", "name", "frames", "config", "format"}
-ROUTE_KEYS = {"name", "teach", "repeats", "frames", "config", "format"}
+ROUTE_KEYS = {"name", "teach", "repeats", "frames", "config", "format", "experiences"}
 TOP_KEYS = {"routes", "frames", "config", "format"}
 
 
@@ -35,6 +39,8 @@ class RunSpec:
     frames: str | None = None
     config: Path | None = None
     fmt: str | None = None
+    # the route's earlier repeats, in the order flown, whose experiences this one builds on (``experiences: true``)
+    after: tuple[str, ...] = ()
 
     @property
     def is_teach(self) -> bool:
@@ -53,6 +59,7 @@ class RouteSpec:
     name: str
     teach: RunSpec
     repeats: tuple[RunSpec, ...]
+    experiences: bool = False
 
 
 @dataclass(frozen=True)
@@ -129,15 +136,21 @@ def load_manifest(path: str | Path) -> Manifest:
         repeats_doc = entry.get("repeats") or []
         if not isinstance(repeats_doc, list):
             raise ConfigError(f"{where}.repeats: expected a list")
-        repeats, names = [], {TEACH_FOLDER}
+        chained = entry.get("experiences", False)
+        if not isinstance(chained, bool):
+            raise ConfigError(f"{where}.experiences: expected true or false, got {chained!r}")
+        repeats: list[RunSpec] = []
+        names = {TEACH_FOLDER}
         for j, rep in enumerate(repeats_doc):
             run = _run(rep, name, route_defaults, base, f"{where}.repeats[{j}]", None)
             if run.name.casefold() in names:
                 raise ConfigError(f"{where}.repeats[{j}]: output folder {run.name!r} is used twice in the route "
                                   f"(give the repeat a distinct 'name')")
             names.add(run.name.casefold())
+            if chained:
+                run = dataclasses.replace(run, after=tuple(r.name for r in repeats))
             repeats.append(run)
-        routes.append(RouteSpec(name, teach, tuple(repeats)))
+        routes.append(RouteSpec(name, teach, tuple(repeats), chained))
     return Manifest(path, tuple(routes))
 
 

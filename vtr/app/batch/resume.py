@@ -23,10 +23,12 @@ from .layout import KEY_NAME, RERUN_PREFIX
 from .manifest import RunSpec, run_config
 
 
-def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str, Any]:
+def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None,
+            earlier_keys: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """What makes a run's result: its source (path, files, bytes, and a fingerprint of their content:
     :func:`vtr.app.fingerprint.source_fingerprint`), frames, format, config (without the thread count: results are
-    identical for every count), the vtr version; a repeat's teach key too."""
+    identical for every count), the vtr version; a repeat's teach key too, and the keys of the earlier repeats whose
+    experiences it builds on (one of them changed: it reruns too)."""
     config = run_config(spec, None).to_dict()
     config.get("features", {}).pop("threads", None)
     src = spec.source.resolve()
@@ -39,6 +41,8 @@ def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None) -> dict[str,
         "version": __version__}
     if teach_key is not None:
         key["teach"] = hashlib.sha256(json.dumps(teach_key, sort_keys=True).encode()).hexdigest()
+    if earlier_keys:
+        key["experiences"] = hashlib.sha256(json.dumps(earlier_keys, sort_keys=True).encode()).hexdigest()
     return key
 
 

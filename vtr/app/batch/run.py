@@ -2,8 +2,9 @@
 
 A run's own error never escapes: it is written to the run's ``run.json`` (status ``failed``) and returned, and the other
 runs go on (a route's repeats are ``blocked`` when its teach failed). A repeat appends to its own copy of the taught
-map, so repeats of a route run in parallel and give the same result whatever their order. See the README's "Batches"
-section and ``docs/outputs.md``.
+map, so repeats of a route run in parallel and give the same result whatever their order; on a route with
+``experiences: true`` each starts from the map of the newest finished repeat before it (in the manifest's order).
+See the README's "Batches" section and ``docs/outputs.md``.
 """
 
 from __future__ import annotations
@@ -37,9 +38,10 @@ def copy_map(src: Path, dst: Path) -> None:
 
 def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome | None = None,
                 on_start: Callable[[RunSpec, Path], None] | None = None, key: dict[str, Any] | None = None,
-                changed: str | None = None) -> RunOutcome:
+                changed: str | None = None, earlier: list[RunOutcome] | None = None) -> RunOutcome:
     """One teach or repeat (a Dask task: paths in, a small record out). Never raises for a run's own error:
-    it is written to the run's run.json and returned."""
+    it is written to the run's run.json and returned. A repeat starts from a copy of the teach's map, or with
+    ``earlier`` (the route's repeats flown before it, when they are experiences) of the newest finished one's."""
     from ..pipeline import repeat_command, teach_command
 
     folder = spec.folder(Path(out))
@@ -64,8 +66,7 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
         if spec.is_teach:
             teach_command(spec.source, map_path, spec.frames, config, work, spec.fmt)
         else:
-            taught = OutputFolder(folder.parent / TEACH_FOLDER).own_file(MAP_NAME)   # never a planted link
-            copy_map(folder.parent / TEACH_FOLDER / MAP_NAME if taught is None else taught, map_path)
+            copy_map(base_map(folder.parent, earlier or []), map_path)
             repeat_command(spec.source, map_path, work, spec.frames, config, spec.fmt)
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
@@ -81,6 +82,18 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
     if finished_before:
         OutputFolder(folder).adopt(own, last=(KEY_NAME, "run.json"))
     return outcome_from_folder(spec, folder, FINISHED, changed)
+
+
+def base_map(route_folder: Path, earlier: list[RunOutcome]) -> Path:
+    """The map a repeat starts from: that of the newest of ``earlier`` that finished (it holds the teach and every
+    experience before it), else the teach's. Never through a link vtr did not make."""
+    for outcome in reversed(earlier):
+        if outcome.ok:
+            folder = route_folder / outcome.name
+            own = OutputFolder(folder).own_file(MAP_NAME)
+            return folder / MAP_NAME if own is None else own
+    taught = OutputFolder(route_folder / TEACH_FOLDER).own_file(MAP_NAME)
+    return route_folder / TEACH_FOLDER / MAP_NAME if taught is None else taught
 
 
 def _opencv_threads(config: Config) -> None:
