@@ -379,10 +379,8 @@ class StereoOdometry:
         inlier[rs.inliers] = True
         inlier &= self.map.positions[lm] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3] > MIN_DEPTH_M
         T_cw = rs.T_q_r
-        points = self.map.positions[lm].copy()
         for round_ in range(cfg.inlier_rounds):
-            # landmarks start where the last round put them (the same optimum, reached in fewer iterations)
-            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier], points[inlier])
+            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier])
             T_cw = res.T_cam_world[-1]
             if round_ == cfg.inlier_rounds - 1:
                 break
@@ -405,8 +403,7 @@ class StereoOdometry:
         err = np.where(np.isfinite(z), self.camera.project(np.where(in_front[:, None], P, 1.0)) - z, 0.0)
         return in_front & ((err**2).sum(1) <= self.config.odometry.ransac_threshold_px**2)
 
-    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray,
-                     points_world: np.ndarray | None = None):
+    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
         """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
 
         The landmarks are not held fixed at their current estimate: they stay free, constrained by
@@ -427,8 +424,7 @@ class StereoOdometry:
         z_all = np.concatenate([z_obs[keep], z])
         T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
         fixed = np.r_[np.ones(K, bool), False]
-        start = self.map.positions[lm] if points_world is None else points_world
-        res = bundle_adjust(T, fixed, start, obs_pose, obs_point, np.nan_to_num(z_all),
+        res = bundle_adjust(T, fixed, self.map.positions[lm], obs_pose, obs_point, np.nan_to_num(z_all),
                             self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma, cfg.huber_px,
                             cfg.refine_iterations)
         return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2
