@@ -361,19 +361,47 @@ class StereoOdometry:
             return self._estimate(frame, lm, feat)
 
     def _estimate(self, frame: StereoFrame, lm: np.ndarray, feat: np.ndarray) -> _Track | None:
-        """RANSAC then pose refinement on the matched landmarks (see ``_track``)."""
+        """RANSAC then pose refinement on the matched landmarks (see ``_track``).
+
+        RANSAC's model rests on its best minimal sample; on a scene of mostly far structure its translation can be
+        off by decimetres (far landmarks barely constrain it), which puts the near landmarks, the ones that carry
+        the scale, outside the threshold. So the inliers are chosen again among all matches at the refined pose,
+        and the pose refined again, until the set no longer changes (at most ``odometry.inlier_rounds`` rounds):
+        the inlier set is that of the refined pose, not of a random sample.
+        """
         cfg = self.config.odometry
         rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
                         cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
-        lm_in, feat_in = lm[rs.inliers], feat[rs.inliers]
-        depth = self.map.positions[lm_in] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
-        lm_in, feat_in = lm_in[depth > MIN_DEPTH_M], feat_in[depth > MIN_DEPTH_M]
-        res, ok = self._refine_pose(rs.T_q_r, lm_in, frame.stereo_measurements[feat_in])
+        z = frame.stereo_measurements[feat]
+        inlier = np.zeros(len(lm), bool)
+        inlier[rs.inliers] = True
+        inlier &= self.map.positions[lm] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3] > MIN_DEPTH_M
+        T_cw = rs.T_q_r
+        for round_ in range(cfg.inlier_rounds):
+            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier])
+            T_cw = res.T_cam_world[-1]
+            if round_ == cfg.inlier_rounds - 1:
+                break
+            points = self.map.positions[lm].copy()
+            points[inlier] = res.points
+            again = self._fits(T_cw, points, z) & (self.map.positions[lm] @ T_cw[2, :3] + T_cw[2, 3] > MIN_DEPTH_M)
+            if np.array_equal(again, inlier) or again.sum() < cfg.min_inliers:
+                break
+            inlier = again
         if ok.sum() < cfg.min_inliers:
             return None
-        return _Track(res.T_cam_world[-1], res.pose_covariance[-1], lm_in[ok], feat_in[ok], len(lm))
+        lm_in, feat_in = lm[inlier][ok], feat[inlier][ok]
+        return _Track(res.T_cam_world[-1], res.pose_covariance[-1], lm_in, feat_in, len(lm))
+
+    def _fits(self, T_cam_world: np.ndarray, points_world: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Which landmarks (world points) project at ``T_cam_world`` within the RANSAC threshold of their stereo
+        measurements ``z`` (rows that were measured), in front of the camera."""
+        P = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        in_front = P[:, 2] > MIN_DEPTH_M
+        err = np.where(np.isfinite(z), self.camera.project(np.where(in_front[:, None], P, 1.0)) - z, 0.0)
+        return in_front & ((err**2).sum(1) <= self.config.odometry.ransac_threshold_px**2)
 
     def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
         """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
