@@ -76,10 +76,6 @@ def test_path_length_scale_error_within_one_percent(far_run):
     assert abs(far_run[2].length_ratio - 1.0) <= SCALE_ERROR_BOUND
 
 
-@pytest.mark.xfail(strict=True, reason="measured 1.52 % (bound 1.5 %) on this render (noise seed 1); the "
-                   "render's noise alone moves it: over noise seeds 1-4 1.32-1.52 % now, 1.30-1.53 % before the "
-                   "inliers were chosen again at the refined pose (1.46 % on seed 1, 1.53 % on seed 2). Rotation "
-                   "drift dominates (r_err 0.021 deg/m, path x1.005); docs/odometry_stability.md")
 def test_translation_drift_within_bound(far_run):
     assert far_run[2].t_err_pct <= T_ERR_BOUND_PCT
 

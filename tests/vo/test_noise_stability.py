@@ -22,6 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SEED = 7                       # not among the benchmark's 1-4
 KITTI06_BOUND_PCT = 0.70
 RAMP_BOUND_PCT = 1.3
+RAMP_SPREAD_POINTS = 0.3     # max - min over clean and the four seeds (issue bound)
 # share of the matched near landmarks (within far_point_baselines) that tracking keeps as inliers over the ramp;
 # with RANSAC's inliers alone it was 0.42 clean and with seed 7 (0-8 of 5-22 per frame: its translation rests on
 # far landmarks), with the inliers chosen again at the refined pose 0.82
@@ -57,17 +58,20 @@ def test_kitti06_with_noise_within_bound(tool, kitti_clip):
     assert r["t_err_pct"] <= KITTI06_BOUND_PCT
 
 
-@pytest.mark.xfail(strict=True, reason="measured 1.37 % with seed 7 (clean 1.12 %; seeds 1-8 1.11-1.75 %): the "
-                   "scale now rests on the clip's near landmarks, which put it x1.008-1.015 above the ground truth "
-                   "(its -1.16 px disparity offset, docs/far_structure.md); not corrected here")
-def test_ramp_with_noise_within_bound(tool, kitti_ramp_clip):
-    r = tool.run_variant(kitti_ramp_clip, SEED, 1.0, Config())
-    assert r["t_err_pct"] <= RAMP_BOUND_PCT
+@pytest.mark.xfail(strict=True, reason="measured clean 1.08 %, seeds 1-4 0.71-1.65 % (spread 0.94 points; "
+                   "odometry.inlier_rounds 4: 1.12-1.75 %, spread 0.63, at twice the tracking cost): the ramp's scale "
+                   "rests on a few dozen near landmarks whose selection flips with the noise "
+                   "(docs/odometry_stability.md)")
+def test_ramp_with_noise_within_bound_and_spread(tool, kitti_ramp_clip):
+    """The issue's bound on the ramp: clean and the benchmark's four noise seeds each <= 1.3 %, spread <= 0.3."""
+    errors = [tool.run_variant(kitti_ramp_clip, seed, 1.0, Config())["t_err_pct"] for seed in (None, 1, 2, 3, 4)]
+    assert max(errors) <= RAMP_BOUND_PCT and max(errors) - min(errors) <= RAMP_SPREAD_POINTS, errors
 
 
 def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip, monkeypatch):
-    """The inliers are those of the refined pose, not of RANSAC's best sample: on the ramp most matched near
-    landmarks (the scale's only anchor) are inliers, for the noisy copy as for the clean one."""
+    """With ``odometry.inlier_rounds`` 4 the inliers are those of the refined pose, not of RANSAC's best sample: on the
+    ramp most matched near landmarks (the scale's only anchor) are inliers, for the noisy copy as for the clean one
+    (with 1, the default, 42 %)."""
     counts = []
     estimate = StereoOdometry._estimate
 
@@ -82,7 +86,9 @@ def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip
     for seed in (None, SEED):
         counts.clear()
         with open_source(kitti_ramp_clip) as src:
-            vo = StereoOdometry(src.camera, Config())
+            config = Config()
+            config.odometry.inlier_rounds = 4
+            vo = StereoOdometry(src.camera, config)
             for images in tool.NoisySource(src, seed, 1.0).iter_frames():
                 vo.process(images)
         matched, kept = np.sum(counts, axis=0)
