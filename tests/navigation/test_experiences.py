@@ -15,7 +15,7 @@ from vtr.config import Config
 from vtr.io import open_source
 from vtr.map import Map
 from vtr.map.check import check_map
-from vtr.map.experiences import experience_links, experiences, prune, retention, use_counts
+from vtr.map.experiences import WORDS_KEY, experience_links, experiences, prune, retention, use_counts
 from vtr.navigation.experiences import ExperienceSubmaps, Recommender
 from vtr.navigation.repeat import Repeat
 
@@ -156,7 +156,13 @@ def test_prune_keeps_newest_and_most_used_and_the_map_stays_whole(tmp_path_facto
         plan = retention(m, keep_last=1, keep_most_used=1, min_localized_share=0.5)
         assert set(plan.keep) == {multi[-1].run, most_used} and plan.remove
         expected = sum(r.n_vertices for r in m.runs() if r.id in plan.remove)
+        words = {r: f"{WORDS_KEY}/{r}/digest" for r in [*plan.remove, *plan.keep]}
+        for key in words.values():                      # an experience's stored words (derived data)
+            m.put_derived(key, b"words")
         assert prune(m, plan.remove) == expected
+        # a pruned run's words go with it: the next run may take its id, and must not read them as its own
+        assert all(m.derived(words[r]) is None for r in plan.remove)
+        assert all(m.derived(words[r]) == b"words" for r in plan.keep)
     assert path.stat().st_size < before
     with Map.open(path) as m:
         check_map(m)

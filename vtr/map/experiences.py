@@ -182,6 +182,11 @@ def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: 
     return Retention(keep, remove)
 
 
+#: derived data of an experience (its vertices' place-recognition words), under ``experience_words/<run>/...``:
+#: removed with the run (a later run may take its id)
+WORDS_KEY = "experience_words"
+
+
 def prune(m: Map, runs: Iterable[int]) -> int:
     """Remove repeat ``runs`` from a map opened for writing: their vertices, data, checksums, edges and use, in one
     transaction (the append-only triggers are lifted inside it and restored before it commits), then ``VACUUM``
@@ -212,6 +217,8 @@ def prune(m: Map, runs: Iterable[int]) -> int:
                                 ).fetchone() is not None
         has_use = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'experience_use'"
                                ).fetchone() is not None
+        has_derived = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'derived'"
+                                   ).fetchone() is not None
         for r in runs:
             lo, hi = r << RUN_SHIFT, (r << RUN_SHIFT) | INDEX_MASK
             conn.execute("DELETE FROM edges WHERE from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?", (lo, hi, lo, hi))
@@ -221,6 +228,8 @@ def prune(m: Map, runs: Iterable[int]) -> int:
             conn.execute("DELETE FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi))
             if has_use:
                 conn.execute("DELETE FROM experience_use WHERE experience = ? OR repeat = ?", (r, r))
+            if has_derived:              # the run's words: the next run takes the highest free id, maybe this one
+                conn.execute("DELETE FROM derived WHERE key LIKE ?", (f"{WORDS_KEY}/{r}/%",))
             conn.execute("DELETE FROM runs WHERE id = ?", (r,))
         for _, sql in saved:
             conn.execute(sql)
@@ -229,5 +238,5 @@ def prune(m: Map, runs: Iterable[int]) -> int:
     return removed
 
 
-__all__ = ["ExperienceInfo", "ExperienceLinks", "Retention", "experience_links", "experiences", "prune",
+__all__ = ["WORDS_KEY", "ExperienceInfo", "ExperienceLinks", "Retention", "experience_links", "experiences", "prune",
            "record_use", "retention", "use_counts"]

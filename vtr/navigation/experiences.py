@@ -31,7 +31,14 @@ from ..config import Config, ExperienceConfig
 from ..errors import MapError
 from ..geometry import inv_T
 from ..map import Map, TaughtPath
-from ..map.experiences import ExperienceInfo, ExperienceLinks, experience_links, experiences, record_use
+from ..map.experiences import (
+    WORDS_KEY,
+    ExperienceInfo,
+    ExperienceLinks,
+    experience_links,
+    experiences,
+    record_use,
+)
 from ..map.records import RUN_SHIFT
 from ..types import StereoFrame
 from .localization import LocalizationEstimate, Localizer, TaughtSubmap
@@ -84,7 +91,6 @@ def single_experience(config: Config) -> Config:
     return dataclasses.replace(config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=0))
 
 
-WORDS_KEY = "experience_words"   # derived data: the words of an experience's vertices (ExperienceSubmaps.run_words)
 DIGEST_BYTES = 8                 # of the vocabulary the words are of
 
 
