@@ -38,6 +38,22 @@ def _repeat(kitti_clip, taught, tmp_path, config: Config, monkeypatch, record) -
     return [s.localization for s in steps if s.localization is not None]
 
 
+def _tracking_flag(monkeypatch) -> dict[str, bool]:
+    """``{"on": ...}``: true while the chain tracks a leaf (``ChainLocalizer._track`` runs), patched in here."""
+    flag = {"on": False}
+    real_track = chain_module.ChainLocalizer._track
+
+    def track(self, *a, **k):
+        flag["on"] = True
+        try:
+            return real_track(self, *a, **k)
+        finally:
+            flag["on"] = False
+
+    monkeypatch.setattr(chain_module.ChainLocalizer, "_track", track)
+    return flag
+
+
 def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kitti_clip, taught, tmp_path,
                                                                           monkeypatch):
     """Every leaf localized while tracking is matched by projecting the submap with the chain's prior (the broad
@@ -47,17 +63,9 @@ def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kit
     config.features.threads = 1
     tracked: list[tuple] = []
     broad_calls = {"tracking": 0}
-    in_track = {"on": False}
-    real_track = chain_module.ChainLocalizer._track
+    in_track = _tracking_flag(monkeypatch)
     real_localize = loc_module.Localizer.localize
     real_match_all = loc_module.match_all
-
-    def track(self, *a, **k):
-        in_track["on"] = True
-        try:
-            return real_track(self, *a, **k)
-        finally:
-            in_track["on"] = False
 
     def localize(self, leaf, submap, T_prior, seed=0, trusted_prior=True, consecutive_failures=0):
         if in_track["on"]:
@@ -68,7 +76,6 @@ def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kit
         broad_calls["tracking"] += in_track["on"]
         return real_match_all(*a, **k)
 
-    monkeypatch.setattr(chain_module.ChainLocalizer, "_track", track)
     monkeypatch.setattr(loc_module.Localizer, "localize", localize)
     monkeypatch.setattr(loc_module, "match_all", match_all)
     locs = _repeat(kitti_clip, taught, tmp_path, config, monkeypatch, lambda rp: None)
@@ -94,15 +101,7 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
     config.features.threads = 1
     config.localization.place_check_every = check_every
     calls = {"tracking": 0, "searching": 0}
-    in_track = {"on": False}
-    real_track = chain_module.ChainLocalizer._track
-
-    def track(self, *a, **k):
-        in_track["on"] = True
-        try:
-            return real_track(self, *a, **k)
-        finally:
-            in_track["on"] = False
+    in_track = _tracking_flag(monkeypatch)
 
     def record(rp):
         real_scores = rp.place.scores
@@ -113,7 +112,6 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
 
         object.__setattr__(rp.place, "scores", scores)        # this repeat's index only
 
-    monkeypatch.setattr(chain_module.ChainLocalizer, "_track", track)
     locs = _repeat(kitti_clip, taught, tmp_path, config, monkeypatch, record)
     localized = sum(loc.success for loc in locs)
     assert localized >= len(locs) - 1

@@ -503,12 +503,12 @@ class ChainLocalizer:
                 out.append(i)
         return out
 
-    def _confirm(self, leaf_id: int, kf: Keyframe, scores: np.ndarray) -> Attempt | None:
+    def _confirm(self, leaf_id: int, kf: Keyframe, scores: np.ndarray, trunk: int | None) -> Attempt | None:
         """The pending candidate carried to this leaf by odometry, the leaf localized guided by it against the
         nearest taught vertex: a success when place recognition also scores that part of the route close to its
-        best for this leaf and the estimate passes the gate of the prediction; None otherwise (search the places)."""
+        best for this leaf and the estimate passes the gate of the prediction; None otherwise (search the places).
+        ``trunk``: the taught vertex nearest the carried candidate (:meth:`_pending_trunk`; None: none pending)."""
         ch, c = self.chain, self.config.localization
-        trunk = self._pending_trunk(kf)
         if trunk is None:
             return None
         pending = ch.state.candidate
@@ -544,7 +544,7 @@ class ChainLocalizer:
         scores = self.place.scores(kf.frame.features.descriptors, also=None if carried is None else self._near(carried))
         k = min(self.config.place.candidates, len(scores))
         places = [int(i) for i in np.argsort(-scores, kind="stable")[:k]]
-        confirmed = self._confirm(leaf_id, kf, scores)
+        confirmed = self._confirm(leaf_id, kf, scores, carried)
         if confirmed is not None:
             return confirmed
         best: tuple[int, LocalizationEstimate] | None = None

@@ -374,8 +374,7 @@ def stored_place_index(map_: Map) -> StoredPlaceIndex:
     """The stored place index of ``map_``'s taught route, checked: readable, and its digest that of the taught
     vertices (:func:`vertices_digest`) with one entry per vertex."""
     path = map_.taught_path()
-    run = map_.reference_run()
-    key = place_key(-1 if run is None else run)
+    key = _route_key(map_)
     data = map_.derived(key)
     if data is None:
         return StoredPlaceIndex(key, None, None)
@@ -394,12 +393,17 @@ def stored_place_index(map_: Map) -> StoredPlaceIndex:
 def rebuild_place_index(map_: Map, config: PlaceConfig, seed: int = 0) -> PlaceIndex:
     """Build the taught route's place index from its vertices; stored when the map is open for writing."""
     path = map_.taught_path()
-    run = map_.reference_run()
     index = PlaceIndex.build(lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids), len(path),
                              config, seed, vertices_digest(path.ids, path.t_ns, path.T_world_vertex))
     if map_.mode == "a":
-        map_.put_derived(place_key(-1 if run is None else run), index.to_bytes())
+        map_.put_derived(_route_key(map_), index.to_bytes())
     return index
+
+
+def _route_key(map_: Map) -> str:
+    """The derived-data key of ``map_``'s taught route's place index (its first taught run's)."""
+    run = map_.reference_run()
+    return place_key(-1 if run is None else run)
 
 
 __all__ = ["CoarseFile", "PlaceIndex", "PlaceMatch", "StoredPlaceIndex", "Vocabulary", "k_majority", "place_key",
