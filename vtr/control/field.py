@@ -313,16 +313,36 @@ class TaughtPathField:
                 yaw = heading - self.mount.mount_yaw_rad
             pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
             T_l_g = inv_T(self.camera_poses(pos, yaw, pitch))
-        out = np.empty(n, dtype=np.int64)
-        # each step's cost over its own window only (the window follows the previous step's trunk): the cost of a
-        # horizon does not grow with the route's length
-        for k in range(n):
-            lo, hi = trunk_window(prev, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
+
+        def window(previous: int) -> tuple[int, int]:
+            return trunk_window(previous, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
+
+        def costs(lo: int, hi: int, first: int) -> np.ndarray:
+            """Every step's cost from ``first`` on (rows) against candidates ``lo..hi-1`` (columns), in one batch."""
             if taught_axes:
-                cost = np.linalg.norm(cam[k] - self.T_g_camera[lo:hi, :3, 3], axis=1)
-            else:
-                cost = trunk_cost(T_l_g[k] @ self.T_g_camera[lo:hi], c.rotation_weight)
-            prev = lo + int(np.argmin(cost))
+                return np.linalg.norm(cam[first:, None] - self.T_g_camera[None, lo:hi, :3, 3], axis=2)
+            return trunk_cost(T_l_g[first:, None] @ self.T_g_camera[None, lo:hi], c.rotation_weight)
+
+        # Each step's trunk is the argmin over its own window (the window follows the previous step's trunk), so the
+        # cost of a horizon does not grow with the route's length. The costs themselves do not depend on the chain:
+        # they are computed in batches over a block of candidates (first the start's window widened by one forward
+        # reach in the direction of travel), the block widened by a reach only when a step's window leaves it.
+        reach = c.trunk_window_forward
+        lo, hi = window(prev)
+        blo, bhi = (lo, min(len(self), hi + reach)) if direction >= 0 else (max(0, lo - reach), hi)
+        block, first = costs(blo, bhi, 0), 0
+        out = np.empty(n, dtype=np.int64)
+        for k in range(n):
+            lo, hi = window(prev)
+            if lo < blo or hi > bhi:
+                nlo = max(0, lo - reach) if lo < blo else blo
+                nhi = min(len(self), hi + reach) if hi > bhi else bhi
+                parts = [costs(nlo, blo, k)] if nlo < blo else []
+                parts.append(block[k - first:])
+                if nhi > bhi:
+                    parts.append(costs(bhi, nhi, k))
+                block, first, blo, bhi = np.hstack(parts), k, nlo, nhi
+            prev = lo + int(np.argmin(block[k - first, lo - blo:hi - blo]))
             out[k] = prev
         return out
 
