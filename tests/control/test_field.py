@@ -109,3 +109,43 @@ def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, back
         prev = select_trunk(np.linalg.inv(T_g_leaf) @ field.T_g_camera[lo:hi], lo, cfg.rotation_weight)
         want.append(prev)
     assert got.tolist() == want
+
+
+def _route_distances_every_segment(pts, p):
+    """The distance to the taught polyline measured against every segment (the field's rule before its k-d trees)."""
+    if len(pts) == 1:
+        return np.linalg.norm(p - pts[0], axis=1), np.zeros(len(p))
+    a, seg = pts[:-1], np.diff(pts, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    d = np.divide(seg, length[:, None], out=np.zeros_like(seg), where=length[:, None] > 0.0)
+    rel = p[:, None, :] - a[None]
+    s = np.einsum("nsk,sk->ns", rel, d)
+    closest = a[None] + np.clip(s, 0.0, length[None])[..., None] * d[None]
+    dist = np.linalg.norm(p[:, None, :] - closest, axis=2)
+    nearest = np.argmin(dist, axis=1)
+    rows = np.arange(len(p))
+    s_n = s[rows, nearest]
+    past = np.zeros(len(p))
+    first, last = nearest == 0, nearest == len(seg) - 1
+    past[first] = np.maximum(past[first], -s_n[first])
+    past[last] = np.maximum(past[last], s_n[last] - length[-1])
+    return dist[rows, nearest], past
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 60), back=st.booleans(), spread=st.sampled_from([0.1, 3.0, 50.0]))
+def test_route_distances_are_those_over_every_segment(seed, n, back, spread):
+    """Random walks (an out-and-back one flies over itself, repeated vertices give zero-length segments) and points
+    near and far: the pruned search gives the distances and past-end figures of measuring every segment."""
+    from vtr.control.field import _TaughtPolyline
+
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(0, 1.0, (n, 3)) * (rng.random((n, 1)) > 0.1)
+    pts = np.cumsum(steps, axis=0)
+    if back:
+        pts = np.vstack([pts, pts[::-1][1:] + rng.normal(0, 0.01, (n - 1, 3))])
+    p = pts[rng.integers(0, len(pts), 20)] + rng.normal(0, spread, (20, 3))
+    got = _TaughtPolyline(pts).distances(p)
+    want = _route_distances_every_segment(pts, p)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
