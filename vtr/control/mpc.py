@@ -58,6 +58,7 @@ perception rows). See docs/perception_aware_mpc/README.md.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Literal
 
 import numpy as np
@@ -228,7 +229,7 @@ class PerceptionAwareMPC:
     def _is(self, k: int) -> int:
         return self.n * (_NZ + _NW) + k
 
-    def _build(self, osqp) -> None:
+    def _build(self, osqp: ModuleType) -> None:
         c, n = self.cfg, self.n
         # cost: 1/2 x' P x + q' x  (P = 2 Q on outputs, 2 R on inputs)
         pd = np.zeros(self.nx)
@@ -324,7 +325,7 @@ class PerceptionAwareMPC:
         self.l[r:r + self.n_soft], self.u[r:r + self.n_soft] = 0.0, np.inf
 
     # ------------------------------------------------------------------ one tick
-    def _check_state(self, z0) -> np.ndarray:
+    def _check_state(self, z0: object) -> np.ndarray:
         """``z0`` as 10 finite floats ``(p, v, a, psi)``."""
         try:
             z = np.asarray(z0, float)

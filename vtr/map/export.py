@@ -44,7 +44,7 @@ def run_colour(order: int) -> np.ndarray:
     return RUN_COLOURS[order % len(RUN_COLOURS)]
 
 
-def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
+def export_landmarks_ply(map_: Map, path: str | Path, runs: list[int] | None = None, *,
                          gravity_aligned: bool = False) -> list[RunExport]:
     """Write the landmarks of ``runs`` (all by default) to a binary PLY point cloud, coloured by run.
 

@@ -213,7 +213,7 @@ class LocalizationChain:
 
     # -- prediction and gates ----------------------------------------------------------------------
 
-    def rebased(self, T_leaf_vertex: np.ndarray, vertex: int, others) -> np.ndarray:
+    def rebased(self, T_leaf_vertex: np.ndarray, vertex: int, others: int | slice) -> np.ndarray:
         """A leaf pose against taught ``vertex`` re-expressed against taught vertices ``others`` (a path index, or a
         slice: a stack) along the taught path: ``T_leaf_vertex @ inv(T_world_vertex) @ T_world_others``."""
         T = self.path.T_world_vertex

@@ -22,7 +22,7 @@ import warnings
 import zipfile
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from ..map.records import RUN_SHIFT
 from ..types import StereoFrame
 from .localization import LocalizationEstimate, Localizer, TaughtSubmap
 from .place import PlaceIndex, PlaceMatch
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 FRAMES_KEPT = 96            # decoded frames held for submaps before the cache starts again (memory stays flat)
 
@@ -188,7 +191,7 @@ class ExperiencePlaces:
     def vector(self, descriptors: np.ndarray) -> np.ndarray:
         return self.index.vector(descriptors)
 
-    def _experience_matrix(self):
+    def _experience_matrix(self) -> csr_matrix:
         from scipy.sparse import csr_matrix
 
         if self._matrix is None:

@@ -25,6 +25,7 @@ import warnings
 import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from ..errors import MapError
 from ..map import Map
 from ..vo.features import descriptor_words
 from ..vo.kernels import matching as km
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 DESCRIPTOR_BYTES = 32          # ORB: 256 bits
 INDEX_MAGIC = b"VTRP\x01"
@@ -211,7 +215,7 @@ class PlaceIndex:
         cached = 0 if m is None else m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
         return own + (self._coarse().nbytes if len(self) > self.shortlist else 0) + cached
 
-    def _matrix(self):
+    def _matrix(self) -> csr_matrix:
         from scipy.sparse import csr_matrix
 
         return csr_matrix((self.weight, self.word, self.indptr), shape=(len(self), len(self.vocabulary)))
@@ -273,7 +277,7 @@ class PlaceIndex:
         return PlaceMatch(top.astype(np.int64), s[top])
 
     @property
-    def _csr(self):
+    def _csr(self) -> csr_matrix:
         m = self.__dict__.get("_csr_cache")
         if m is None:
             m = self._matrix()
