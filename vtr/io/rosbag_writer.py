@@ -17,20 +17,18 @@ from ..conventions import NS_PER_S
 from ..errors import DataError
 from ..types import StereoImages
 from .outputs import check_new_output
-from .rosbag import (
+from .ros_messages import (
     _COMPRESSED_FORMATS,
     _MONO8,
     _MONO16,
-    BAG_KINDS,
     COMPRESSED_MSGTYPE,
     IMAGE_MSGTYPE,
     INFO_MSGTYPE,
-    ROS1_SUFFIX,
-    ROS2_BAG_VERSION,
     TF_MSGTYPE,
     TF_STATIC_TOPIC,
     CameraInfoData,
 )
+from .rosbag import BAG_KINDS, ROS1_SUFFIX, ROS2_BAG_VERSION
 
 
 @dataclass(frozen=True)
