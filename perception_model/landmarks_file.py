@@ -1,39 +1,8 @@
-"""The ``landmarks.csv`` format: one schema, one in-memory record, one writer, one reader.
-
-This module owns the file that ``vtr repeat`` writes and ``perception-model fit`` reads: one row
-per taught landmark in the leaf camera's view per localization. Columns (``SCHEMA``):
-
-=================  =======  ======================================================================
-column             type     meaning
-=================  =======  ======================================================================
-``t_ns``           int64    time of the localization (leaf keyframe), nanoseconds
-``leaf_id``        int64    repeat vertex id
-``trunk_id``       int64    taught vertex id
-``landmark_id``    int64    feature index of the landmark in the trunk vertex
-``inlier``         0/1      the landmark was a localization inlier (``true``/``false``,
-                            ``yes``/``no`` are read too)
-``parallax_deg``   float    parallax angle, **degrees** in [0, 180]
-``view_deg``       float    view angle, **degrees** in [0, 180]
-``range_m``        float    distance from the leaf camera, metres (may be empty: informational)
-``matched``        0/1      the landmark was matched at all (optional column; empty = unknown)
-=================  =======  ======================================================================
-
-Angles are degrees in the file and radians everywhere in code (``Observations.alpha`` /
-``theta``): the writer and the reader are the only places that convert. Columns may come in any
-order; extra columns are ignored; ``matched`` may be missing (files written before it existed).
-
-Two containers: CSV (``*.csv``, the default) and Parquet (``*.parquet``, same column names and
-units, typed columns). Reading is columnar (pyarrow, imported on first use): only the requested
-columns, numeric dtypes, streamed in blocks, never a Python object per cell. A CSV that the fast
-reader refuses (or whose values fail the checks) is re-read by a strict streaming reader whose
-only job is the one-line error naming the file, line and column — the same messages as ever.
-Parquet errors name the file, data row (1-based) and column.
-
-``Observations`` is the one in-memory record: ``vtr`` builds it for each localization and hands
-it to ``LandmarksWriter``; the reader returns it; the fits consume it (``Observations.samples()``). The schema and
-the record live in :mod:`perception_model.landmarks_schema` (re-exported here); this module holds the writer and the
-readers.
-"""
+"""The ``landmarks.csv`` format (``vtr repeat`` writes it, ``perception-model fit`` reads it): the writer
+(``LandmarksWriter``) and the columnar readers (CSV or Parquet through pyarrow, a strict streaming re-read for the
+one-line error naming file, line and column) of the schema and the ``Observations`` record that live in
+:mod:`perception_model.landmarks_schema` (re-exported here). Columns, units and containers: docs/perception_model.md,
+"In code" (The landmarks file)."""
 
 from __future__ import annotations
 

@@ -1,32 +1,16 @@
-"""The localization chain and the decision what a leaf's localization is worth (docs/localization.md).
-
-The chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
+"""The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``) and the decision what a leaf's
+localization is worth::
 
     privileged (teach) path   o────o────b────o────o────t────o────o───▶
                                         ▲                ▲
                                  T_w_b  │                │  T_l_t  (estimated at each new leaf)
-                                        │                │
-    current (repeat) path          o────w────o────o────l
-                               w: twig (last localized repeat vertex), b: branch (its trunk),
-                               l: leaf (newest repeat vertex),  t: trunk (closest taught vertex)
+    current (repeat) path          o────w────o────o────l        prior T_l_t = T_l_w @ T_w_b @ T_b_t
 
-    prior      T_l_t = T_l_w @ T_w_b @ T_b_t
-               (odometry along the repeat path, last localization, the taught path)
-
-Two modes. **Tracking** (localized, odometry intact since): the trunk is searched around the previous one
-in the direction of travel, the leaf matched guided by the prior, and the estimate accepted only inside a
-chi-square gate on its innovation against the prior (both covariances). **Searching** (the start of a
-repeat, odometry broken, ``lost_after_failures`` failures in a row or ``lost_after_distance_m`` since the
-last success): place recognition proposes taught vertices, each verified by unguided matching against its
-landmarks; a verified candidate is only *unconfirmed* until the next keyframe's candidate agrees with it
-through odometry (the same gate), unless it is verified beyond doubt and the chain's last success, carried by
-odometry, predicts it (re-entry at once after a gap). The prediction's covariance allows for odometry's scale error
-along its motion and for time odometry did not see. Anywhere, a pose beyond either end of the route is *off the route*.
-
-Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's first camera
-frame; those of repeat vertices in the repeat run's own first camera frame; the chain only composes
-transforms between adjacent frames, so the two worlds never mix.
-"""
+:class:`LocalizationChain` keeps twig (w), branch (b), trunk (t) and leaf (l) in a read-only :class:`ChainState` and
+composes transforms only between adjacent frames (teach and repeat worlds never mix); :class:`ChainLocalizer`
+localizes each leaf by **tracking** (guided by the prior, inside the innovation gate) or **searching** (place
+recognition, a candidate confirmed by the next keyframe or predicted by the last success), and refuses a pose off
+the route. The modes, gates and refusals: docs/localization.md."""
 
 from __future__ import annotations
 
