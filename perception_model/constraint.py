@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from numpy.polynomial import chebyshev, polynomial
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import GeometryError, PerceptionModelError
@@ -145,7 +146,6 @@ def _view_exact(
 
 def _build_view_factor(c1: float, c2r: float, s_cut: float) -> _ViewFactor | None:
     """Fit the polynomial form of ``c1 cos(c2 theta(s))``; ``None`` if no degree is accurate enough."""
-    from numpy.polynomial import chebyshev, polynomial
 
     s_max = min(s_cut, POLY_S_LIMIT)
     k1, k0 = 2.0 / s_max, -1.0

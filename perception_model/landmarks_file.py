@@ -50,7 +50,7 @@ class LandmarksWriter:
     """
 
     def __init__(self, path: str | Path):
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow (~0.1 s) on first use, here and below
 
         self.path = Path(path)
         self.rows = 0
@@ -78,7 +78,7 @@ class LandmarksWriter:
 
     def write(self, obs: Observations) -> None:
         """Append the rows of ``obs`` (nothing for an empty record)."""
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow on first use
 
         n = len(obs)
         if n == 0:
@@ -107,7 +107,7 @@ class LandmarksWriter:
             self._flush()
 
     def _flush(self) -> None:
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow on first use
 
         if self._pending:
             self._writer.write_table(pa.Table.from_batches(self._pending, schema=self._schema))
@@ -221,7 +221,7 @@ def _csv_header(path: Path) -> list[str]:
 
 def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Observations:
     """Columnar read with pyarrow; raises ``_Bad`` or pyarrow's error when the strict reader must judge."""
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
     import pyarrow.csv as pacsv
 
     wanted = [BY_FIELD[f].name for f in fields if BY_FIELD[f].name in names]
@@ -354,7 +354,7 @@ def read_landmarks_csv_strict(path: str | Path, fields: Collection[str] | None =
 
 # ----------------------------------------------------------------- Parquet
 def _read_parquet(path: Path, fields: tuple[str, ...]) -> Observations:
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
     import pyarrow.parquet as pq
 
     try:
@@ -434,7 +434,7 @@ def read_landmarks(path: str | Path, fields: Collection[str] | None = None) -> O
     row) for a missing file, missing columns, unparsable values, NaN or empty angles, angles
     outside [0, 180] degrees, labels other than 0/1 and files without data rows.
     """
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
 
     p = Path(path)
     problem = input_problem(p)

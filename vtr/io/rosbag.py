@@ -77,7 +77,7 @@ def bag_reader_path(path: Path) -> Path:
 
 def _read_errors() -> tuple[type[BaseException], ...]:
     """Exceptions that mean 'this bag is corrupt or truncated' (turned into DataError)."""
-    from rosbags.highlevel import AnyReaderError
+    from rosbags.highlevel import AnyReaderError  # rosbags only for a bag, here and below
     from rosbags.rosbag1 import ReaderError as ReaderError1
     from rosbags.rosbag2 import ReaderError as ReaderError2
 
@@ -160,7 +160,7 @@ class RosbagSource(FrameSource):
                  left_info_topic: str | None = None, right_info_topic: str | None = None,
                  pair_tolerance_ns: int = DEFAULT_PAIR_TOLERANCE_NS, allow_unpaired: bool = False,
                  mono16_shift: int = MONO16_SHIFT, rectify: bool | None = None):
-        from rosbags.highlevel import AnyReader
+        from rosbags.highlevel import AnyReader  # rosbags only for a bag
         from rosbags.typesys import Stores, get_typestore
 
         self.path = Path(path)
