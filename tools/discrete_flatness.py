@@ -8,7 +8,8 @@ Writes OUT/results.csv (loop, controller, sigma_m, mean_error_m, std_error_m, ma
 OUT/error_vs_sigma.png (error against sigma on log axes, one line per controller, one panel per loop); prints a
 progress line per loop, sigma and controller and a summary of the ordering of Fig. 8.2 at the end.
 ``--calibrate`` re-derives the tuning of the settings' defaults (no noise involved) and prints it.
-The model, the controllers and the settings: vtr/control/discrete_flatness.py, docs/discrete_flatness.md.
+The model and settings: vtr/control/pitch_model.py; the controllers: vtr/control/discrete_flatness.py; the loop and
+the sweep: vtr/control/flatness_sweep.py; docs/discrete_flatness.md.
 """
 
 from __future__ import annotations
@@ -19,16 +20,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from vtr.control.discrete_flatness import (
-    CONTROLLERS,
-    LOOPS,
-    DiscreteFlatnessSettings,
-    SweepRow,
-    calibrate,
-    noiseless_error_m,
-    sweep,
-    write_results_csv,
-)
+from vtr.control.flatness_sweep import SweepRow, calibrate, noiseless_error_m, sweep, write_results_csv
+from vtr.control.pitch_model import CONTROLLERS, LOOPS, DiscreteFlatnessSettings
 from vtr.errors import VtrError
 
 DEFAULT_SIGMAS_M = (0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)
@@ -124,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             say("calibrating (noiseless, perfect loop) ...")
             settings = calibrate(settings)
             say(f"calibrated: pd_kp={settings.pd_kp:.4g} pd_kd={settings.pd_kd:.4g} "
-                f"r_jerk_flatness_mpc={settings.r_jerk_flatness_mpc:.3g} "
+                f"r_command_flatness_mpc={settings.r_command_flatness_mpc:.3g} "
                 f"r_jerk_discrete_flatness={settings.r_jerk_discrete_flatness:.3g}; noiseless errors "
                 + ", ".join(f"{c} {noiseless_error_m(settings, c):.4f} m" for c in CONTROLLERS))
         if args.out.exists() and not args.out.is_dir():

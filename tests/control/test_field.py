@@ -19,9 +19,9 @@ from vtr.navigation.chain import LocalizationChain
 MODEL = PerceptionModel.thesis()
 
 
-def _field(vertices, lever=(0.2, 0.1, -0.1)):
+def _field(vertices, lever=(0.2, 0.1, -0.1), config=None):
     return TaughtPathField(MODEL, vertices, T_g_map=np.eye(4),
-                           mount=CameraMount(math.pi / 2, np.array(lever)))
+                           mount=CameraMount(math.pi / 2, np.array(lever)), config=config)
 
 
 def test_log_se3_batch_matches_log_se3():
@@ -82,19 +82,23 @@ def test_landmarks_are_cached_in_each_trunks_o(l_vertices):
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), backward=st.booleans())
-def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, backward):
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), backward=st.booleans(),
+       window=st.sampled_from([None, (1, 2), (0, 1), (3, 0)]), stride=st.integers(1, 3))
+def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, backward, window, stride):
     """select_trunks over a horizon: each step's trunk is the localizer's rule (vtr.navigation.trunk) in the window of
     the previous step's trunk, in the direction of travel (computed here one step at a time, the window's candidates
-    whole: the field's per-step search gives the same answers)."""
+    whole: the field's batched search gives the same answers). Small windows and strides of up to 3 vertices a step
+    make the chain outrun the field's first block of candidates (the block is widened)."""
     from vtr.navigation.trunk import BACKWARD, FORWARD, select_trunk, trunk_window
 
-    field = _field(l_vertices)
+    config = None if window is None else LocalizationConfig(trunk_window_back=window[0],
+                                                            trunk_window_forward=window[1])
+    field = _field(l_vertices, config=config)
     rng = np.random.default_rng(seed)
     cfg = field.config
     direction = BACKWARD if backward else FORWARD
     start = int(rng.integers(0, len(field)))
-    idx = np.clip(start + direction * np.arange(n) + rng.integers(-1, 2, n), 0, len(field) - 1)
+    idx = np.clip(start + direction * stride * np.arange(n) + rng.integers(-1, 2, n), 0, len(field) - 1)
     pos = field.vehicle_position_g[idx] + rng.normal(0, 1.0, (n, 3))
     yaw = field.vehicle_yaw_g[idx] + rng.normal(0, 0.2, n)
     got = field.select_trunks(pos, yaw, start, direction=direction)
@@ -105,3 +109,43 @@ def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, back
         prev = select_trunk(np.linalg.inv(T_g_leaf) @ field.T_g_camera[lo:hi], lo, cfg.rotation_weight)
         want.append(prev)
     assert got.tolist() == want
+
+
+def _route_distances_every_segment(pts, p):
+    """The distance to the taught polyline measured against every segment (the field's rule before its k-d trees)."""
+    if len(pts) == 1:
+        return np.linalg.norm(p - pts[0], axis=1), np.zeros(len(p))
+    a, seg = pts[:-1], np.diff(pts, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    d = np.divide(seg, length[:, None], out=np.zeros_like(seg), where=length[:, None] > 0.0)
+    rel = p[:, None, :] - a[None]
+    s = np.einsum("nsk,sk->ns", rel, d)
+    closest = a[None] + np.clip(s, 0.0, length[None])[..., None] * d[None]
+    dist = np.linalg.norm(p[:, None, :] - closest, axis=2)
+    nearest = np.argmin(dist, axis=1)
+    rows = np.arange(len(p))
+    s_n = s[rows, nearest]
+    past = np.zeros(len(p))
+    first, last = nearest == 0, nearest == len(seg) - 1
+    past[first] = np.maximum(past[first], -s_n[first])
+    past[last] = np.maximum(past[last], s_n[last] - length[-1])
+    return dist[rows, nearest], past
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 60), back=st.booleans(), spread=st.sampled_from([0.1, 3.0, 50.0]))
+def test_route_distances_are_those_over_every_segment(seed, n, back, spread):
+    """Random walks (an out-and-back one flies over itself, repeated vertices give zero-length segments) and points
+    near and far: the pruned search gives the distances and past-end figures of measuring every segment."""
+    from vtr.control.field import _TaughtPolyline
+
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(0, 1.0, (n, 3)) * (rng.random((n, 1)) > 0.1)
+    pts = np.cumsum(steps, axis=0)
+    if back:
+        pts = np.vstack([pts, pts[::-1][1:] + rng.normal(0, 0.01, (n - 1, 3))])
+    p = pts[rng.integers(0, len(pts), 20)] + rng.normal(0, spread, (20, 3))
+    got = _TaughtPolyline(pts).distances(p)
+    want = _route_distances_every_segment(pts, p)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])

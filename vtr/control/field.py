@@ -37,6 +37,7 @@ from typing import Any, TypeVar, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
 from perception_model import frames
 from perception_model.errors import PerceptionModelError
@@ -191,6 +192,7 @@ class TaughtPathField:
         self.vehicle_yaw_g = np.asarray(yaw, float)
         self.pitch_down = np.asarray(pitch, float)
         self.evaluator = HorizonEvaluator(model, trunks, l_min=l_min, c_bar=c_bar)
+        self._path = _TaughtPolyline(positions)
 
     @classmethod
     @translating
@@ -315,16 +317,36 @@ class TaughtPathField:
                 yaw = heading - self.mount.mount_yaw_rad
             pitch = self.pitch_down[prev] if axes_pitch is None else np.asarray(axes_pitch, float)
             T_l_g = inv_T(self.camera_poses(pos, yaw, pitch))
-        out = np.empty(n, dtype=np.int64)
-        # each step's cost over its own window only (the window follows the previous step's trunk): the cost of a
-        # horizon does not grow with the route's length
-        for k in range(n):
-            lo, hi = trunk_window(prev, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
+
+        def window(previous: int) -> tuple[int, int]:
+            return trunk_window(previous, len(self), c.trunk_window_back, c.trunk_window_forward, direction)
+
+        def costs(lo: int, hi: int, first: int) -> np.ndarray:
+            """Every step's cost from ``first`` on (rows) against candidates ``lo..hi-1`` (columns), in one batch."""
             if taught_axes:
-                cost = np.linalg.norm(cam[k] - self.T_g_camera[lo:hi, :3, 3], axis=1)
-            else:
-                cost = trunk_cost(T_l_g[k] @ self.T_g_camera[lo:hi], c.rotation_weight)
-            prev = lo + int(np.argmin(cost))
+                return np.linalg.norm(cam[first:, None] - self.T_g_camera[None, lo:hi, :3, 3], axis=2)
+            return trunk_cost(T_l_g[first:, None] @ self.T_g_camera[None, lo:hi], c.rotation_weight)
+
+        # Each step's trunk is the argmin over its own window (the window follows the previous step's trunk), so the
+        # cost of a horizon does not grow with the route's length. The costs themselves do not depend on the chain:
+        # they are computed in batches over a block of candidates (first the start's window widened by one forward
+        # reach in the direction of travel), the block widened by a reach only when a step's window leaves it.
+        reach = c.trunk_window_forward
+        lo, hi = window(prev)
+        blo, bhi = (lo, min(len(self), hi + reach)) if direction >= 0 else (max(0, lo - reach), hi)
+        block, first = costs(blo, bhi, 0), 0
+        out = np.empty(n, dtype=np.int64)
+        for k in range(n):
+            lo, hi = window(prev)
+            if lo < blo or hi > bhi:
+                nlo = max(0, lo - reach) if lo < blo else blo
+                nhi = min(len(self), hi + reach) if hi > bhi else bhi
+                parts = [costs(nlo, blo, k)] if nlo < blo else []
+                parts.append(block[k - first:])
+                if nhi > bhi:
+                    parts.append(costs(bhi, nhi, k))
+                block, first, blo, bhi = np.hstack(parts), k, nlo, nhi
+            prev = lo + int(np.argmin(block[k - first, lo - blo:hi - blo]))
             out[k] = prev
         return out
 
@@ -332,25 +354,7 @@ class TaughtPathField:
     def route_distances(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(path_distance_m, past_end_m)`` (N,) of vehicle positions (N, 3): distance to the taught path (the
         polyline through the taught vehicles) and how far past its first or last vertex (0 within)."""
-        p = np.atleast_2d(np.asarray(positions, float))
-        pts = self.vehicle_position_g
-        if len(pts) == 1:
-            return np.linalg.norm(p - pts[0], axis=1), np.zeros(len(p))
-        a, seg = pts[:-1], np.diff(pts, axis=0)
-        length = np.linalg.norm(seg, axis=1)
-        d = np.divide(seg, length[:, None], out=np.zeros_like(seg), where=length[:, None] > 0.0)
-        rel = p[:, None, :] - a[None]                                   # (N, S, 3)
-        s = np.einsum("nsk,sk->ns", rel, d)
-        closest = a[None] + np.clip(s, 0.0, length[None])[..., None] * d[None]
-        dist = np.linalg.norm(p[:, None, :] - closest, axis=2)
-        nearest = np.argmin(dist, axis=1)
-        rows = np.arange(len(p))
-        s_n = s[rows, nearest]
-        past = np.zeros(len(p))
-        first, last = nearest == 0, nearest == len(seg) - 1
-        past[first] = np.maximum(past[first], -s_n[first])
-        past[last] = np.maximum(past[last], s_n[last] - length[-1])
-        return dist[rows, nearest], past
+        return self._path.distances(np.atleast_2d(np.asarray(positions, float)))
 
     # ----------------------------------------------------------------- evaluation
     @translating
@@ -410,6 +414,47 @@ class TaughtPathField:
                                trunk_distance_m=np.linalg.norm(pos - self.vehicle_position_g[trunk], axis=1),
                                path_distance_m=path_distance, past_end_m=past_end, guarded=guarded,
                                form=self.form)
+
+
+class _TaughtPolyline:
+    """The taught path as a polyline, for the distance of points to it without visiting every segment: a segment can
+    hold a point's nearest point only if its midpoint lies within (distance to the nearest vertex + half the longest
+    segment) of the point, so only those are measured (k-d trees over vertices and midpoints; the same answers as
+    measuring every segment, at a cost that does not grow with the route's length)."""
+
+    def __init__(self, vertices: np.ndarray) -> None:
+        self.pts = np.asarray(vertices, float)
+        self.a, seg = self.pts[:-1], np.diff(self.pts, axis=0)
+        self.length = np.linalg.norm(seg, axis=1)
+        self.d = np.divide(seg, self.length[:, None], out=np.zeros_like(seg), where=self.length[:, None] > 0.0)
+        self.vertex_tree = cKDTree(self.pts)
+        if len(seg):
+            self.mid_tree = cKDTree(self.a + 0.5 * seg)
+            # the ball's radius is widened by a relative hair so that rounding in the trees never drops a segment
+            self.reach = 0.5 * float(self.length.max()) * (1 + 1e-9) + 1e-9
+
+    def distances(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(self.pts) == 1:
+            return np.linalg.norm(p - self.pts[0], axis=1), np.zeros(len(p))
+        upper, _ = self.vertex_tree.query(p)
+        near = self.mid_tree.query_ball_point(p, upper * (1 + 1e-9) + self.reach)
+        rows = np.repeat(np.arange(len(p)), [len(c) for c in near])
+        cols = np.concatenate([np.asarray(c, np.int64) for c in near])
+        rel = p[rows] - self.a[cols]
+        s_rc = np.einsum("kj,kj->k", rel, self.d[cols])
+        closest = self.a[cols] + np.clip(s_rc, 0.0, self.length[cols])[:, None] * self.d[cols]
+        dist = np.full((len(p), len(self.a)), np.inf)
+        dist[rows, cols] = np.linalg.norm(p[rows] - closest, axis=1)
+        along = np.zeros_like(dist)
+        along[rows, cols] = s_rc
+        nearest = np.argmin(dist, axis=1)              # the first of equally near segments, as over all of them
+        idx = np.arange(len(p))
+        s_n = along[idx, nearest]
+        past = np.zeros(len(p))
+        first, last = nearest == 0, nearest == len(self.a) - 1
+        past[first] = np.maximum(past[first], -s_n[first])
+        past[last] = np.maximum(past[last], s_n[last] - self.length[-1])
+        return dist[idx, nearest], past
 
 
 def _check_form(form: str) -> str:

@@ -1,0 +1,187 @@
+"""Where the controllers of the §8.4.1 simulation read their outputs (docs/discrete_flatness.md).
+
+:class:`MeasuredOutputs` holds the noisy positions at the control rate and their first-order finite differences (the
+thesis' PD and flatness MPC); :class:`SmootherOutputs` is vtr's continuous-time smoother fed at a camera's rate,
+queried as the online estimator (:class:`~vtr.control.online.OnlineRepeat`) is: ``window(t_end_ns, n, dt_s)``,
+``state(t_ns)`` and ``command(t_ns, acceleration)`` (the commands sent, for the extrapolation past the newest knot,
+eq. 8.15); :class:`SmootherBatch` stacks one per trial.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+
+from ..config import SmoothingConfig
+from ..conventions import NS_PER_S
+from ..errors import EstimationError
+from ..navigation.state_view import CommandLog
+from ..state.smoothing import TrajectorySmoother
+from ..state.trajectory import KnotTrajectory
+
+#: The 1-D motion has no rotation; the smoother is told its (identity) attitude with this standard deviation
+#: (rad) so that the 6x6 pose covariance is definite. Rotation and x are uncoupled about the identity.
+ROTATION_SIGMA_RAD = 1e-3
+#: Seconds of knots each published view keeps (as ``OnlineRepeat``'s default ``history_s``).
+HISTORY_S = 2.0
+
+
+class OutputSource(Protocol):
+    """Outputs of a batch of vehicles as a controller reads them (times in int ns, positions in m).
+
+    ``window`` returns positions (batch, n) at ``t_end_ns - (n - 1 - i) dt_s``; ``state`` the flat state
+    ``(p, v, a)`` (batch, 3) at ``t_ns``; ``measured_until_ns`` the latest time at or before ``t_ns`` whose
+    window rests on measurements alone (no extrapolation); ``command`` takes the acceleration (batch,) the
+    controllers expect from ``t_ns`` on (the commands sent).
+    """
+
+    measurement_period_ns: int
+
+    def measure(self, t_ns: int, positions_m: np.ndarray) -> None: ...
+    def command(self, t_ns: int, acceleration_mps2: np.ndarray) -> None: ...
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray: ...
+    def state(self, t_ns: int) -> np.ndarray: ...
+    def measured_until_ns(self, t_ns: int) -> int: ...
+
+
+def sample_times(t_end_ns: int, n: int, dt_s: float) -> list[int]:
+    dt_ns = round(dt_s * NS_PER_S)
+    return [t_end_ns - (n - 1 - i) * dt_ns for i in range(n)]
+
+
+class MeasuredOutputs:
+    """Noisy positions at every control tick, as measured; the state is their first-order finite
+    differences ``v = (y_k - y_{k-1}) / dt``, ``a = (v_k - v_{k-1}) / dt`` (the thesis' flatness MPC and PD).
+    The commands sent are not used (a raw measurement has no extrapolation)."""
+
+    def __init__(self, period_ns: int) -> None:
+        self.measurement_period_ns = period_ns
+        self._y: dict[int, np.ndarray] = {}
+
+    def measure(self, t_ns: int, positions_m: np.ndarray) -> None:
+        self._y[t_ns] = np.asarray(positions_m, float).copy()
+
+    def command(self, t_ns: int, acceleration_mps2: np.ndarray) -> None:
+        return None
+
+    def _at(self, t_ns: int) -> np.ndarray:
+        if t_ns not in self._y:
+            raise EstimationError(f"t_ns={t_ns}: no measurement at that time")
+        return self._y[t_ns]
+
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
+        return np.stack([self._at(t) for t in sample_times(t_end_ns, n, dt_s)], axis=1)
+
+    def state(self, t_ns: int) -> np.ndarray:
+        dt = self.measurement_period_ns / NS_PER_S
+        y2, y1, y0 = self.window(t_ns, 3, dt).T
+        return np.stack([y0, (y0 - y1) / dt, (y0 - 2 * y1 + y2) / dt**2], axis=1)
+
+    def measured_until_ns(self, t_ns: int) -> int:
+        return max(t for t in self._y if t <= t_ns)
+
+
+class SmootherOutputs:
+    """One vehicle's outputs from vtr's :class:`~vtr.state.smoothing.TrajectorySmoother`: the 1-D position is
+    the translation along x of an SE(3) pose (identity attitude), fed as an absolute pose measurement with
+    the position noise's variance on each axis.
+
+    The queries answer as :class:`~vtr.control.online.OnlineRepeat`'s do, on the knots published after each
+    measurement: ``window`` the WNOA mean's positions; ``state`` the mean's position and velocity with the
+    acceleration fitted to the knots' velocities (``smoothing.acceleration_window_s``; the WNOA mean's when 0),
+    and, past the newest knot, the constant-velocity extrapolation moved by the commands sent
+    (:class:`~vtr.navigation.state_view.CommandLog`, zero-order hold) with the command in force as acceleration.
+    """
+
+    def __init__(self, smoothing: SmoothingConfig, sigma_m: float) -> None:
+        if not (sigma_m > 0 and math.isfinite(sigma_m)):
+            raise EstimationError(f"sigma_m: expected a positive finite noise level, got {sigma_m}")
+        self.smoother = TrajectorySmoother(smoothing)
+        self.acceleration_window_s = smoothing.acceleration_window_s
+        self._cov = np.diag([ROTATION_SIGMA_RAD**2] * 3 + [sigma_m**2] * 3)
+        self._view: KnotTrajectory | None = None
+        self._command_t: list[int] = []
+        self._command_a: list[float] = []
+        self._commands: CommandLog | None = None
+
+    def add(self, t_ns: int, x_m: float) -> None:
+        """A measured position ``x_m`` (m) at ``t_ns``; publishes the knots the queries read."""
+        T = np.eye(4)
+        T[0, 3] = x_m
+        self.smoother.add_pose(t_ns, T, self._cov)
+        self._view = self.smoother.snapshot(int(t_ns) - round(HISTORY_S * NS_PER_S))
+
+    def command(self, t_ns: int, acceleration_mps2: float) -> None:
+        """The acceleration the controller expects from ``t_ns`` on (times increase)."""
+        if self._command_t and t_ns <= self._command_t[-1]:
+            raise EstimationError(f"command: t_ns={t_ns} is not after the previous command's")
+        self._command_t.append(int(t_ns))
+        self._command_a.append(float(acceleration_mps2))
+        a = np.zeros((len(self._command_a), 3))
+        a[:, 0] = self._command_a
+        self._commands = CommandLog(np.array(self._command_t, np.int64), a)
+
+    @property
+    def view(self) -> KnotTrajectory:
+        if self._view is None:
+            raise EstimationError("smoother outputs: no measurement yet")
+        return self._view
+
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
+        """Positions (n,) at ``t_end_ns - (n - 1 - i) dt_s``."""
+        v = self.view
+        return np.array([v.state_at(t, with_covariance=False).position[0] for t in sample_times(t_end_ns, n, dt_s)])
+
+    def state(self, t_ns: int) -> np.ndarray:
+        """``(p m, v m/s, a m/s^2)`` at ``t_ns``."""
+        v = self.view
+        s = v.state_at(t_ns, with_covariance=False)
+        p, vel, a = s.position[0], s.linear_velocity_world[0], s.linear_acceleration_world[0]
+        if self.acceleration_window_s > 0:
+            a = v.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
+        last = v.last_time_ns
+        if self._commands is not None and last is not None and t_ns > last:
+            dp, dv, a_now = self._commands.integrate(last, t_ns)
+            p, vel, a = p + dp[0], vel + dv[0], a_now[0]
+        return np.array([p, vel, a])
+
+    def newest_ns(self) -> int:
+        t = self.view.last_time_ns
+        if t is None:
+            raise EstimationError("smoother outputs: no measurement yet")
+        return t
+
+
+class SmootherBatch:
+    """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``; windows
+    end ``knots_back`` measurement periods before the newest knot."""
+
+    def __init__(self, sources: Sequence[SmootherOutputs], period_ns: int, knots_back: int = 0) -> None:
+        self.sources = list(sources)
+        self.measurement_period_ns = period_ns
+        self.knots_back = knots_back
+
+    def measure(self, t_ns: int, positions_m: np.ndarray) -> None:
+        for src, x in zip(self.sources, np.asarray(positions_m, float), strict=True):
+            src.add(t_ns, float(x))
+
+    def command(self, t_ns: int, acceleration_mps2: np.ndarray) -> None:
+        for src, a in zip(self.sources, np.asarray(acceleration_mps2, float), strict=True):
+            src.command(t_ns, float(a))
+
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
+        return np.stack([src.window(t_end_ns, n, dt_s) for src in self.sources])
+
+    def state(self, t_ns: int) -> np.ndarray:
+        return np.stack([src.state(t_ns) for src in self.sources])
+
+    def measured_until_ns(self, t_ns: int) -> int:
+        newest = min(src.newest_ns() for src in self.sources)
+        return min(t_ns, newest - self.knots_back * self.measurement_period_ns)
+
+
+__all__ = ["HISTORY_S", "ROTATION_SIGMA_RAD", "MeasuredOutputs", "OutputSource", "SmootherBatch", "SmootherOutputs",
+           "sample_times"]
