@@ -23,6 +23,7 @@ import numpy as np
 from .errors import PerceptionModelError
 from .fit import bin_observations, fit_observations
 from .landmarks_file import FIT_FIELDS, read_landmarks_files
+from .plots import plot_fit
 from .settings import METHODS, FitSettings
 
 #: Both fits and the model-free checks use the package's defaults (bins, ``holdout_fraction`` held out),
@@ -40,7 +41,7 @@ PERCENTILES = (0, 5, 50, 95, 100)
 # --------------------------------------------------------------------------- analysis
 def trend_1d(x_deg: np.ndarray, y: np.ndarray, width: float, min_count: int) -> dict[str, Any]:
     """Inlier frequency over bins of one angle (pooled over the other): is it non-increasing?"""
-    from scipy.stats import spearmanr
+    from scipy.stats import spearmanr  # scipy.stats costs ~0.8 s to import: only the trend check needs it
 
     idx = np.floor(x_deg / width).astype(np.int64)
     n = np.bincount(idx)
@@ -163,7 +164,6 @@ def fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str,
 def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any]:
     """Fit both models (binned, MLE; ``SETTINGS.holdout_fraction`` held out) on the ``landmarks.csv`` files of one
     data set, save ``model_<method>.json`` and ``fit_<method>.png`` under ``out``; summary with the checks."""
-    from .plots import plot_fit
 
     obs = read_landmarks_files(files, FIT_FIELDS)
     a_deg, t_deg = np.degrees(obs.alpha), np.degrees(obs.theta)

@@ -1,32 +1,8 @@
-"""Parallax and view angles of trunk landmarks (thesis §7.3.1, eqs. 7.3-7.4), in radians.
-
-Frame and notation (docs/perception_model.md): every vector is expressed in the gravity-aligned frame ``o``
-whose origin is the trunk (taught) camera ``s``.
-
-- ``p_is``: vector from the taught camera ``s`` to landmark ``i`` (metres), shape ``(..., 3)``;
-- ``p_ao``: offset of the current (repeat) camera from the taught camera (metres), ``(..., 3)``;
-- ``z``: optical axis of the current camera (any positive length; only its direction is used).
-
-Parallax angle ``alpha_i = angle(-p_is, -p_is + p_ao)``: the angle at the landmark between the ray
-to the taught camera and the ray to the current camera; it does not depend on the camera's
-orientation. View angle ``theta_i = angle(z, p_is - p_ao)``: the angle between the current optical
-axis and the ray from the current camera to the landmark.
-
-All functions broadcast their ``(..., 3)`` inputs with numpy rules, e.g. landmarks ``(M, 3)``
-against horizon positions ``(N, 1, 3)`` give ``(N, M)`` angles. Angles are computed as
-``atan2(|u x v|, u . v)``, accurate for angles near 0 and near pi (unlike ``arccos`` of a
-normalized dot product).
-
-Degenerate input: the angle to a zero-length vector is undefined (current camera exactly at the
-landmark, landmark exactly at the taught camera, zero optical axis). With
-``on_degenerate="nan"`` (default) those entries are NaN; with ``"raise"`` a ``GeometryError`` is
-raised. Non-finite input always gives NaN (or raises with ``"raise"``).
-
-Optical axis from yaw: ``optical_axis(yaw, pitch_down)`` returns
-``z = [cos(yaw) cos(beta), sin(yaw) cos(beta), -sin(beta)]`` for a frame ``o`` that is ENU-like
-(x east, y north, z up), yaw measured counter-clockwise from x about z, and ``beta`` the camera's
-pitch below the horizon (the thesis simulations use a camera pitched 50 degrees down).
-"""
+"""Parallax and view angles of trunk landmarks (thesis §7.3.1, eqs. 7.3-7.4), in radians: ``alpha_i`` at the landmark
+between the rays to the taught camera ``s`` and to the current camera, ``theta_i`` between the current optical axis
+``z`` and the ray to the landmark, for ``p_is`` (taught camera to landmark) and ``p_ao`` (current camera offset) in the
+gravity-aligned frame ``o`` at the taught camera, broadcast with numpy rules; ``optical_axis(yaw, pitch_down)`` gives
+``z``. Degenerate input, accuracy and the axis convention: docs/perception_model.md, "In code"."""
 
 from __future__ import annotations
 

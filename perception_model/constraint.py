@@ -1,39 +1,10 @@
-"""Perception chance constraint (thesis §7.3.2) with analytic gradients over an MPC horizon.
-
-Landmark ``i`` of the trunk is matched (becomes an inlier) with probability ``p_i`` from the
-``PerceptionModel``; landmarks are independent, so the inlier count ``L`` is Poisson-binomial
-with ``mu = sum p_i`` and ``sigma^2 = sum p_i (1 - p_i)``. The chance constraint
-``P(L >= L_min) >= 1 - delta`` becomes, under the normal approximation,
-
-    g   = mu - c_bar * sigma      - L_min >= 0,    c_bar = sqrt(2) erfinv(1 - 2 delta),
-    g_c = mu - c_bar * sqrt(mu)   - L_min >= 0     (conservative: sigma^2 <= mu, so g_c <= g).
-
-Geometry (frame ``o``: gravity-aligned, ENU-like, origin at the trunk camera; metres, radians):
-landmarks ``p_is`` are ``(M, 3)`` vectors from the taught camera; the horizon is ``N`` current
-camera positions ``p_ao`` ``(N, 3)`` and either yaws ``(N,)`` - the optical axis is then
-``z(yaw) = [cos(yaw) cos(b), sin(yaw) cos(b), -sin(b)]`` with the fixed pitch-down ``b``
-(thesis: 50 deg) - or explicit optical axes ``(N, 3)`` (gimbal given; no yaw gradient).
-
-Gradients are analytic (chain rule through ``alpha``, ``theta`` and the model) and vectorized
-over the ``N x M`` grid; per-step sums are reductions over landmarks. Where the model is clipped
-to 1 or cut to 0 (view angle beyond the cosine's first zero), a landmark contributes zero
-gradient; at the cut itself ``p`` is continuous but has a kink. At ``alpha = 0`` exactly (current
-camera on the taught ray) ``alpha`` has a cone point: the zero subgradient is used. ``sigma = 0``
-or ``mu = 0`` (no landmark with 0 < p < 1) gives a zero gradient for the ``sigma`` / ``sqrt(mu)``
-terms.
-
-Numerics of the hot path (``PerceptionConstraint.evaluate``; the ``angles`` module keeps the
-``atan2`` form): the parallax uses the chord ``h = |u^ - v^| = 2 sin(alpha/2)`` (a difference
-of unit vectors, accurate for small angles); the view factor ``c1 cos(c2 theta)`` is evaluated as
-a polynomial in ``s = |z^ + v^|^2 = 2 - 2 cos(theta)`` (Chebyshev fit at construction, max error
-~1e-15, its exact derivative used for the gradient), which avoids two transcendental calls per
-landmark; beyond theta = 90 deg the exact formula is used. Probabilities agree with
-``PerceptionModel.probability`` to ~1e-15 and the gradient is the exact derivative of the
-evaluated function (central differences agree to ~1e-9).
-
-The exact Poisson-binomial distribution of ``L`` (recursion or DFT), its tail, the normal approximation's tail and
-a Monte Carlo estimate, to check the approximation, are :mod:`perception_model.tails`'s (re-exported here).
-"""
+"""Perception chance constraint (thesis §7.3.2) with analytic gradients over an MPC horizon: landmark ``i`` is an inlier
+with probability ``p_i`` of the ``PerceptionModel``, the inlier count is Poisson-binomial, and
+``P(L >= L_min) >= 1 - delta`` becomes ``g = mu - c_bar sigma - L_min >= 0`` (or the conservative
+``mu - c_bar sqrt(mu) - L_min``) under the normal approximation, evaluated by :class:`PerceptionConstraint` for ``N``
+camera positions with yaws or optical axes in the trunk's frame ``o``. Gradients at clips, cuts and cone points, and
+the numerics of the hot path: docs/perception_model.md, "Chance constraint" and "In code". The exact tails are
+:mod:`perception_model.tails`'s (re-exported here)."""
 
 from __future__ import annotations
 
@@ -42,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from numpy.polynomial import chebyshev, polynomial
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import GeometryError, PerceptionModelError
@@ -174,7 +146,6 @@ def _view_exact(
 
 def _build_view_factor(c1: float, c2r: float, s_cut: float) -> _ViewFactor | None:
     """Fit the polynomial form of ``c1 cos(c2 theta(s))``; ``None`` if no degree is accurate enough."""
-    from numpy.polynomial import chebyshev, polynomial
 
     s_max = min(s_cut, POLY_S_LIMIT)
     k1, k0 = 2.0 / s_max, -1.0

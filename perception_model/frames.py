@@ -1,34 +1,9 @@
-"""The controller frame ``o`` and its yaw convention: the one definition used by the whole project.
-
-``vtr`` imports this module (``vtr.state.controller``, the map tools, ``vtr.control``); this
-package imports nothing from ``vtr``, so the convention lives here.
-
-Frames (``T_a_b`` maps b coordinates into a; metres, radians):
-
-* ``g``: any gravity-aligned frame (z up, opposite to gravity). On a taught map the project uses
-  the **map's gravity-aligned frame**: origin at the map origin, z up, x along the horizontal
-  projection of the first teach camera's optical axis (see :func:`T_g_map_from_up`).
-* ``o``: the **controller frame** of a trunk (taught vertex) ``t``: origin at the trunk
-  vehicle's origin, z up, x along the trunk vehicle's heading (its x axis projected on the
-  horizontal plane). ``o`` is ``g`` translated to the trunk and turned by the trunk's yaw
-  ``psi_t`` about z: ``p_o = Rz(psi_t)^T (p_g - c_t)``, ``psi_o = psi_g - psi_t``
-  (:func:`to_trunk_frame`). The trunk's own yaw in its ``o`` is 0.
-* **yaw** ``psi``: heading of the vehicle's x axis (FLU vehicle: x forward, y left, z up),
-  counter-clockwise about z seen from above, ``atan2(C[1, 0], C[0, 0])`` (:func:`yaw_of`).
-
-The camera (left rectified camera, x right, y down, z forward) sits on the vehicle with a lever arm
-``lever_arm_m`` (vehicle frame) and a fixed mount: its optical axis is yawed ``mount_yaw`` from the
-vehicle's x axis and pitched ``pitch_down`` below the horizon, no roll. In any gravity-aligned
-frame, for a vehicle with yaw ``psi`` (roll and pitch neglected: hover-level multirotor, as in the
-thesis' flat-output model), the optical axis is
-
-    z_cam = [cos(psi + mount_yaw) cos(b), sin(psi + mount_yaw) cos(b), -sin(b)]     (:func:`optical_axis`)
-
-so the **axis yaw** used by ``PerceptionConstraint`` (``perception_model.angles.optical_axis``)
-is ``psi + mount_yaw`` (:func:`axis_yaw`). The camera centre is ``p + Rz(psi) lever_arm_m``
-(:func:`camera_position`). A gimbal is a mount whose ``mount_yaw``/``pitch_down`` change with
-time; give the axis itself then (``HorizonEvaluator`` returns the gradient w.r.t. the axis).
-"""
+"""The controller frame ``o`` and its yaw convention: the one definition used by the whole project (``vtr`` imports this
+module; this package imports nothing from ``vtr``). ``g`` is a gravity-aligned frame (on a map:
+:func:`T_g_map_from_up`), ``o`` a trunk's controller frame (:func:`to_trunk_frame`), yaw the heading of the vehicle's x
+axis counter-clockwise about z (:func:`yaw_of`); a camera on a fixed mount has the optical axis of
+:func:`optical_axis` and the axis yaw of :func:`axis_yaw`. The definitions: docs/perception_model.md, "In code"
+(Frames), and docs/frames.md."""
 
 from __future__ import annotations
 

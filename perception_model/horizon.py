@@ -1,31 +1,8 @@
-"""The chance constraint over an MPC horizon whose steps fall on different trunks.
-
-``PerceptionConstraint`` holds one trunk. Along a horizon of ``N`` steps each step ``k`` is
-localized against its own trunk ``t_k`` (the taught vertex the localizer would pick), so
-``HorizonEvaluator`` holds the landmarks of **every** taught vertex, each cached in its own
-controller frame ``o`` (``perception_model.frames``), and evaluates all steps in one fused compiled
-pass over steps x landmarks (``_horizon_kernel``, numba; landmarks of shorter trunks are padded).
-
-Inputs are in one gravity-aligned frame ``g`` (the map's, see ``frames``): camera centres
-``(N, 3)``, and either the optical axes' yaw ``(N,)`` (axis ``frames.optical_axis(yaw, pitch)``,
-the trunk's fixed pitch below the horizon) or explicit optical axes ``(N, 3)`` (gimbal). Each
-step is moved into its trunk's ``o`` (``frames.to_trunk_frame``), evaluated exactly as
-``PerceptionConstraint.evaluate`` does (same formulas; the tests check agreement to 1e-12), and
-the gradients are rotated back to ``g``:
-
-- ``dg_dpos`` ``(N, 3)``: w.r.t. the camera centre (per metre);
-- ``dg_dyaw`` ``(N,)``: w.r.t. the axis yaw (per radian; with yaw input);
-- ``dg_daxis`` ``(N, 3)``: w.r.t. the unit optical axis ``z`` (tangential part: chain it through
-  ``dz/dq`` of a gimbal or body-fixed camera parameterization ``q``; only the component
-  perpendicular to ``z`` matters for unit-norm axes).
-
-``g = mu - c_bar sigma - L_min`` (normal approximation) and ``g_conservative = mu - c_bar sqrt(mu)
-- L_min`` (thesis eq. 7.8) with their gradients. A step whose trunk has no landmark, or none
-with ``p > 0`` (all out of view), returns ``mu = sigma = 0`` (``g = -L_min``), zero gradient and
-``flag = EMPTY_TRUNK`` / ``NO_LANDMARK_IN_VIEW``: never an error. ``distance_m`` is each camera's
-distance from its trunk's taught camera. ``OFF_ROUTE`` is set by callers that know the route (the evaluator
-holds trunks, not their order): ``vtr.control.field`` flags steps past the route's ends or too far from it.
-"""
+"""The chance constraint over an MPC horizon whose steps fall on different trunks: :class:`HorizonEvaluator` holds the
+landmarks of every taught vertex in its own controller frame ``o`` and evaluates all steps in one compiled pass, each
+exactly as ``PerceptionConstraint.evaluate`` does, with the gradients (position, axis yaw or optical axis) rotated back
+to the map's gravity frame ``g``; a trunk without landmarks in view is a flag, never an error. Inputs, outputs and
+flags: docs/perception_model.md, "In code" (Horizon)."""
 
 from __future__ import annotations
 

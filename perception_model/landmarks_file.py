@@ -1,39 +1,8 @@
-"""The ``landmarks.csv`` format: one schema, one in-memory record, one writer, one reader.
-
-This module owns the file that ``vtr repeat`` writes and ``perception-model fit`` reads: one row
-per taught landmark in the leaf camera's view per localization. Columns (``SCHEMA``):
-
-=================  =======  ======================================================================
-column             type     meaning
-=================  =======  ======================================================================
-``t_ns``           int64    time of the localization (leaf keyframe), nanoseconds
-``leaf_id``        int64    repeat vertex id
-``trunk_id``       int64    taught vertex id
-``landmark_id``    int64    feature index of the landmark in the trunk vertex
-``inlier``         0/1      the landmark was a localization inlier (``true``/``false``,
-                            ``yes``/``no`` are read too)
-``parallax_deg``   float    parallax angle, **degrees** in [0, 180]
-``view_deg``       float    view angle, **degrees** in [0, 180]
-``range_m``        float    distance from the leaf camera, metres (may be empty: informational)
-``matched``        0/1      the landmark was matched at all (optional column; empty = unknown)
-=================  =======  ======================================================================
-
-Angles are degrees in the file and radians everywhere in code (``Observations.alpha`` /
-``theta``): the writer and the reader are the only places that convert. Columns may come in any
-order; extra columns are ignored; ``matched`` may be missing (files written before it existed).
-
-Two containers: CSV (``*.csv``, the default) and Parquet (``*.parquet``, same column names and
-units, typed columns). Reading is columnar (pyarrow, imported on first use): only the requested
-columns, numeric dtypes, streamed in blocks, never a Python object per cell. A CSV that the fast
-reader refuses (or whose values fail the checks) is re-read by a strict streaming reader whose
-only job is the one-line error naming the file, line and column — the same messages as ever.
-Parquet errors name the file, data row (1-based) and column.
-
-``Observations`` is the one in-memory record: ``vtr`` builds it for each localization and hands
-it to ``LandmarksWriter``; the reader returns it; the fits consume it (``Observations.samples()``). The schema and
-the record live in :mod:`perception_model.landmarks_schema` (re-exported here); this module holds the writer and the
-readers.
-"""
+"""The ``landmarks.csv`` format (``vtr repeat`` writes it, ``perception-model fit`` reads it): the writer
+(``LandmarksWriter``) and the columnar readers (CSV or Parquet through pyarrow, a strict streaming re-read for the
+one-line error naming file, line and column) of the schema and the ``Observations`` record that live in
+:mod:`perception_model.landmarks_schema` (re-exported here). Columns, units and containers: docs/perception_model.md,
+"In code" (The landmarks file)."""
 
 from __future__ import annotations
 
@@ -81,7 +50,7 @@ class LandmarksWriter:
     """
 
     def __init__(self, path: str | Path):
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow (~0.1 s) on first use, here and below
 
         self.path = Path(path)
         self.rows = 0
@@ -109,7 +78,7 @@ class LandmarksWriter:
 
     def write(self, obs: Observations) -> None:
         """Append the rows of ``obs`` (nothing for an empty record)."""
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow on first use
 
         n = len(obs)
         if n == 0:
@@ -138,7 +107,7 @@ class LandmarksWriter:
             self._flush()
 
     def _flush(self) -> None:
-        import pyarrow as pa
+        import pyarrow as pa  # pyarrow on first use
 
         if self._pending:
             self._writer.write_table(pa.Table.from_batches(self._pending, schema=self._schema))
@@ -252,7 +221,7 @@ def _csv_header(path: Path) -> list[str]:
 
 def _read_csv_fast(path: Path, names: list[str], fields: tuple[str, ...]) -> Observations:
     """Columnar read with pyarrow; raises ``_Bad`` or pyarrow's error when the strict reader must judge."""
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
     import pyarrow.csv as pacsv
 
     wanted = [BY_FIELD[f].name for f in fields if BY_FIELD[f].name in names]
@@ -385,7 +354,7 @@ def read_landmarks_csv_strict(path: str | Path, fields: Collection[str] | None =
 
 # ----------------------------------------------------------------- Parquet
 def _read_parquet(path: Path, fields: tuple[str, ...]) -> Observations:
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
     import pyarrow.parquet as pq
 
     try:
@@ -465,7 +434,7 @@ def read_landmarks(path: str | Path, fields: Collection[str] | None = None) -> O
     row) for a missing file, missing columns, unparsable values, NaN or empty angles, angles
     outside [0, 180] degrees, labels other than 0/1 and files without data rows.
     """
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow on first use
 
     p = Path(path)
     problem = input_problem(p)

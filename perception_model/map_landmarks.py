@@ -1,48 +1,9 @@
-"""Map-frame conventions and records of the chance constraint on a taught map (``constraint --map``).
-
-This module is pure (it imports nothing from ``vtr``): the reading of a ``vtr`` map and the
-evaluation live on the ``vtr`` side (``vtr.app.perception.evaluate_on_map``; the ``perception-model``
-console script installed with ``vtr`` is ``vtr.cli.perception_model``, which adds the map-aware
-commands). For each query position the **trunk** is chosen by the localizer's rule (a window
-around the previous trunk minimizing ``||rho|| + 7 ||phi||``, starting at the vertex nearest to the
-first position); its landmarks are the vertex's triangulated points in the map frame, and ``mu``,
-``sigma`` and the margins come from ``PerceptionConstraint`` (explicit optical axes).
-
-Frames (``vtr`` conventions, README "Frames"): the **map frame** is the world frame of the teach
-run, i.e. the teach run's first left camera frame: x right, y down, z forward (OpenCV), metres.
-Query positions are camera centres in that frame. Parallax and view angles are angles between
-vectors, so they do not depend on the frame they are computed in; no gravity alignment is needed
-for ``mu`` and ``sigma``.
-
-Camera orientation at a query position:
-
-- **no yaw**: the trunk's orientation (its optical axis is the third column of the trunk's
-  rotation ``T_world_vertex[:3, :3]``), i.e. the vehicle flies the taught attitude;
-- **yaw ``psi``** (radians; ``yaw_deg`` in degrees in a positions file): a heading about the map
-  frame's up axis ``-y`` in the FLU sense of ``perception_model.angles``: ``psi = 0`` looks along
-  the map's ``+z`` (the first teach camera's forward direction), positive turns counter-clockwise
-  seen from above, so ``psi = +90 deg`` looks along ``-x`` (left). This is the yaw of
-  ``perception_model.frames`` in the map's gravity-aligned frame g with up = the map's ``-y``
-  (``frames.T_g_map_from_up((0, -1, 0))``: x_g = map +z, y_g = map -x). The optical axis is pitched
-  ``pitch_down`` below the map's horizontal plane (x-z) with no roll::
-
-      h(psi)  = cos(psi) e_z - sin(psi) e_x              heading
-      z_cam   = cos(b) h(psi) + sin(b) e_y               optical axis (e_y points down)
-      x_cam   = cos(psi) e_x + sin(psi) e_z              image right, horizontal
-      y_cam   = z_cam x x_cam
-
-  ``pitch_down`` defaults to the trunk's own pitch below that plane. The map's ``-y`` is gravity
-  up only when the first teach camera was level (a car camera, KITTI); for a camera pitched down at
-  the start of the teach (the synthetic aerial runs) ``-y`` is that camera's up axis and yaw/pitch
-  are relative to its tilted horizon: prefer positions without yaw there.
-
-Landmarks counted: with ``in_view=True`` (default) only trunk landmarks in view of the map's camera
-at the query pose (``vtr.camera.StereoCamera.in_view``: in front by more than its minimum depth and
-inside the image) count, which is the population the repeat pipeline writes to ``landmarks.csv`` (so a model fitted
-on those files applies); with ``in_view=False`` every trunk landmark counts (the model's view cut
-is then the only field of view).
-
-"""
+"""Map-frame conventions and records of the chance constraint on a taught map (``constraint --map``). Pure: the
+reading of a ``vtr`` map and the evaluation are ``vtr.app.perception.evaluate_on_map``'s. Each query position takes
+its trunk by the localizer's rule, the trunk's landmarks in the map frame (the teach run's first left camera frame),
+and a camera orientation that is the trunk's or a yaw about the map's ``-y`` at a pitch below its horizontal plane;
+landmarks count when in view (``in_view=True``). The conventions: docs/perception_model.md, "In code" (On a taught
+map)."""
 
 from __future__ import annotations
 

@@ -1,29 +1,8 @@
-"""The geometric perception model ``p = c1 cos(c2 theta) exp(c3 alpha)`` (thesis eq. 7.5).
-
-``p`` is the probability that a trunk landmark becomes a localization inlier, given its parallax
-angle ``alpha`` and view angle ``theta`` (see ``angles``). The constants are tied to an angle
-unit (the thesis publishes ``c = (0.424, 0.028, -0.145)`` for angles in degrees); the model stores
-its unit and every public method takes angles in radians, converting at the boundary.
-
-Definition used here (documented choices beyond the thesis formula):
-
-- the probability is clipped to [0, 1];
-- the cosine factor is cut at its first zero: ``p = 0`` where ``|c2| theta > pi/2`` (in the model
-  unit). Without the cut ``cos(c2 theta)`` turns positive again for landmarks far behind the
-  camera (theta > 169 deg with the thesis constants), which is meaningless; the cut is the
-  model's field of view;
-- derivatives are zero wherever the probability is clipped or cut (the clipped function is flat
-  there); at the clip boundaries only one-sided derivatives exist.
-
-The model also records the angle range it is documented for (``alpha_max``, ``theta_max``,
-radians); by default the range of the thesis data (parallax 0-20 deg, view 0-50 deg).
-
-Files: ``save``/``load`` use JSON with ``c1``, ``c2``, ``c3`` and ``angle_unit`` at top level,
-``valid_range`` in the model unit, and free-form ``fit`` and ``data`` sections written by the
-fitting code. ``load`` raises ``ModelFileError`` naming the file for missing/bad keys or
-non-finite constants, and warns (``PerceptionModelWarning``) when the constants give
-probabilities outside [0, 1] inside the documented range.
-"""
+"""The geometric perception model ``p = c1 cos(c2 theta) exp(c3 alpha)`` (thesis eq. 7.5): the probability that a trunk
+landmark becomes a localization inlier given its parallax ``alpha`` and view angle ``theta``, clipped to [0, 1] and cut
+at the cosine's first zero, constants tied to a stored angle unit, every public method in radians; ``save``/``load``
+as JSON (``ModelFileError`` naming the file). The definition, its documented range and the file:
+docs/perception_model.md, "Model and fit" and "In code" (Model)."""
 
 from __future__ import annotations
 

@@ -23,11 +23,11 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
     number of observations per bin. Bins with fewer than ``min_count`` observations (the fit did not use
     them; default: the smallest count among the bins it used) are hatched, not coloured: a frequency of 0 or
     1 from a handful of samples says nothing."""
-    import matplotlib
+    import matplotlib  # matplotlib (~0.5 s) only when a figure is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
+    import numpy as np  # here: perception-model --help imports this module (tests/cli/test_startup.py)
     from matplotlib.colors import LogNorm
 
     model = result.model
@@ -92,7 +92,7 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
 
 def figure_problem(path: Path) -> str | None:
     """Why ``path`` cannot be a figure (its suffix names no format matplotlib writes), as one line, or None."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # matplotlib only when a figure is checked
 
     formats = FigureCanvasAgg.get_supported_filetypes()
     suffix = Path(path).suffix.lower().lstrip(".")

@@ -12,16 +12,9 @@ from scipy.spatial.transform import Rotation
 
 from vtr.errors import DataError
 from vtr.io import open_source
-from vtr.io.cloud import (
-    STREAM_FILES,
-    WGS84_A,
-    WGS84_E2,
-    CloudRun,
-    CloudRunWriter,
-    enu_to_geodetic,
-    geodetic_to_enu,
-    gimbal_angles_from_rotation,
-)
+from vtr.io.cloud import STREAM_FILES, CloudRun
+from vtr.io.cloud_geometry import WGS84_A, WGS84_E2, enu_to_geodetic, geodetic_to_enu, gimbal_angles_from_rotation
+from vtr.io.cloud_writer import CloudRunWriter
 
 G = 9.80665  # m/s^2
 T0_NS = 1_560_000_000_000_000_000  # Unix ns (2019)

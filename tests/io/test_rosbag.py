@@ -13,12 +13,8 @@ import pytest
 from vtr.camera import StereoCamera
 from vtr.errors import CalibrationError, DataError, OutputError
 from vtr.io import EurocSource, open_source
-from vtr.io.rosbag import (
-    CameraInfoData,
-    RosbagSource,
-    _pick_image_topic,
-    decode_image,
-)
+from vtr.io.ros_messages import CameraInfoData, decode_image
+from vtr.io.rosbag import RosbagSource, _pick_image_topic
 from vtr.io.rosbag_writer import BagTopics, RosbagWriter, write_bag
 
 DATA = Path(__file__).resolve().parents[2] / "datasets"

@@ -21,17 +21,20 @@ from pathlib import Path
 
 import numpy as np
 
+from perception_model.landmarks_file import FIT_FIELDS, read_landmarks_files
 from perception_model.model import PerceptionModel
 from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN, Method
 
 from ..config import Config
 from ..io import open_source
 from ..map import Map
+from ..map.database import SIDE_FILES
 from ..navigation.experiences import single_experience
 from ..navigation.localization import Localization
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
 from .outputs import OutputFolder
+from .perception import localization_envelope, write_envelope
 from .pipeline import teach_command, write_landmarks_csv
 from .repeat_run import run_repeat
 
@@ -86,7 +89,6 @@ def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_se
 def teach(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray | None = None) -> Path:
     """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one: the map and SQLite's files beside
     it, nothing else of a similar name), keeping ``gravity_up`` in it."""
-    from ..map.database import SIDE_FILES
 
     for f in (map_path, *(Path(f"{map_path}{s}") for s in SIDE_FILES)):
         if f.is_file() and not f.is_symlink():
@@ -112,8 +114,7 @@ def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip
 
 def fit_model(landmark_files: list[Path], method: Method = "mle") -> PerceptionModel:
     """The perception model fitted on repeat logs (``perception-model fit`` with a held-out split)."""
-    from perception_model.fit import FitSettings, fit_observations
-    from perception_model.landmarks_file import FIT_FIELDS, read_landmarks_files
+    from perception_model.fit import FitSettings, fit_observations  # the fit imports scipy.optimize (~1.3 s)
 
     return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), FitSettings(method=method)).model
 
@@ -171,7 +172,6 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
                        progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> MissionReport:
     """Teach a straight aerial route, repeat it at lateral offsets (left), fit the model on the repeats'
     landmarks, compute the localization envelope and compare it with where the repeats localized."""
-    from .perception import localization_envelope, write_envelope
 
     own = OutputFolder.prepare(out_dir)      # the mission rewrites only the entries it made (see OutputFolder)
     own.claim_entries(["teach", "route.vtrmap", "model.json", "envelope", "report.html",

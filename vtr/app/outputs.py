@@ -21,15 +21,17 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import stat
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
-from perception_model.outputs import TMP_TAG, create_exclusive, entry_problem, temporary_name
+from perception_model.outputs import TMP_TAG, create_exclusive, entry_problem, replace_text, temporary_name
 
 from ..errors import OutputError
 from ..io.outputs import check_apart
+from ..map.database import SIDE_FILES
 
 RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
 __all__ = ["RECORD", "TMP_TAG", "OutputFolder"]
@@ -235,9 +237,7 @@ class OutputFolder:
     def remove_entry(self, name: str) -> None:
         """Remove entry ``name`` that vtr made here (a file, with a map's SQLite side files, or a whole folder);
         ``OutputError`` for anything vtr did not make (see :meth:`claim_entries`)."""
-        import shutil
 
-        from ..map.database import SIDE_FILES  # SQLite's files beside a map
 
         self.claim_entries([name])
         p = self.path / name
@@ -256,7 +256,6 @@ class OutputFolder:
         order (``run.json`` last: until it moves, this folder still says which run it holds). Files vtr did not
         make here are kept, and a link or a file vtr did not make at an incoming name stops the move
         (``OutputError``) before anything is replaced."""
-        from ..map.database import SIDE_FILES  # SQLite's files beside a map
 
         staged.made, self.made = staged._read_record(), self._read_record()   # other writers recorded files too
         last = [n for n in last if n in staged.made]
@@ -280,8 +279,6 @@ class OutputFolder:
             staged.path.rmdir()                            # kept when something else is in it
 
     def _write_record(self, names: set[str]) -> None:
-        from perception_model.outputs import replace_text
-
         replace_text(self.path / RECORD, "".join(f"{n}\n" for n in sorted(names)))
         self.made = set(names)
 
@@ -300,7 +297,6 @@ class OutputFolder:
     def clear(self) -> None:
         """Remove every file vtr made here (as recorded; a map with its SQLite side files), then the record.
         Nothing else is touched: entries that are links or folders are left alone."""
-        from ..map.database import SIDE_FILES  # SQLite's files beside a map
 
         for name in sorted(self.made):
             for n in (name, *(name + s for s in SIDE_FILES)):

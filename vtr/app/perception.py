@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from perception_model import frames
+from perception_model.angles import parallax_angle, view_angle
 from perception_model.constraint import PerceptionConstraint, check_bounds
 from perception_model.errors import GeometryError, InputDataError
 from perception_model.map_landmarks import (
@@ -42,6 +43,7 @@ from ..camera import StereoCamera
 from ..control.field import TaughtPathField, TaughtVertex, read_taught_vertices
 from ..errors import VtrError
 from ..map import Map
+from .outputs import OutputFolder
 from .runfiles.envelope_csv import DIRECTIONS, envelope_row, write_envelope_rows
 
 #: Envelope defaults: grid step and largest offset scanned (m), bisection steps on a crossing.
@@ -184,7 +186,6 @@ def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_ma
     """Share of the expected inliers (sum of p over the in-view landmarks) of ``vertex`` seen from a camera at
     ``position_map`` (taught attitude) that come from landmarks outside the model's valid range of parallax and
     view angles."""
-    from perception_model.angles import parallax_angle, view_angle
 
     pos = np.asarray(position_map, float)
     R = vertex.T_map_camera[:3, :3]
@@ -297,7 +298,6 @@ def check_envelope_grid(step_m: float, max_m: float) -> None:
 
 def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, title: str = "") -> tuple[Path, Path]:
     """``out_dir/envelope.csv`` (one row per vertex) and ``out_dir/envelope.png`` (plan view); returns both paths."""
-    from .outputs import OutputFolder
 
     folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
     with folder.open("envelope.csv") as fh:
@@ -311,7 +311,7 @@ def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: s
     """Plan view of the taught path with the left/right envelope as a band and heading arrows, and the four
     distances per vertex. Distances capped at the scan limit (no crossing found within ``--max``) are marked
     as capped: the true envelope there is at least that wide, the value is not a result."""
-    import matplotlib
+    import matplotlib  # matplotlib (~0.5 s) only when the plot is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

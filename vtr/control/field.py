@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from perception_model import frames
@@ -75,14 +76,14 @@ def perception_errors() -> Iterator[None]:
 def translating(method: F) -> F:
     """``method`` with :func:`perception_errors` around its body (the field's public methods)."""
     @functools.wraps(method)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
         with perception_errors():
             return method(*args, **kwargs)
 
     return cast(F, wrapper)
 
 
-def check_direction(direction) -> int:
+def check_direction(direction: object) -> int:
     """``direction`` as +1 (taught order) or -1 (the route flown backward); EstimationError otherwise."""
     if isinstance(direction, bool) or direction not in (FORWARD, BACKWARD):
         raise EstimationError(f"direction: expected {FORWARD} (taught order) or {BACKWARD} (reversed), "
@@ -195,7 +196,7 @@ class TaughtPathField:
 
     @classmethod
     @translating
-    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map=None,
+    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map: ArrayLike | None = None,
                  mount: CameraMount | None = None, config: LocalizationConfig | None = None,
                  l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
                  form: str = "normal") -> TaughtPathField:
@@ -235,12 +236,13 @@ class TaughtPathField:
             out.off_route_past_end_m = float(control.off_route_past_end_m)
         return out
 
-    def _index(self, value, what: str) -> int:
+    def _index(self, value: object, what: str) -> int:
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or not 0 <= int(value) < len(self):
             raise EstimationError(f"{what}: {value!r} is not a trunk index (0 to {len(self) - 1})")
         return int(value)
 
-    def _horizon(self, positions, yaw, axes=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _horizon(self, positions: ArrayLike, yaw: ArrayLike, axes: ArrayLike | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Positions (N, 3), yaw (N,) and axes (N, 3) checked: finite, shapes that fit, N >= 1."""
         pos = np.asarray(positions, float) if not isinstance(positions, str) else np.array(np.nan)
         if pos.ndim == 1:

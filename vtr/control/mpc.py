@@ -1,63 +1,15 @@
-"""Perception-aware flatness-based MPC (thesis ch. 3 eq. 3.8 with the chance constraint of §7.3.3).
-
-One quadratic program per outer-loop tick (50 Hz) over the linear flat model
-(:mod:`vtr.control.flat_model`, 10 Hz grid, N = 15):
-
-    min  sum_k (y_k - r_k)' Q (y_k - r_k) + w_k' R w_k + rho * sum_k s_k
-    s.t. z_{k+1} = A z_k + B w_k,   |v|, |a|, |j|, |psi_dot| bounded per axis,
-         path rows (one of):
-           none        -
-           fixed d     |n_left . (p_k - c_k)| <= d + s_k,  |n_up . (p_k - c_k)| <= d + s_k
-           perception  g(y0_k) + grad g(y0_k) . (y_k - y0_k) [- |grad_p g| dt/2 u_k . v_k] >= margin - s_k
-         terminal set  v_N = 0, a_N = 0 (hover),   s_k >= 0.
-
-``r_k`` runs along the taught path at the desired speed in the direction of travel
-(:class:`TaughtPathReference`, ``direction`` -1 for the route flown back, from wherever the vehicle is), its
-yaw per ``ControlConfig.yaw_reference`` (``"along_travel"``, or ``"as_taught"``: a camera on its mount keeps
-looking as taught, tail first on the way back). The perception row is the field's constraint
-(``constraint_form``: ``mu - c_bar sigma`` or eq. 7.8's ``mu - c_bar sqrt(mu)``, minus ``L_min``) linearized
-about the previous prediction (one SQP iteration a tick, as in the thesis), each step against its own trunk
-(localizer's rule in the direction of travel; ``grad mu`` where ``mu < c_bar**2/4``, see the field).
-
-**Speed governor.** On the taught path ``g`` is at its ridge (gradient ~0), so the linearized row learns of a
-narrow tube only once the plan has left the ridge, at speed too late. When the true constraint along a
-tick's new plan falls below 0 (``governor_check = "plan"``) or its rows need more slack than
-``perception_margin``, the reference's speed (``reference_speed_mps``) is multiplied by ``speed_governor``;
-otherwise it recovers toward ``speed_mps`` at ``accel_max_mps2``. ``intersample = "velocity"`` adds
-``|grad_p g| dt/2 |v_k|`` to each row (between grid points; off by default). Measurements: the docs page.
-
-**Recursive feasibility.** The terminal set is hover: at step N the vehicle is at rest, and a
-resting vehicle stays feasible for every constraint above (all are time-invariant functions of
-``(p, psi)``), so the previous plan followed by hover is feasible for the next problem when the
-constraint is exact and the grid aligned. Two things break that guarantee in practice: the
-constraint is linearized (SQP) and the 50 Hz ticks shift a 10 Hz grid. The path rows are
-therefore softened with an exact L1 penalty (``slack_weight``, far above any tracking cost) so the
-QP always has a solution; slacks are reported every tick (``MpcSolution.max_slack_m`` /
-``max_slack_inliers``) and are zero
-whenever the hard problem is feasible. The hover terminal set also makes the controller brake
-in time: with a 1.5 s horizon it never plans faster than it can stop.
-
-**Errors.** Inputs are checked where they enter (``EstimationError``: a state of 10 finite numbers, a trunk
-index of the field, a reference of finite points, a finite non-zero camera axis). A start the bounds
-exclude (a speed above ``speed_max_mps`` on an axis, say) makes the QP infeasible. A QP that OSQP does not
-solve (``primal infeasible``, ``dual infeasible``, ...) raises ``MpcInfeasible`` (an ``EstimationError``)
-instead of returning its iterate: that iterate is not a command (an infeasible QP's ``x`` held jerks of
-2e9), and which fallback is safe (brake, hover, hand over to a pilot) depends on the vehicle, so the
-caller decides. ``maximum iterations reached`` returns
-the best iterate (finite, within the box bounds up to OSQP's tolerance) with that ``status``.
-``ControlConfig`` owns ``l_min`` and ``c_bar``: the field's constraint is rebuilt with them.
-
-QPs are solved by OSQP (sparse, warm-started; the constraint matrix keeps one sparsity pattern
-and only its values are updated). Each QP is posed relative to the current position and yaw (OSQP's
-tolerances are absolute: absolute map coordinates in the perception rows cost accuracy and speed).
-Perception rows with gradients steeper than 1 inlier/m are divided by their gradient norm; the reported
-slacks are in their own units (``MpcSolution.max_slack_m`` for fixed path rows, ``max_slack_inliers`` for
-perception rows). See docs/perception_aware_mpc/README.md.
-"""
+"""Perception-aware flatness-based MPC (thesis ch. 3 eq. 3.8 with the chance constraint of §7.3.3): one OSQP quadratic
+program per outer-loop tick over the linear flat model (:mod:`vtr.control.flat_model`), tracking a reference along the
+taught path in the direction of travel (:class:`TaughtPathReference`) under box bounds, softened path rows (none, a
+fixed tube, or the field's perception constraint linearized about the previous plan) and a hover terminal set; a speed
+governor slows the reference where the plan cannot keep the constraint, and a QP OSQP does not solve raises
+``MpcInfeasible``. The problem, the governor, recursive feasibility, errors and the solver:
+docs/perception_aware_mpc/README.md, "The controller"."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Literal
 
 import numpy as np
@@ -171,7 +123,7 @@ class PerceptionAwareMPC:
     def __init__(self, reference: TaughtPathReference, config: ControlConfig | None = None, *,
                  mode: Mode = "perception", fixed_bound_m: float = 0.0,
                  field: TaughtPathField | None = None, camera: str | np.ndarray = CAMERA_MOUNT) -> None:
-        import osqp
+        import osqp  # osqp (~0.1 s) only when a controller is built
 
         self.cfg = c = config or ControlConfig()
         check_section(c, "control")  # a config built in code is checked against its declared domains too
@@ -228,7 +180,7 @@ class PerceptionAwareMPC:
     def _is(self, k: int) -> int:
         return self.n * (_NZ + _NW) + k
 
-    def _build(self, osqp) -> None:
+    def _build(self, osqp: ModuleType) -> None:
         c, n = self.cfg, self.n
         # cost: 1/2 x' P x + q' x  (P = 2 Q on outputs, 2 R on inputs)
         pd = np.zeros(self.nx)
@@ -324,7 +276,7 @@ class PerceptionAwareMPC:
         self.l[r:r + self.n_soft], self.u[r:r + self.n_soft] = 0.0, np.inf
 
     # ------------------------------------------------------------------ one tick
-    def _check_state(self, z0) -> np.ndarray:
+    def _check_state(self, z0: object) -> np.ndarray:
         """``z0`` as 10 finite floats ``(p, v, a, psi)``."""
         try:
             z = np.asarray(z0, float)

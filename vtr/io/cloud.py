@@ -1,40 +1,8 @@
-"""CLOUD run folders (Greeff thesis §9.5): monocular images plus GPS, attitude, IMU and gimbal streams.
-
-A run folder holds ``images/`` (left camera only, named in acquisition order) and comma-delimited
-text streams, one row per sample, ``timestamp, values...`` with Unix-ns timestamps:
-
-=================== ====== ===================================================== ==================
-file                rate   values (unit)                                         frame
-=================== ====== ===================================================== ==================
-``imageids.txt``    15 Hz  image id as found in ``images/``                      -
-``velocities.txt``  50 Hz  vx, vy, vz (m/s)                                      ground ENU
-``attitude.txt``    100 Hz quaternion (``quat_order``, default x y z w) rotating vehicle FLU -> ground ENU
-``acceleration.txt`` 400 Hz ax, ay, az (m/s^2, raw IMU specific force)          vehicle FLU
-``gps.txt``         50 Hz  latitude (deg), longitude (deg), altitude (m, WGS84 ellipsoid)
-``gimbalstate.txt`` 50 Hz  x, y, z (m), quaternion: ``T_base_camera``            base FLU <- camera
-``gimbalangles.txt`` 50 Hz roll, pitch, yaw (deg, ZYX) of the gimbal frame w.r.t. NED; yaw relative
-                           to the vehicle heading (DJI SDK convention)
-=================== ====== ===================================================== ==================
-
-The thesis names ``velocities.txt``, ``attitude.txt``, ``acceleration.txt``, ``gps.txt`` and
-``gimbalstate.txt``; the image-id and gimbal-angle file names are not given there, so the reader
-accepts the aliases in ``STREAM_FILES`` (the writer uses the first). The order of the quaternion
-components is not stated either: ``quat_order`` ('xyzw', the ROS order, or 'wxyz') selects it, and
-every quaternion must be of unit norm (a wrong column count or order usually fails that check).
-
-Frames (``T_a_b`` maps b to a): ground ENU (world), NED (``R_ENU_NED``); vehicle and base are FLU,
-base shifted vertically from the vehicle (``T_vehicle_base``, published with the dataset, identity by
-default); camera is the OpenCV optical frame (x right, y down, z forward). The gimbal frame is taken
-as FRD with x along the optical axis, so ``R_gimbal_camera`` (default ``R_GIMBAL_CAMERA``) permutes
-the axes.
-
-What works with CLOUD here: the run is **monocular**, so it is *not* a stereo ``FrameSource``
-(stereo odometry, teach and repeat need a stereo source and ``open_source`` refuses a CLOUD
-folder). ``CloudRun`` gives typed streams, the GPS track in ENU metres relative to the first fix
-(WGS84 -> ECEF -> ENU), a vehicle reference trajectory (GPS position + attitude) and the camera
-reference trajectory at image times (with the gimbal state) for evaluating localization, and the
-left images as a ``Sequence`` of ``MonoImage``.
-"""
+"""CLOUD run folders (thesis §9.5): monocular images plus GPS, attitude, IMU and gimbal streams, read as typed
+streams by :class:`CloudRun`, with the GPS track in ENU metres, the vehicle's reference trajectory and the camera's
+at image times; not a stereo ``FrameSource`` (the run is monocular). The layout, file names, quaternion order and
+frames: docs/inputs.md, "CLOUD run folders" (frames: :mod:`vtr.io.cloud_geometry`; writer:
+:mod:`vtr.io.cloud_writer`)."""
 
 from __future__ import annotations
 
@@ -46,10 +14,10 @@ from typing import Any, NoReturn
 
 import cv2
 import numpy as np
-from numpy.typing import ArrayLike
 
 from ..errors import DataError
 from .base import GroundTruth
+from .cloud_geometry import R_GIMBAL_CAMERA, geodetic_to_enu, rotation_from_gimbal_angles, spatial_transform
 
 IMAGES_DIR = "images"
 #: stream name -> accepted file names (the first is the one written)
@@ -70,115 +38,6 @@ QUAT_ORDERS = ("xyzw", "wxyz")
 QUAT_NORM_TOL = 1e-3
 MONO16_SHIFT = 8  # 16-bit images -> 8 bit by keeping the high byte
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-
-# WGS84 ellipsoid
-WGS84_A = 6378137.0  # semi-major axis (m)
-WGS84_F = 1.0 / 298.257223563  # flattening
-WGS84_E2 = WGS84_F * (2.0 - WGS84_F)  # first eccentricity squared
-ECEF_TO_GEODETIC_ITERATIONS = 8  # fixed-point iterations; converge to < 1e-9 m near the surface
-
-#: R_enu_ned (its own inverse)
-R_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-#: R_flu_frd: vehicle FLU <- FRD
-R_FLU_FRD = np.diag([1.0, -1.0, -1.0])
-#: R_gimbal_camera: gimbal FRD (x along the optical axis) <- camera optical (x right, y down, z forward)
-R_GIMBAL_CAMERA = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-def _transform() -> Any:
-    """``scipy.spatial.transform``, imported on first use (~0.3 s: not on the path of other formats)."""
-    from scipy.spatial import transform
-
-    return transform
-
-
-# ---------------------------------------------------------------------------------------------
-# geodesy
-
-
-def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> np.ndarray:
-    """WGS84 latitude/longitude (deg) and ellipsoidal height (m) -> ECEF (N, 3) in metres."""
-    lat, lon = np.radians(np.asarray(lat_deg, float)), np.radians(np.asarray(lon_deg, float))
-    h = np.asarray(alt_m, float)
-    sl = np.sin(lat)
-    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sl**2)  # prime vertical radius of curvature
-    x = (n + h) * np.cos(lat) * np.cos(lon)
-    y = (n + h) * np.cos(lat) * np.sin(lon)
-    z = (n * (1.0 - WGS84_E2) + h) * sl
-    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
-
-
-def ecef_to_geodetic(p_ecef: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ECEF (N, 3) m -> WGS84 latitude (deg), longitude (deg), ellipsoidal height (m)."""
-    p = np.asarray(p_ecef, float)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    lon = np.arctan2(y, x)
-    r = np.hypot(x, y)
-    lat = np.arctan2(z, r * (1.0 - WGS84_E2))
-    h = np.zeros_like(lat)
-    for _ in range(ECEF_TO_GEODETIC_ITERATIONS):
-        n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-        h = r / np.cos(lat) - n
-        lat = np.arctan2(z, r * (1.0 - WGS84_E2 * n / (n + h)))
-    return np.degrees(lat), np.degrees(lon), h
-
-
-def R_enu_ecef(lat0_deg: float, lon0_deg: float) -> np.ndarray:
-    """Rotation ECEF -> local ENU at the given geodetic origin."""
-    lat, lon = np.radians(lat0_deg), np.radians(lon0_deg)
-    sl, cl, sp, cp = np.sin(lon), np.cos(lon), np.sin(lat), np.cos(lat)
-    return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
-
-
-def geodetic_to_enu(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike, lat0_deg: float, lon0_deg: float,
-                    alt0_m: float) -> np.ndarray:
-    """WGS84 fixes -> ENU positions (N, 3) in metres relative to the origin fix (exact, no flat-earth)."""
-    d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m)
-    return d @ R_enu_ecef(lat0_deg, lon0_deg).T
-
-
-def enu_to_geodetic(p_enu: np.ndarray, lat0_deg: float, lon0_deg: float,
-                    alt0_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ENU positions (N, 3) m relative to an origin fix -> WGS84 latitude, longitude (deg), height (m)."""
-    p = geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m) + np.asarray(p_enu, float) @ R_enu_ecef(lat0_deg, lon0_deg)
-    return ecef_to_geodetic(p)
-
-
-# ---------------------------------------------------------------------------------------------
-# gimbal
-
-
-def vehicle_yaw_ned(R_enu_vehicle: np.ndarray) -> np.ndarray:
-    """Heading (rad, ZYX yaw of the vehicle FRD frame in NED, clockwise from north) of (..., 3, 3)."""
-    R = R_ENU_NED @ np.asarray(R_enu_vehicle) @ R_FLU_FRD  # R_ned_frd (R_ENU_NED is its own inverse)
-    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
-
-
-def rotation_from_gimbal_angles(roll: ArrayLike, pitch: ArrayLike, yaw_rel: ArrayLike, R_enu_vehicle: np.ndarray,
-                                R_vehicle_base: np.ndarray | None = None,
-                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA) -> np.ndarray:
-    """``R_base_camera`` (N, 3, 3) from gimbal angles (rad; roll/pitch w.r.t. NED, yaw relative to the
-    vehicle heading) and the vehicle attitude ``R_enu_vehicle`` (N, 3, 3) at the same times."""
-    R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
-    psi = vehicle_yaw_ned(R_enu_vehicle) + np.asarray(yaw_rel, float)
-    ang = np.stack(np.broadcast_arrays(psi, np.asarray(pitch, float), np.asarray(roll, float)), axis=-1)
-    R_ned_gimbal = _transform().Rotation.from_euler("ZYX", ang.reshape(-1, 3)).as_matrix()
-    R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)
-    R_vehicle_camera = np.swapaxes(R_enu_vehicle, -1, -2) @ R_ENU_NED @ R_ned_gimbal @ R_gimbal_camera
-    return R_vb.T @ R_vehicle_camera
-
-
-def gimbal_angles_from_rotation(R_base_camera: np.ndarray, R_enu_vehicle: np.ndarray,
-                                R_vehicle_base: np.ndarray | None = None,
-                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
-                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Inverse of ``rotation_from_gimbal_angles``: (roll, pitch, yaw_rel) in rad, yaw wrapped to (-pi, pi]."""
-    R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
-    R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)
-    R_ned_gimbal = R_ENU_NED @ R_enu_vehicle @ R_vb @ np.asarray(R_base_camera, float) @ R_gimbal_camera.T
-    psi, pitch, roll = _transform().Rotation.from_matrix(R_ned_gimbal.reshape(-1, 3, 3)).as_euler("ZYX").T
-    yaw_rel = np.angle(np.exp(1j * (psi - vehicle_yaw_ned(R_enu_vehicle))))
-    return roll, pitch, yaw_rel
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,11 +63,11 @@ class Attitude:
 
     @property
     def R_enu_vehicle(self) -> np.ndarray:
-        return _transform().Rotation.from_quat(self.quat_xyzw).as_matrix()
+        return spatial_transform().Rotation.from_quat(self.quat_xyzw).as_matrix()
 
     def at(self, t_ns: np.ndarray) -> np.ndarray:
         """``R_enu_vehicle`` slerped at times inside the stream's span (N, 3, 3)."""
-        return _slerp(self.t_ns, _transform().Rotation.from_quat(self.quat_xyzw), np.asarray(t_ns, np.int64))
+        return _slerp(self.t_ns, spatial_transform().Rotation.from_quat(self.quat_xyzw), np.asarray(t_ns, np.int64))
 
 
 @dataclass(frozen=True)
@@ -269,7 +128,7 @@ def _slerp(t: np.ndarray, rots: Any, tq: np.ndarray) -> np.ndarray:
     if len(t) == 1:
         return np.repeat(rots.as_matrix(), len(tq), axis=0)
     t0 = t[0]
-    return _transform().Slerp((t - t0).astype(float), rots)((tq - t0).astype(float)).as_matrix()
+    return spatial_transform().Slerp((t - t0).astype(float), rots)((tq - t0).astype(float)).as_matrix()
 
 
 def _interp(t: np.ndarray, v: np.ndarray, tq: np.ndarray) -> np.ndarray:
@@ -476,7 +335,7 @@ class CloudRun:
         t, v, lines, f = self._numeric("gimbal_state")
         q = self._quats(v[:, 3:], lines, f)
         T = np.tile(np.eye(4), (len(t), 1, 1))
-        T[:, :3, :3] = _transform().Rotation.from_quat(q).as_matrix()
+        T[:, :3, :3] = spatial_transform().Rotation.from_quat(q).as_matrix()
         T[:, :3, 3] = v[:, :3]
         return GimbalState(t, T)
 
@@ -556,73 +415,10 @@ class CloudRun:
         T_ev[:, :3, :3] = att.at(tq)
         T_ev[:, :3, 3] = _interp(gps.t_ns, gps.enu(), tq)
         T_bc = np.tile(np.eye(4), (len(tq), 1, 1))
-        T_bc[:, :3, :3] = _slerp(gs.t_ns, _transform().Rotation.from_matrix(gs.T_base_camera[:, :3, :3]), tq)
+        T_bc[:, :3, :3] = _slerp(gs.t_ns, spatial_transform().Rotation.from_matrix(gs.T_base_camera[:, :3, :3]), tq)
         T_bc[:, :3, 3] = _interp(gs.t_ns, gs.T_base_camera[:, :3, 3], tq)
         return GroundTruth(tq, T_ev @ self.T_vehicle_base @ T_bc)
 
     def ground_truth(self) -> GroundTruth:
         """Camera reference trajectory at the image times (same as ``camera_trajectory()``)."""
         return self.camera_trajectory()
-
-
-# ---------------------------------------------------------------------------------------------
-# writer (synthetic runs for tests and tools)
-
-
-class CloudRunWriter:
-    """Writes a CLOUD run folder with the layout ``CloudRun`` reads (first accepted file names)."""
-
-    def __init__(self, path: str | Path, quat_order: str = "xyzw"):
-        if quat_order not in QUAT_ORDERS:
-            raise DataError(f"quat_order {quat_order!r}: one of {', '.join(QUAT_ORDERS)}")
-        self.path = Path(path)
-        (self.path / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
-        self.quat_order = quat_order
-
-    def _write(self, name: str, t_ns: ArrayLike, cols: Sequence[ArrayLike], fmt: str) -> Path:
-        f = self.path / STREAM_FILES[name][0]
-        t_ns = np.asarray(t_ns, np.int64)
-        vals = np.column_stack([np.asarray(c, float) for c in cols])
-        with open(f, "w") as fh:
-            for t, row in zip(t_ns, vals, strict=True):
-                fh.write(f"{int(t)}," + ",".join(fmt % x for x in row) + "\n")
-        return f
-
-    def _q(self, R: ArrayLike) -> np.ndarray:
-        q = _transform().Rotation.from_matrix(np.asarray(R, float).reshape(-1, 3, 3)).as_quat()
-        return q[:, [3, 0, 1, 2]] if self.quat_order == "wxyz" else q
-
-    def write_images(self, t_ns: np.ndarray, images: Sequence[np.ndarray], ext: str = ".png") -> None:
-        """``images/NNNNNN<ext>`` and the image-id stream (ids without extension)."""
-        ids = []
-        for k, img in enumerate(images):
-            ids.append(f"{k:06d}")
-            cv2.imwrite(str(self.path / IMAGES_DIR / f"{ids[-1]}{ext}"), img)
-        with open(self.path / STREAM_FILES["image_ids"][0], "w") as fh:
-            for t, i in zip(np.asarray(t_ns, np.int64), ids, strict=True):
-                fh.write(f"{int(t)},{i}\n")
-
-    def write_velocities(self, t_ns: ArrayLike, v_enu: ArrayLike) -> None:
-        """Velocity (m/s) in ground ENU."""
-        self._write("velocities", t_ns, list(np.asarray(v_enu, float).T), "%.9f")
-
-    def write_acceleration(self, t_ns: ArrayLike, a_vehicle: ArrayLike) -> None:
-        """Specific force (m/s^2) in vehicle FLU."""
-        self._write("acceleration", t_ns, list(np.asarray(a_vehicle, float).T), "%.9f")
-
-    def write_attitude(self, t_ns: ArrayLike, R_enu_vehicle: ArrayLike) -> None:
-        """Attitude rotations vehicle FLU -> ENU (N, 3, 3)."""
-        self._write("attitude", t_ns, list(self._q(R_enu_vehicle).T), "%.12f")
-
-    def write_gps(self, t_ns: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> None:
-        """WGS84 fixes (deg, deg, m)."""
-        self._write("gps", t_ns, [lat_deg, lon_deg, alt_m], "%.12f")
-
-    def write_gimbal_state(self, t_ns: ArrayLike, T_base_camera: ArrayLike) -> None:
-        """Camera poses on the base (N, 4, 4)."""
-        T = np.asarray(T_base_camera, float).reshape(-1, 4, 4)
-        self._write("gimbal_state", t_ns, [*T[:, :3, 3].T, *self._q(T[:, :3, :3]).T], "%.12f")
-
-    def write_gimbal_angles(self, t_ns: ArrayLike, roll: ArrayLike, pitch: ArrayLike, yaw: ArrayLike) -> None:
-        """Gimbal angles given in rad, written in degrees."""
-        self._write("gimbal_angles", t_ns, [np.degrees(roll), np.degrees(pitch), np.degrees(yaw)], "%.9f")

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -158,7 +159,6 @@ def write_reordered_clip(src: str | Path, dst: str | Path, order: list[int]) -> 
     """A KITTI-layout copy of clip ``src`` at ``dst`` with its frames in ``order`` (images linked, not copied;
     times kept increasing, poses with their frames): reversed order is the route travelled backward facing as
     taught (a gimbal's return flight), a gap drops frames mid-route (odometry loses track across it)."""
-    import shutil
 
     src, dst = Path(src), Path(dst)
     (dst / "image_0").mkdir(parents=True)

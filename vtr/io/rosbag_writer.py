@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+from binascii import crc32
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,20 +19,18 @@ from ..conventions import NS_PER_S
 from ..errors import DataError
 from ..types import StereoImages
 from .outputs import check_new_output
-from .rosbag import (
+from .ros_messages import (
     _COMPRESSED_FORMATS,
     _MONO8,
     _MONO16,
-    BAG_KINDS,
     COMPRESSED_MSGTYPE,
     IMAGE_MSGTYPE,
     INFO_MSGTYPE,
-    ROS1_SUFFIX,
-    ROS2_BAG_VERSION,
     TF_MSGTYPE,
     TF_STATIC_TOPIC,
     CameraInfoData,
 )
+from .rosbag import BAG_KINDS, ROS1_SUFFIX, ROS2_BAG_VERSION
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ class RosbagWriter:
                  infos: tuple[CameraInfoData, CameraInfoData] | None = None,
                  write_info: bool = True, write_tf: bool = True, base_frame: str = "base_link",
                  T_base_left: np.ndarray | None = None):
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # rosbags only when a bag is written
 
         if kind not in BAG_KINDS:
             raise DataError(f"unknown bag kind {kind!r} (one of {', '.join(BAG_KINDS)})")
@@ -212,8 +212,6 @@ def add_mcap_chunk_crcs(path: Path) -> int:
     so that a reader detects a damaged chunk instead of decoding other bytes, then the data section's CRC-32 in
     its DataEnd record (every byte from the leading magic up to DataEnd, as the MCAP libraries check it);
     returns the number of chunks. Compressed chunks keep their CRC (vtr writes none)."""
-    import struct
-    from binascii import crc32
 
     n = 0
     with open(path, "r+b") as f:

@@ -75,6 +75,14 @@ def connect(path: Path, readonly: bool, immutable: bool = False) -> Connection:
     return conn
 
 
+def _read_only_storage(err: BaseException) -> bool:
+    """Whether ``err`` is SQLite (or the OS) refusing to write a read-only file or folder."""
+    if isinstance(err, PermissionError):
+        return True
+    return isinstance(err, sqlite3.OperationalError) and (
+        "readonly" in str(err) or "unable to open" in str(err))
+
+
 def connect_readonly(path: Path) -> Connection:
     """Read-only connection: ``mode=ro`` (sees a live writer's commits and a killed writer's log); when
     that cannot open (a WAL-mode file on read-only media, no -shm), ``immutable=1`` provided no
@@ -359,6 +367,10 @@ class MapFile:
             lock.release()
             if isinstance(err, MapError):
                 raise
+            if writable and _read_only_storage(err):
+                raise MapError(f"{path}: readable, but this process cannot write it or create files beside it "
+                               f"({err}): make {path.name} and its folder writable, or open it read-only "
+                               "(vtr repeat --read-only-map)") from err
             if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
                 raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
             raise

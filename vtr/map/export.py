@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from perception_model.frames import LEVEL_CAMERA_UP, T_g_map_from_up
 from perception_model.outputs import replace_file
 
 from ..errors import MapError
@@ -44,7 +45,7 @@ def run_colour(order: int) -> np.ndarray:
     return RUN_COLOURS[order % len(RUN_COLOURS)]
 
 
-def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
+def export_landmarks_ply(map_: Map, path: str | Path, runs: list[int] | None = None, *,
                          gravity_aligned: bool = False) -> list[RunExport]:
     """Write the landmarks of ``runs`` (all by default) to a binary PLY point cloud, coloured by run.
 
@@ -76,12 +77,10 @@ def export_landmarks_ply(map_: Map, path, runs: list[int] | None = None, *,
     if len(points) == 0:
         raise MapError(f"{map_.path}: the map has no landmarks to export")
     if gravity_aligned:
-        from perception_model.frames import LEVEL_CAMERA_UP, T_g_map_from_up
-
         up = map_.gravity_up
         points = points @ T_g_map_from_up(LEVEL_CAMERA_UP if up is None else up)[:3, :3].T
 
-    import open3d as o3d
+    import open3d as o3d  # open3d (~1 s) only for a point-cloud export
 
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))

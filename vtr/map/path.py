@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import MapError
+from ..geometry import inv_T
 from .records import split_vertex_id
 
 if TYPE_CHECKING:
@@ -76,7 +77,7 @@ class TaughtPath:
 
     @cached_property
     def _tree(self) -> cKDTree:
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # scipy.spatial costs ~0.2 s to import: only nearest-vertex queries need it
 
         return cKDTree(self.positions)
 
@@ -98,6 +99,5 @@ class TaughtPath:
     def T_world_localized(self, vertex_id: int, T_leaf_vertex: np.ndarray) -> np.ndarray:
         """World pose of a leaf camera localized against path vertex ``vertex_id`` (map id):
         ``T_world_vertex @ inv(T_leaf_vertex)``."""
-        from ..geometry import inv_T
 
         return self.T_world_vertex[self.index(vertex_id)] @ inv_T(T_leaf_vertex)

@@ -148,12 +148,12 @@ def one_line_reason(text: str) -> str:
 # ---------------------------------------------------------------- validation
 
 
-def check_transform(T, what: str) -> np.ndarray:
+def check_transform(T: np.ndarray, what: str) -> np.ndarray:
     """A finite 4x4 rigid transform as float64, or ``MapError`` naming ``what``."""
     return check_se3(T, what, error=MapError)
 
 
-def check_covariance(C, what: str) -> np.ndarray:
+def check_covariance(C: np.ndarray, what: str) -> np.ndarray:
     """A finite, symmetric, positive semi-definite 6x6 matrix as float64, or ``MapError``."""
     return check_pose_covariance(C, what, error=MapError)
 

@@ -1,30 +1,8 @@
-"""SQLite schema of the map file (format version 3, ``vtr.map.store.MAP_FORMAT_VERSION``; docs/map.md).
-
-Tables:
-
-- ``meta(key, value)``: ``format_version``, ``camera`` (JSON of ``StereoCamera.to_dict``), ``created``
-  (ISO-8601 UTC), ``vtr_version``, ``compress_level``.
-- ``runs``: one row per teach/repeat session with its lifecycle ``state``: ``running`` while its
-  session writes it, then once and for all ``finished`` (the session ended in order) or ``aborted``
-  (error, Ctrl-C, SIGTERM, full disk; ``reason`` says why). A run left ``running`` by a process
-  that was killed is shown as ``interrupted`` by the store (no live writer holds the map's lock).
-- ``vertices``: the pose index, one small row per keyframe: ``id = run << 32 | idx``, ``t_ns``,
-  ``T_world_vertex`` and ``T_vehicle_sensor`` as 16 little-endian float64 (128-byte blobs,
-  row-major), feature/landmark counts and the source frame index. Poses are read from here without
-  touching feature data.
-- ``vertex_data(id, data)``: the keyframe's ``StereoFrame`` as written by the vertex codec
-  (:mod:`vtr.map.codec`, blob magic ``VTRV\\x02``: feature count, raw descriptors, then zlib of
-  uv, octave, u_right and points).
-- ``edges``: ``T_from_to`` (128-byte blob), ``covariance`` (6x6, 288-byte blob), kind, inliers.
-- ``derived(key, data)``: data computed from the vertices that can be rebuilt at any time, created when first
-  written (older maps have none): ``place_index/<run>`` is the taught run's place-recognition index
-  (``vtr.navigation.place``).
-
-Triggers make vertices, vertex data and edges append-only, let a run's state only leave
-``running`` (never come back or change again), and refuse new vertices or temporal edges in a
-run that is not running, so a taught run cannot change once its session ended, whatever code
-writes to the file.
-"""
+"""SQLite schema of the map file (format version 3, ``vtr.map.store.MAP_FORMAT_VERSION``): the tables ``meta``, ``runs``
+(with their lifecycle ``state``), ``vertices`` (the pose index), ``vertex_data`` (the vertex codec's blobs), ``edges``
+and ``derived`` (rebuildable data such as ``place_index/<run>``), and the triggers that make vertices, vertex data and
+edges append-only and a run's state leave ``running`` once and for all. The contents: docs/map.md, "Contents", "Run
+lifecycle" and "Derived data"."""
 
 from __future__ import annotations
 

@@ -39,9 +39,11 @@ from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from types import TracebackType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import __version__
 from ..camera import StereoCamera
@@ -99,7 +101,7 @@ GRAVITY_META_KEY = "gravity_up"
 MIN_UP_NORM = 1e-9
 
 
-def check_gravity_up(value, what: str, error: type[Exception] = ConfigError) -> np.ndarray:
+def check_gravity_up(value: object, what: str, error: type[Exception] = ConfigError) -> np.ndarray:
     """``value`` as a unit 3-vector (an up direction); ``error`` naming ``what`` unless three finite numbers of
     non-zero length."""
     try:
@@ -143,7 +145,7 @@ def _run_range(run: int) -> tuple[int, int]:
     return lo, lo | INDEX_MASK
 
 
-def _check_int(value, what: str, minimum: int | None = None) -> int:
+def _check_int(value: object, what: str, minimum: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
         raise MapError(f"{what}: expected an integer, got {type(value).__name__}")
     value = int(value)
@@ -190,8 +192,8 @@ class Map:
     # ------------------------------------------------------------ opening
 
     @classmethod
-    def create(cls, path, camera: StereoCamera, config: MapConfig | None = None, *,
-               cache_size: int = VERTEX_CACHE_SIZE, gravity_up=None) -> Map:
+    def create(cls, path: str | Path, camera: StereoCamera, config: MapConfig | None = None, *,
+               cache_size: int = VERTEX_CACHE_SIZE, gravity_up: ArrayLike | None = None) -> Map:
         """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
 
         Atomic and exclusive (:meth:`vtr.map.database.MapFile.create`): the schema is written to a
@@ -225,7 +227,7 @@ class Map:
                               lambda file: cls(file, "a", camera, meta, cache_size, created=True))
 
     @classmethod
-    def open(cls, path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
+    def open(cls, path: str | Path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
         """Open an existing map: ``mode="r"`` read-only (writes raise ``MapError``), ``"a"`` to append runs.
 
         ``"a"`` takes the map's writer lock (``MapError`` "another process is writing this map" when
@@ -278,7 +280,8 @@ class Map:
     def __enter__(self) -> Map:
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         """Normal exit finishes the open run; an exception (Ctrl-C, SIGTERM too) aborts it with its reason."""
         if exc is not None and not self.closed and self.mode == "a" and self._open_run is not None \
                 and self._open_run_touched:
@@ -609,7 +612,7 @@ class Map:
         return self._pose_arrays(rows)
 
     @staticmethod
-    def _pose_arrays(rows) -> tuple[np.ndarray, np.ndarray]:
+    def _pose_arrays(rows: list[Any]) -> tuple[np.ndarray, np.ndarray]:
         ids = np.array([r[0] for r in rows], dtype=np.int64)
         T = np.frombuffer(b"".join(r[1] for r in rows), dtype="<f8").astype(np.float64).reshape(-1, 4, 4)
         return ids, T
@@ -650,7 +653,7 @@ class Map:
             raise MapError(f"{self.path}: no vertex {vid} (run {run}, index {index}) with data")
         return self._decode_vertex(vid, row)
 
-    def _decode_vertex(self, vid: int, row) -> VertexRecord:
+    def _decode_vertex(self, vid: int, row: tuple[Any, ...]) -> VertexRecord:
         if self._checksums:
             with self._db() as conn:
                 checksums.verify_rows(conn, str(self.path), vid, vid, data=True)

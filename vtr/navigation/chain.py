@@ -1,32 +1,16 @@
-"""The localization chain and the decision what a leaf's localization is worth (docs/localization.md).
-
-The chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``)::
+"""The localization chain (thesis Fig. 6.3; VT&R3's ``localization_chain.hpp``) and the decision what a leaf's
+localization is worth::
 
     privileged (teach) path   o────o────b────o────o────t────o────o───▶
                                         ▲                ▲
                                  T_w_b  │                │  T_l_t  (estimated at each new leaf)
-                                        │                │
-    current (repeat) path          o────w────o────o────l
-                               w: twig (last localized repeat vertex), b: branch (its trunk),
-                               l: leaf (newest repeat vertex),  t: trunk (closest taught vertex)
+    current (repeat) path          o────w────o────o────l        prior T_l_t = T_l_w @ T_w_b @ T_b_t
 
-    prior      T_l_t = T_l_w @ T_w_b @ T_b_t
-               (odometry along the repeat path, last localization, the taught path)
-
-Two modes. **Tracking** (localized, odometry intact since): the trunk is searched around the previous one
-in the direction of travel, the leaf matched guided by the prior, and the estimate accepted only inside a
-chi-square gate on its innovation against the prior (both covariances). **Searching** (the start of a
-repeat, odometry broken, ``lost_after_failures`` failures in a row or ``lost_after_distance_m`` since the
-last success): place recognition proposes taught vertices, each verified by unguided matching against its
-landmarks; a verified candidate is only *unconfirmed* until the next keyframe's candidate agrees with it
-through odometry (the same gate), unless it is verified beyond doubt and the chain's last success, carried by
-odometry, predicts it (re-entry at once after a gap). The prediction's covariance allows for odometry's scale error
-along its motion and for time odometry did not see. Anywhere, a pose beyond either end of the route is *off the route*.
-
-Poses are of the left rectified camera. ``T_world_*`` of taught vertices are in the teach run's first camera
-frame; those of repeat vertices in the repeat run's own first camera frame; the chain only composes
-transforms between adjacent frames, so the two worlds never mix.
-"""
+:class:`LocalizationChain` keeps twig (w), branch (b), trunk (t) and leaf (l) in a read-only :class:`ChainState` and
+composes transforms only between adjacent frames (teach and repeat worlds never mix); :class:`ChainLocalizer`
+localizes each leaf by **tracking** (guided by the prior, inside the innovation gate) or **searching** (place
+recognition, a candidate confirmed by the next keyframe or predicted by the last success), and refuses a pose off
+the route. The modes, gates and refusals: docs/localization.md."""
 
 from __future__ import annotations
 
@@ -187,7 +171,7 @@ class LocalizationChain:
         p = np.atleast_2d(np.asarray(positions_teach, float))
         if len(p) == 0:
             return np.zeros(0)
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # scipy.spatial (~0.2 s) only when a position is checked against the ends
 
         _, nearest = cKDTree(self.path.positions).query(p)
         return self._beyond(p, np.asarray(nearest, np.int64))
@@ -213,7 +197,7 @@ class LocalizationChain:
 
     # -- prediction and gates ----------------------------------------------------------------------
 
-    def rebased(self, T_leaf_vertex: np.ndarray, vertex: int, others) -> np.ndarray:
+    def rebased(self, T_leaf_vertex: np.ndarray, vertex: int, others: int | slice) -> np.ndarray:
         """A leaf pose against taught ``vertex`` re-expressed against taught vertices ``others`` (a path index, or a
         slice: a stack) along the taught path: ``T_leaf_vertex @ inv(T_world_vertex) @ T_world_others``."""
         T = self.path.T_world_vertex

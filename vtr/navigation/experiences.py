@@ -22,7 +22,7 @@ import warnings
 import zipfile
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -40,9 +40,13 @@ from ..map.experiences import (
     record_use,
 )
 from ..map.records import RUN_SHIFT
+from ..state.trajectory import adjoint
 from ..types import StereoFrame
 from .localization import LocalizationEstimate, Localizer, TaughtSubmap
 from .place import PlaceIndex, PlaceMatch
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 FRAMES_KEPT = 96            # decoded frames held for submaps before the cache starts again (memory stays flat)
 
@@ -56,7 +60,6 @@ def experience_covariance(submap: TaughtSubmap, est: LocalizationEstimate,
     is placed by that experience's landmarks almost alone (weighting the terms by the experiences' share of the
     inliers covered 93-94 % of the errors on kitti06 repeats against earlier ones, whole terms 100 %). Zero without
     experience inliers."""
-    from ..state.trajectory import adjoint
 
     out = np.zeros((6, 6))
     if not est.ok or not est.inliers or est.T_leaf_trunk is None:
@@ -188,8 +191,8 @@ class ExperiencePlaces:
     def vector(self, descriptors: np.ndarray) -> np.ndarray:
         return self.index.vector(descriptors)
 
-    def _experience_matrix(self):
-        from scipy.sparse import csr_matrix
+    def _experience_matrix(self) -> csr_matrix:
+        from scipy.sparse import csr_matrix  # scipy.sparse (~0.1 s) only once experiences are scored
 
         if self._matrix is None:
             slots, vids = self._submaps.placed_vertices()

@@ -12,6 +12,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from perception_model.angles import parallax_angle, view_angle
 from perception_model.landmarks_file import Observations
 from perception_model.records import short_repr
 
@@ -304,7 +305,6 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
     feature index in the trunk vertex; ``matched``/``inlier`` say whether it was matched / a
     localization inlier; ``range_m`` is the distance from the leaf camera.
     """
-    from perception_model.angles import parallax_angle, view_angle
 
     idx = np.flatnonzero(trunk.has_depth)
     P_leaf = trunk.points[idx] @ T_leaf_trunk[:3, :3].T + T_leaf_trunk[:3, 3]

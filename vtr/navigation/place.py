@@ -25,6 +25,7 @@ import warnings
 import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,10 @@ from ..errors import MapError
 from ..map import Map
 from ..vo.features import descriptor_words
 from ..vo.kernels import matching as km
+from .kernels import coarse_scores, row_scores
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 DESCRIPTOR_BYTES = 32          # ORB: 256 bits
 INDEX_MAGIC = b"VTRP\x01"
@@ -64,7 +69,7 @@ def k_majority(descriptors: np.ndarray, k: int, iterations: int, rng: np.random.
 
 
 def _sum_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
-    from scipy.sparse import csr_matrix
+    from scipy.sparse import csr_matrix  # scipy.sparse (~0.1 s) only when an index is built or scored
 
     onehot = csr_matrix((np.ones(len(rows), np.float32), (rows, np.arange(len(rows)))), shape=(len(out), len(rows)))
     out += onehot @ values
@@ -211,8 +216,8 @@ class PlaceIndex:
         cached = 0 if m is None else m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
         return own + (self._coarse().nbytes if len(self) > self.shortlist else 0) + cached
 
-    def _matrix(self):
-        from scipy.sparse import csr_matrix
+    def _matrix(self) -> csr_matrix:
+        from scipy.sparse import csr_matrix  # scipy.sparse on first use
 
         return csr_matrix((self.weight, self.word, self.indptr), shape=(len(self), len(self.vocabulary)))
 
@@ -240,7 +245,6 @@ class PlaceIndex:
     def shortlisted(self, q: np.ndarray) -> np.ndarray:
         """Path indices (ascending) of at most ``shortlist`` vertices best scored by the inverted file: the
         query's ``query_words`` heaviest words (ties: the lower word) against each vertex's heaviest."""
-        from .kernels import coarse_scores
 
         coarse = self._coarse()
         nz = np.flatnonzero(q)
@@ -253,7 +257,6 @@ class PlaceIndex:
 
     def _row_scores(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Exact cosine of vertices ``rows`` against the unit query vector ``q``."""
-        from .kernels import row_scores
 
         return row_scores(self.indptr, self.word, self.weight, rows.astype(np.int64), q)
 
@@ -273,7 +276,7 @@ class PlaceIndex:
         return PlaceMatch(top.astype(np.int64), s[top])
 
     @property
-    def _csr(self):
+    def _csr(self) -> csr_matrix:
         m = self.__dict__.get("_csr_cache")
         if m is None:
             m = self._matrix()

@@ -1,53 +1,8 @@
-"""Controller-facing state of a repeat run: the continuous-time smoother fed with the localization chain,
-queried at a fixed rate in the gravity-aligned trunk frame o (docs/smoother.md; thesis §6.3.4).
-
-**Feeding the smoother** (:meth:`RepeatStateEstimator.add`, one :class:`~vtr.navigation.repeat.RepeatStep` at a
-time). The smoother tracks the left camera in the teach world (the teach run's first camera frame). It gets one knot
-per repeat *vertex* (keyframe), not per frame:
-
-* a relative pose from repeat odometry between consecutive vertices, ``inv(T_world_prev) @ T_world_leaf``
-  (repeat world), with the odometry covariance of the leaf (the same measurement and covariance as the
-  map's temporal edge);
-* at a successfully localized vertex, an absolute pose in the teach world,
-  ``T_teach_leaf = T_teach_trunk @ inv(T_leaf_trunk)`` (``TaughtPath.T_world_localized``; =
-  ``RepeatStep.T_teach_frame`` there), with the
-  localization covariance. Privileged poses are taken as exact (the repeat is expressed relative to the
-  taught path, as the chain does).
-
-Why vertices and these two measurements: (1) localization, the only measurement of the pose in the teach
-frame, exists only at vertices; the chain's ``T_teach_frame`` of the other frames is localization composed
-with odometry, and feeding it as an absolute pose would count the same localization again at every frame;
-(2) a non-keyframe frame's pose is measured against the same landmarks as the next keyframe's, so adding it
-as an independent measurement would count the same landmark errors twice; (3) the
-smoother's states sit at keyframe times (≈1–15 Hz) with bounded cost per keyframe; the WNOA prior interpolates
-between them (and extrapolates after the last one) at the output rate. Both covariances use the left
-perturbation of ``T_cam_world`` / ``T_leaf_trunk`` (vtr.vo.estimation), which is the right perturbation of the
-inverse pose the smoother uses, so they are passed unchanged.
-
-Before the first successful localization nothing ties the repeat to the teach frame: those vertices wait.
-At the first success, that localization is moved to the first waiting vertex through repeat odometry (the
-smoother's first knot needs an absolute pose; the information is counted once, only its place changes) and
-the waiting vertices are fed in order. A run that never localizes is fed with the chain's assumption (it
-started at the taught vertex ``start_index``) as the first knot's prior, which only fixes the gauge.
-
-**Gravity.** The teach world is the teach run's first camera frame. Its up direction is the map's (``Map.gravity_up``:
-``vtr teach --up``, or a source whose ground truth is gravity-aligned), else that camera is taken as level (up = its
--y). A camera whose source knows no mount (identity ``T_vehicle_sensor``) is read as rigidly mounted on a level vehicle
-(``perception_model.frames.T_vehicle_camera_from_up``). Each trunk's ``T_o_t`` comes from
-:func:`vtr.state.controller.gravity_aligned_T_o_t` on ``C_g_trunk`` (docs/frames.md).
-
-**Validity, direction, pauses.** Whether the repeat is localized, and its direction of travel, are the chain's verdict
-carried by each step (one owner); a state's status adds time (more than ``smoothing.max_extrapolation_s`` after the
-latest frame: unknown) and the route's ends (``off_route``). A pause without frames longer than that bound starts a new
-smoother segment: no motion prior bridges it.
-
-**Queries** are answered from immutable views (:mod:`vtr.navigation.state_view`): the whole run for ``state.csv`` (a
-fixed-lag smoothed state at ``rate_hz`` from the first to the last frame, extrapolated after the last knot), or the
-last seconds for a controller on another thread (:mod:`vtr.control.online`). The state at time t is expressed at the
-chain's trunk of the latest vertex at or before t, so p jumps when the trunk moves on; lateral/vertical errors do not.
-The reference path is the polyline through the privileged vertices' vehicle origins in the trunk window (mirrored for
-a route travelled backward), in o; ``along_track_m`` is the arc length from the start of the whole taught path.
-"""
+"""Controller-facing state of a repeat run (thesis §6.3.4): :class:`RepeatStateEstimator` feeds the continuous-time
+smoother one knot per repeat vertex (odometry between vertices, the localization at a localized one; vertices before
+the first success wait), with the chain's verdict on validity and direction carried by each step, and answers queries
+in the gravity-aligned trunk frame o from immutable views (:mod:`vtr.navigation.state_view`). What is fed and why,
+gravity, pauses and queries: docs/smoother.md, "Feeding it from a repeat" and "Controller state"."""
 
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ from ..state.controller import (
     gravity_aligned_T_o_t,
     output_jacobian,
 )
-from ..state.trajectory import KnotTrajectory
+from ..state.trajectory import KnotTrajectory, TrajectoryState
 from .trunk import BACKWARD
 
 
@@ -82,10 +82,11 @@ class SegmentedTrajectory:
             raise EstimationError("state_at: no measurement yet")
         return self.segments[max(0, int(np.searchsorted(self.starts, int(t_ns), side="right")) - 1)]
 
-    def state_at(self, t_ns: int, *, with_covariance: bool = True):
+    def state_at(self, t_ns: int, *, with_covariance: bool = True) -> TrajectoryState:
         return self._segment(t_ns).state_at(t_ns, with_covariance=with_covariance)
 
-    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None):
+    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, np.ndarray]:
         return self._segment(t_ns).fitted_acceleration(t_ns, window_s, T_sensor_point)
 
     def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:

@@ -17,8 +17,10 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from ...errors import ConfigError
+from ...parallel import available_cores
 from .layout import FAILED, TEACH_FOLDER
 from .manifest import RunSpec
 from .options import BatchOptions
@@ -36,7 +38,6 @@ HEALTH_ONLY_ROUTES = ("distributed.http.health",)
 def check_workers(workers: int | None) -> int:
     """The local cluster's size: 1 to ``MAX_WORKERS_PER_CORE`` x cores (more only thrash: each is a process
     with its own memory); default every core."""
-    from ...parallel import available_cores
 
     cores = available_cores()
     if workers is None:
@@ -50,7 +51,6 @@ def check_workers(workers: int | None) -> int:
 
 def check_scheduler(address: str | None) -> str | None:
     """``--scheduler``: ``tls://HOST:PORT`` (or ``tcp://`` on a trusted network), checked before connecting."""
-    from urllib.parse import urlsplit
 
     if address is None:
         return None
@@ -99,7 +99,7 @@ class _DaskClient:
         self.client: Any = None       # distributed.Client
 
     def __enter__(self) -> Any:
-        import dask
+        import dask  # Dask only for a batch that starts its cluster
         from distributed import Client, LocalCluster
 
         if self.opts.scheduler:
@@ -137,7 +137,7 @@ class _DaskClient:
 def _run_on(client: Any, pending: list[tuple[RunSpec, dict[str, Any], str | None]], outcomes: dict[RunSpec, RunOutcome],
             out: Path,
             threads: int | None, opts: BatchOptions, report: Callable[[RunSpec, RunOutcome], None]) -> None:
-    from distributed import as_completed
+    from distributed import as_completed  # Dask, imported with the cluster
 
     futures: dict[Any, RunSpec] = {}
     submitted: dict[tuple[str, str], Any] = {}

@@ -15,6 +15,7 @@ from typing import Any
 
 from ...errors import ConfigError, DataError
 from ...io.outputs import check_apart, check_no_links
+from ...parallel import available_cores, resolve_threads
 from ..outputs import OutputFolder
 from ..runfiles.run_json import STATUS_FINISHED
 from .cluster import MAX_WORKERS_PER_CORE, _DaskClient, _run_on, check_scheduler, check_workers
@@ -52,7 +53,6 @@ def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None 
 def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     """Everything checkable before a batch starts (inputs exist, ``--workers``, ``--scheduler``, ``out`` apart
     from every source and config); returns the local cluster's size."""
-    from ...parallel import available_cores, resolve_threads
 
     check_inputs(manifest)
     check_scheduler_tls(opts.scheduler)
@@ -73,8 +73,6 @@ def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
 
 def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOptions, workers: int,
                progress: Callable[[RunOutcome, int, int], None] | None) -> BatchResult:
-    from ...parallel import available_cores
-
     runs = manifest.runs()
     for route in manifest.routes:
         check_no_links(out, out / route.name)

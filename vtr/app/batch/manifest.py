@@ -19,6 +19,8 @@ from typing import Any
 
 import yaml
 
+from perception_model.inputs import input_problem
+
 from ...config import Config, DuplicateKeyError, UniqueKeyLoader
 from ...errors import ConfigError, DataError
 from .layout import RESERVED_NAMES, TEACH_FOLDER
@@ -91,7 +93,6 @@ for _tag, _pattern, _first in (
 
 def load_manifest(path: str | Path) -> Manifest:
     """Read and check a batch manifest; errors name the file and the field."""
-    from perception_model.inputs import input_problem
 
     path = Path(path)
     if not path.exists():

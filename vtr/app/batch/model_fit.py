@@ -9,6 +9,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from perception_model.errors import PerceptionModelError
+from perception_model.landmarks_file import FIT_FIELDS, read_landmarks
+from perception_model.plots import plot_fit
+
 from ...errors import DataError, VtrError
 from ...io.outputs import check_no_links
 from ..outputs import OutputFolder
@@ -38,10 +42,7 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     """One perception-model fit over every finished repeat's landmarks.csv, streamed (one file in memory at a
     time; the binned fit of the thesis protocol, sandwich intervals): OUT/fit/model.json and fit.png.
     Returns what to report, or the error."""
-    from perception_model.errors import PerceptionModelError
-    from perception_model.fit import fit_binned_stream
-    from perception_model.landmarks_file import FIT_FIELDS, read_landmarks
-    from perception_model.plots import plot_fit
+    from perception_model.fit import fit_binned_stream  # scipy.optimize (~1.3 s): only a fitting batch
 
     try:
         files = list(repeat_landmark_files(manifest, out, outcomes))

@@ -16,9 +16,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
+
 from ...config import Config
 from ...errors import DataError
+from ...map import copy_map_file
+from ...parallel import resolve_threads
 from ..outputs import OutputFolder
+from ..pipeline import repeat_command, teach_command
 from ..runfiles.run_json import STATUS_FAILED, STATUS_FINISHED, RunLog
 from .layout import BLOCKED, FAILED, FINISHED, KEY_NAME, MAP_NAME, RESUMED, TEACH_FOLDER
 from .manifest import RunSpec, run_config
@@ -30,7 +35,6 @@ def copy_map(src: Path, dst: Path) -> None:
     """Copy a closed map file consistently (SQLite's online backup: WAL content included)."""
     if not src.is_file():
         raise DataError(f"{src}: the taught map is missing (its teach did not finish)")
-    from ...map import copy_map_file
 
     copy_map_file(src, dst)
 
@@ -42,7 +46,6 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
     """One teach or repeat (a Dask task: paths in, a small record out). Never raises for a run's own error:
     it is written to the run's run.json and returned. A repeat starts from a copy of the teach's map, or with
     ``earlier`` (the route's repeats flown before it, when they are experiences) of the newest finished one's."""
-    from ..pipeline import repeat_command, teach_command
 
     folder = spec.folder(Path(out))
     doc = checked_run(folder)
@@ -98,9 +101,7 @@ def base_map(route_folder: Path, earlier: list[RunOutcome]) -> Path:
 
 def _opencv_threads(config: Config) -> None:
     """OpenCV's own pool follows the run's thread count (a batch worker runs one run per core)."""
-    import cv2
 
-    from ...parallel import resolve_threads
 
     cv2.setNumThreads(resolve_threads(config.features.threads))
 

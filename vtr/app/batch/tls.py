@@ -18,7 +18,7 @@ def check_scheduler_tls(address: str | None) -> None:
     settings when there are none (distributed would fail deep inside with a ``TypeError``)."""
     if address is None or not address.startswith("tls://"):
         return
-    from distributed.security import Security
+    from distributed.security import Security  # Dask only for a remote scheduler
 
     if Security().get_connection_args("client").get("ssl_context") is None:
         raise ConfigError(f"--scheduler {address}: tls:// needs this client's TLS certificates in Dask's configuration "
@@ -31,7 +31,7 @@ def local_security() -> Any:
     """TLS with credentials made for this batch alone (a temporary CA-less key pair, never written to disk):
     a process without them cannot connect to the local scheduler or its workers."""
     try:
-        from distributed.security import Security
+        from distributed.security import Security  # Dask only for the local cluster
 
         return Security.temporary()
     except ImportError as err:  # pragma: no cover - cryptography is a dependency

@@ -58,7 +58,7 @@ class RunLog:
         after every other output (through
         :class:`~vtr.app.outputs.OutputFolder`: never through a link), so a run killed before the end has no
         run.json."""
-        from ..outputs import OutputFolder
+        from ..outputs import OutputFolder  # here: it pulls in vtr.io (numpy, OpenCV)
 
         self.out.mkdir(parents=True, exist_ok=True)
         folder = OutputFolder(self.out)
@@ -84,7 +84,7 @@ def read_run(out: Path) -> dict[str, Any] | None:
     """The ``run.json`` in folder ``out``, or None when there is none (or it is unreadable: an interrupted write).
     Read back only when vtr made it (:meth:`vtr.app.outputs.OutputFolder.read_own`: a symbolic link there is
     an ``OutputError``, never followed)."""
-    from ..outputs import OutputFolder
+    from ..outputs import OutputFolder  # here: see write()
 
     try:
         data = OutputFolder(Path(out)).read_own("run.json")
@@ -106,7 +106,7 @@ def run_status(out: Path) -> str | None:
 
 
 def _jsonable(o: Any) -> Any:
-    import numpy as np
+    import numpy as np  # here: run.json readers need no numpy
 
     if isinstance(o, np.generic):
         return o.item()

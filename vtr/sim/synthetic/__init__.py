@@ -1,35 +1,7 @@
-"""Synthetic rectified greyscale stereo sequences with exact ground truth.
-
-A :class:`Scene` is a textured ground plane (world frame ENU: x east, y north, z up, ground at
-z = 0 m) with raised structures -- axis-aligned :class:`Box` buildings and :class:`Tree` s made of
-a cylindrical trunk and a conical crown -- and an optional distant :class:`Backdrop` (a textured
-vertical cylinder with a hilly top edge, "mountains") around the scene. Everything is
-deterministic from a seed (:func:`make_scene`).
-
-Rendering (:func:`render`, :func:`render_stereo`) ray-casts every pixel of each camera from its
-own centre (the right camera sits ``baseline`` m along the left camera's +x axis), so stereo
-geometry is exact: the rendered depth ``z`` of a left pixel gives disparity ``fx * baseline / z``.
-Appearance is view-consistent: every surface point samples a fixed random texture atlas at its
-surface coordinates (metres), with trilinear mipmapping chosen from the pixel footprint on the
-surface, ``depth / (f * cos(incidence))``, so far or grazing surfaces are low-pass filtered
-instead of aliasing into spurious features. Faces are shaded by a fixed sun direction.
-
-Frames: ``T_world_cam`` maps coordinates of the *left rectified camera* (x right, y down,
-z forward, metres) into the world (ENU, metres). Depth maps hold the left-camera z (m) per
-pixel, ``inf`` where a pixel sees sky.
-
-Trajectories: :func:`aerial_route` (multirotor at 12 m altitude, camera pitched 50 deg down,
-heading along the path, with lateral/vertical offsets for repeat runs) and
-:func:`turning_route` (ground vehicle, forward-looking camera 1.5 m above the ground, straight,
-turn, straight). :func:`write_sequence` writes a KITTI-layout folder.
-
-Modules (imports go one way, top to bottom): ``constants`` (named constants and seed streams),
-``texture`` (the texture atlas), ``scene`` (scene records and their compiled form), ``builders`` (random
-scenes), ``cameras`` (camera presets, the stereo rig), ``routes`` (trajectories and timestamps),
-``raycast`` (per-pixel nearest hits), ``render`` (images, stereo pairs, back-projection) and ``sequence``
-(KITTI-layout folders). This package exposes their public names: those of ``__all__``, and the named
-constants, :func:`drifting_aerial_route` and :func:`segmented_aerial_route` (re-exported as ``name as name``).
-"""
+"""Synthetic rectified greyscale stereo sequences with exact ground truth: a seeded :class:`Scene` (textured ground,
+boxes, trees, a distant backdrop) ray-cast per pixel by :func:`render_stereo`, camera routes (:func:`aerial_route`,
+:func:`turning_route`) and KITTI-layout folders (:func:`write_sequence`). This package re-exports its modules' public
+names. Scene, rendering, frames, routes and the modules' order: docs/synthetic.md."""
 
 from __future__ import annotations
 

@@ -6,12 +6,12 @@ Kernels are compiled on first use and cached next to their source (``cache=True`
 first process after an install pays the compilation.
 """
 
+import numpy as np
+
 
 def warm_up() -> None:
     """Run every kernel once on tiny inputs so that later calls (and processes) find them compiled."""
-    import numpy as np
-
-    from . import bundle, matching, stereo
+    from . import bundle, matching, stereo  # not at import: a caller of one kernel module loads only that one
 
     R, t = np.eye(3)[None], np.zeros((1, 3))
     X = np.array([[0.0, 0.0, 5.0]])
