@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import json
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -48,9 +48,10 @@ from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import ConfigError, MapError, Terminated, UnfinishedRouteError, interruption
 from ..geometry import inv_T
-from . import checksums, damage
+from . import checksums, damage, localizations
 from .codec import decode_frame, encode_frame
-from .database import Connection, MapFile
+from .database import Connection, MapFile, transaction
+from .localizations import Leaf, LocalizationRecord
 from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
@@ -72,7 +73,7 @@ from .records import (
     split_vertex_id,
     vertex_id,
 )
-from .schema import DERIVED_TABLE, SCHEMA
+from .schema import DERIVED_TABLE, SCHEMA, USE_SQL, USE_TABLE
 
 if TYPE_CHECKING:
     from ..types import Keyframe, StereoFrame
@@ -455,9 +456,68 @@ class Map:
         return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
                                 edge)
 
+    def add_leaf(self, run: int, keyframe: Keyframe, leaf: Leaf, T_vehicle_sensor: np.ndarray | None = None, *,
+                 connection: Connection | None = None) -> VertexRecord:
+        """Append a repeat keyframe with its localization, atomically: the vertex and its temporal edge (as
+        :meth:`add_keyframe`), the spatial edge of a success (``leaf.spatial``, from this vertex), one keyframe of use
+        for each experience it used (``leaf.experience_use``) and its localization record (``leaf.record``), in one
+        transaction. A kill at any point leaves all of it or none (:mod:`vtr.map.localizations`).
+
+        The record's ``leaf_id`` is the id the vertex gets (:meth:`next_vertex_id`: the localization runs before the
+        write), else ``MapError``. ``connection``: a second connection of this map's file
+        (:meth:`vtr.map.database.MapFile.second_connection`) to commit through, from a writer thread
+        (:class:`vtr.map.writer.LeafWriter`); by default the map's own."""
+        row = leaf.record.row()
+        spatial = None
+        if leaf.spatial is not None:
+            e = leaf.spatial
+            to_id = _check_int(e.to_id, "spatial edge to_id", 0)
+            spatial = (to_id, matrix_blob(check_transform(e.T_from_to, f"spatial edge ->{to_id} T_from_to")),
+                       matrix_blob(check_covariance(e.covariance, f"spatial edge ->{to_id} covariance")),
+                       _check_int(e.inliers, "spatial edge inliers", 0))
+        use = [(int(x), int(run), 1) for x in leaf.experience_use]
+
+        def extra(conn: Connection, vid: int) -> None:
+            if vid != row[0]:
+                raise MapError(f"{self.path}: the localization record is for vertex {row[0]}, the keyframe became "
+                               f"vertex {vid} (another writer?)")
+            if spatial is not None:
+                conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
+                             "VALUES (?, ?, 'spatial', ?, ?, ?)", (vid, *spatial))
+            if use:
+                conn.execute(USE_TABLE)
+                conn.executemany(USE_SQL, use)
+            localizations.create(conn)
+            localizations.insert(conn, row)
+
+        edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
+                _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
+        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
+                                edge, extra, connection)
+
+    def next_vertex_id(self, run: int) -> int:
+        """The id the next vertex of ``run`` gets."""
+        lo, hi = _run_range(_check_int(run, "run", 0))
+        with self._db() as conn:
+            last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
+        return lo if last is None else vertex_id(run, (int(last) & INDEX_MASK) + 1)
+
+    def localization_records(self, run: int) -> list[LocalizationRecord]:
+        """The localization records of repeat ``run``'s vertices in vertex order (:mod:`vtr.map.localizations`;
+        none for a run written before the map kept them)."""
+        with self._db() as conn:
+            self._run_row(conn, _check_int(run, "run", 0))
+            return localizations.read(conn, run)
+
+    def localization_count(self, run: int) -> int:
+        """How many localization records repeat ``run`` has."""
+        with self._db() as conn:
+            return localizations.count(conn, _check_int(run, "run", 0))
+
     def _add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                    T_vehicle_sensor: np.ndarray | None,
-                    edge: tuple[np.ndarray, int] | None) -> VertexRecord:
+                    T_vehicle_sensor: np.ndarray | None, edge: tuple[np.ndarray, int] | None,
+                    extra: Callable[[Connection, int], None] | None = None,
+                    connection: Connection | None = None) -> VertexRecord:
         self._check_writable()
         run = _check_int(run, "run", 0)
         self._check_open_run(run, "add_vertex")
@@ -470,7 +530,7 @@ class Map:
                                "T_vehicle_sensor")
         encoded = encode_frame(frame, t_ns, self._compress_level)
         lo, hi = _run_range(run)
-        with self._tx() as conn:
+        with self._tx() if connection is None else transaction(connection, self.path) as conn:
             last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
             index = 0 if last is None else (int(last) & INDEX_MASK) + 1
             vid = vertex_id(run, index)
@@ -492,6 +552,8 @@ class Map:
                 conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
                              "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
                                                                     inliers))
+            if extra is not None:
+                extra(conn, vid)
         self._open_run_touched = True
         if self._open_run_privileged:
             self._generation += 1  # the privileged path grew: drop its caches
