@@ -2,6 +2,7 @@
 vertex, edges, experience use and localization record in one transaction) in order on a thread of its own, through a
 second connection of the map file, so neither the encoding nor the commit's fsync holds up the odometry or the
 localization, and their reads of taught vertices never wait for a commit (WAL readers do not wait for the writer).
+Between writes it decodes the taught vertices the caller will read next into the map's vertex cache (``prefetch``).
 
 Ordering and durability are those of :meth:`~vtr.map.Map.add_leaf` called in order: each leaf is one
 ``synchronous=FULL`` transaction, committed in submission order; after a failed one (a full disk) no later one is
@@ -19,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..errors import MapError
 from ..timing import StageTimer
 from .database import Connection
 from .localizations import Leaf
@@ -45,6 +47,20 @@ class LeafWriter:
         """Queue ``add_leaf(run, keyframe, leaf)``; the future gives the stored vertex once committed, or raises its
         error (``CancelledError`` when an earlier leaf failed or the writer closed before starting it)."""
         return self._pool.submit(self._write, run, keyframe, leaf, T_vehicle_sensor)
+
+    def prefetch(self, vertex_ids: list[int]) -> None:
+        """Decode these vertices into the map's vertex cache on the writer thread, between writes, so that the
+        caller's next reads of them (a localization's next taught submap) find them decoded. A vertex that cannot
+        be read is left alone: the caller's own read reports it."""
+        if vertex_ids:
+            self._pool.submit(self._prefetch, list(vertex_ids))
+
+    def _prefetch(self, vertex_ids: list[int]) -> None:
+        for vid in vertex_ids:
+            try:
+                self._map.vertex(vid)
+            except MapError:
+                return
 
     def _write(self, run: int, keyframe: Keyframe, leaf: Leaf, T_vehicle_sensor: np.ndarray | None) -> VertexRecord:
         if self._failed.is_set():           # an earlier leaf failed: never write a later one

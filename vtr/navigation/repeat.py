@@ -58,6 +58,7 @@ class RepeatStep:
 
 
 LOCALIZATION_LOOKAHEAD = 2   # frames the odometry may run ahead of the steps handed out (localized and written)
+PREFETCH_STEPS = (1, 2)      # taught vertices decoded ahead, counted past the submap's edge in the direction of travel
 
 _Pending = tuple[RepeatStep, "Future[VertexRecord] | None"]      # a localized frame's step and its map write under way
 
@@ -174,6 +175,8 @@ class Repeat:
                 kf = result.new_keyframe
                 write = None if leaf is None or kf is None else \
                     writer.submit(self.run, kf, leaf, self.camera.T_vehicle_sensor)
+                if step.localization is not None:
+                    writer.prefetch(self._next_taught(step.localization.trunk_id, step.direction))
                 return step, write
             except BaseException:
                 failed.set()
@@ -215,6 +218,15 @@ class Repeat:
                     break
                 out.append(self._deliver(step))
             self._undelivered = out
+
+    def _next_taught(self, trunk_id: int, direction: int) -> list[int]:
+        """The taught vertices the next leaves' submaps will read first after one at ``trunk_id``: those just past
+        its submap (``neighbour_vertices`` each side) in the direction of travel (both ways while undecided). Reading
+        them ahead changes no result (a vertex decodes the same whenever it is read)."""
+        path, n = self.chain.path, self.config.localization.neighbour_vertices
+        trunk = path.index(trunk_id)
+        ahead = [trunk + d * (n + k) for d in ((direction,) if direction else (1, -1)) for k in PREFETCH_STEPS]
+        return [int(path.ids[i]) for i in ahead if 0 <= i < len(path)]
 
     def _take(self, future: Future[_Pending]) -> RepeatStep:
         """The step of a localized frame once its map write committed (raising the localization's or the write's
