@@ -75,23 +75,25 @@ def test_steps_on_two_threads_equal_process_frame(kitti_clip, taught, tmp_path):
     assert not _threads("vtr-localize")
 
 
-def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_path, monkeypatch):
-    """The write of the 4th vertex fails (a full disk): the error comes out at its step, after the three
-    steps before it, and no later vertex is written although the odometry had run ahead."""
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_path, monkeypatch, threads):
+    """The write of the 4th vertex fails (a full disk) on the writer thread: the error comes out at its step, after
+    the three steps before it, and no later vertex is written although the odometry (and with 2 threads the
+    localization) had run ahead."""
     import time
 
-    real, calls = Map.add_keyframe, []
+    real, calls = Map.add_leaf, []
 
-    def add_keyframe(self, *args, **kwargs):
-        calls.append(1)
+    def add_leaf(self, *args, **kwargs):
+        calls.append(threading.current_thread().name)
         if len(calls) == 4:
             time.sleep(0.5)           # the odometry runs ahead meanwhile: the next vertices wait in the queue
             raise MapError("disk full (injected)")
         return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(Map, "add_keyframe", add_keyframe)
+    monkeypatch.setattr(Map, "add_leaf", add_leaf)
     with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path), "a") as m:
-        rp = Repeat(m, _config(2), "test")
+        rp = Repeat(m, _config(threads), "test")
         got, localized = [], []
         with pytest.raises(MapError, match="disk full"):
             for step in rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES))):
@@ -99,11 +101,13 @@ def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_pat
                 if step.localization is not None and step.localization.success:
                     localized.append(step.vertex_id)
         assert len(got) == 3 and len(calls) == 4           # nothing attempted after the failure
+        assert all(name.startswith("vtr-map-write") for name in calls)     # committed off the frame's thread
         assert _repeat_vertices_whole(m, rp.run) == got
         # the first leaf is an unconfirmed place candidate, the next ones are localized
         assert localized == got[1:]
         assert [e.from_id for e in m.edges(rp.run, "spatial")] == localized
-    assert not _threads("vtr-localize")
+        assert [r.leaf_id for r in m.localization_records(rp.run)] == got     # one record per vertex, no more
+    assert not _threads("vtr-localize") and not _threads("vtr-map-write")
 
 
 def test_closing_the_stream_early_leaves_whole_vertices(kitti_clip, taught, tmp_path):
@@ -112,7 +116,7 @@ def test_closing_the_stream_early_leaves_whole_vertices(kitti_clip, taught, tmp_
         stream = rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES)))
         got = [next(stream).vertex_id for _ in range(3)]
         stream.close()                               # as an error or Ctrl-C in the consumer does
-        assert not _threads("vtr-localize")
+        assert not _threads("vtr-localize") and not _threads("vtr-map-write")
         ids = _repeat_vertices_whole(m, rp.run)
         assert ids[:3] == got and len(ids) <= 3 + 2 + 1     # at most the look-ahead beyond the last step
         spatial = [e.from_id for e in m.edges(rp.run, "spatial")]

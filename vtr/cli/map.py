@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from . import main
-from .common import config_option, load_config
+from .common import check_out_dir, config_option, force_out_option, load_config
 from .summaries import map_check_line
 
 map_argument = click.argument("map_path", metavar="MAP", type=click.Path(path_type=Path))
@@ -45,6 +45,7 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         up = m.gravity_up
         unclosed = m.not_closed()
         exps = experiences(m, Config().experiences.min_localized_share)
+        records = {r.id: m.localization_count(r.id) for r in runs if r.kind == "repeat"}
     if as_json:
         stats["not_closed"] = unclosed
         stats["created"] = created
@@ -52,7 +53,8 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         stats["gravity_up"] = None if up is None else [float(x) for x in up]
         stats["run_list"] = [
             {"id": r.id, "kind": r.kind, "privileged": r.privileged, "state": r.state, "reason": r.reason,
-             "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created}
+             "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created,
+             "localization_records": records.get(r.id, 0)}
             for r in runs
         ]
         stats["experiences"] = [dataclasses.asdict(e) for e in exps]
@@ -77,6 +79,11 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         for r in runs:
             if r.reason:
                 click.echo(f"  run {r.id} {r.state}: {r.reason}")
+        for r in runs:
+            if r.kind == "repeat" and not r.finished and records.get(r.id):
+                click.echo(f"  run {r.id} {r.state}: its localization.csv may lack the last of its "
+                           f"{records[r.id]} localization records (a killed repeat); `vtr map localizations "
+                           f"{map_path} {r.id} --out DIR` writes them all")
         partial = [r.id for r in runs if r.privileged and not r.finished]
         if partial:
             click.echo(f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
@@ -174,6 +181,42 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
             click.echo(f"{map_path}: place index {stored.key}: {stored.problem}; rebuilt from the vertices")
             place = "place index rebuilt"
     click.echo(f"{map_check_line(report, map_path)}; {place}")
+
+
+@map_group.command("localizations")
+@map_argument
+@click.argument("run", type=int)
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for localization.csv (a killed repeat's own --out, with --force, makes it whole again).")
+@force_out_option
+def map_localizations_cmd(map_path: Path, run: int, out: Path, force: bool) -> None:
+    """Write repeat RUN's localization.csv from MAP: one row per vertex of the run, from the localization record
+    the map stored with it in the same transaction (a repeat killed midway, even by SIGKILL, may have written
+    the last rows of its own localization.csv or not; the map holds every one of its vertices' records).
+    landmarks.csv is not in the map."""
+    from ..app.outputs import OutputFolder
+    from ..app.runfiles.localization_csv import LocalizationWriter
+    from ..errors import MapError
+    from ..map import Map
+    from ..navigation.repeat import localization_of_record
+
+    check_out_dir(out, force)
+    with Map.open(map_path, "r") as m:
+        info = m.run(run)
+        if info.kind != "repeat":
+            raise MapError(f"{map_path}: run {run} is a {info.kind} run: only repeats have localizations")
+        records = m.localization_records(run)
+    if info.n_vertices and not records:
+        raise MapError(f"{map_path}: repeat run {run} has {info.n_vertices} vertices but no localization records "
+                       "(written by a vtr before the map kept them)")
+    folder = OutputFolder.prepare(out, [map_path], ["localization.csv"])
+    with folder.open("localization.csv") as f:
+        writer = LocalizationWriter(f)
+        for record in records:
+            writer.write(localization_of_record(record))
+    ok = sum(r.success for r in records)
+    click.echo(f"wrote {out}/localization.csv: {len(records)} rows ({ok} localized) of repeat run {run} "
+               f"({info.state}, {info.n_vertices} vertices)")
 
 
 @main.command("export-map")

@@ -11,6 +11,8 @@ Typical use (teach, then a repeat localized against it)::
         rep = m.begin_run("repeat")
         leaf = m.add_keyframe(rep, keyframe)     # the leaf
         m.add_edge(leaf.id, trunk_id, T_leaf_trunk, covariance, "spatial", inliers)
+        # (vtr's repeat writes a leaf with its spatial edge and localization record in one transaction instead:
+        #  m.add_leaf(rep, keyframe, Leaf(record, SpatialEdge(...))), vtr.map.localizations)
         taught = m.taught_path()                  # TaughtPath: ids, T_world_vertex, t_ns
         frame = m.vertex(trunk_id).frame          # the trunk's StereoFrame
 
@@ -18,8 +20,9 @@ Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C an
 records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
 See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability rules,
 :mod:`vtr.map.database` for the file layer (SQLite connection, exclusive creation, WAL folding),
-:mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.schema` for the file layout,
-:mod:`vtr.map.codec` for the vertex codec.
+:mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.writing` for the writes,
+:mod:`vtr.map.localizations` for a repeat's localization records, :mod:`vtr.map.writer` for the writer thread,
+:mod:`vtr.map.schema` for the file layout, :mod:`vtr.map.codec` for the vertex codec.
 """
 
 from .database import copy_map_file

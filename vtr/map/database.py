@@ -244,6 +244,24 @@ def _create_by_copy(tmp: Path, path: Path, tmp_lock: MapLock) -> MapLock:
     return lock
 
 
+@contextmanager
+def transaction(conn: Connection, path: Path | None = None) -> Iterator[Connection]:
+    """One write transaction on ``conn``: ``BEGIN IMMEDIATE``, committed when the block ends, rolled back on any
+    error. With ``path``, SQLite errors become ``MapError`` naming it."""
+    try:
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            yield conn
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        conn.execute("COMMIT")
+    except sqlite3.Error as err:
+        if path is None:
+            raise
+        raise MapError(f"{path}: {err}") from err
+
+
 class MapFile:
     """An open map file: its SQLite connection ``conn``, its lock ``lock`` (shared with the ``Map`` on
     it) and its writer lock. Made by :meth:`create` or :meth:`open`; :meth:`close` ends it."""
@@ -394,13 +412,19 @@ class MapFile:
     def transaction(self) -> Iterator[Connection]:
         """One write transaction: committed when the block ends, rolled back on any error."""
         with self.connection() as conn:
-            conn.execute("BEGIN IMMEDIATE")
-            try:
+            with transaction(conn):
                 yield conn
-            except BaseException:
-                conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+
+    def second_connection(self) -> Connection:
+        """Another read-write connection to this file, for a thread that commits while this one's connection reads
+        (a WAL reader never waits for a writer's commit and its fsync). The caller closes it before :meth:`close`
+        and writes through it with :func:`transaction` (its SQLite errors become ``MapError`` naming the map)."""
+        if self.conn is None or self._writer_lock is None or not self._writer_lock.exclusive:
+            raise MapError(f"{self.path}: a second connection needs the map open for writing")
+        try:
+            return connect(self.path, readonly=False)
+        except sqlite3.Error as err:
+            raise MapError(f"{self.path}: cannot open a second connection ({err})") from err
 
     def writer_alive(self) -> bool:
         """Whether a session (this one when it holds the writer lock) writes the file right now."""

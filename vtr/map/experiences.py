@@ -16,15 +16,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import MapError
+from . import localizations
 from .records import INDEX_MASK, RUN_FINISHED, RUN_SHIFT, blob_matrix
+from .schema import USE_SQL, USE_TABLE
 from .store import Map
 
-USE_TABLE = ("CREATE TABLE IF NOT EXISTS experience_use (experience INTEGER NOT NULL, repeat INTEGER NOT NULL, "
-             "keyframes INTEGER NOT NULL CHECK (keyframes >= 0), PRIMARY KEY (experience, repeat)) WITHOUT ROWID")
 #: the triggers that keep vertices, their data, checksums, edges and runs append-only; `prune` lifts them inside
 #: its one transaction and puts them back before it commits
 APPEND_ONLY_TRIGGERS = ("vertices_append_only_delete", "vertex_data_append_only_delete", "edges_append_only_delete",
-                        "runs_no_delete", "vertex_checksums_append_only_delete")
+                        "runs_no_delete", "vertex_checksums_append_only_delete",
+                        "localizations_append_only_delete")
 
 
 @dataclass(frozen=True)
@@ -142,10 +143,7 @@ def record_use(m: Map, repeat_run: int, counts: Mapping[int, int]) -> None:
         return
     with m.file.transaction() as conn:
         conn.execute(USE_TABLE)
-        conn.executemany(
-            "INSERT INTO experience_use(experience, repeat, keyframes) VALUES (?, ?, ?) "
-            "ON CONFLICT(experience, repeat) DO UPDATE SET keyframes = keyframes + excluded.keyframes",
-            [(int(e), int(repeat_run), int(k)) for e, k in counts.items()])
+        conn.executemany(USE_SQL, [(int(e), int(repeat_run), int(k)) for e, k in counts.items()])
 
 
 @dataclass(frozen=True)
@@ -188,10 +186,10 @@ WORDS_KEY = "experience_words"
 
 
 def prune(m: Map, runs: Iterable[int]) -> int:
-    """Remove repeat ``runs`` from a map opened for writing: their vertices, data, checksums, edges and use, in one
-    transaction (the append-only triggers are lifted inside it and restored before it commits), then ``VACUUM``
-    to give the space back (the file shrinks when the map is closed, which folds the log). Returns the number of
-    vertices removed. Refuses taught runs and the open run."""
+    """Remove repeat ``runs`` from a map opened for writing: their vertices, data, checksums, edges, localization
+    records and use, in one transaction (the append-only triggers are lifted inside it and restored before it
+    commits), then ``VACUUM`` to give the space back (the file shrinks when the map is closed, which folds the
+    log). Returns the number of vertices removed. Refuses taught runs and the open run."""
     runs = sorted({int(r) for r in runs})
     if m.mode != "a":
         raise MapError(f"{m.path}: map opened read-only (open it with mode='a' to prune)")
@@ -219,9 +217,12 @@ def prune(m: Map, runs: Iterable[int]) -> int:
                                ).fetchone() is not None
         has_derived = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'derived'"
                                    ).fetchone() is not None
+        has_records = localizations.has_table(conn)
         for r in runs:
             lo, hi = r << RUN_SHIFT, (r << RUN_SHIFT) | INDEX_MASK
             conn.execute("DELETE FROM edges WHERE from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?", (lo, hi, lo, hi))
+            if has_records:
+                conn.execute(f"DELETE FROM {localizations.TABLE} WHERE leaf_id BETWEEN ? AND ?", (lo, hi))
             if has_sums:
                 conn.execute("DELETE FROM vertex_checksums WHERE id BETWEEN ? AND ?", (lo, hi))
             conn.execute("DELETE FROM vertex_data WHERE id BETWEEN ? AND ?", (lo, hi))

@@ -8,11 +8,13 @@ GTSAM's tangent order ``[rotation (rad), translation (m)]``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import MapError
+from ..errors import ConfigError, MapError, Terminated, interruption
 from ..geometry import check_covariance as check_pose_covariance
 from ..geometry import check_se3
 from .codec import readonly as _readonly
@@ -166,3 +168,75 @@ def matrix_blob(T: np.ndarray) -> bytes:
 def blob_matrix(blob: bytes, shape: tuple[int, int]) -> np.ndarray:
     """Inverse of :func:`matrix_blob` (a fresh, read-only float64 array)."""
     return _readonly(np.frombuffer(blob, dtype="<f8").astype(np.float64).reshape(shape))
+
+
+def abort_reason(exc: BaseException) -> str:
+    """The one-line reason an exception gives an aborted run."""
+    exc = interruption(exc) or exc
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted by Ctrl-C (SIGINT)"
+    if isinstance(exc, Terminated):
+        return "terminated by SIGTERM"
+    text = str(exc)
+    return one_line_reason(f"{type(exc).__name__}: {text}" if text else type(exc).__name__)
+
+
+GRAVITY_META_KEY = "gravity_up"
+#: an up vector shorter than this has no direction
+MIN_UP_NORM = 1e-9
+
+
+def check_gravity_up(value: object, what: str, error: type[Exception] = ConfigError) -> np.ndarray:
+    """``value`` as a unit 3-vector (an up direction); ``error`` naming ``what`` unless three finite numbers of
+    non-zero length."""
+    try:
+        up = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise error(f"{what}: expected three numbers, got {value!r}") from None
+    if up.shape != (3,) or not np.all(np.isfinite(up)):
+        raise error(f"{what}: expected three finite numbers, got {value!r}")
+    n = float(np.linalg.norm(up))
+    if n < MIN_UP_NORM:
+        raise error(f"{what}: the up direction has zero length")
+    return up / n
+
+
+def utc_now() -> str:
+    """Now as ISO-8601 UTC seconds (a run's ``created``, the map's)."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def check_run_row(path: Path, r: tuple) -> None:
+    """``MapError`` (one line) when a row of the runs table is not what vtr writes (a damaged file)."""
+    rid, kind, privileged, source, created, state, reason = r[:7]
+    problem = None
+    if isinstance(rid, bool) or not isinstance(rid, int) or not 0 <= rid < 1 << 31:
+        problem = f"id {rid!r}"
+    elif kind not in RUN_KINDS:
+        problem = f"kind {kind!r}"
+    elif privileged not in (0, 1):
+        problem = f"privileged {privileged!r}"
+    elif not isinstance(source, str) or not isinstance(created, str) or not isinstance(reason, str):
+        problem = "a text field that is not text"
+    elif state not in (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED):
+        problem = f"state {state!r}"
+    if problem is not None:
+        raise MapError(f"{path}: the runs table is damaged (run {rid!r}: {problem}); the map file was changed "
+                       "after vtr wrote it")
+
+
+def run_range(run: int) -> tuple[int, int]:
+    """Smallest and largest vertex id of a run."""
+    lo = int(run) << RUN_SHIFT
+    return lo, lo | INDEX_MASK
+
+
+def check_int(value: object, what: str, minimum: int | None = None) -> int:
+    """``value`` as an int (numpy integers too, never a bool), at least ``minimum``; else ``MapError`` naming
+    ``what``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise MapError(f"{what}: expected an integer, got {type(value).__name__}")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise MapError(f"{what}: {value} < {minimum}")
+    return value

@@ -20,7 +20,9 @@ by a killed process and reads as ``interrupted``. A map appends only to its *ope
 and aborted runs never change (SQLite triggers enforce it as well as this class).
 
 The file itself (SQLite connection, exclusive creation by hard link, the writer lock, WAL folding,
-transactions) is :mod:`vtr.map.database`; this module gives it its meaning. Creation is exclusive:
+transactions) is :mod:`vtr.map.database`; this module gives it its meaning (the writing half, runs, vertices,
+keyframes, leaves and edges, in :mod:`vtr.map.writing`; a repeat's localization records in
+:mod:`vtr.map.localizations`). Creation is exclusive:
 of two processes creating one map exactly one wins and the other's cleanup never touches the
 winner's file. One writing process at a time (``MapLock``: a second writer gets "another process is
 writing this map"); the per-session caches (vertex LRU, privileged path, k-d tree) do not see
@@ -37,10 +39,9 @@ import json
 from collections import OrderedDict
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
-from datetime import UTC, datetime
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -48,113 +49,44 @@ from numpy.typing import ArrayLike
 from .. import __version__
 from ..camera import StereoCamera
 from ..config import MapConfig
-from ..errors import ConfigError, MapError, Terminated, UnfinishedRouteError, interruption
-from ..geometry import inv_T
-from . import checksums, damage
-from .codec import decode_frame, encode_frame
+from ..errors import MapError, UnfinishedRouteError
+from . import checksums, damage, localizations
+from .codec import decode_frame
 from .database import Connection, MapFile
+from .localizations import LocalizationRecord
 from .path import TaughtPath
 from .records import (
     EDGE_KINDS,
+    GRAVITY_META_KEY,
     INDEX_MASK,
-    RUN_ABORTED,
     RUN_FINISHED,
     RUN_INTERRUPTED,
-    RUN_KINDS,
     RUN_RUNNING,
-    RUN_SHIFT,
     EdgeRecord,
     RunInfo,
     VertexRecord,
+    abort_reason,
     blob_matrix,
-    check_covariance,
-    check_transform,
-    matrix_blob,
-    one_line_reason,
+    check_gravity_up,
+    check_int,
+    check_run_row,
+    run_range,
     split_vertex_id,
+    utc_now,
     vertex_id,
 )
 from .schema import DERIVED_TABLE, SCHEMA
-
-if TYPE_CHECKING:
-    from ..types import Keyframe, StereoFrame
+from .writing import INTERRUPTED_REASON, MapWriting
 
 MAP_FORMAT_VERSION = 3                # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
 VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
 MODES = ("r", "a")
-INTERRUPTED_REASON = "interrupted: its writing process ended without closing the run (killed?)"
+# re-exported: vtr.map.store has always named them
+__all__ = ["GRAVITY_META_KEY", "INTERRUPTED_REASON", "MAP_FORMAT_VERSION", "MODES", "VERTEX_CACHE_SIZE", "Map",
+           "abort_reason", "check_gravity_up"]
 
 
-def abort_reason(exc: BaseException) -> str:
-    """The one-line reason an exception gives an aborted run."""
-    exc = interruption(exc) or exc
-    if isinstance(exc, KeyboardInterrupt):
-        return "interrupted by Ctrl-C (SIGINT)"
-    if isinstance(exc, Terminated):
-        return "terminated by SIGTERM"
-    text = str(exc)
-    return one_line_reason(f"{type(exc).__name__}: {text}" if text else type(exc).__name__)
-
-
-GRAVITY_META_KEY = "gravity_up"
-#: an up vector shorter than this has no direction
-MIN_UP_NORM = 1e-9
-
-
-def check_gravity_up(value: object, what: str, error: type[Exception] = ConfigError) -> np.ndarray:
-    """``value`` as a unit 3-vector (an up direction); ``error`` naming ``what`` unless three finite numbers of
-    non-zero length."""
-    try:
-        up = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise error(f"{what}: expected three numbers, got {value!r}") from None
-    if up.shape != (3,) or not np.all(np.isfinite(up)):
-        raise error(f"{what}: expected three finite numbers, got {value!r}")
-    n = float(np.linalg.norm(up))
-    if n < MIN_UP_NORM:
-        raise error(f"{what}: the up direction has zero length")
-    return up / n
-
-
-def _utc_now() -> str:
-    return datetime.now(UTC).isoformat(timespec="seconds")
-
-
-def _check_run_row(path: Path, r: tuple) -> None:
-    """``MapError`` (one line) when a row of the runs table is not what vtr writes (a damaged file)."""
-    rid, kind, privileged, source, created, state, reason = r[:7]
-    problem = None
-    if isinstance(rid, bool) or not isinstance(rid, int) or not 0 <= rid < 1 << 31:
-        problem = f"id {rid!r}"
-    elif kind not in RUN_KINDS:
-        problem = f"kind {kind!r}"
-    elif privileged not in (0, 1):
-        problem = f"privileged {privileged!r}"
-    elif not isinstance(source, str) or not isinstance(created, str) or not isinstance(reason, str):
-        problem = "a text field that is not text"
-    elif state not in (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED):
-        problem = f"state {state!r}"
-    if problem is not None:
-        raise MapError(f"{path}: the runs table is damaged (run {rid!r}: {problem}); the map file was changed "
-                       "after vtr wrote it")
-
-
-def _run_range(run: int) -> tuple[int, int]:
-    """Smallest and largest vertex id of a run."""
-    lo = int(run) << RUN_SHIFT
-    return lo, lo | INDEX_MASK
-
-
-def _check_int(value: object, what: str, minimum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise MapError(f"{what}: expected an integer, got {type(value).__name__}")
-    value = int(value)
-    if minimum is not None and value < minimum:
-        raise MapError(f"{what}: {value} < {minimum}")
-    return value
-
-
-class Map:
+class Map(MapWriting):
     """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
 
     ``camera`` is the rectified stereo calibration the map was taught with; ``path`` the file.
@@ -172,7 +104,7 @@ class Map:
         self._lock = file.lock
         self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
-        self._cache_size = _check_int(cache_size, "cache_size", 1)
+        self._cache_size = check_int(cache_size, "cache_size", 1)
         self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
         self._path_cache: tuple[int, TaughtPath] | None = None
         self._open_run: int | None = None
@@ -206,9 +138,9 @@ class Map:
         """
         path = Path(path)
         up = None if gravity_up is None else check_gravity_up(gravity_up, "gravity_up")
-        _check_int(cache_size, "cache_size", 1)
+        check_int(cache_size, "cache_size", 1)
         config = config or MapConfig()
-        level = _check_int(config.compress_level, "map.compress_level", 0)
+        level = check_int(config.compress_level, "map.compress_level", 0)
         if level > 9:
             raise MapError(f"map.compress_level: {level} > 9")
         if not isinstance(camera, StereoCamera):
@@ -216,7 +148,7 @@ class Map:
         meta = {
             "format_version": str(MAP_FORMAT_VERSION),
             "camera": json.dumps(camera.to_dict()),
-            "created": _utc_now(),
+            "created": utc_now(),
             "vtr_version": __version__,
             "compress_level": str(level),
             checksums.META_KEY: checksums.META_VALUE,   # every vertex has checksums (vtr.map.checksums)
@@ -235,7 +167,7 @@ class Map:
         """
         if mode not in MODES:
             raise MapError(f"map open mode must be one of {MODES}, got {mode!r}")
-        _check_int(cache_size, "cache_size", 1)
+        check_int(cache_size, "cache_size", 1)
         path = Path(path)
 
         def check(meta: dict[str, str]) -> tuple[dict[str, str], StereoCamera]:
@@ -381,169 +313,27 @@ class Map:
             raise MapError(f"{self.path}: no run {run}")
         return row
 
-    # ------------------------------------------------------------ writing
-
-    def begin_run(self, kind: str, source: str = "", privileged: bool | None = None) -> int:
-        """Start a new run (``"teach"`` or ``"repeat"``) and return its id; it becomes the open run.
-
-        Teach runs are privileged (define the path to repeat) unless ``privileged=False``. A run
-        this session was writing is finished first; a run left running by a killed process is
-        recorded as aborted (interrupted), never as finished.
-        """
-        self._check_writable()
-        if kind not in RUN_KINDS:
-            raise MapError(f"run kind must be one of {RUN_KINDS}, got {kind!r}")
-        privileged = kind == "teach" if privileged is None else bool(privileged)
-        mine = self._open_run if self._open_run_touched else None
-        with self._tx() as conn:
-            if mine is not None:
-                conn.execute("UPDATE runs SET state = ? WHERE id = ? AND state = ?", (RUN_FINISHED, mine, RUN_RUNNING))
-            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE state = ?",
-                         (RUN_ABORTED, INTERRUPTED_REASON, RUN_RUNNING))
-            run = conn.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM runs").fetchone()[0]
-            vertex_id(run, 0)  # checks the run id range
-            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) VALUES (?, ?, ?, ?, ?, ?)",
-                         (run, kind, int(privileged), str(source), _utc_now(), RUN_RUNNING))
-        self._open_run, self._open_run_touched = int(run), True
-        self._open_run_privileged = privileged
-        return int(run)
-
-    def finish_run(self) -> None:
-        """Finish the open run now: it is complete and becomes immutable (``close`` does this too)."""
-        self._end_open_run(RUN_FINISHED, "")
-
-    def abort_run(self, reason: str) -> None:
-        """End the open run as aborted with a one-line ``reason`` (it becomes immutable, and is not a
-        complete route: a repeat refuses a taught run that is not finished)."""
-        self._end_open_run(RUN_ABORTED, one_line_reason(reason))
-        self._aborted = True
-
-    def _end_open_run(self, state: str, reason: str) -> None:
-        self._check_writable()
-        if self._open_run is None:
-            return
-        self._set_state(self._open_run, state, reason)
-
-    def _set_state(self, run: int, state: str, reason: str) -> None:
-        with self._tx() as conn:
-            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE id = ?", (state, reason, run))
-        self._open_run = None
-        self._open_run_touched = False
-
-    def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
-        """Append a stereo frame as the next vertex of the open run ``run`` (no edge); returns the stored record.
-
-        ``T_world_vertex`` (4x4) is the frame's left camera pose in the run's first camera frame;
-        ``T_vehicle_sensor`` defaults to the map camera's. The frame is stored through the vertex codec
-        (:mod:`vtr.map.codec`: lossless dtype conversion only, else ``MapError``). Odometry keyframes go
-        through :meth:`add_keyframe`, which adds their temporal edge in the same transaction.
-        """
-        return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
-
-    def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True) -> VertexRecord:
-        """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
-
-        The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
-        keyframe's ``edge_covariance`` and ``edge_inliers``; the covariance must be a valid one (else
-        ``MapError``): odometry makes it usable where it produces the keyframe (``vtr.vo``).
-        The edge is written when the run already has a vertex and ``link_previous`` is true (pass false
-        for the first keyframe of a new odometry session, e.g. after resuming a teach).
-        """
-        edge = None
-        if link_previous:
-            edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
-                    _check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
-        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
-                                edge)
-
-    def _add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                    T_vehicle_sensor: np.ndarray | None,
-                    edge: tuple[np.ndarray, int] | None) -> VertexRecord:
-        self._check_writable()
-        run = _check_int(run, "run", 0)
-        self._check_open_run(run, "add_vertex")
-        t_ns = _check_int(t_ns, "t_ns")
-        if not -(2**63) <= t_ns < 2**63:
-            raise MapError(f"t_ns: {t_ns} does not fit int64 nanoseconds (a time past the year 2262: a damaged "
-                           "timestamp in the source?)")
-        T_wv = check_transform(T_world_vertex, "T_world_vertex")
-        T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
-                               "T_vehicle_sensor")
-        encoded = encode_frame(frame, t_ns, self._compress_level)
-        lo, hi = _run_range(run)
-        with self._tx() as conn:
-            last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
-            index = 0 if last is None else (int(last) & INDEX_MASK) + 1
-            vid = vertex_id(run, index)
-            conn.execute(
-                "INSERT INTO vertices(id, run, idx, t_ns, T_world_vertex, T_vehicle_sensor, n_features, "
-                "n_landmarks, frame_index) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), encoded.n_features,
-                 encoded.n_landmarks, encoded.frame.index),
-            )
-            conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
-            if self._checksums:
-                checksums.write(conn, vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs),
-                                encoded.n_features, encoded.n_landmarks, encoded.frame.index, encoded.blob)
-            if edge is not None and last is not None:
-                C, inliers = edge
-                T_world_prev = blob_matrix(conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?",
-                                                        (int(last),)).fetchone()[0], (4, 4))
-                T = inv_T(T_world_prev) @ T_wv
-                conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
-                             "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
-                                                                    inliers))
-        self._open_run_touched = True
-        if self._open_run_privileged:
-            self._generation += 1  # the privileged path grew: drop its caches
-        record = VertexRecord.of(vid, t_ns, T_wv, T_vs, encoded.frame)
-        self._cache_put(record)
-        return record
-
-    def add_edge(self, from_id: int, to_id: int, T_from_to: np.ndarray, covariance: np.ndarray, kind: str,
-                 inliers: int = 0) -> None:
-        """Add an edge; ``T_from_to`` (4x4) maps to-vertex coordinates into the from-vertex frame.
-
-        ``temporal`` edges join consecutive vertices (index i -> i+1) of the open run; ``spatial``
-        edges may join any two vertices as long as one of them is in the open run (e.g. a repeat
-        vertex to a taught one). Validates SE(3), finiteness and a symmetric PSD 6x6 covariance;
-        on any error nothing is written.
-        """
-        self._check_writable()
-        if kind not in EDGE_KINDS:
-            raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
-        from_id = _check_int(from_id, "from_id", 0)
-        to_id = _check_int(to_id, "to_id", 0)
-        if from_id == to_id:
-            raise MapError(f"edge from vertex {from_id} to itself")
-        T = check_transform(T_from_to, f"edge {from_id}->{to_id} T_from_to")
-        C = check_covariance(covariance, f"edge {from_id}->{to_id} covariance")
-        inliers = _check_int(inliers, "inliers", 0)
-        (run_f, idx_f), (run_t, idx_t) = split_vertex_id(from_id), split_vertex_id(to_id)
-        for vid in (from_id, to_id):
-            if not self.has_vertex(vid):
-                raise MapError(f"{self.path}: no vertex {vid} (run {vid >> RUN_SHIFT}, index {vid & INDEX_MASK})")
-        if kind == "temporal":
-            if run_f != run_t or idx_t != idx_f + 1:
-                raise MapError(f"temporal edge must join consecutive vertices of one run, got "
-                               f"({run_f}, {idx_f}) -> ({run_t}, {idx_t})")
-            self._check_open_run(run_f, "temporal edge")
-        elif self._open_run is None or self._open_run not in (run_f, run_t):
-            raise MapError(f"{self.path}: spatial edge ({run_f}, {idx_f}) -> ({run_t}, {idx_t}) must touch the "
-                           f"open run ({self._open_run}); finished runs are immutable")
-        with self._db() as conn:
-            dup = conn.execute("SELECT 1 FROM edges WHERE from_id = ? AND to_id = ? AND kind = ?",
-                               (from_id, to_id, kind)).fetchone()
-        if dup:
-            raise MapError(f"{self.path}: {kind} edge {from_id}->{to_id} already exists")
-        with self._tx() as conn:
-            conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
-                         "VALUES (?, ?, ?, ?, ?, ?)", (from_id, to_id, kind, matrix_blob(T), matrix_blob(C), inliers))
-        self._open_run_touched = True
-
     # ------------------------------------------------------------ reading
+
+    def next_vertex_id(self, run: int) -> int:
+        """The id the next vertex of ``run`` gets."""
+        lo, hi = run_range(check_int(run, "run", 0))
+        with self._db() as conn:
+            last = conn.execute("SELECT MAX(id) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
+        return lo if last is None else vertex_id(run, (int(last) & INDEX_MASK) + 1)
+
+    def localization_records(self, run: int) -> list[LocalizationRecord]:
+        """The localization records of repeat ``run``'s vertices in vertex order (:mod:`vtr.map.localizations`;
+        none for a run written before the map kept them)."""
+        with self._db() as conn:
+            self._run_row(conn, check_int(run, "run", 0))
+            return localizations.read(conn, run)
+
+    def localization_count(self, run: int) -> int:
+        """How many localization records repeat ``run`` has."""
+        with self._db() as conn:
+            return localizations.count(conn, check_int(run, "run", 0))
+
 
     def runs(self) -> list[RunInfo]:
         """All runs in id order, with their vertex counts and lifecycle state (see ``RunInfo``)."""
@@ -553,7 +343,7 @@ class Map:
                 "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
                 "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
         for r in rows:
-            _check_run_row(self.path, r)
+            check_run_row(self.path, r)
         return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
                         n_vertices=int(r[7]), state=self._seen_state(int(r[0]), r[5]), reason=r[6]) for r in rows]
 
@@ -594,7 +384,7 @@ class Map:
 
     def vertex_ids(self, run: int) -> np.ndarray:
         """(N,) int64 vertex ids of ``run`` in index order."""
-        lo, hi = _run_range(_check_int(run, "run", 0))
+        lo, hi = run_range(check_int(run, "run", 0))
         with self._db() as conn:
             self._run_row(conn, run)
             ids = [r[0] for r in conn.execute("SELECT id FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id", (lo, hi))]
@@ -602,7 +392,7 @@ class Map:
 
     def poses(self, run: int) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, T_world_vertex (N, 4, 4))`` of a run in index order, from the pose index only."""
-        lo, hi = _run_range(_check_int(run, "run", 0))
+        lo, hi = run_range(check_int(run, "run", 0))
         with self._db() as conn:
             self._run_row(conn, run)
             rows = conn.execute("SELECT id, T_world_vertex FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
@@ -619,7 +409,7 @@ class Map:
 
     def timestamps(self, run: int) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (N,) int64, t_ns (N,) int64)`` of a run in index order."""
-        lo, hi = _run_range(_check_int(run, "run", 0))
+        lo, hi = run_range(check_int(run, "run", 0))
         with self._db() as conn:
             self._run_row(conn, run)
             rows = conn.execute("SELECT id, t_ns FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
@@ -631,7 +421,7 @@ class Map:
     def vertex(self, vid: int, cached: bool = True) -> VertexRecord:
         """The keyframe ``vid`` with its features, checksums verified: decoded once, then served from a bounded LRU
         cache; ``cached=False`` reads it from the file and leaves the cache alone (a full check, a stream)."""
-        vid = _check_int(vid, "vertex id", 0)
+        vid = check_int(vid, "vertex id", 0)
         if not cached:
             return self._read_vertex(vid)
         with self._lock:
@@ -685,7 +475,7 @@ class Map:
         where: list[str] = []
         args: list[int | str] = []
         if run is not None:
-            lo, hi = _run_range(_check_int(run, "run", 0))
+            lo, hi = run_range(check_int(run, "run", 0))
             where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")
             args += [lo, hi, lo, hi]
         if kind is not None:
@@ -724,7 +514,7 @@ class Map:
                 damage.check_vertex_runs(conn, str(self.path))
                 if self._checksums:
                     for (run,) in conn.execute("SELECT id FROM runs WHERE privileged = 1").fetchall():
-                        checksums.verify_rows(conn, str(self.path), *_run_range(int(run)))
+                        checksums.verify_rows(conn, str(self.path), *run_range(int(run)))
             ids, T = self._pose_arrays(rows)
             path = TaughtPath(ids, T, np.array([r[2] for r in rows], dtype=np.int64))
             damage.check_taught_path(str(self.path), path)
