@@ -66,7 +66,8 @@ from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
 from ..map import TaughtPath
 from ..state.controller import ControllerState
-from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint
+from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint, logmap
+from ..state.wnoa import MotionPsd
 from .localization import LocalizationStatus
 from .state_view import (
     CommandLog,
@@ -144,6 +145,13 @@ class RepeatStateEstimator:
         self.path = path
         self.smoothing = smoothing
         self.smoother = TrajectorySmoother(smoothing)
+        # the motion prior's Qc from the repeat's own odometry steps (kept across pauses: the vehicle is the same),
+        # starting from the taught path's motion (the configured Qc when the taught path is too short to say)
+        psd = MotionPsd(self.smoother.q_psd, smoothing.qc_window_s, smoothing.qc_min_samples,
+                        smoothing.qc_floor_share, smoothing.qc_long_steps)
+        self.taught_qc = psd.of_poses(path.t_ns, path.T_world_vertex, smoothing.max_extrapolation_s)
+        self.motion_psd = MotionPsd(self.taught_qc, smoothing.qc_window_s, smoothing.qc_min_samples,
+                                    smoothing.qc_floor_share, smoothing.qc_long_steps)
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
         self.off_route_distance_m = float(off_route_distance_m)
         self.gravity_up = None if gravity_up is None else np.asarray(gravity_up, float)
@@ -291,11 +299,14 @@ class RepeatStateEstimator:
             return      # a repeated timestamp: one knot per time (the next vertex's odometry spans both)
         kw = {}
         if self._last is not None and v.relative_covariance is not None:
-            kw["T_prev_cur"] = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
+            kw["T_prev_cur"] = T_prev_cur = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
             kw["relative_covariance"] = v.relative_covariance
+            self.motion_psd.add(logmap(T_prev_cur)[0], (v.t_ns - self._last.t_ns) / NS_PER_S)
+        else:
+            self.motion_psd.broken()
         if v.T_teach_leaf is not None:
             kw["T_world_sensor"], kw["covariance"] = v.T_teach_leaf, v.localization_covariance
-        self.smoother.add_knot(v.t_ns, **kw)
+        self.smoother.add_knot(v.t_ns, qc=self.motion_psd.qc, **kw)
         self._last = v
 
     # -- queries ------------------------------------------------------------------------------------
