@@ -104,7 +104,9 @@ class ExperienceLocalizer(Localizer):
             return est
         extra = (experience_covariance(submap, est, self.experiences.edge_covariance)
                  + taught_covariance(submap, est, self.experiences.taught_edge_covariance))
-        return dataclasses.replace(est, covariance=est.covariance + extra) if extra.any() else est
+        if not extra.any():
+            return est
+        return dataclasses.replace(est, covariance=est.covariance + extra, frame_covariance=extra)
 
 
 def single_experience(config: Config) -> Config:

@@ -70,6 +70,9 @@ class Localization:
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     direction: int = 1                      # +1 the route travelled as taught, -1 backward, 0 not yet decided
     experiences: tuple[int, ...] = ()       # the experiences (repeat runs) that gave this success inliers
+    # the part of ``covariance`` that is the map's own placement (taught vertices, experiences): shared by the
+    # leaves localized against the same vertices, not independent between them (LocalizationEstimate)
+    frame_covariance: np.ndarray | None = None
 
     __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
 
@@ -159,6 +162,10 @@ class LocalizationEstimate:
     inlier: np.ndarray
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     median_residual_px: float = float("nan")   # median reprojection error of the inliers (worse of the two views)
+    # the part of ``covariance`` the map's own placement adds (vtr.navigation.experiences.taught_covariance and
+    # experience_covariance): an error of the frame the leaf is localized in, which consecutive leaves localized
+    # against the same vertices share; None: none added
+    frame_covariance: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:

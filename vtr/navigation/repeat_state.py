@@ -174,6 +174,8 @@ class RepeatStateEstimator:
         self.vertex_localized: list[bool] = []   # the chain's verdict after the vertex's attempt
         self.vertex_direction: list[int] = []    # the chain's direction of travel after it
         self.vertex_off_route: list[bool] = []   # the attempt found the vertex beyond an end of the route
+        # the map's placement error (6x6, leaf camera) of the latest localization at or before the vertex
+        self.vertex_frame_covariance: list[np.ndarray] = []
         self.frame_t_ns: list[int] = []          # every frame fed (a state long after the last one is unknown)
         self._ever = False
         self.unknown: str | None = None           # why the state of a never-localized run is unknown
@@ -214,10 +216,17 @@ class RepeatStateEstimator:
                 # the keyframe's edge covariance (usable as odometry hands it out) plus drift with distance
                 rel_cov = kf.edge_covariance + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
+            frame_cov = self.vertex_frame_covariance[-1] if self.vertex_frame_covariance else np.zeros((6, 6))
             if loc is not None and loc.success:
-                loc_cov = usable_covariance(loc.covariance)
+                # the smoother averages localizations as independent: it gets the part of the covariance that is
+                # (the adjustment's); the map's placement, shared by consecutive leaves, is added to each state
+                # (RepeatStateView: the error of the frame the state is localized in)
+                shared = np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance)
+                loc_cov = usable_covariance(np.asarray(loc.covariance) - shared)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
+                    frame_cov = shared
+            self.vertex_frame_covariance.append(frame_cov)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
@@ -345,6 +354,7 @@ class RepeatStateEstimator:
             vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:], vertex_localized=localized[lo_v:],
             vertex_ever=ever[lo_v:], vertex_direction=np.asarray(self.vertex_direction, np.int64)[lo_v:],
             vertex_off_route=np.asarray(self.vertex_off_route, bool)[lo_v:], frame_t_ns=frames[lo_f:],
+            vertex_frame_covariance=np.asarray(self.vertex_frame_covariance, float).reshape(-1, 6, 6)[lo_v:],
             unknown=self.unknown)
 
     def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
