@@ -218,14 +218,14 @@ class RepeatStateEstimator:
             T_teach_leaf = loc_cov = None
             frame_cov = self.vertex_frame_covariance[-1] if self.vertex_frame_covariance else np.zeros((6, 6))
             if loc is not None and loc.success:
-                # the smoother averages localizations as independent: it gets the part of the covariance that is
-                # (the adjustment's); the map's placement, shared by consecutive leaves, is added to each state
-                # (RepeatStateView: the error of the frame the state is localized in)
-                shared = np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance)
-                loc_cov = usable_covariance(np.asarray(loc.covariance) - shared)
+                # the smoother averages localizations as independent; the map's placement part of each, shared in
+                # part by the leaves localized against the same taught vertices, is added to every state after it
+                # (RepeatStateView.frame_output_covariance): an upper bound whatever that share (docs/smoother.md)
+                loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
-                    frame_cov = shared
+                    frame_cov = (np.zeros((6, 6)) if loc.frame_covariance is None
+                                 else np.asarray(loc.frame_covariance, float))
             self.vertex_frame_covariance.append(frame_cov)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))

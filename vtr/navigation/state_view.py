@@ -359,8 +359,7 @@ class RepeatStateView:
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
-        last = self._state(int(t[-1]), k, with_covariance=False, fit_acceleration=False)
-        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), last.T_o_a))
+        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))   # cs: t_end's
         return OutputWindow(t_ns=t, position=P, yaw=np.unwrap(yaw), covariance=0.5 * (cov + cov.T),
                             trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k),
                             status=self.status_at(t, np.atleast_1d(along)))
