@@ -7,13 +7,18 @@ usage: python tools/bench_online.py [--out OUT] [--camera-hz 10] [--control-hz 1
 Per case: the exceptions the control thread saw (NotLocalizedError before the first localization is expected; any
 other counts), tick latency p50 / p99 / max against one odometry frame measured in the same run (median of the same
 frames through stereo + odometry alone), and the calibration of the state's position covariance against ground truth
-(NEES of the position relative to the trunk, 3 dof: median and the share inside the 99 % bound). Writes
-OUT/online.json and OUT/online.png.
+(NEES of the position relative to the trunk, 3 dof: median and the share inside the 99 % bound). The threaded
+run's ticks fall as far after the newest frame as the feeder lags (a loaded machine extrapolates further), so the
+calibration is also replayed without threads: every frame fed, then the state at each control tick until the next
+camera frame (0, 10, ..., 90 ms after it), on these cases and on cases the estimator was not tuned on (the aerial
+flight forward, kitti06 reversed, kitti00_ramp_clip forward and reversed; reversed: the repeat's frames in reverse
+order with the times kept increasing). Writes OUT/online.json and OUT/online.png.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import threading
@@ -33,6 +38,7 @@ from vtr.errors import NotLocalizedError
 from vtr.geometry import inv_T
 from vtr.io import open_source
 from vtr.map import Map
+from vtr.navigation.state_view import RepeatStateView
 from vtr.sim import synthetic as syn
 from vtr.vo.odometry import StereoOdometry
 
@@ -96,14 +102,15 @@ def run_case(name: str, map_path: Path, source_dir: Path, indices: list[int], tr
                     if t_frame is None:
                         raise NotLocalizedError("no frame yet")
                     t = int(t_frame + (now - clock["wall"]) * 1e9)
-                    s = live.state(t)
+                    view = live.view      # one view for the state and its check (the feeder may publish between)
+                    s = view.controller_state_at(t, with_covariance=True)
                     live.window(t, 3, 0.02)
                     p_g, psi_g = s.in_map_gravity_frame()
                     step = np.arange(args.horizon)[:, None] * np.r_[np.cos(psi_g), np.sin(psi_g), 0.0] * 0.5
                     live.constraint(p_g[None] + step, np.full(args.horizon, psi_g))
                     ticks.append(time.perf_counter() - t0)
                     if s.localized and s.position_covariance is not None:
-                        nees.append(_nees(live, s, t, truth, teach_t))
+                        nees.append(_nees(view, s, t, truth, teach_t))
                 except NotLocalizedError:
                     not_localized += 1
                 except Exception as err:  # noqa: BLE001 - counted and reported
@@ -140,9 +147,9 @@ def run_case(name: str, map_path: Path, source_dir: Path, indices: list[int], tr
     return row
 
 
-def _nees(live: OnlineRepeat, s, t: int, truth: Truth, teach_t: dict[int, int]) -> float:
-    """NEES (3 dof) of the state's position in o against the true pose relative to the true trunk."""
-    view = live.view
+def _nees(view: RepeatStateView, s, t: int, truth: Truth, teach_t: dict[int, int]) -> float:
+    """NEES (3 dof) of the state's position in o against the true pose relative to the true trunk (the trunk of the
+    view the state was read from)."""
     k = int(view.trunk_index_at(np.array([t]))[0])
     trunk_id = int(view.route.path.ids[k])
     T_cam_trunk_true = truth.teach_at(teach_t[trunk_id])
@@ -152,6 +159,37 @@ def _nees(live: OnlineRepeat, s, t: int, truth: Truth, teach_t: dict[int, int]) 
     p_true = (T_o_t @ T_vs @ T_rel @ view.route.T_sensor_vehicle)[:3, 3]
     e = s.position - p_true
     return float(e @ np.linalg.solve(s.position_covariance, e))
+
+
+def replay_nees(map_path: Path, images: list, truth: Truth, args) -> dict:
+    """Position NEES of the state at every control tick between camera frames, fed without threads."""
+    with Map.open(map_path) as m:
+        teach_t = {int(v): int(t) for v, t in zip(m.taught_path().ids, m.taught_path().t_ns, strict=True)}
+    ticks = max(1, int(round(args.control_hz / args.camera_hz)))
+    period_ns = int(round(1e9 / args.control_hz))
+    nees: list[float] = []
+    with OnlineRepeat(map_path) as live:
+        for im in images:
+            live.feed(im)
+            if not live.localized:
+                continue
+            view = live.view
+            for k in range(ticks):
+                t = int(im.t_ns) + k * period_ns
+                s = view.controller_state_at(t, with_covariance=True)
+                nees.append(_nees(view, s, t, truth, teach_t))
+    a = np.array(nees)
+    return {"replay_nees_samples": len(a), "replay_nees_median": float(np.median(a)) if len(a) else None,
+            "replay_nees_inside_99": float(np.mean(a <= NEES_BOUND)) if len(a) else None}
+
+
+def reversed_repeat(images: list, truth: Truth) -> tuple[list, Truth]:
+    """The repeat's frames in reverse order with the times kept increasing (the route travelled backward, facing as
+    taught), and the truth re-timed with them."""
+    times = [int(im.t_ns) for im in images]
+    rev = [dataclasses.replace(im, t_ns=t) for im, t in zip(images[::-1], times, strict=True)]
+    T_rep = np.array([truth.repeat_at(int(im.t_ns)) for im in images[::-1]])
+    return rev, Truth(truth.t_teach, truth.T_teach, np.array(times, np.int64), T_rep)
 
 
 def aerial_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
@@ -172,9 +210,23 @@ def aerial_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
     return map_path, seq, list(range(len(T))), truth
 
 
-def kitti_case(out: Path) -> tuple[Path, Path, list[int], Truth]:
-    clip = ROOT / "datasets" / "kitti06_clip"
-    map_path = out / "kitti" / "route.vtrmap"
+def aerial_forward_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
+    """The same route flown forward, 2 m to the side (another noise seed)."""
+    map_path, _, _, _ = aerial_case(out, args)
+    scene = syn.aerial_scene(0)
+    spacing = args.speed / CAMERA_RATE_HZ
+    total = sum(length for length, _ in ROUTE_SEGMENTS)
+    T_teach = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing)
+    s = np.arange(spacing, total - spacing + 1e-9, spacing)
+    T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[0]))[:len(s)]
+    seq = render(out / "aerial" / "forward", scene, T, noise_seed=2, speed_mps=args.speed)
+    truth = Truth(syn.route_times(T_teach, args.speed), T_teach, syn.route_times(T, args.speed), T)
+    return map_path, seq, list(range(len(T))), truth
+
+
+def kitti_case(out: Path, clip_name: str = "kitti06_clip") -> tuple[Path, Path, list[int], Truth]:
+    clip = ROOT / "datasets" / clip_name
+    map_path = out / clip_name / "route.vtrmap"
     if not map_path.exists():
         map_path.parent.mkdir(parents=True, exist_ok=True)
         teach_command(clip, map_path, "0::2", Config())
@@ -193,6 +245,7 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
+    rows = [r for r in rows if "tick_p99_per_odometry_frame" in r]        # the threaded runs
     names = [r["case"] for r in rows]
     for key, label in (("tick_p99_per_odometry_frame", "tick p99"), ("tick_max_per_odometry_frame", "tick max")):
         ax.bar([n + " " + label for n in names], [r[key] for r in rows])
@@ -214,6 +267,9 @@ def main() -> None:
     ap.add_argument("--cases", default="aerial,kitti06", help="comma-separated: aerial, kitti06")
     ap.add_argument("--switch-interval-ms", type=float, default=None,
                     help="Python's thread switch interval for the run (sys.setswitchinterval; default: Python's, 5 ms)")
+    ap.add_argument("--replay-cases", default="aerial forward,kitti06 reversed,ramp,ramp reversed",
+                    help="comma-separated cases replayed without threads only (calibration): aerial forward, "
+                         "kitti06 reversed, ramp, ramp reversed; empty for none")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.switch_interval_ms is not None:
@@ -227,6 +283,23 @@ def main() -> None:
         map_path, source, indices, truth = case()
         print(f"{name}: {len(indices)} frames at {args.camera_hz:g} Hz, control at {args.control_hz:g} Hz ...")
         row = run_case(name, map_path, source, indices, truth, args)
+        with open_source(source) as src:
+            row.update(replay_nees(map_path, [src[i] for i in indices], truth, args))
+        rows.append(row)
+        print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
+    replays = {"aerial forward": lambda: aerial_forward_case(args.out, args),
+               "kitti06 reversed": lambda: kitti_case(args.out),
+               "ramp": lambda: kitti_case(args.out, "kitti00_ramp_clip"),
+               "ramp reversed": lambda: kitti_case(args.out, "kitti00_ramp_clip")}
+    for name in [c.strip() for c in args.replay_cases.split(",") if c.strip()]:
+        if name not in replays:
+            raise SystemExit(f"--replay-cases: unknown case {name!r} (known: {', '.join(replays)})")
+        map_path, source, indices, truth = replays[name]()
+        with open_source(source) as src:
+            images = [src[i] for i in indices]
+        if name.endswith("reversed"):
+            images, truth = reversed_repeat(images, truth)
+        row = {"case": name, "frames": len(images), **replay_nees(map_path, images, truth, args)}
         rows.append(row)
         print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
     (args.out / "online.json").write_text(json.dumps(rows, indent=2) + "\n")

@@ -282,11 +282,11 @@ class LocalizationConfig:
     # median reprojection error of the inliers (px, the worse of the taught and the leaf view) above this does not
     # fit the pixel noise: a chance alignment spreads its inliers up to the RANSAC threshold
     max_median_residual_px: float = setting(2.5, Range(0.0, 1000.0, lo_open=True))
-    # the bundle adjustment's covariance (pixel noise only, after the residuals' variance factor) times this: the
-    # taught landmarks' own errors are not in it. Set so the reported sigma covers the error against ground truth
-    # (3-sigma ellipsoid, tools/bench_localization.py): 4 covered 96 % on kitti06 even/odd but 75 % on
-    # kitti00_ramp_clip (median NEES 7.8, far structure); 9 covers 100 % of both (NEES 0.9 and 3.4), 16 NEES 0.5, 1.9
-    covariance_scale: float = setting(9.0, Range(0.0, 1e6, lo_open=True))
+    # the bundle adjustment's covariance, with the pixel noise its residuals estimate, times this (1: as estimated).
+    # What the adjustment holds fixed (the taught vertices' placement) is added from the teach's temporal edges
+    # (vtr.navigation.experiences.taught_covariance), not by a scale: a fixed 9 was conservative on kitti06 and the
+    # synthetic aerial routes (position NEES 0.9 / 0.4) and overconfident on kitti00_ramp_clip (3.4-4.5)
+    covariance_scale: float = setting(1.0, Range(0.0, 1e6, lo_open=True))
     # chi-square gate (6 dof) on the innovation of a localization against the odometry-propagated prior, and
     # between two keyframes' place candidates before the first success: 22.46 = 99.9 %
     innovation_gate: float = setting(22.46, Range(0.0, 1e9, lo_open=True))
@@ -366,6 +366,15 @@ class SmoothingConfig:
     # half-width (s; continuous in time, the noise of each knot's velocity averaged); 0: the derivative of the
     # WNOA mean (discontinuous at every knot, as noisy as the knots' velocities differ)
     acceleration_window_s: float = setting(1.0, Range(0.0, 60.0))
+    # the repeat's Qc from its own motion (vtr.state.wnoa.MotionPsd, docs/smoother.md "Qc"): per axis, the second
+    # differences of the odometry's mean twists over spans of 1 and qc_long_steps keyframe steps (which tell the
+    # motion from odometry's noise), forgotten over qc_window_s seconds; qc_window_s 0 keeps qc_* fixed. qc_* are
+    # used until the forgetting-weighted count of long-span samples reaches qc_min_samples, and the estimate is held
+    # above qc_floor_share of them
+    qc_window_s: float = setting(10.0, Range(0.0, 3600.0))
+    qc_long_steps: int = setting(4, Range(2, 1000, integer=True))
+    qc_min_samples: float = setting(5.0, Range(1.0, 1e6))
+    qc_floor_share: float = setting(1e-3, Range(0.0, 1.0))
 
 
 @dataclass

@@ -289,6 +289,36 @@ def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
     assert not experience_covariance(sub, only_taught, P.get).any()
 
 
+def test_taught_covariance_adds_each_taught_vertex_s_edge_moved_to_the_leaf():
+    """The taught submap's own placement: each taught vertex that gave inliers adds its temporal edge's covariance
+    moved to the leaf; experience vertices (no taught edge) and vertices without inliers add nothing."""
+    from vtr.geometry import exp_se3
+    from vtr.navigation.experiences import taught_covariance
+    from vtr.navigation.localization import LocalizationEstimate, TaughtSubmap
+    from vtr.state.trajectory import adjoint
+
+    trunk, before, experience = (1 << 32) | 5, (1 << 32) | 4, (3 << 32) | 7
+    T_x_trunk = np.stack([np.eye(4), exp_se3(np.array([0.0, 0.01, 0.0, 0.0, 0.0, 2.0])),
+                          exp_se3(np.array([0.01, 0.0, 0.0, 0.3, 0.0, 0.1]))])
+    slot = np.array([0, 0, 1, 2, 2])
+    n = len(slot)
+    sub = TaughtSubmap(np.array([trunk, before, experience]), T_x_trunk, 0, np.zeros((n, 3)),
+                       np.zeros((n, 32), np.uint8), slot, np.zeros((n, 3)), np.arange(n), np.ones(n), np.zeros(n, bool))
+    P = {trunk: np.diag([1e-6] * 3 + [4e-5, 2e-5, 1e-4]), before: np.diag([2e-6] * 3 + [1e-5, 1e-5, 9e-5])}
+    T = exp_se3(np.array([0.0, 0.02, 0.0, 0.5, 0.0, 1.0]))
+    matched = np.arange(n)
+    est = LocalizationEstimate(T, np.eye(6) * 1e-6, n, matched, np.array([True, True, True, True, False]))
+    expected = sum(adjoint(T @ np.linalg.inv(T_x_trunk[s])) @ P[v] @ adjoint(T @ np.linalg.inv(T_x_trunk[s])).T
+                   for s, v in ((0, trunk), (1, before)))
+    got = taught_covariance(sub, est, P.get)
+    np.testing.assert_allclose(got, expected, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(got) > 0)
+    trunk_only = LocalizationEstimate(T, np.eye(6), n, matched, np.array([True, False, False, False, False]))
+    np.testing.assert_allclose(taught_covariance(sub, trunk_only, P.get), adjoint(T) @ P[trunk] @ adjoint(T).T)
+    nothing = LocalizationEstimate(T, np.eye(6), n, matched, np.array([False, False, False, True, True]))
+    assert not taught_covariance(sub, nothing, P.get).any()
+
+
 def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
     """A repeat stores the place-recognition words of the experiences it scored (derived data), and the vectors
     made from them are those of the vertices' own descriptors."""

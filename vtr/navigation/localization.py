@@ -71,11 +71,13 @@ class Localization:
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     direction: int = 1                      # +1 the route travelled as taught, -1 backward, 0 not yet decided
     experiences: tuple[int, ...] = ()       # the experiences (repeat runs) that gave this success inliers
+    # the part of ``covariance`` that is the map's own placement (taught vertices, experiences): shared by the
+    # leaves localized against the same vertices, not independent between them (LocalizationEstimate)
+    frame_covariance: np.ndarray | None = None
 
     __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
 
 
-STEREO_ROWS = 3   # measured rows of a stereo observation (u_l, v, u_r)
 
 #: a stored landmark whose depth differs from its own triangulation by more than this disparity was refined
 REFINED_DISPARITY_TOLERANCE_PX = 1e-6
@@ -161,6 +163,10 @@ class LocalizationEstimate:
     inlier: np.ndarray
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
     median_residual_px: float = float("nan")   # median reprojection error of the inliers (worse of the two views)
+    # the part of ``covariance`` the map's own placement adds (vtr.navigation.experiences.taught_covariance and
+    # experience_covariance): an error of the frame the leaf is localized in, which consecutive leaves localized
+    # against the same vertices share; None: none added
+    frame_covariance: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -199,8 +205,9 @@ class Localizer:
         radius around the prior's prediction grows with the failures since the last success, as the
         prior (odometry since then) grows less certain. An estimate is refused (with its reason) unless
         it has enough inliers, enough inliers per match, and inlier residuals that fit the pixel noise
-        (median at most ``max_median_residual_px``); its covariance is scaled by the residuals' variance
-        factor when they are wider than the noise model says.
+        (median at most ``max_median_residual_px``); its covariance is the adjustment's with the pixel noise the
+        residuals estimate (their robust cost per degree of freedom). What the taught map's own placement adds is
+        :func:`vtr.navigation.experiences.taught_covariance` (docs/localization.md, "What the covariance holds").
         """
         c = self.config
         S = LocalizationStatus
@@ -219,7 +226,7 @@ class Localizer:
         depth = submap.points_trunk[li[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         sel = sel[depth > MIN_DEPTH_M]
         with self.timer("refine"):
-            T, cov, ok, err_sq = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
+            T, cov, ok, err_sq, factor = self._refine(submap, li[sel], leaf.stereo_measurements[lj[sel]], rs.T_q_r)
         inlier = np.zeros(len(li), bool)
         inlier[sel[ok]] = True
         n_in = int(inlier.sum())
@@ -230,13 +237,12 @@ class Localizer:
             return LocalizationEstimate.failed(li, S.LOW_INLIER_RATIO, inlier, median_px)
         if not median_px <= c.max_median_residual_px:
             return LocalizationEstimate.failed(li, S.RESIDUALS, inlier, median_px)
-        # a posteriori variance factor of the inlier rows (per measured row, in units of the pixel sigma)
-        factor = float(np.mean(err_sq[ok])) / (STEREO_ROWS * self.pixel_sigma**2)
-        cov = cov * max(1.0, factor) * c.covariance_scale
+        # the pixel noise as the residuals estimate it (the a-posteriori variance factor), times the user's scale
+        cov = cov * factor * c.covariance_scale
         return LocalizationEstimate(T, cov, len(li), li, inlier, S.LOCALIZED, median_px)
 
     def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
-                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Stereo bundle adjustment of ``T_leaf_trunk`` with the matched landmarks free, each observed by its
         taught vertex (held where the taught path puts it) and by the leaf. Returns (T_leaf_trunk,
         covariance, inlier mask).
@@ -261,7 +267,11 @@ class Localizer:
                             o.huber_px, o.refine_iterations)
         err_sq = np.maximum(res.error_sq[:n], res.error_sq[n:])
         inlier = err_sq <= self.config.ransac_threshold_px**2
-        return res.T_cam_world[V], res.pose_covariance[V], inlier, err_sq
+        # the a-posteriori variance factor: the robust cost (in units of the modelled noise) per degree of freedom,
+        # the measured rows less the parameters fitted to them (3 per landmark, 6 for the leaf)
+        dof = int(np.count_nonzero(w > 0)) - 3 * n - 6
+        factor = res.cost / dof if dof > 0 else float("inf")
+        return res.T_cam_world[V], res.pose_covariance[V], inlier, err_sq, factor
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         return odometry_row_weights(z, self.camera, self.odometry)

@@ -305,7 +305,8 @@ class Repeat:
                            T_leaf_trunk=attempt.T_report, covariance=covariance,
                            consecutive_failures=s.consecutive_failures,
                            distance_since_success_m=s.distance_since_success_m, landmarks=record,
-                           status=attempt.status, direction=s.direction, experiences=used)
+                           status=attempt.status, direction=s.direction, experiences=used,
+                           frame_covariance=est.frame_covariance if attempt.success else None)
         return loc, Leaf(localization_record(loc), spatial, used)
 
     def _submap(self, trunk: int) -> TaughtSubmap:

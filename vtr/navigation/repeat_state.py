@@ -21,7 +21,8 @@ from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
 from ..map import TaughtPath
 from ..state.controller import ControllerState
-from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint
+from ..state.smoothing import KnotTrajectory, TrajectorySmoother, adjoint, logmap
+from ..state.wnoa import MotionPsd
 from .localization import LocalizationStatus
 from .state_view import (
     CommandLog,
@@ -99,6 +100,13 @@ class RepeatStateEstimator:
         self.path = path
         self.smoothing = smoothing
         self.smoother = TrajectorySmoother(smoothing)
+        # the motion prior's Qc from the repeat's own odometry steps (kept across pauses: the vehicle is the same),
+        # starting from the taught path's motion (the configured Qc when the taught path is too short to say)
+        psd = MotionPsd(self.smoother.q_psd, smoothing.qc_window_s, smoothing.qc_min_samples,
+                        smoothing.qc_floor_share, smoothing.qc_long_steps)
+        self.taught_qc = psd.of_poses(path.t_ns, path.T_world_vertex, smoothing.max_extrapolation_s)
+        self.motion_psd = MotionPsd(self.taught_qc, smoothing.qc_window_s, smoothing.qc_min_samples,
+                                    smoothing.qc_floor_share, smoothing.qc_long_steps)
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
         self.off_route_distance_m = float(off_route_distance_m)
         self.gravity_up = None if gravity_up is None else np.asarray(gravity_up, float)
@@ -121,6 +129,8 @@ class RepeatStateEstimator:
         self.vertex_localized: list[bool] = []   # the chain's verdict after the vertex's attempt
         self.vertex_direction: list[int] = []    # the chain's direction of travel after it
         self.vertex_off_route: list[bool] = []   # the attempt found the vertex beyond an end of the route
+        # the map's placement error (6x6, leaf camera) of the latest localization at or before the vertex
+        self.vertex_frame_covariance: list[np.ndarray] = []
         self.frame_t_ns: list[int] = []          # every frame fed (a state long after the last one is unknown)
         self._ever = False
         self.unknown: str | None = None           # why the state of a never-localized run is unknown
@@ -161,10 +171,17 @@ class RepeatStateEstimator:
                 # the keyframe's edge covariance (usable as odometry hands it out) plus drift with distance
                 rel_cov = kf.edge_covariance + self._drift_covariance(previous.T_world_leaf, kf.T_world_kf)
             T_teach_leaf = loc_cov = None
+            frame_cov = self.vertex_frame_covariance[-1] if self.vertex_frame_covariance else np.zeros((6, 6))
             if loc is not None and loc.success:
+                # the smoother averages localizations as independent; the map's placement part of each, shared in
+                # part by the leaves localized against the same taught vertices, is added to every state after it
+                # (RepeatStateView.frame_output_covariance): an upper bound whatever that share (docs/smoother.md)
                 loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
+                    frame_cov = (np.zeros((6, 6)) if loc.frame_covariance is None
+                                 else np.asarray(loc.frame_covariance, float))
+            self.vertex_frame_covariance.append(frame_cov)
             v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
                         np.asarray(step.T_teach_frame, float))
             self.vertex_t_ns.append(v.t_ns)
@@ -246,11 +263,14 @@ class RepeatStateEstimator:
             return      # a repeated timestamp: one knot per time (the next vertex's odometry spans both)
         kw = {}
         if self._last is not None and v.relative_covariance is not None:
-            kw["T_prev_cur"] = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
+            kw["T_prev_cur"] = T_prev_cur = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
             kw["relative_covariance"] = v.relative_covariance
+            self.motion_psd.add(logmap(T_prev_cur)[0], (v.t_ns - self._last.t_ns) / NS_PER_S)
+        else:
+            self.motion_psd.broken()
         if v.T_teach_leaf is not None:
             kw["T_world_sensor"], kw["covariance"] = v.T_teach_leaf, v.localization_covariance
-        self.smoother.add_knot(v.t_ns, **kw)
+        self.smoother.add_knot(v.t_ns, qc=self.motion_psd.qc, **kw)
         self._last = v
 
     # -- queries ------------------------------------------------------------------------------------
@@ -289,6 +309,7 @@ class RepeatStateEstimator:
             vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:], vertex_localized=localized[lo_v:],
             vertex_ever=ever[lo_v:], vertex_direction=np.asarray(self.vertex_direction, np.int64)[lo_v:],
             vertex_off_route=np.asarray(self.vertex_off_route, bool)[lo_v:], frame_t_ns=frames[lo_f:],
+            vertex_frame_covariance=np.asarray(self.vertex_frame_covariance, float).reshape(-1, 6, 6)[lo_v:],
             unknown=self.unknown)
 
     def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:

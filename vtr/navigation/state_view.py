@@ -213,6 +213,10 @@ class RepeatStateView:
     vertex_off_route: np.ndarray
     frame_t_ns: np.ndarray
     unknown: str | None = None
+    # per vertex the map's placement error (6x6, right perturbation of the sensor pose, as the localization's) of the
+    # latest localization at or before it: an error of the frame the state is localized in, added to every state
+    # (not averaged by the smoother, docs/online.md "Covariance"); None: nothing added
+    vertex_frame_covariance: np.ndarray | None = None
 
     @property
     def last_frame_t_ns(self) -> int | None:
@@ -281,6 +285,10 @@ class RepeatStateView:
         T_o_t, _, _ = self.route.trunk(k)
         s = self.trajectory.state_at(int(t_ns), with_covariance=with_covariance)
         cs = controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
+        if cs.position_covariance is not None and cs.yaw_variance is not None:
+            F = self.frame_output_covariance(int(t_ns), cs.T_o_a)
+            cs = dataclasses.replace(cs, position_covariance=cs.position_covariance + F[:3, :3],
+                                     yaw_variance=cs.yaw_variance + float(F[3, 3]))
         window = self.route.acceleration_window_s
         if window <= 0.0 or not fit_acceleration:
             return cs
@@ -289,6 +297,18 @@ class RepeatStateView:
         C_o_world = T_o_t[:3, :3] @ self.route.T_world_trunk[k][:3, :3].T
         cov_o = C_o_world @ cov_world @ C_o_world.T if np.all(np.isfinite(cov_world)) else cov_world
         return dataclasses.replace(cs, acceleration=C_o_world @ a_world, acceleration_covariance=cov_o)
+
+    def frame_output_covariance(self, t_ns: int, T_o_a: np.ndarray) -> np.ndarray:
+        """The map's placement error of the latest localization at or before ``t_ns`` in the outputs ``(p_o, psi)``
+        (4x4) of a vehicle at ``T_o_a``: what the localizations of consecutive leaves share (the taught vertices and
+        experiences they were localized against, :func:`vtr.navigation.experiences.taught_covariance`), so the
+        smoother, which averages them as independent, does not shrink it. Zero before the first localization."""
+        i = int(self._vertex_at(np.array([t_ns]))[0])
+        if self.vertex_frame_covariance is None or i < 0 or i >= len(self.vertex_frame_covariance):
+            return np.zeros((4, 4))
+        H = output_jacobian(T_o_a, self.route.T_sensor_vehicle)[:, :6]
+        F = H @ self.vertex_frame_covariance[i] @ H.T
+        return 0.5 * (F + F.T)
 
     def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
                             with_covariance: bool = False, commands: CommandLog | None = None) -> ControllerState:
@@ -339,6 +359,8 @@ class RepeatStateView:
         _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
+        # the frame's placement error is one error for every sample (all in the same o): every block gets it
+        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))   # cs: t_end's
         return OutputWindow(t_ns=t, position=P, yaw=np.unwrap(yaw), covariance=0.5 * (cov + cov.T),
                             trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k),
                             status=self.status_at(t, np.atleast_1d(along)))

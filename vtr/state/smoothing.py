@@ -63,7 +63,7 @@ from .trajectory import (
     jr_inv,
     logmap,
 )
-from .wnoa import STATE_DIM, kron_basis
+from .wnoa import STATE_DIM
 
 # Weak prior on the first knot's twist: only there so a single keyframe is a determined problem.
 INITIAL_ANGULAR_VELOCITY_SIGMA = 10.0    # rad/s
@@ -99,12 +99,13 @@ class _KnotCache:
         self.vels = np.zeros((n, POSE_DIM))
         # seg_cov[i]: joint covariance (24x24) of knots i and i+1, last snapshot.
         self.seg_cov = np.zeros((n, 2 * STATE_DIM, 2 * STATE_DIM))
+        self.qc = np.zeros((n, POSE_DIM))      # qc[i]: the PSD of the prior factor into knot i (knot 0: configured)
         self.last_cov = np.zeros((STATE_DIM, STATE_DIM))     # marginal of the newest knot
         self.segments: dict[int, Segment] = {}
 
     def grow(self) -> None:
         cap = 2 * len(self.times_ns)
-        for name in ("times_ns", "poses", "vels", "seg_cov"):
+        for name in ("times_ns", "poses", "vels", "seg_cov", "qc"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
             new[: self.n] = old[: self.n]
@@ -148,7 +149,6 @@ class TrajectorySmoother:
             raise ConfigError("smoothing: initial velocity sigmas must be positive")
         self.config = config
         self.qc = np.array([config.qc_rotation] * 3 + [config.qc_translation] * 3)
-        self._qc_basis = kron_basis(self.qc)
         self._velocity_prior_sigmas = np.array(
             [initial_velocity_sigma[0]] * 3 + [initial_velocity_sigma[1]] * 3
         )
@@ -211,6 +211,7 @@ class TrajectorySmoother:
         covariance: np.ndarray | None = None,
         T_prev_cur: np.ndarray | None = None,
         relative_covariance: np.ndarray | None = None,
+        qc: np.ndarray | None = None,
     ) -> None:
         """Add one knot at ``t_ns`` with an absolute and/or a relative (odometry) pose measurement.
 
@@ -220,6 +221,8 @@ class TrajectorySmoother:
                 perturbation).
             T_prev_cur: pose of this keyframe's sensor frame in the previous keyframe's (4x4), with
                 ``relative_covariance`` (6x6).
+            qc: the PSD (6,) of the motion prior from the previous knot to this one and of the extrapolation
+                after it (e.g. :class:`~vtr.state.wnoa.MotionPsd`); None: the configured ``Qc``.
         Raises:
             EstimationError: on any invalid input (the smoother is left unchanged), or if the solver
                 fails (the smoother is then unusable).
@@ -249,8 +252,14 @@ class TrajectorySmoother:
             T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
             relative_covariance = check_covariance(cast(np.ndarray, relative_covariance), "relative_covariance",
                                                    definite=True)
+        if qc is None:
+            qc = self.qc
+        else:
+            qc = np.asarray(qc, float)
+            if qc.shape != (POSE_DIM,) or not np.all(np.isfinite(qc)) or not np.all(qc > 0):
+                raise EstimationError(f"add_knot: qc must be 6 positive finite numbers, got {qc!r}")
         # -- all input valid: nothing below may leave a half-applied state except a solver failure.
-        self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance)
+        self._insert(t_ns, T_world_sensor, covariance, T_prev_cur, relative_covariance, qc)
 
     def refine(self, iterations: int = 1) -> None:
         """Spend ``iterations`` more Gauss-Newton iterations (ISAM2 updates) on the current window."""
@@ -289,14 +298,14 @@ class TrajectorySmoother:
         if since_ns is not None and c.n:
             lo = max(0, int(np.searchsorted(c.times_ns[: c.n], int(since_ns), side="right")) - 1)
         return KnotTrajectory(c.times_ns[lo : c.n].copy(), c.poses[lo : c.n].copy(), c.vels[lo : c.n].copy(),
-                              c.seg_cov[lo : c.n].copy(), c.last_cov.copy(), self._qc_basis,
+                              c.seg_cov[lo : c.n].copy(), c.last_cov.copy(), c.qc[lo : c.n].copy(),
                               self.config.max_extrapolation_s)
 
     def _view(self) -> KnotTrajectory:
         """The queries over the live cache (no copy; the segment memo is the cache's)."""
         c = self._cache
         return KnotTrajectory(c.times_ns[: c.n], c.poses[: c.n], c.vels[: c.n], c.seg_cov[: c.n], c.last_cov,
-                              self._qc_basis, self.config.max_extrapolation_s, segments=c.segments)
+                              c.qc[: c.n], self.config.max_extrapolation_s, segments=c.segments)
 
     # -- internals: solver -----------------------------------------------------------------------
 
@@ -311,7 +320,7 @@ class TrajectorySmoother:
         return gtsam.IncrementalFixedLagSmoother(self.config.lag_s, params)
 
     def _insert(self, t_ns: int, T_ws: np.ndarray | None, cov: np.ndarray | None, T_pc: np.ndarray | None,
-                rel_cov: np.ndarray | None) -> None:
+                rel_cov: np.ndarray | None, qc: np.ndarray) -> None:
         c = self._cache
         k = c.n
         first = k == 0
@@ -350,7 +359,7 @@ class TrajectorySmoother:
             t_prev_s = (int(c.times_ns[k - 1]) - t0_ns) / NS_PER_S
             graph.add(
                 gtsam.WnoaMotionFactorPose3(
-                    gtsam.StateData(X(k - 1), V(k - 1), t_prev_s), gtsam.StateData(X(k), V(k), t_s), self.qc
+                    gtsam.StateData(X(k - 1), V(k - 1), t_prev_s), gtsam.StateData(X(k), V(k), t_s), qc
                 )
             )
             # Keep the previous knot alive for as long as the new one (it is tied to it by the prior).
@@ -369,6 +378,7 @@ class TrajectorySmoother:
         if c.n == len(c.times_ns):
             c.grow()
         c.times_ns[k] = t_ns
+        c.qc[k] = qc
         c.n += 1
         self._refresh_cache()
 

@@ -240,11 +240,11 @@ class KnotTrajectory:
     """
 
     def __init__(self, times_ns: np.ndarray, poses: np.ndarray, vels: np.ndarray, seg_cov: np.ndarray,
-                 last_cov: np.ndarray, qc_basis: np.ndarray, max_extrapolation_s: float,
+                 last_cov: np.ndarray, qc: np.ndarray, max_extrapolation_s: float,
                  segments: dict[int, Segment] | None = None) -> None:
         self.times_ns, self.poses, self.vels, self.seg_cov, self.last_cov = times_ns, poses, vels, seg_cov, last_cov
         self.n = len(times_ns)
-        self._qc_basis = qc_basis
+        self.qc = qc               # (N, 6): per knot the PSD of the prior into it (the newest's: the extrapolation's)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.segments: dict[int, Segment] = {} if segments is None else segments
 
@@ -433,7 +433,7 @@ class KnotTrajectory:
             acc = Jr @ ddxi + E @ dxi
             A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
             B = noise_map(Jr, E)
-            cov = A @ self.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self._qc_basis) @ B.T
+            cov = A @ self.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self.qc[i + 1]) @ B.T
             cov = 0.5 * (cov + cov.T)
         else:
             acc = Jr @ ddxi + directional_d_jr(xi, dxi)
@@ -454,7 +454,7 @@ class KnotTrajectory:
         if with_cov:
             F = extrapolation_jacobian(dt, v, E_xi, Jr)
             B = noise_map(Jr, d_jr_times(xi, v))
-            cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self._qc_basis) @ B.T
+            cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self.qc[i]) @ B.T
             cov = 0.5 * (cov + cov.T)
         return TrajectoryState(t_ns, frozen(T), frozen(v), frozen(acc), frozen(cov), "extrapolated")
 

@@ -18,7 +18,6 @@ import numpy as np
 from ..geometry import POSE_DIM
 
 STATE_DIM = 2 * POSE_DIM         # [pose tangent, body twist]
-QC_BLOCKS = 4                    # the 2x2 unit matrices E_00, E_01, E_10, E_11 of a per-axis block
 
 
 def noise_map(Jr: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -30,19 +29,14 @@ def noise_map(Jr: np.ndarray, E: np.ndarray) -> np.ndarray:
     return B
 
 
-def kron_basis(qc: np.ndarray) -> np.ndarray:
-    """``E_ab ⊗ diag(qc)`` for the 2x2 unit matrices ``E_00, E_01, E_10, E_11`` (4x12x12)."""
-    out = np.zeros((QC_BLOCKS, STATE_DIM, STATE_DIM))
-    for n in range(QC_BLOCKS):
-        unit = np.zeros((2, 2))
-        unit[n // 2, n % 2] = 1.0
-        out[n] = np.kron(unit, np.diag(qc))
+def kron_qc(q2: np.ndarray, qc: np.ndarray) -> np.ndarray:
+    """``q2 ⊗ diag(qc)`` (12x12) for a per-axis 2x2 block ``q2`` and the PSD ``qc`` (6,)."""
+    out = np.zeros((STATE_DIM, STATE_DIM))
+    d = np.arange(POSE_DIM)
+    for a in range(2):
+        for b in range(2):
+            out[a * POSE_DIM + d, b * POSE_DIM + d] = q2[a, b] * qc
     return out
-
-
-def kron_qc(q2: np.ndarray, basis: np.ndarray) -> np.ndarray:
-    """``q2 ⊗ diag(qc)`` (12x12) for a per-axis 2x2 block ``q2``, with ``basis = kron_basis(qc)``."""
-    return (q2.reshape(1, QC_BLOCKS) @ basis.reshape(QC_BLOCKS, -1)).reshape(STATE_DIM, STATE_DIM)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -115,10 +109,102 @@ def local_variable(tau: float, dt: float, M: np.ndarray) -> tuple[np.ndarray, np
     return out[0], out[1], out[2]
 
 
+class MotionPsd:
+    """The power spectral density ``Qc`` (6,) of the WNOA prior estimated from the vehicle's own motion: second
+    differences of its mean body twists over two spans, which tell the motion's PSD from odometry's noise
+    (docs/smoother.md, "Qc").
+
+    A step is a relative pose ``Exp(xi)`` between consecutive keyframes over ``dt`` seconds; the mean twist over
+    ``k`` consecutive steps is ``sum(xi) / sum(dt)`` (exact for a constant twist). The difference ``d`` of the mean
+    twists of two adjacent spans of ``T1`` and ``T2`` seconds has, per axis, under the WNOA prior with keyframe
+    positions measured with independent errors of variance ``r``, the expectation
+    ``E[d^2] = Qc (T1 + T2) / 3 + r (1/T1^2 + 1/T2^2 + (1/T1 + 1/T2)^2)``: the motion's share grows with the span,
+    the noise's falls. Adjacent spans of one step and of ``long_steps`` steps give two such moments per axis
+    (averaged with exponential forgetting over ``window_s`` seconds of motion: a straight, a turn, a stop differ),
+    solved for ``Qc`` and ``r`` (with ``r`` at 0 when the solution would make it negative). Until the
+    forgetting-weighted count of long-span samples reaches ``min_samples`` the configured ``fallback`` is used, and
+    the estimate never falls below ``floor_share`` of it.
+    """
+
+    def __init__(self, fallback: np.ndarray, window_s: float, min_samples: float, floor_share: float,
+                 long_steps: int) -> None:
+        self.fallback = np.asarray(fallback, float).copy()
+        self.window_s = float(window_s)
+        self.min_samples = float(min_samples)
+        self.floor = float(floor_share) * self.fallback
+        self.spans = (1, int(long_steps))
+        # per span: forgetting-weighted sums of d^2 (6,), of the two regressors and of the weights
+        self._y = np.zeros((2, POSE_DIM))
+        self._ab = np.zeros((2, 2))
+        self._w = np.zeros(2)
+        self._steps: list[tuple[np.ndarray, float]] = []
+
+    @property
+    def samples(self) -> float:
+        """The forgetting-weighted count of long-span samples so far."""
+        return float(self._w[1])
+
+    @property
+    def qc(self) -> np.ndarray:
+        """The current estimate (6,) ``[rot x3 (rad²/s³), trans x3 (m²/s³)]``; the fallback until enough samples."""
+        if self.window_s <= 0.0 or self._w[1] < self.min_samples or self._w[0] <= 0.0:
+            return self.fallback.copy()
+        y = self._y / self._w[:, None]                      # mean d^2 per span and axis
+        (a1, b1), (a2, b2) = self._ab / self._w[:, None]    # mean regressors per span
+        det = a2 * b1 - a1 * b2
+        qc = (y[1] * b1 - y[0] * b2) / det if det > 0.0 else y[1] / a2
+        r = (y[0] - qc * a1) / b1
+        qc = np.where(r < 0.0, (y[0] + y[1]) / (a1 + a2), qc)    # no noise: both spans measure Qc alone
+        return np.maximum(qc, self.floor)
+
+    def add(self, xi: np.ndarray, dt_s: float) -> None:
+        """One keyframe step: ``xi`` (6,) = ``Log(T_prev_cur)`` over ``dt_s`` seconds (> 0)."""
+        if not dt_s > 0.0 or self.window_s <= 0.0:
+            return
+        self._steps.append((np.asarray(xi, float), float(dt_s)))
+        del self._steps[:-2 * self.spans[1]]
+        keep = float(np.exp(-dt_s / self.window_s))
+        self._y *= keep
+        self._ab *= keep
+        self._w *= keep
+        for j, k in enumerate(self.spans):
+            if len(self._steps) < 2 * k:
+                continue
+            before, after = self._steps[-2 * k:-k], self._steps[-k:]
+            T1, T2 = sum(dt for _, dt in before), sum(dt for _, dt in after)
+            d = sum(x for x, _ in after) / T2 - sum(x for x, _ in before) / T1
+            self._y[j] += d**2
+            self._ab[j] += ((T1 + T2) / 3.0, 1.0 / T1**2 + 1.0 / T2**2 + (1.0 / T1 + 1.0 / T2) ** 2)
+            self._w[j] += 1.0
+
+    def broken(self) -> None:
+        """Odometry broke: the next step is not a neighbour of the last (no sample across the break)."""
+        self._steps.clear()
+
+    def of_poses(self, t_ns: np.ndarray, T_world: np.ndarray, max_step_s: float) -> np.ndarray:
+        """The estimate over a whole sequence of keyframe poses (times ``t_ns`` (N,) int ns, ``T_world`` (N, 4, 4)),
+        unforgotten: e.g. a taught path's motion, the prior of a repeat along it. A step longer than ``max_step_s``
+        or not forward in time breaks the sequence. This estimator's settings, a fresh state; the fallback when the
+        sequence gives too few samples."""
+        from ..geometry import inv_T, log_se3
+
+        est = MotionPsd(self.fallback, float("inf"), self.min_samples, 0.0, self.spans[1])
+        est.floor = self.floor
+        if self.window_s <= 0.0:
+            return self.fallback.copy()
+        dt = np.diff(np.asarray(t_ns, np.int64)) / 1e9
+        for i, step_s in enumerate(dt):
+            if 0.0 < step_s <= max_step_s:
+                est.add(log_se3(inv_T(T_world[i]) @ T_world[i + 1]), float(step_s))
+            else:
+                est.broken()
+        return est.qc
+
+
 __all__ = [
+    "MotionPsd",
     "STATE_DIM",
     "hermite_matrix",
-    "kron_basis",
     "kron_qc",
     "local_variable",
     "noise_map",

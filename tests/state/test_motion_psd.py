@@ -1,0 +1,67 @@
+"""The WNOA prior's Qc estimated from the vehicle's own motion (vtr.state.wnoa.MotionPsd): on a simulated WNOA
+trajectory with keyframe positions measured with noise, the two spans recover Qc, not Qc plus the noise."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vtr.geometry import make_T
+from vtr.state.wnoa import MotionPsd
+
+FALLBACK = np.ones(6)
+
+
+def _steps(qc: float, noise_m: float, dt_s: float, n: int, seed: int) -> list[np.ndarray]:
+    """Translation-only keyframe steps of a WNOA motion (per axis PSD qc) with position noise."""
+    rng = np.random.default_rng(seed)
+    fine = 20                                       # substeps per keyframe for the simulation
+    h = dt_s / fine
+    v = np.array([5.0, 0.0, 0.0])
+    p = np.zeros(3)
+    keyframes = [p.copy()]
+    for _ in range(n):
+        for _ in range(fine):
+            dv = rng.normal(0.0, np.sqrt(qc * h), 3)
+            p = p + v * h + dv * h / 2
+            v = v + dv
+        keyframes.append(p.copy())
+    measured = np.array(keyframes) + rng.normal(0.0, noise_m, (n + 1, 3))
+    return [np.r_[0.0, 0.0, 0.0, b - a] for a, b in zip(measured[:-1], measured[1:], strict=True)]
+
+
+@settings(max_examples=10, deadline=None)
+@given(qc=st.sampled_from([0.01, 0.1, 1.0]), noise_m=st.sampled_from([0.0, 0.002, 0.005]),
+       seed=st.integers(0, 1000))
+def test_the_estimate_finds_the_motion_s_psd_under_noise(qc, noise_m, seed):
+    est = MotionPsd(FALLBACK, window_s=1e9, min_samples=5, floor_share=1e-6, long_steps=4)
+    for xi in _steps(qc, noise_m, 0.1, 3000, seed):
+        est.add(xi, 0.1)
+    got = est.qc[3:]
+    # the noise alone would read as 6 r / (T1 + T2) / (2 dt / 3) per axis: 0.23-1.5 m^2/s^3 here
+    assert np.all(got > 0.6 * qc) and np.all(got < 1.6 * qc), (qc, noise_m, got)
+
+
+def test_the_fallback_holds_until_enough_samples_and_after_a_break():
+    est = MotionPsd(FALLBACK, window_s=10.0, min_samples=5, floor_share=1e-3, long_steps=4)
+    step = np.r_[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]
+    for _ in range(8):
+        est.add(step, 0.1)
+    assert np.array_equal(est.qc, FALLBACK)          # one long-span sample so far
+    for _ in range(10):
+        est.add(step, 0.1)
+    assert np.allclose(est.qc, 1e-3)                 # a constant twist: no acceleration, the floor
+    est.broken()
+    est.add(step * 3, 0.1)                           # no sample across the break
+    assert np.allclose(est.qc, 1e-3)
+
+
+def test_a_taught_path_gives_the_prior_and_a_disabled_estimate_the_configured_qc():
+    t = np.arange(50) * 100_000_000
+    T = np.array([make_T(np.eye(3), [0.0, 0.0, 0.5 * k]) for k in range(50)])
+    est = MotionPsd(FALLBACK, window_s=10.0, min_samples=5, floor_share=1e-3, long_steps=4)
+    assert np.allclose(est.of_poses(t, T, max_step_s=1.0), 1e-3)
+    assert np.array_equal(est.of_poses(t[:5], T[:5], max_step_s=1.0), FALLBACK)    # too short to say
+    off = MotionPsd(FALLBACK, window_s=0.0, min_samples=5, floor_share=1e-3, long_steps=4)
+    assert np.array_equal(off.of_poses(t, T, max_step_s=1.0), FALLBACK)
