@@ -238,7 +238,6 @@ class OutputFolder:
         """Remove entry ``name`` that vtr made here (a file, with a map's SQLite side files, or a whole folder);
         ``OutputError`` for anything vtr did not make (see :meth:`claim_entries`)."""
 
-
         self.claim_entries([name])
         p = self.path / name
         if p.is_dir():

@@ -102,6 +102,5 @@ def base_map(route_folder: Path, earlier: list[RunOutcome]) -> Path:
 def _opencv_threads(config: Config) -> None:
     """OpenCV's own pool follows the run's thread count (a batch worker runs one run per core)."""
 
-
     cv2.setNumThreads(resolve_threads(config.features.threads))
 
