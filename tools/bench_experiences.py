@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vtr.app.drifting import fly, render, repeat_route, route, teach
+from vtr.app.drifting import fly, render_flight, repeat_route, route, teach_flight
 from vtr.config import Config
 from vtr.map import Map
 from vtr.navigation.experiences import ExperienceSubmaps
@@ -56,9 +56,9 @@ def main() -> None:
     config.features.threads = args.threads
     taught_map = out / "teach.vtrmap"
     if taught_map.exists():
-        taught = render(out / "teach", 0, route(args.length), 0.0)
+        taught = render_flight(out / "teach", 0, route(args.length), 0.0)
     else:
-        taught = teach(out / "teach", taught_map, args.length, 0, config)
+        taught = teach_flight(out / "teach", taught_map, args.length, 0, config)
     T = repeat_route(args.length, False)
     variants = [float(v) for v in args.variants.split(",")]
     snapshots = {k: out / f"experiences_{k}.vtrmap" for k in COUNTS}
@@ -72,7 +72,7 @@ def main() -> None:
         for k in range(1, max(COUNTS) + 1):
             change = variants[(k - 1) % len(variants)]
             folder = out / f"flight_{change:.2f}"
-            fly(grown, folder, render(folder, 0, T, change), taught, change, False, config)
+            fly(grown, folder, render_flight(folder, 0, T, change), taught, change, False, config)
             sizes.append(grown.stat().st_size)
             if k in snapshots:
                 shutil.copyfile(grown, snapshots[k])
@@ -80,7 +80,7 @@ def main() -> None:
     for snapshot in snapshots.values():         # the experiences' place words stored, as after one repeat
         warm(snapshot, config)
     probe = out / f"probe_{args.probe:.2f}"
-    truth = render(probe, 0, T, args.probe)
+    truth = render_flight(probe, 0, T, args.probe)
     bound = config.experiences.max_per_keyframe
 
     def probe_flight(snapshot: Path, max_per_keyframe: int):

@@ -86,13 +86,14 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
         T_teach = syn.segmented_aerial_route(SEGMENTS, SPACING_M, camera_heading_rad=heading,
                                              pitch_down_rad=PITCH_DOWN_RAD)
         say(f"{case}: rendering the teach sequence ({len(T_teach)} frames; cached after the first run)")
-        seq = mission.render(out / case / "teach", sc, T_teach, progress=frame_progress(f"render {case} teach"))
+        seq = mission.render_sequence(out / case / "teach", sc, T_teach,
+                                      progress=frame_progress(f"render {case} teach"))
         map_path = out / case / "route.vtrmap"
         stamp = out / case / "route.done"  # the map is reused only for the same taught poses and config
         key = hashlib.sha1(np.ascontiguousarray(T_teach).tobytes() + cfg.to_yaml().encode()).hexdigest()
         if not (stamp.is_file() and map_path.is_file() and stamp.read_text().strip() == key):
             say(f"{case}: teaching the route")
-            mission.teach(seq, map_path, cfg)
+            mission.teach_sequence(seq, map_path, cfg)
             stamp.write_text(key + "\n")
             shutil.rmtree(out / case / "repeat", ignore_errors=True)
         maps[case], ups[case] = map_path, mission.up_in_map(T_teach[0])
@@ -102,12 +103,12 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
                                            lateral_offset_m=dy, vertical_offset_m=dz, ramp_m=RAMP_M,
                                            start_offset_m=0.5 * SPACING_M)
         say(f"{case}: rendering the repeat {dy:+g} m / {dz:+g} m off the path")
-        rep_seq = mission.render(out / case / "repeat_seq", sc, T_rep, noise_seed=1,
+        rep_seq = mission.render_sequence(out / case / "repeat_seq", sc, T_rep, noise_seed=1,
                                  progress=frame_progress(f"render {case} repeat"))
         rep_dir = out / case / "repeat"
         if not (rep_dir / "landmarks.csv").is_file():
             say(f"{case}: repeating through the pipeline (localization against the taught map)")
-            summary = mission.repeat(rep_seq, map_path, rep_dir, cfg, skip_first_m=RAMP_M)
+            summary = mission.repeat_sequence(rep_seq, map_path, rep_dir, cfg, skip_first_m=RAMP_M)
             reps.append({"case": case, "lateral_m": dy, "vertical_m": dz, "localizations": summary.localizations,
                          "successes": summary.successes})
         files.append(rep_dir / "landmarks.csv")

@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from vtr.app.drifting import drifting_flights, fly, render, repeat_route, route
+from vtr.app.drifting import drifting_flights, fly, render_flight, repeat_route, route
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.map import Map
@@ -103,14 +103,15 @@ def test_another_place_never_localizes_against_ten_experiences(tmp_path_factory,
     work = tmp_path_factory.mktemp("elsewhere")
     grown = work / "grown.vtrmap"
     shutil.copyfile(root / "teach.vtrmap", grown)
-    taught = render(root / "teach", 0, route(LENGTH_M), 0.0)
+    taught = render_flight(root / "teach", 0, route(LENGTH_M), 0.0)
     for k in range(10):                                   # the drifting flights again and again, in order
         change = CHANGES[k % len(CHANGES)]
         folder = root / f"fwd_{change:.2f}"
-        fly(grown, folder, render(folder, 0, repeat_route(LENGTH_M, False), change), taught, change, False, Config())
+        truth = render_flight(folder, 0, repeat_route(LENGTH_M, False), change)
+        fly(grown, folder, truth, taught, change, False, Config())
     with Map.open(grown) as m:
         assert sum(e.trusted for e in experiences(m, Config().experiences.min_localized_share)) == 10
-    other = render(work / "other", 7, route(LENGTH_M - 4.0), 0.0)         # another scene
+    other = render_flight(work / "other", 7, route(LENGTH_M - 4.0), 0.0)         # another scene
     flight = fly(grown, work / "other", other, taught, 0.0, False, Config())
     assert flight.integrity.successes == 0, [loc.status.value for loc in flight.localizations]
     # and that flight, localized nowhere, is no experience

@@ -142,12 +142,12 @@ def test_teach_up_is_kept_and_shown(kitti_clip, tmp_path):
 
 def test_export_in_the_map_gravity_frame(tmp_path):
     """A pitched first camera's map exported gravity-aligned: the flat synthetic ground is a horizontal plane."""
-    from vtr.app.mission import render, up_in_map
+    from vtr.app.mission import render_sequence, up_in_map
     from vtr.app.pipeline import teach_command
     from vtr.map.export import export_landmarks_ply
 
     T = syn.aerial_route(6.0, 1.0)
-    seq = render(tmp_path / "seq", syn.aerial_scene(0), T)
+    seq = render_sequence(tmp_path / "seq", syn.aerial_scene(0), T)
     teach_command(seq, tmp_path / "m.vtrmap", None, Config(), gravity_up=up_in_map(T[0]))
     import open3d as o3d
 

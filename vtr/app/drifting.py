@@ -61,7 +61,7 @@ def repeat_route(length_m: float, backward: bool) -> np.ndarray:
     return T[::-1].copy() if backward else T
 
 
-def render(folder: Path, scene_seed: int, T: np.ndarray, change: float) -> GroundTruth:
+def render_flight(folder: Path, scene_seed: int, T: np.ndarray, change: float) -> GroundTruth:
     """Render (once: kept when ``times_ns.txt`` exists) a sequence of ``T`` at ``change``; its ground truth."""
     t = syn.route_times(T, SPEED_MPS)
     if not (folder / "times_ns.txt").is_file():
@@ -71,10 +71,10 @@ def render(folder: Path, scene_seed: int, T: np.ndarray, change: float) -> Groun
     return GroundTruth(t, T)
 
 
-def teach(folder: Path, map_path: Path, length_m: float, scene_seed: int = 0,
+def teach_flight(folder: Path, map_path: Path, length_m: float, scene_seed: int = 0,
           config: Config | None = None) -> GroundTruth:
     """Teach the route (unchanged appearance) into a new map at ``map_path``."""
-    truth = render(folder, scene_seed, route(length_m), 0.0)
+    truth = render_flight(folder, scene_seed, route(length_m), 0.0)
     with open_source(folder) as src, Map.create(map_path, src.camera) as m:
         t = Teach(m, src.camera, config or Config(), str(folder))
         for images in src:
@@ -110,9 +110,9 @@ def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, b
     single = single_experience(config)
     taught_map = root / "teach.vtrmap"
     if not taught_map.exists():
-        taught = teach(root / "teach", taught_map, length_m, scene_seed, config)
+        taught = teach_flight(root / "teach", taught_map, length_m, scene_seed, config)
     else:
-        taught = render(root / "teach", scene_seed, route(length_m), 0.0)
+        taught = render_flight(root / "teach", scene_seed, route(length_m), 0.0)
     grown = root / "experiences.vtrmap"
     grown.unlink(missing_ok=True)
     shutil.copyfile(taught_map, grown)
@@ -120,7 +120,7 @@ def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, b
     T = repeat_route(length_m, backward)
     for change in changes:
         name = f"{'back' if backward else 'fwd'}_{change:.2f}"
-        truth = render(root / name, scene_seed, T, change)
+        truth = render_flight(root / name, scene_seed, T, change)
         multi.append(fly(grown, root / name, truth, taught, change, backward, config))
         copy = root / f"alone_{name}.vtrmap"
         shutil.copyfile(taught_map, copy)
@@ -129,4 +129,4 @@ def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, b
     return multi, alone
 
 
-__all__ = ["Flight", "drifting_flights", "fly", "render", "repeat_route", "route", "teach"]
+__all__ = ["Flight", "drifting_flights", "fly", "render_flight", "repeat_route", "route", "teach_flight"]

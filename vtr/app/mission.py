@@ -68,7 +68,7 @@ def up_in_map(T_world_cam0: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cam0, float)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
 
-def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_seed: int = 0,
+def render_sequence(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_seed: int = 0,
            progress: Callable[[int, int], None] | None = None, speed_mps: float = SYNTHETIC_SPEED_MPS) -> Path:
     """Render (or reuse, when scene, poses, noise seed and speed are the same) a ZED-like stereo sequence in
     ``out_dir``, its frames timed as flown at ``speed_mps``."""
@@ -86,7 +86,7 @@ def render(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_se
     return out_dir
 
 
-def teach(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray | None = None) -> Path:
+def teach_sequence(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray | None = None) -> Path:
     """Teach ``seq_dir`` into a new map at ``map_path`` (replacing an older one: the map and SQLite's files beside
     it, nothing else of a similar name), keeping ``gravity_up`` in it."""
 
@@ -97,7 +97,7 @@ def teach(seq_dir: Path, map_path: Path, config: Config, gravity_up: np.ndarray 
     return map_path
 
 
-def repeat(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0,
+def repeat_sequence(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0,
            spacing_m: float = 1.0) -> MissionRepeat:
     """Repeat ``seq_dir`` against the map; ``out_dir/landmarks.csv`` holds the localizations after ``skip_first_m``."""
     with open_source(seq_dir) as src, Map.open(map_path, "a") as m:
@@ -119,7 +119,7 @@ def fit_model(landmark_files: list[Path], method: Method = "mle") -> PerceptionM
     return fit_observations(read_landmarks_files(landmark_files, FIT_FIELDS), FitSettings(method=method)).model
 
 
-__all__ = ["MissionRepeat", "fit_model", "render", "repeat", "teach", "up_in_map"]
+__all__ = ["MissionRepeat", "fit_model", "render_sequence", "repeat_sequence", "teach_sequence", "up_in_map"]
 
 
 # --------------------------------------------------------------------------- the whole mission
@@ -178,14 +178,14 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
                        *(f"repeat_{dy:g}m" for dy in (*lateral_m, *held_out_m))])
     scene = syn.aerial_scene(MISSION_SCENE_SEED)
     T_teach = syn.aerial_route(length_m, 1.0)
-    seq = render(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)
-    map_path = teach(seq, out_dir / "route.vtrmap", config, gravity_up=up_in_map(T_teach[0]))
+    seq = render_sequence(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)
+    map_path = teach_sequence(seq, out_dir / "route.vtrmap", config, gravity_up=up_in_map(T_teach[0]))
     reps = []
     for dy in (*lateral_m, *held_out_m):
         T_rep = syn.drifting_aerial_route(length_m - 1.0, 1.0, dy, 0.0, ramp_m, 0.5)
-        rseq = render(out_dir / f"repeat_{dy:g}m" / "images", scene, T_rep, noise_seed=1,
+        rseq = render_sequence(out_dir / f"repeat_{dy:g}m" / "images", scene, T_rep, noise_seed=1,
                       progress=progress(f"repeat {dy:g} m") if progress else None)
-        reps.append((dy, repeat(rseq, map_path, out_dir / f"repeat_{dy:g}m", config, skip_first_m=ramp_m)))
+        reps.append((dy, repeat_sequence(rseq, map_path, out_dir / f"repeat_{dy:g}m", config, skip_first_m=ramp_m)))
     model = fit_model([r.landmarks_csv for dy, r in reps if dy in lateral_m])   # the held-out repeats are not fitted
     model_path = out_dir / "model.json"
     model.save(model_path)

@@ -20,7 +20,7 @@ from ..map import Map, split_vertex_id
 from ..navigation.experiences import single_experience
 from ..navigation.repeat import Repeat
 from ..sim import synthetic as syn
-from .mission import teach
+from .mission import teach_sequence
 from .pipeline import write_landmarks_csv
 from .repeat_run import run_repeat
 
@@ -51,7 +51,7 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
     cfg = Config()
     T_teach = syn.aerial_route(length, 1.0)
     teach_dir = syn.write_sequence(out / "teach", scene, cam, T_teach, syn.route_times(T_teach, SPEED_MPS))
-    map_path = teach(teach_dir, out / "route.vtrmap", cfg)
+    map_path = teach_sequence(teach_dir, out / "route.vtrmap", cfg)
     rows: list[dict[str, float]] = []
     pairs = offsets if offsets is not None else [(dy, dz) for dz in vertical for dy in lateral]
     for dy, dz in pairs:

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..config import Config
 from ..sim import synthetic as syn
-from .mission import render, teach, up_in_map
+from .mission import render_sequence, teach_sequence, up_in_map
 from .pipeline import repeat_command
 from .runfiles.state_csv import read_state_csv
 
@@ -111,9 +111,9 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
     total = sum(length for length, _ in segments)
     T_teach = syn.segmented_aerial_route(segments, spacing)
     say(f"rendering the teach ({len(T_teach)} frames)")
-    teach_seq = render(out / "teach" / "images", scene, T_teach, speed_mps=speed_mps)
+    teach_seq = render_sequence(out / "teach" / "images", scene, T_teach, speed_mps=speed_mps)
     up = up_in_map(T_teach[0])
-    map_path = teach(teach_seq, out / "route.vtrmap", config, gravity_up=up)
+    map_path = teach_sequence(teach_seq, out / "route.vtrmap", config, gravity_up=up)
     say(f"taught {map_path} (up {np.round(up, 4).tolist()} in the first camera)")
     flights = {
         # forward: the taught order, from just after the start to just before the end
@@ -133,7 +133,7 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
         T = syn.segmented_aerial_route(segments, spacing, lateral_offset_m=offset_m, start_offset_m=start)
         T = T[:len(s)] if direction > 0 else T[:len(s)][::-1].copy()
         say(f"rendering the {name} repeat ({len(T)} frames)")
-        seq = render(out / name / "images", scene, T, noise_seed=1, speed_mps=speed_mps)
+        seq = render_sequence(out / name / "images", scene, T, noise_seed=1, speed_mps=speed_mps)
         t_frames = syn.route_times(T, speed_mps)
         rep_out = out / name / "repeat"
         repeat_command(seq, map_path, rep_out, None, config, read_only_map=True)
