@@ -3,6 +3,7 @@ with a one-line ConfigError naming ``section.key``; any in-domain value loads.""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -68,15 +69,27 @@ def test_bool_is_not_a_number(section, key, domain):
 
 @pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
 def test_constructed_in_code_is_validated_too(section, key, domain):
-    cfg = Config()
-    setattr(getattr(cfg, section), key, _out_of_range(domain))
+    kind = type(getattr(Config(), section))
     with pytest.raises(ConfigError) as err:
-        cfg.validate()
+        kind(**{key: _out_of_range(domain)})
+    assert _one_line(err, f"{section}.{key}").startswith(f"config: {section}.{key} ")
+    with pytest.raises(ConfigError) as err:           # a changed copy is checked the same way
+        Config().replace(section, **{key: _wrong_type(domain)})
     _one_line(err, f"{section}.{key}")
 
 
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_sections_are_frozen(section, key, domain):
+    part = getattr(Config(), section)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        setattr(part, key, getattr(part, key))
+
+
 def test_defaults_are_inside_their_domains():
-    Config().validate()
+    cfg = Config()
+    for section in dataclasses.fields(cfg):
+        part = getattr(cfg, section.name)
+        assert type(part)(**dataclasses.asdict(part)) == part
     assert len(KEYS) >= 60
 
 
@@ -173,3 +186,43 @@ def test_cross_field_rules_name_both_keys():
         Config.from_dict({"stereo": {"min_disparity_px": 200.0}})
     with pytest.raises(ConfigError, match=r"odometry\.keyframe_min_inliers.*odometry\.min_inliers"):
         Config.from_dict({"odometry": {"min_inliers": 100}})
+
+
+def test_cross_field_rules_hold_for_sections_built_in_code():
+    from vtr.config import FeatureConfig, LocalizationConfig, StereoConfig
+
+    with pytest.raises(ConfigError, match=r"^config: features\.scale_factor.*features\.n_levels.*1024"):
+        FeatureConfig(n_levels=6, scale_factor=4.0)
+    with pytest.raises(ConfigError, match=r"^config: stereo\.min_disparity_px.*stereo\.max_disparity_px"):
+        StereoConfig(min_disparity_px=200.0)
+    with pytest.raises(ConfigError, match=r"^config: localization\.min_matches.*localization\.min_inliers"):
+        LocalizationConfig(min_inliers=100)
+
+
+def test_the_whole_config_reaches_only_the_run_roots():
+    """Below ``vtr/app`` and ``vtr/cli`` a class is handed its sections, never the whole ``Config``: only the
+    run-level roots (and the factories that split a ``Config`` into sections) import it, and nothing checks a
+    section again (sections check themselves when built: ``validate``/``check_section`` are gone)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "vtr"
+    roots = {"navigation/teach.py", "navigation/repeat.py", "control/online.py",
+             "vo/odometry.py",                   # OdometrySettings.of(config)
+             "navigation/experiences.py"}        # single_experience(config) -> Config
+    importers, checkers = set(), set()
+    for path in root.rglob("*.py"):
+        rel = path.relative_to(root).as_posix()
+        if rel.startswith(("app/", "cli/")) or rel in ("config.py", "__init__.py"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("config"):
+                names = {a.name for a in node.names}
+                if "Config" in names:
+                    importers.add(rel)
+                if names & {"validate", "check_section"}:
+                    checkers.add(rel)
+            if isinstance(node, ast.Attribute) and node.attr in ("validate", "check_section") \
+                    and isinstance(node.value, ast.Name) and node.value.id in ("config", "cfg", "self"):
+                checkers.add(rel)
+    assert importers <= roots, sorted(importers - roots)
+    assert not checkers, sorted(checkers)

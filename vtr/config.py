@@ -6,10 +6,11 @@ nesting deeper than a config has are one-line errors.
 Dump the resolved defaults with ``vtr config``.
 
 Every field declares its domain beside its default (``setting(default, Range(...))`` or
-``Choice(...)``): type, integer-ness, finiteness and bounds. ``Config.validate`` checks every field
-against its domain, then the cross-field rules, and names ``section.key`` and the allowed values in
-a one-line ``ConfigError``; it runs when a file loads and when ``StereoOdometry``, ``Teach`` or
-``Repeat`` receive a ``Config`` built in code, so no value reaches OpenCV or numba unchecked.
+``Choice(...)``): type, integer-ness, finiteness and bounds. Each section is a frozen :class:`Section`
+that checks its fields and its cross-field rules when built, in code or from a file, naming
+``section.key`` and the allowed values in a one-line ``ConfigError``: an invalid section cannot exist,
+so no value reaches OpenCV or numba unchecked and the classes handed a section never check it again
+(docs/configuration.md).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numbers
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, SupportsInt, cast
+from typing import Any, ClassVar, SupportsInt, cast
 
 import yaml
 
@@ -130,7 +131,7 @@ class Choice:
 
 
 def setting(default: Any, domain: Range | Choice) -> Any:
-    """A config field with its default and its domain (checked by ``Config.validate``)."""
+    """A config field with its default and its domain (checked when its :class:`Section` is built)."""
     return field(default=default, metadata={"domain": domain})
 
 
@@ -140,16 +141,55 @@ def domain_of(f: dataclasses.Field) -> Range | Choice:
     return f.metadata["domain"]
 
 
+class SectionError(ConfigError):
+    """A section built with a value outside its domain (or breaking one of its cross-field rules): ``detail``
+    names ``section.key``; the message is ``config: <detail>`` (a file's loader re-raises it with the file)."""
+
+    def __init__(self, detail: str) -> None:
+        self.detail = detail
+        super().__init__(f"config: {detail}")
+
+    def __reduce__(self) -> tuple[type, tuple[str]]:
+        return type(self), (self.detail,)
+
+
+@dataclass(frozen=True)
+class Section:
+    """Base of every config section: a frozen dataclass whose fields are declared with ``setting(default,
+    domain)``. Building one checks every field against its domain (storing it as the field's type: ``1500.0``
+    becomes ``1500``), then the section's cross-field :meth:`rules`; an invalid section cannot exist. A changed
+    copy is ``dataclasses.replace(section, key=value)`` (checked the same way)."""
+
+    SECTION: ClassVar[str] = ""     # the section's key in a config file (``features``): errors name it
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            try:
+                value = domain_of(f).check(getattr(self, f.name))
+            except ValueError as err:
+                raise SectionError(f"{self.SECTION}.{f.name} {err}") from None
+            object.__setattr__(self, f.name, value)
+        for ok, message in self.rules():
+            if not ok:
+                raise SectionError(message)
+
+    def rules(self) -> list[tuple[bool, str]]:
+        """The cross-field rules: ``(holds, message naming both keys)`` pairs (none by default)."""
+        return []
+
+
 DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)   # Hamming distance between 256-bit ORB descriptors
 RADIUS_PX = Range(0.0, 10_000.0, lo_open=True)
 
 
-MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (Config.validate)
+MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (FeatureConfig.rules)
 
 
-@dataclass
-class FeatureConfig:
+@dataclass(frozen=True)
+class FeatureConfig(Section):
     """Detection and description (left and right images)."""
+
+    SECTION: ClassVar[str] = "features"
 
     # features kept per image after grid bucketing; on the KITTI clip 2000 gave t_err 0.64-0.74 % over
     # five parameter variants against 0.74-0.90 % for 1500, for ~10 % more time per frame
@@ -183,9 +223,20 @@ class FeatureConfig:
     worker_niceness: int = setting(10, Range(0, 19, integer=True))
 
 
-@dataclass
-class StereoConfig:
+    def rules(self) -> list[tuple[bool, str]]:
+        # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
+        # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
+        top = self.scale_factor ** (self.n_levels - 1)
+        return [(top <= MAX_PYRAMID_SCALE,
+                 f"features.scale_factor ** (features.n_levels - 1) = {self.scale_factor:g} ** {self.n_levels - 1} = "
+                 f"{top:.4g} must be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few "
+                 f"pixels)")]
+
+@dataclass(frozen=True)
+class StereoConfig(Section):
     """Left-right matching on epipolar rows and triangulation."""
+
+    SECTION: ClassVar[str] = "stereo"
 
     # |v_l - v_r| allowed at pyramid level 0 (scales with level)
     max_row_diff_px: float = setting(1.5, Range(0.0, 100.0))
@@ -200,9 +251,15 @@ class StereoConfig:
     pixel_sigma: float = setting(1.0, Range(0.0, 100.0, lo_open=True))
 
 
-@dataclass
-class OdometryConfig:
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.min_disparity_px < self.max_disparity_px,
+                 "stereo.min_disparity_px must be below stereo.max_disparity_px")]
+
+@dataclass(frozen=True)
+class OdometryConfig(Section):
     """Frame-to-keyframe odometry, its robust estimation and the keyframe test."""
+
+    SECTION: ClassVar[str] = "odometry"
 
     match_radius_px: float = setting(20.0, RADIUS_PX)  # search radius around the predicted projection
     match_radius_no_prior_px: float = setting(200.0, RADIUS_PX)  # radius when the motion prior is not trusted
@@ -265,9 +322,17 @@ class OdometryConfig:
     seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
 
 
-@dataclass
-class LocalizationConfig:
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.keyframe_min_inliers >= self.min_inliers,
+                 "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
+                (self.match_radius_no_prior_px >= self.match_radius_px,
+                 "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px")]
+
+@dataclass(frozen=True)
+class LocalizationConfig(Section):
     """Repeat: localizing the leaf against the taught (privileged) path."""
+
+    SECTION: ClassVar[str] = "localization"
 
     ransac_iterations: int = setting(6000, Range(1, 1_000_000, integer=True))
     ransac_threshold_px: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))
@@ -325,9 +390,16 @@ class LocalizationConfig:
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
 
 
-@dataclass
-class PlaceConfig:
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.min_matches >= self.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
+                (self.max_match_radius_px >= self.match_radius_px,
+                 "localization.max_match_radius_px must be >= localization.match_radius_px")]
+
+@dataclass(frozen=True)
+class PlaceConfig(Section):
     """Place recognition over the taught vertices (vtr/navigation/place.py): a bag of binary ORB words."""
+
+    SECTION: ClassVar[str] = "place"
 
     # vocabulary: a two-level tree of k-majority clusters, this many nodes per level (branching^2 words)
     branching: int = setting(32, Range(2, 256, integer=True))
@@ -346,9 +418,11 @@ class PlaceConfig:
     query_words: int = setting(128, Range(1, 1_000_000, integer=True))
 
 
-@dataclass
-class SmoothingConfig:
+@dataclass(frozen=True)
+class SmoothingConfig(Section):
     """Continuous-time WNOA smoother."""
+
+    SECTION: ClassVar[str] = "smoothing"
 
     # power spectral density of the white-noise acceleration, m^2/s^3
     qc_translation: float = setting(1.0, Range(0.0, 1e6, lo_open=True))
@@ -368,9 +442,11 @@ class SmoothingConfig:
     acceleration_window_s: float = setting(1.0, Range(0.0, 60.0))
 
 
-@dataclass
-class ControlConfig:
+@dataclass(frozen=True)
+class ControlConfig(Section):
     """Perception-aware flatness-based MPC (``vtr.control.mpc``; thesis §7.4 settings)."""
+
+    SECTION: ClassVar[str] = "control"
 
     dt_s: float = setting(0.1, Range(0.0, 10.0, lo_open=True))  # MPC discretization (10 Hz)
     horizon: int = setting(15, Range(1, 1000, integer=True))  # prediction steps N (1.5 s)
@@ -425,9 +501,11 @@ class ControlConfig:
     osqp_polishing: str = setting("disabled", Choice("disabled", "enabled"))
 
 
-@dataclass
-class ExperienceConfig:
+@dataclass(frozen=True)
+class ExperienceConfig(Section):
     """Multi-experience localization (docs/map.md, "Experiences"): earlier repeats matched besides the teach."""
+
+    SECTION: ClassVar[str] = "experiences"
 
     # experiences (earlier finished repeats) whose landmarks a keyframe is matched against besides the teach's, at
     # most; 0 localizes against the teach alone (single experience). Bounds the matching cost per keyframe
@@ -442,14 +520,16 @@ class ExperienceConfig:
     keep_most_used: int = setting(5, Range(0, 1_000_000, integer=True))
 
 
-@dataclass
-class MapConfig:
+@dataclass(frozen=True)
+class MapConfig(Section):
     """On-disk map."""
+
+    SECTION: ClassVar[str] = "map"
 
     compress_level: int = setting(3, Range(0, 9, integer=True))  # zlib level of array blobs
 
 
-@dataclass
+@dataclass(frozen=True)
 class Config:
     """The whole pipeline configuration."""
 
@@ -487,31 +567,37 @@ class Config:
             lines.append("")
         return "\n".join(lines)
 
+    def replace(self, section: str, **changes: Any) -> Config:
+        """A copy with ``changes`` to the keys of ``section`` (checked against their domains, as when built)."""
+        return dataclasses.replace(self, **{section: dataclasses.replace(getattr(self, section), **changes)})
+
     @classmethod
     def from_dict(cls, data: Any, where: str = "config") -> Config:
-        cfg = cls()
         if not isinstance(data, dict):
             raise ConfigError(f"{where}: expected a mapping of sections, got {type(data).__name__}")
-        sections = {f.name for f in dataclasses.fields(cls)}
+        types = {f.name: f.default_factory for f in dataclasses.fields(cls)}
+        sections: dict[str, Section] = {}
         for section, values in data.items():
-            if section not in sections:
+            if section not in types:
                 hint = _did_you_mean(cls, None, section)
                 raise ConfigError(f"{where}: unknown section {section!r}{hint or ''} "
-                                  f"(sections: {', '.join(sorted(sections))})")
-            target = getattr(cfg, section)
+                                  f"(sections: {', '.join(sorted(types))})")
             if not isinstance(values, dict):
                 raise ConfigError(f"{where}: section {section!r} must be a mapping of keys")
-            known = {f.name: f for f in dataclasses.fields(target)}
-            for key, value in values.items():
+            kind = cast(type[Section], types[section])
+            known = {f.name: f for f in dataclasses.fields(kind)}
+            for key, value in values.items():      # in the file's order: the first bad key is the one named
                 if key not in known:
                     raise ConfigError(f"{where}: unknown key {section}.{key}{_did_you_mean(cls, section, key)}")
                 try:
-                    value = domain_of(known[key]).check(value)
+                    domain_of(known[key]).check(value)
                 except ValueError as err:
                     raise ConfigError(f"{where}: {section}.{key} {err}") from None
-                setattr(target, key, value)
-        cfg.validate(where)
-        return cfg
+            try:
+                sections[section] = kind(**values)
+            except SectionError as err:            # a cross-field rule of the section
+                raise ConfigError(f"{where}: {err.detail}") from None
+        return cls(**sections)  # type: ignore[arg-type]
 
     @classmethod
     def load(cls, path: str | Path) -> Config:
@@ -546,45 +632,12 @@ class Config:
             raise ConfigError(f"{path}: nested too deeply to read (a config is two levels: section, key)") from None
         return cls.from_dict({} if data is None else data, str(path))
 
-    def validate(self, where: str = "config") -> None:
-        """Every field inside its declared domain, then the cross-field rules; ``ConfigError`` naming the key."""
-        for section in dataclasses.fields(self):
-            check_section(getattr(self, section.name), section.name, where)
-        o, s, loc = self.odometry, self.stereo, self.localization
-        checks = [
-            (s.min_disparity_px < s.max_disparity_px,
-             "stereo.min_disparity_px must be below stereo.max_disparity_px"),
-            (o.keyframe_min_inliers >= o.min_inliers, "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
-            (o.match_radius_no_prior_px >= o.match_radius_px,
-             "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px"),
-            (loc.min_matches >= loc.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
-            (loc.max_match_radius_px >= loc.match_radius_px,
-             "localization.max_match_radius_px must be >= localization.match_radius_px"),
-            # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
-            # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
-            (self.features.scale_factor ** (self.features.n_levels - 1) <= MAX_PYRAMID_SCALE,
-             f"features.scale_factor ** (features.n_levels - 1) = {self.features.scale_factor:g} ** "
-             f"{self.features.n_levels - 1} = {self.features.scale_factor ** (self.features.n_levels - 1):.4g} must "
-             f"be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few pixels)"),
-        ]
-        for ok, msg in checks:
-            if not ok:
-                raise ConfigError(f"{where}: {msg}")
-
-
-def check_section(values: Any, name: str, where: str = "config") -> None:
-    """Every field of one section (e.g. a ``SmoothingConfig`` handed to the smoother alone) in its domain."""
-    for f in dataclasses.fields(values):
-        try:
-            domain_of(f).check(getattr(values, f.name))
-        except ValueError as err:
-            raise ConfigError(f"{where}: {name}.{f.name} {err}") from None
-
 
 def check_setting(section: str, key: str, value: Any, where: str = "config") -> Any:
     """``value`` checked against the domain of ``section.key`` (for a command-line override such as
     ``--rate``); returns it as the field's type."""
-    f = {f.name: f for f in dataclasses.fields(getattr(Config(), section))}[key]
+    kind = {f.name: f.default_factory for f in dataclasses.fields(Config)}[section]
+    f = {f.name: f for f in dataclasses.fields(kind)}[key]  # type: ignore[arg-type]
     try:
         return domain_of(f).check(value)
     except ValueError as err:

@@ -23,7 +23,7 @@ from ..io.base import FrameSource, GroundTruth, SourceOptions
 from ..io.trajectory import write_tum
 from ..signals import held_signals
 from ..types import FrameKind, FrameRecord, StereoFrame
-from ..vo.odometry import StereoOdometry
+from ..vo.odometry import OdometrySettings, StereoOdometry
 from ..vo.stereo import StereoProcessor
 from .evaluation import (
     DriftMetrics,
@@ -86,7 +86,7 @@ def run_odometry(source: FrameSource, indices: list[int], config: Config,
                  progress: Callable | None = None) -> tuple[list[FrameRecord], np.ndarray, float]:
     """Odometry over the selected frames; returns per-frame records, final poses in the first
     camera frame (N, 4, 4; keyframes as refined by the window) and the elapsed seconds."""
-    vo = StereoOdometry(source.camera, config)
+    vo = StereoOdometry(source.camera, OdometrySettings.of(config))
     records = []
     t0 = time.perf_counter()
     for frame in frames_of(source, indices, vo.stereo, progress, "odometry"):

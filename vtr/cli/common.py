@@ -30,9 +30,7 @@ def load_config(path: Path | None, threads: int | None = None) -> Config:
     from ..config import Config
 
     config = Config.load(path) if path else Config()
-    if threads is not None:
-        config.features.threads = threads
-    return config
+    return config if threads is None else config.replace("features", threads=threads)
 
 
 #: without a terminal, a progress line every this many items (and at the first and the last)

@@ -28,7 +28,7 @@ from ..geometry import usable_covariance
 from ..map import Map
 from ..signals import held_signals
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from ..vo.odometry import StereoOdometry
+from ..vo.odometry import OdometrySettings, StereoOdometry
 from .chain import ChainLocalizer, LocalizationChain
 from .experiences import ExperienceLocalizer, ExperienceSubmaps
 from .localization import Localization, TaughtSubmap, landmark_record
@@ -69,25 +69,27 @@ class Repeat:
         it place recognition finds where on the route the repeat is; with it that vertex is tried first.
         ``warn`` is told when the map's stored place index had to be rebuilt (else a ``RuntimeWarning``).
         """
-        config.validate()
         self.map = map_
         self.camera = map_.camera
         self.config = config
         map_.check_taught_route(allow_partial)
-        self.chain = LocalizationChain(map_.taught_path(), config, start_index)
+        self.chain = LocalizationChain(map_.taught_path(), config.localization, config.smoothing, start_index)
         self.localizer = ExperienceLocalizer(self.camera, config.localization, config.odometry,
                                              config.stereo.pixel_sigma)
         self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
         self._odometry_broken = False             # odometry failed since the previous leaf
-        self.odometry = StereoOdometry(self.camera, config, keep_history=False)
+        self.odometry = StereoOdometry(self.camera, OdometrySettings.of(config), keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
-        self.submaps = ExperienceSubmaps(map_, self.chain.path, config, self.camera, self.place, (self.run,), warn)
+        self.submaps = ExperienceSubmaps(map_, self.chain.path, config.experiences,
+                                         config.localization.neighbour_vertices, self.camera, self.place, (self.run,),
+                                         warn)
         self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
-        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config)
+        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
+                                      config.place, config.odometry.seed)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
         self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf

@@ -16,7 +16,7 @@ from ..errors import MapError, TeachFailedError
 from ..map import Map
 from ..map.store import abort_reason
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from ..vo.odometry import StereoOdometry
+from ..vo.odometry import OdometrySettings, StereoOdometry
 from .place import route_place_index
 
 
@@ -26,7 +26,7 @@ class Teach:
     def __init__(self, map_: Map, camera: StereoCamera, config: Config, source: str = ""):
         self.map = map_
         self.camera = camera
-        self.odometry = StereoOdometry(camera, config, keep_history=False)
+        self.odometry = StereoOdometry(camera, OdometrySettings.of(config), keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._place = config.place
         self._seed = config.odometry.seed

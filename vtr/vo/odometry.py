@@ -23,7 +23,7 @@ from typing import cast
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import Config, OdometryConfig
+from ..config import Config, FeatureConfig, OdometryConfig, StereoConfig
 from ..errors import ConfigError, EstimationError
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle, usable_covariance
 from ..timing import StageTimer
@@ -95,14 +95,30 @@ class LocalMap:
             kf.landmark_ids[ok] = remap[kf.landmark_ids[ok]]
 
 
+@dataclass(frozen=True)
+class OdometrySettings:
+    """What :class:`StereoOdometry` is built from: its sections of the configuration (each checked when built)
+    and the run's RANSAC seed."""
+
+    odometry: OdometryConfig = dataclasses.field(default_factory=OdometryConfig)
+    features: FeatureConfig = dataclasses.field(default_factory=FeatureConfig)
+    stereo: StereoConfig = dataclasses.field(default_factory=StereoConfig)
+    seed: int = 0
+
+    @classmethod
+    def of(cls, config: Config) -> OdometrySettings:
+        """The odometry's sections of ``config``."""
+        return cls(config.odometry, config.features, config.stereo, config.odometry.seed)
+
+
 class StereoOdometry:
     """Keyframe stereo visual odometry; feed frames in time order with ``process``."""
 
-    def __init__(self, camera: StereoCamera, config: Config | None = None, keep_history: bool = True):
-        """``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
+    def __init__(self, camera: StereoCamera, settings: OdometrySettings | None = None, keep_history: bool = True):
+        """``settings``: the odometry's sections (defaults without it; ``OdometrySettings.of(config)`` from a whole
+        ``Config``). ``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
         store keyframes as they are finalized, turn it off so memory does not grow with the route."""
-        self.config = config or Config()
-        self.config.validate()
+        self.config = settings or OdometrySettings()
         self.keep_history = keep_history
         self.skipped_window_adjustments = 0    # window adjustments not run (a landmark behind a camera)
         self.camera = camera
@@ -371,7 +387,7 @@ class StereoOdometry:
         """
         cfg = self.config.odometry
         rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
-                        cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
+                        cfg.ransac_threshold_px, cfg.ransac_confidence, self.config.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
         z = frame.stereo_measurements[feat]
