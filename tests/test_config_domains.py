@@ -8,10 +8,11 @@ import math
 from pathlib import Path
 
 import pytest
+import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from vtr.config import Choice, Config, Range, config_keys
+from vtr.config import MOVED_KEYS, Choice, Config, Range, config_keys
 from vtr.errors import ConfigError
 
 KEYS = config_keys()
@@ -133,7 +134,7 @@ def test_any_in_domain_value_loads(data):
     ("features:\n  grid_rows: 0\n", "features.grid_rows"),             # was ZeroDivisionError
     ("odometry:\n  window_keyframes: 0\n", "odometry.window_keyframes"),
     ("stereo:\n  refine_half_window: -2\n", "stereo.refine_half_window"),
-    ("odometry:\n  ransac_confidence: 5\n", "odometry.ransac_confidence"),
+    ("estimation:\n  ransac_confidence: 5\n", "estimation.ransac_confidence"),
     ("odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),   # was accepted
     ("features:\n  n_features: true\n", "features.n_features"),        # was accepted as 1
     ("odometry:\n  ransac_threshold_px: -1\n", "odometry.ransac_threshold_px"),
@@ -226,3 +227,46 @@ def test_the_whole_config_reaches_only_the_run_roots():
                 checkers.add(rel)
     assert importers <= roots, sorted(importers - roots)
     assert not checkers, sorted(checkers)
+
+
+# ------------------------------------------------------------------ keys of older versions
+
+
+@pytest.mark.parametrize(("old", "new"), sorted(MOVED_KEYS.items()))
+def test_a_moved_key_still_loads_with_a_one_line_warning(tmp_path: Path, old, new):
+    section, key = old.split(".")
+    new_section, new_key = new.split(".")
+    value = getattr(getattr(Config(), new_section), new_key)
+    changed = value + 1 if isinstance(value, int) else value / 2
+    f = tmp_path / "old.yaml"
+    f.write_text(yaml.safe_dump({section: {key: changed}}))
+    told: list[str] = []
+    cfg = Config.load(f, warn=told.append)
+    assert getattr(getattr(cfg, new_section), new_key) == changed
+    assert told == [f"{f}: {old} is now {new} (loaded as {new}; rename it in the file)"]
+    with pytest.warns(FutureWarning, match=f"{old} is now {new}"):      # without a listener: a FutureWarning
+        assert getattr(getattr(Config.load(f), new_section), new_key) == changed
+
+
+def test_a_moved_key_given_twice_or_out_of_its_domain_names_the_new_key(tmp_path: Path):
+    with pytest.raises(ConfigError, match=r"^c\.yaml: odometry\.seed and run\.seed both given.*keep run\.seed$"):
+        Config.from_dict({"odometry": {"seed": 3}, "run": {"seed": 4}}, "c.yaml", warn=lambda _line: None)
+    with pytest.raises(ConfigError, match=r"^c\.yaml: estimation\.ratio_test must be"):
+        Config.from_dict({"odometry": {"ratio_test": 2.0}}, "c.yaml", warn=lambda _line: None)
+    with pytest.raises(ConfigError, match=r"localization\.huber_px \(did you mean estimation\.huber_px\?\)"):
+        Config.from_dict({"localization": {"huber_px": 2.0}})
+
+
+def test_the_cli_warns_in_one_line_on_a_moved_key(tmp_path: Path):
+    from click.testing import CliRunner
+
+    from vtr.cli.common import load_config
+
+    f = tmp_path / "old.yaml"
+    f.write_text("odometry:\n  seed: 3\n  min_inliers: 16\n")
+    runner = CliRunner()
+    with runner.isolation() as (_out, err, *_rest):
+        cfg = load_config(f)
+    assert cfg.run.seed == 3 and cfg.odometry.min_inliers == 16
+    line = f"warning: {f}: odometry.seed is now run.seed (loaded as run.seed; rename it in the file)\n"
+    assert err.getvalue().decode() == line

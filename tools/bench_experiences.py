@@ -34,7 +34,7 @@ COUNTS = (1, 5, 20)
 def warm(snapshot: Path, config: Config) -> None:
     """Store the experiences' place-recognition words in the map (what the first repeat against them does)."""
     with Map.open(snapshot, "a") as m:
-        place = route_place_index(m, config.place, config.odometry.seed)
+        place = route_place_index(m, config.place, config.run.seed)
         sub = ExperienceSubmaps(m, m.taught_path(), config.experiences, config.localization.neighbour_vertices,
                                 m.camera, place)
         for run in sub.trusted:

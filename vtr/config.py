@@ -19,6 +19,8 @@ import dataclasses
 import math
 import numbers
 import tomllib
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, SupportsInt, cast
@@ -77,6 +79,7 @@ def toml_duplicate_key(text: str) -> str | None:
             return f"{what} {name!r} given twice (lines {seen[name]} and {lineno}); keep one"
         seen[name] = lineno
     return None
+
 
 @dataclass(frozen=True)
 class Range:
@@ -222,7 +225,6 @@ class FeatureConfig(Section):
     # 60.0-61.8 frames/s; 10 64.7-66.7 (the reader niced too: 63.3-65.7); 19 65.7-66.4
     worker_niceness: int = setting(10, Range(0, 19, integer=True))
 
-
     def rules(self) -> list[tuple[bool, str]]:
         # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
         # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
@@ -231,6 +233,7 @@ class FeatureConfig(Section):
                  f"features.scale_factor ** (features.n_levels - 1) = {self.scale_factor:g} ** {self.n_levels - 1} = "
                  f"{top:.4g} must be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few "
                  f"pixels)")]
+
 
 @dataclass(frozen=True)
 class StereoConfig(Section):
@@ -250,25 +253,23 @@ class StereoConfig(Section):
     # measurement noise on u_l, v, u_r (px) used for covariances
     pixel_sigma: float = setting(1.0, Range(0.0, 100.0, lo_open=True))
 
-
     def rules(self) -> list[tuple[bool, str]]:
         return [(self.min_disparity_px < self.max_disparity_px,
                  "stereo.min_disparity_px must be below stereo.max_disparity_px")]
 
+
 @dataclass(frozen=True)
 class OdometryConfig(Section):
-    """Frame-to-keyframe odometry, its robust estimation and the keyframe test."""
+    """Frame-to-keyframe odometry: matching, RANSAC and the window, the keyframe test (the estimation settings it
+    shares with localization are in ``estimation``)."""
 
     SECTION: ClassVar[str] = "odometry"
 
     match_radius_px: float = setting(20.0, RADIUS_PX)  # search radius around the predicted projection
     match_radius_no_prior_px: float = setting(200.0, RADIUS_PX)  # radius when the motion prior is not trusted
     max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)
-    # best/second-best Hamming ratio for temporal matches
-    ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
     ransac_iterations: int = setting(2000, Range(1, 1_000_000, integer=True))
     ransac_threshold_px: float = setting(5.0, Range(0.0, 1000.0, lo_open=True))
-    ransac_confidence: float = setting(0.999, Range(0.0, 1.0, lo_open=True, hi_open=True))
     min_inliers: int = setting(15, Range(3, 100_000, integer=True))  # fewer: FAILURE
     # rounds of re-choosing a tracked frame's inliers among all its matches at the refined pose, then refining again
     # (stops early when the set is unchanged). 1: RANSAC's inliers only. On kitti00_ramp_clip RANSAC's inliers held
@@ -276,22 +277,6 @@ class OdometryConfig(Section):
     # 0.63 points) but move the ramp up (1.08 -> 1.12 % clean, 1.12-1.75 % noisy) at twice the tracking cost, so the
     # default stays 1 (docs/odometry_stability.md)
     inlier_rounds: int = setting(1, Range(1, 100, integer=True))
-    # Gauss-Newton iterations of the two-view stereo bundle adjustment
-    refine_iterations: int = setting(10, Range(1, 1000, integer=True))
-    huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))  # robust kernel width in the refinement
-    # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
-    # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
-    # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
-    # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
-    far_point_baselines: float = setting(15.0, Range(0.0, 1e6, lo_open=True))
-    # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
-    # near landmarks
-    far_disparity_weight: float = setting(1e-4, Range(0.0, 1.0))
-    # a problem (a tracked frame, the window, a localization) with fewer near observations than this weighs every
-    # disparity fully: with nothing near (a camera high above flat ground) the scale can only come from far
-    # structure. 1: on the synthetic aerial repeats at 8 m lateral offset the largest error was 11 cm (36 cm when
-    # the 60 largest disparities counted instead) and on kitti00_ramp_clip t_err 0.8-2.0 % (1.0-2.5 %)
-    min_near_observations: int = setting(1, Range(0, 100_000, integer=True))
     # a far landmark whose rays across the window span at least this angle starts the windowed bundle
     # adjustment where they meet (its depth from parallax, not from one small disparity); on kitti00_ramp_clip
     # 0.5 deg gave t_err 0.9-1.6 % over four feature variants, 1 deg 1.1-2.3 %, none 1.4-2.0 %
@@ -319,14 +304,55 @@ class OdometryConfig(Section):
     # its frames ends failed: its run aborted with the count, not finished, since such a map is no route.
     # 0.5: "most frames" (1 never fails a teach)
     teach_max_failed_fraction: float = setting(0.5, Range(0.0, 1.0))
-    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
-
 
     def rules(self) -> list[tuple[bool, str]]:
         return [(self.keyframe_min_inliers >= self.min_inliers,
                  "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
                 (self.match_radius_no_prior_px >= self.match_radius_px,
                  "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px")]
+
+
+@dataclass(frozen=True)
+class EstimationConfig(Section):
+    """Robust pose estimation that odometry and localization share: the ratio test, RANSAC's confidence, the
+    refinement and the near/far weighting of stereo rows (docs/configuration.md)."""
+
+    SECTION: ClassVar[str] = "estimation"
+
+    # best/second-best Hamming ratio of a descriptor match (odometry's temporal matches, localization's matches)
+    ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
+    # RANSAC's confidence (odometry's P3P against the local map, localization's against a taught submap)
+    ransac_confidence: float = setting(0.999, Range(0.0, 1.0, lo_open=True, hi_open=True))
+    # Gauss-Newton iterations refining a pose on its inliers (odometry's tracked frame, a localization)
+    refine_iterations: int = setting(10, Range(1, 1000, integer=True))
+    # Huber kernel width (px) of every refinement: odometry's tracked frame and window, a localization
+    huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))
+    # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
+    # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
+    # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
+    # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
+    far_point_baselines: float = setting(15.0, Range(0.0, 1e6, lo_open=True))
+    # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
+    # near landmarks
+    far_disparity_weight: float = setting(1e-4, Range(0.0, 1.0))
+    # a problem (a tracked frame, the window, a localization) with fewer near observations than this weighs every
+    # disparity fully: with nothing near (a camera high above flat ground) the scale can only come from far
+    # structure. 1: on the synthetic aerial repeats at 8 m lateral offset the largest error was 11 cm (36 cm when
+    # the 60 largest disparities counted instead) and on kitti00_ramp_clip t_err 0.8-2.0 % (1.0-2.5 %)
+    min_near_observations: int = setting(1, Range(0, 100_000, integer=True))
+
+
+@dataclass(frozen=True)
+class RunConfig(Section):
+    """The run as a whole."""
+
+    SECTION: ClassVar[str] = "run"
+
+    # seed of a run's random choices (runs are reproducible): the place vocabulary's training, and the RANSAC of
+    # odometry and localization (cv2.setRNGSeed; OpenCV's solvePnPRansac draws from its own generator, so its
+    # samples do not depend on it: docs/odometry_stability.md)
+    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))
+
 
 @dataclass(frozen=True)
 class LocalizationConfig(Section):
@@ -389,11 +415,11 @@ class LocalizationConfig(Section):
     # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
 
-
     def rules(self) -> list[tuple[bool, str]]:
         return [(self.min_matches >= self.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
                 (self.max_match_radius_px >= self.match_radius_px,
                  "localization.max_match_radius_px must be >= localization.match_radius_px")]
+
 
 @dataclass(frozen=True)
 class PlaceConfig(Section):
@@ -533,9 +559,11 @@ class MapConfig(Section):
 class Config:
     """The whole pipeline configuration."""
 
+    run: RunConfig = field(default_factory=RunConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    estimation: EstimationConfig = field(default_factory=EstimationConfig)
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     place: PlaceConfig = field(default_factory=PlaceConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
@@ -572,9 +600,13 @@ class Config:
         return dataclasses.replace(self, **{section: dataclasses.replace(getattr(self, section), **changes)})
 
     @classmethod
-    def from_dict(cls, data: Any, where: str = "config") -> Config:
+    def from_dict(cls, data: Any, where: str = "config", warn: Callable[[str], None] | None = None) -> Config:
+        """The config of a file's ``data`` (``where`` names it in errors). A key of an older version
+        (:data:`MOVED_KEYS`) loads under its new name, and ``warn`` (else :func:`warnings.warn`, a
+        ``FutureWarning``) is told in one line."""
         if not isinstance(data, dict):
             raise ConfigError(f"{where}: expected a mapping of sections, got {type(data).__name__}")
+        data = _moved_keys(data, where, warn)
         types = {f.name: f.default_factory for f in dataclasses.fields(cls)}
         sections: dict[str, Section] = {}
         for section, values in data.items():
@@ -600,7 +632,8 @@ class Config:
         return cls(**sections)  # type: ignore[arg-type]
 
     @classmethod
-    def load(cls, path: str | Path) -> Config:
+    def load(cls, path: str | Path, warn: Callable[[str], None] | None = None) -> Config:
+        """The config of a YAML or TOML file (``warn``: as in :meth:`from_dict`)."""
         from perception_model.inputs import input_problem
 
         path = Path(path)
@@ -630,7 +663,40 @@ class Config:
             raise ConfigError(f"{path}: cannot parse ({reason})") from None
         except RecursionError:
             raise ConfigError(f"{path}: nested too deeply to read (a config is two levels: section, key)") from None
-        return cls.from_dict({} if data is None else data, str(path))
+        return cls.from_dict({} if data is None else data, str(path), warn)
+
+
+#: keys that moved, ``old: new``: a config file of an older version still loads (``Config.from_dict`` warns in one
+#: line naming the new key; both given is an error). The estimation settings odometry and localization share left
+#: ``odometry`` for ``estimation``; the run's seed is ``run.seed``.
+MOVED_KEYS: dict[str, str] = {
+    **{f"odometry.{key}": f"estimation.{key}" for key in (
+        "ratio_test", "ransac_confidence", "refine_iterations", "huber_px", "far_point_baselines",
+        "far_disparity_weight", "min_near_observations")},
+    "odometry.seed": "run.seed",
+}
+
+
+def _moved_keys(data: dict[Any, Any], where: str, warn: Callable[[str], None] | None) -> dict[Any, Any]:
+    """``data`` with the old keys of :data:`MOVED_KEYS` under their new names (a copy; ``data`` is unchanged)."""
+    out = {section: dict(values) if isinstance(values, dict) else values for section, values in data.items()}
+    for old, new in MOVED_KEYS.items():
+        (section, key), (new_section, new_key) = old.split("."), new.split(".")
+        values = out.get(section)
+        if not isinstance(values, dict) or key not in values:
+            continue
+        target = out.setdefault(new_section, {})
+        if not isinstance(target, dict):
+            continue                     # the malformed section is named when it is read
+        if new_key in target:
+            raise ConfigError(f"{where}: {old} and {new} both given; {old} is the old name of {new}: keep {new}")
+        target[new_key] = values.pop(key)
+        message = f"{where}: {old} is now {new} (loaded as {new}; rename it in the file)"
+        if warn is None:
+            warnings.warn(message, FutureWarning, stacklevel=4)
+        else:
+            warn(message)
+    return out
 
 
 def check_setting(section: str, key: str, value: Any, where: str = "config") -> Any:

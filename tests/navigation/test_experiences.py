@@ -299,7 +299,7 @@ def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
     root, multi, _ = forward
     cfg = Config()
     with Map.open(root / "experiences.vtrmap") as m:
-        place = route_place_index(m, cfg.place, cfg.odometry.seed)
+        place = route_place_index(m, cfg.place, cfg.run.seed)
         sub = ExperienceSubmaps(m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera,
                                 place)
         digest = sub._vocabulary_digest()

@@ -78,7 +78,7 @@ def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip
     def spy(self, frame, lm, feat):
         track = estimate(self, frame, lm, feat)
         disparity = frame.features.uv[:, 0] - frame.u_right
-        near = disparity >= self.camera.fb / (self.config.odometry.far_point_baselines * self.camera.baseline)
+        near = disparity >= self.camera.fb / (self.config.estimation.far_point_baselines * self.camera.baseline)
         counts.append((near[feat].sum(), near[track.features].sum() if track is not None else 0))
         return track
 

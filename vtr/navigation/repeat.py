@@ -74,9 +74,9 @@ class Repeat:
         self.config = config
         map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config.localization, config.smoothing, start_index)
-        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.odometry,
+        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.estimation,
                                              config.stereo.pixel_sigma)
-        self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
+        self.place = route_place_index(map_, config.place, config.run.seed, warn)
         self._odometry_broken = False             # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, OdometrySettings.of(config), keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
@@ -89,7 +89,7 @@ class Repeat:
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
         self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
-                                      config.place, config.odometry.seed)
+                                      config.place, config.run.seed)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
         self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf

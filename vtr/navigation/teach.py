@@ -29,7 +29,7 @@ class Teach:
         self.odometry = StereoOdometry(camera, OdometrySettings.of(config), keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._place = config.place
-        self._seed = config.odometry.seed
+        self._seed = config.run.seed
         self._max_failed = config.odometry.teach_max_failed_fraction
         self.vertices = 0
         self.frames = 0                 # frames through odometry
