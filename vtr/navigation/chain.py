@@ -115,8 +115,7 @@ class LocalizationChain:
 
     def __init__(self, path: TaughtPath, config: LocalizationConfig, drift: SmoothingConfig,
                  start_index: int | None = None):
-        """``config``: the chain's rules; ``drift``: odometry's drift per metre (the smoother's), which grows the
-        prior between localizations."""
+        """``drift``: odometry's drift per metre (the smoother's), growing the prior between localizations."""
         if len(path) == 0:
             raise MapError("the privileged path is empty")
         if start_index is not None and not 0 <= int(start_index) < len(path):
@@ -411,8 +410,7 @@ class ChainLocalizer:
 
     def __init__(self, chain: LocalizationChain, localizer: Localizer, place: PlaceIndex, submap: SubmapFn,
                  config: LocalizationConfig, place_config: PlaceConfig, seed: int = 0):
-        """``config``: the localization's rules; ``place_config``: how many place candidates to verify; ``seed``:
-        the run's RANSAC seed (each attempt takes the next)."""
+        """``place_config``: how many place candidates to verify; ``seed``: ``run.seed`` (+1 per attempt)."""
         self.chain = chain
         self.localizer = localizer
         self.place = place

@@ -63,7 +63,8 @@ class Repeat:
 
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int | None = None,
                  allow_partial: bool = False, warn: Callable[[str], None] | None = None):
-        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``.
+        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``. ``config``: a
+        run-level root, it hands each part its sections (docs/configuration.md).
 
         ``start_index`` (optional) is a hint: the taught vertex (path index) the repeat starts near. Without
         it place recognition finds where on the route the repeat is; with it that vertex is tried first.

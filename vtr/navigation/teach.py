@@ -24,6 +24,9 @@ class Teach:
     """Builds the privileged path of a map from a stereo run."""
 
     def __init__(self, map_: Map, camera: StereoCamera, config: Config, source: str = ""):
+        """``config``: a run-level root, it hands each part its sections (the odometry ``OdometrySettings.of``,
+        the place index ``place`` and ``run.seed``) and keeps ``odometry.teach_max_failed_fraction``
+        (docs/configuration.md)."""
         self.map = map_
         self.camera = camera
         self.odometry = StereoOdometry(camera, OdometrySettings.of(config), keep_history=False)
