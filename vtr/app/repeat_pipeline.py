@@ -102,12 +102,12 @@ class RepeatSummary:
                 "ground_truth_not_used": self.ground_truth_note, "experiences": self.experiences}
 
 
-def write_landmarks_csv(path: Path, locs: list[Localization]) -> None:
+def write_landmarks_csv(path: Path, localizations: list[Localization]) -> None:
     """``landmarks.csv`` (``perception_model``'s format and writer) of the successful localizations."""
     from perception_model.landmarks_file import LandmarksWriter
 
     with LandmarksWriter(path) as w:
-        for loc in locs:
+        for loc in localizations:
             append_landmarks(w, loc)
 
 
@@ -349,62 +349,65 @@ class RepeatRun:
         return stack.enter_context(private_copy(self.map_path))
 
 
-def _start_hint(m: Map, start_vertex: int | None, start_distance_m: float | None) -> int | None:
+def _start_hint(route: Map, start_vertex: int | None, start_distance_m: float | None) -> int | None:
     """The path index a start hint names; ``MapError`` for a vertex or distance beyond the taught route."""
     from ..errors import ConfigError, MapError
 
     if start_vertex is not None and start_distance_m is not None:
         raise ConfigError("give either a start vertex or a start distance, not both")
-    taught = m.taught_path()
+    taught = route.taught_path()
     if start_vertex is not None:
         if not 0 <= start_vertex < len(taught):
-            raise MapError(f"{m.path}: start vertex {start_vertex} is not on the taught path (0..{len(taught) - 1})")
+            raise MapError(f"{route.path}: start vertex {start_vertex} is not on the taught path "
+                           f"(0..{len(taught) - 1})")
         return int(start_vertex)
     if start_distance_m is not None:
         arc = taught.arc_length_m()
         if not 0 <= start_distance_m <= arc[-1]:
-            raise MapError(f"{m.path}: start distance {start_distance_m:g} m is beyond the taught route "
+            raise MapError(f"{route.path}: start distance {start_distance_m:g} m is beyond the taught route "
                            f"(0..{arc[-1]:.1f} m)")
         return int(np.argmin(np.abs(arc - start_distance_m)))
     return None
 
 
-def _check_path_to_follow(m: Map) -> None:
+def _check_path_to_follow(route: Map) -> None:
     """``MapError`` unless the taught path has a segment: path-tracking errors (and the controller's
     reference path) are undefined on a single point."""
     from ..errors import EstimationError, MapError
     from ..state.controller import ReferencePath
 
-    taught = m.taught_path()
+    taught = route.taught_path()
     try:
         ReferencePath(taught.positions)
     except EstimationError:
-        raise MapError(f"{m.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two distinct "
-                       "positions to follow): teach a longer route") from None
+        raise MapError(f"{route.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two "
+                       "distinct positions to follow): teach a longer route") from None
 
 
-def _ground_truth_note(source: FrameSource, m: Map, locs: list[Localization]) -> str | None:
+def _ground_truth_note(source: FrameSource, route: Map, localizations: list[Localization]) -> str | None:
     """None when the repeat source's ground truth also covers the taught vertices (teach and repeat taken from one
     source, e.g. even and odd frames of a clip), so the repeat can be judged against it; else why it is not."""
-    if not locs:
+    if not localizations:
         return "no localization was attempted"
     if source.ground_truth() is None:
         return f"{source.path} has no ground truth"
-    teach = m.reference_run()
-    taught_from = m.run(teach).source if teach is not None else None
+    teach = route.reference_run()
+    taught_from = route.run(teach).source if teach is not None else None
     if taught_from != str(source.path):
         return (f"the repeat's source {source.path} is not the teach's ({taught_from or 'unknown'}): their ground "
                 "truths need not share one frame")
     return None
 
 
-def trunk_times(locs: Sequence[Localization], path: TaughtPath) -> np.ndarray:
+def trunk_times(localizations: Sequence[Localization], path: TaughtPath) -> np.ndarray:
     """(N,) int64 times of the localizations' trunks, vertices of the taught ``path`` (no vertex is read)."""
-    return path.t_ns[[path.index(loc.trunk_id) for loc in locs]].astype(np.int64)
+    return path.t_ns[[path.index(loc.trunk_id) for loc in localizations]].astype(np.int64)
 
 
-def chain_errors(locs: Sequence[Localization], trunk_t_ns: np.ndarray, gt: GroundTruth) -> LocalizationErrors:
-    """Errors of localizations ``T_leaf_trunk`` against ground truth ``gt`` that covers both the leaf times and
+def chain_errors(localizations: Sequence[Localization], trunk_t_ns: np.ndarray,
+                 truth: GroundTruth) -> LocalizationErrors:
+    """Errors of localizations ``T_leaf_trunk`` against ground truth ``truth`` that covers both the leaf times and
     the trunk times ``trunk_t_ns`` (:func:`trunk_times`)."""
-    return localization_errors(np.array([loc.T_leaf_trunk for loc in locs]), np.array([loc.t_ns for loc in locs]),
-                               np.asarray(trunk_t_ns, np.int64), gt.t_ns, gt.T_world_cam)
+    return localization_errors(np.array([loc.T_leaf_trunk for loc in localizations]),
+                               np.array([loc.t_ns for loc in localizations]), np.asarray(trunk_t_ns, np.int64),
+                               truth.t_ns, truth.T_world_cam)
