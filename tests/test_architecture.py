@@ -72,7 +72,7 @@ def imports(path: Path) -> list[tuple[int, str]]:
 def layer(module: str) -> str:
     if module in ENTRY_POINTS:
         return ENTRY_POINTS[module]
-    if module in BOTTOM_MODULES:
+    if module in BOTTOM_MODULES or module.startswith("vtr.config."):     # the config package's modules
         return "bottom"
     sub = module.split(".")[1]
     assert sub in RANK, f"{module} is in no declared layer: add it to LAYERS or BOTTOM_MODULES"

@@ -1,4 +1,4 @@
-"""What users read: `vtr config` shows each key's comment and domain from vtr/config.py (and loads back),
+"""What users read: `vtr config` shows each key's comment and domain from vtr/config/sections.py (and loads back),
 a mistyped key gets "did you mean", and records holding arrays print short."""
 
 from __future__ import annotations

@@ -3,14 +3,16 @@ with a one-line ConfigError naming ``section.key``; any in-domain value loads.""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
 import pytest
+import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from vtr.config import Choice, Config, Range, config_keys
+from vtr.config import MOVED_KEYS, Choice, Config, Range, config_keys
 from vtr.errors import ConfigError
 
 KEYS = config_keys()
@@ -68,15 +70,27 @@ def test_bool_is_not_a_number(section, key, domain):
 
 @pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
 def test_constructed_in_code_is_validated_too(section, key, domain):
-    cfg = Config()
-    setattr(getattr(cfg, section), key, _out_of_range(domain))
+    kind = type(getattr(Config(), section))
     with pytest.raises(ConfigError) as err:
-        cfg.validate()
+        kind(**{key: _out_of_range(domain)})
+    assert _one_line(err, f"{section}.{key}").startswith(f"config: {section}.{key} ")
+    with pytest.raises(ConfigError) as err:           # a changed copy is checked the same way
+        Config().replace(section, **{key: _wrong_type(domain)})
     _one_line(err, f"{section}.{key}")
 
 
+@pytest.mark.parametrize(("section", "key", "domain"), KEYS, ids=IDS)
+def test_sections_are_frozen(section, key, domain):
+    part = getattr(Config(), section)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        setattr(part, key, getattr(part, key))
+
+
 def test_defaults_are_inside_their_domains():
-    Config().validate()
+    cfg = Config()
+    for section in dataclasses.fields(cfg):
+        part = getattr(cfg, section.name)
+        assert type(part)(**dataclasses.asdict(part)) == part
     assert len(KEYS) >= 60
 
 
@@ -120,7 +134,7 @@ def test_any_in_domain_value_loads(data):
     ("features:\n  grid_rows: 0\n", "features.grid_rows"),             # was ZeroDivisionError
     ("odometry:\n  window_keyframes: 0\n", "odometry.window_keyframes"),
     ("stereo:\n  refine_half_window: -2\n", "stereo.refine_half_window"),
-    ("odometry:\n  ransac_confidence: 5\n", "odometry.ransac_confidence"),
+    ("estimation:\n  ransac_confidence: 5\n", "estimation.ransac_confidence"),
     ("odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),   # was accepted
     ("features:\n  n_features: true\n", "features.n_features"),        # was accepted as 1
     ("odometry:\n  ransac_threshold_px: -1\n", "odometry.ransac_threshold_px"),
@@ -173,3 +187,86 @@ def test_cross_field_rules_name_both_keys():
         Config.from_dict({"stereo": {"min_disparity_px": 200.0}})
     with pytest.raises(ConfigError, match=r"odometry\.keyframe_min_inliers.*odometry\.min_inliers"):
         Config.from_dict({"odometry": {"min_inliers": 100}})
+
+
+def test_cross_field_rules_hold_for_sections_built_in_code():
+    from vtr.config import FeatureConfig, LocalizationConfig, StereoConfig
+
+    with pytest.raises(ConfigError, match=r"^config: features\.scale_factor.*features\.n_levels.*1024"):
+        FeatureConfig(n_levels=6, scale_factor=4.0)
+    with pytest.raises(ConfigError, match=r"^config: stereo\.min_disparity_px.*stereo\.max_disparity_px"):
+        StereoConfig(min_disparity_px=200.0)
+    with pytest.raises(ConfigError, match=r"^config: localization\.min_matches.*localization\.min_inliers"):
+        LocalizationConfig(min_inliers=100)
+
+
+def test_the_whole_config_reaches_only_the_run_roots():
+    """Below ``vtr/app`` and ``vtr/cli`` a class is handed its sections, never the whole ``Config``: only the
+    run-level roots (and the factories that split a ``Config`` into sections) import it, and nothing checks a
+    section again (sections check themselves when built: ``validate``/``check_section`` are gone)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "vtr"
+    roots = {"navigation/teach.py", "navigation/repeat.py", "control/online.py",
+             "vo/odometry.py",                   # OdometrySettings.of(config)
+             "navigation/experiences.py"}        # single_experience(config) -> Config
+    importers, checkers = set(), set()
+    for path in root.rglob("*.py"):
+        rel = path.relative_to(root).as_posix()
+        if rel.startswith(("app/", "cli/")) or rel in ("config.py", "__init__.py"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("config"):
+                names = {a.name for a in node.names}
+                if "Config" in names:
+                    importers.add(rel)
+                if names & {"validate", "check_section"}:
+                    checkers.add(rel)
+            if isinstance(node, ast.Attribute) and node.attr in ("validate", "check_section") \
+                    and isinstance(node.value, ast.Name) and node.value.id in ("config", "cfg", "self"):
+                checkers.add(rel)
+    assert importers <= roots, sorted(importers - roots)
+    assert not checkers, sorted(checkers)
+
+
+# ------------------------------------------------------------------ keys of older versions
+
+
+@pytest.mark.parametrize(("old", "new"), sorted(MOVED_KEYS.items()))
+def test_a_moved_key_still_loads_with_a_one_line_warning(tmp_path: Path, old, new):
+    section, key = old.split(".")
+    new_section, new_key = new.split(".")
+    value = getattr(getattr(Config(), new_section), new_key)
+    changed = value + 1 if isinstance(value, int) else value / 2
+    f = tmp_path / "old.yaml"
+    f.write_text(yaml.safe_dump({section: {key: changed}}))
+    told: list[str] = []
+    cfg = Config.load(f, warn=told.append)
+    assert getattr(getattr(cfg, new_section), new_key) == changed
+    assert told == [f"{f}: {old} is now {new} (loaded as {new}; rename it in the file)"]
+    with pytest.warns(FutureWarning, match=f"{old} is now {new}"):      # without a listener: a FutureWarning
+        assert getattr(getattr(Config.load(f), new_section), new_key) == changed
+
+
+def test_a_moved_key_given_twice_or_out_of_its_domain_names_the_new_key(tmp_path: Path):
+    with pytest.raises(ConfigError, match=r"^c\.yaml: odometry\.seed and run\.seed both given.*keep run\.seed$"):
+        Config.from_dict({"odometry": {"seed": 3}, "run": {"seed": 4}}, "c.yaml", warn=lambda _line: None)
+    with pytest.raises(ConfigError, match=r"^c\.yaml: estimation\.ratio_test must be"):
+        Config.from_dict({"odometry": {"ratio_test": 2.0}}, "c.yaml", warn=lambda _line: None)
+    with pytest.raises(ConfigError, match=r"localization\.huber_px \(did you mean estimation\.huber_px\?\)"):
+        Config.from_dict({"localization": {"huber_px": 2.0}})
+
+
+def test_the_cli_warns_in_one_line_on_a_moved_key(tmp_path: Path):
+    from click.testing import CliRunner
+
+    from vtr.cli.common import load_config
+
+    f = tmp_path / "old.yaml"
+    f.write_text("odometry:\n  seed: 3\n  min_inliers: 16\n")
+    runner = CliRunner()
+    with runner.isolation() as (_out, err, *_rest):
+        cfg = load_config(f)
+    assert cfg.run.seed == 3 and cfg.odometry.min_inliers == 16
+    line = f"warning: {f}: odometry.seed is now run.seed (loaded as run.seed; rename it in the file)\n"
+    assert err.getvalue().decode() == line

@@ -290,12 +290,12 @@ def newest_keyframe_errors(clip: Path, first: int, stride: int, config: Config) 
     the chain reads it (both from the window right after the newest one's adjustment), against ground truth."""
     from vtr.geometry import inv_T
     from vtr.io import open_source
-    from vtr.vo.odometry import StereoOdometry
+    from vtr.vo.odometry import OdometrySettings, StereoOdometry
 
     t_gt, G = ground_truth(clip)
     out, prev = [], None
     with open_source(clip) as src:
-        vo = StereoOdometry(src.camera, config, keep_history=False)
+        vo = StereoOdometry(src.camera, OdometrySettings.of(config), keep_history=False)
         frames = list(range(first, len(t_gt), stride))
         for images in src.iter_frames(frames):
             r = vo.process(images)
@@ -382,8 +382,7 @@ def main() -> None:
     if work.exists() and any(work.iterdir()):
         raise SystemExit(f"out: {work} is not empty (choose another --out)")
     work.mkdir(parents=True, exist_ok=True)
-    config = Config()
-    config.features.threads = args.threads
+    config = Config().replace("features", threads=args.threads)
     only = [s for s in args.only.split(",") if s]
     clips = [c for c in only if c in CLIPS]
     if args.odometry:

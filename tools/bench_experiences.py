@@ -34,8 +34,9 @@ COUNTS = (1, 5, 20)
 def warm(snapshot: Path, config: Config) -> None:
     """Store the experiences' place-recognition words in the map (what the first repeat against them does)."""
     with Map.open(snapshot, "a") as m:
-        place = route_place_index(m, config.place, config.odometry.seed)
-        sub = ExperienceSubmaps(m, m.taught_path(), config, m.camera, place)
+        place = route_place_index(m, config.place, config.run.seed)
+        sub = ExperienceSubmaps(m, m.taught_path(), config.experiences, config.localization.neighbour_vertices,
+                                m.camera, place)
         for run in sub.trusted:
             sub.run_words(run)
 
@@ -52,8 +53,7 @@ def main() -> None:
     args = ap.parse_args()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    config = Config()
-    config.features.threads = args.threads
+    config = Config().replace("features", threads=args.threads)
     taught_map = out / "teach.vtrmap"
     if taught_map.exists():
         taught = render_flight(out / "teach", 0, route(args.length), 0.0)

@@ -133,7 +133,7 @@ def configured(overrides: list[str], threads: int) -> Config:
         section, _, name = key.partition(".")
         data[section][name] = yaml.safe_load(value)
     config = Config.from_dict(data, "--set")
-    config.features.threads = threads
+    config = config.replace("features", threads=threads)
     return config
 
 

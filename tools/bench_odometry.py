@@ -31,7 +31,7 @@ from machine_load import second_core_available  # noqa: E402  (tools/machine_loa
 
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
-from vtr.vo.odometry import StereoOdometry  # noqa: E402
+from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC = Path("/tmp/vtr_bench_aerial")
@@ -49,12 +49,11 @@ def synthetic_sequence() -> Path:
 
 def bench_once(path: Path, frames: str | None, threads: int, preload: bool = False) -> dict:
     """One odometry pass over ``path`` with ``threads``; ``preload`` decodes the frames first, untimed."""
-    config = Config()
-    config.features.threads = threads
+    config = Config().replace("features", threads=threads)
     with open_source(path) as src:
         idx = parse_frame_range(frames, len(src), str(path))
         images = [src[i] for i in idx] if preload else src.iter_frames(idx)
-        vo = StereoOdometry(src.camera, config)
+        vo = StereoOdometry(src.camera, OdometrySettings.of(config))
         load = 0.0
         inline = vo.stereo.threads == 1     # one thread: waiting for a frame also runs its features and stereo
 

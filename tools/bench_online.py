@@ -40,7 +40,7 @@ from vtr.io import open_source
 from vtr.map import Map
 from vtr.navigation.state_view import RepeatStateView
 from vtr.sim import synthetic as syn
-from vtr.vo.odometry import StereoOdometry
+from vtr.vo.odometry import OdometrySettings, StereoOdometry
 
 ROOT = Path(__file__).resolve().parents[1]
 NEES_BOUND = float(chi2.ppf(0.99, 3))
@@ -68,7 +68,7 @@ def odometry_frame_ms(source_dir: Path, indices: list[int]) -> float:
     """Median ms of one frame through stereo + odometry alone (the yardstick of a tick)."""
     with open_source(source_dir) as src:
         images = [src[i] for i in indices]
-        odo = StereoOdometry(src.camera, Config(), keep_history=False)
+        odo = StereoOdometry(src.camera, OdometrySettings.of(Config()), keep_history=False)
     times = []
     for im in images:
         t0 = time.perf_counter()

@@ -39,7 +39,7 @@ from vtr.config import Config  # noqa: E402
 from vtr.io import open_source  # noqa: E402
 from vtr.navigation.place import PlaceIndex  # noqa: E402
 from vtr.vo.features import FeatureExtractor  # noqa: E402
-from vtr.vo.odometry import StereoOdometry  # noqa: E402
+from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1] / "datasets"
 CLIPS = (ROOT / "kitti06_clip", ROOT / "kitti00_ramp_clip")
@@ -112,14 +112,13 @@ class Route:
 
 def odometry_frame_ms(config: Config) -> float:
     """Median over 3 passes of the ms per frame of 1-thread odometry on kitti06_clip (images decoded first)."""
-    cfg = Config()
-    cfg.features.threads = 1
+    cfg = Config().replace("features", threads=1)
     with open_source(CLIPS[0]) as src:
         images = [src[i] for i in range(len(src))]
         camera = src.camera
     times = []
     for _ in range(3):
-        vo = StereoOdometry(camera, cfg, keep_history=False)
+        vo = StereoOdometry(camera, OdometrySettings.of(cfg), keep_history=False)
         t0 = time.perf_counter()
         for im in images:
             vo.process(im)

@@ -37,7 +37,7 @@ from vtr.io import open_source, parse_frame_range  # noqa: E402
 from vtr.map import Map  # noqa: E402
 from vtr.navigation.repeat import Repeat  # noqa: E402
 from vtr.types import StereoImages  # noqa: E402
-from vtr.vo.odometry import StereoOdometry  # noqa: E402
+from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
 
 CLIP = Path(__file__).resolve().parents[1] / "datasets" / "kitti06_clip"
 TARGET_RATIO = 0.9            # issue 33: a repeat at least 0.9x the odometry's frames/s
@@ -45,7 +45,7 @@ TARGET_RATIO = 0.9            # issue 33: a repeat at least 0.9x the odometry's 
 
 def timed_odometry(images: list[StereoImages], camera, config: Config) -> dict:
     """Odometry alone over the preloaded ``images`` (the stereo pipeline of ``config.features.threads``)."""
-    vo = StereoOdometry(camera, config, keep_history=True)
+    vo = StereoOdometry(camera, OdometrySettings.of(config), keep_history=True)
     c0, m0, t0 = time.process_time(), time.thread_time(), time.perf_counter()
     for frame in vo.stereo.frames(images):
         vo.process_frame(frame)
@@ -101,8 +101,7 @@ def main() -> None:
         copy = Path(tmp) / "repeat.vtrmap"
         for k in range(-1, args.repeats):              # round -1 warms up (kernels, caches) and is not kept
             for threads in args.threads:               # interleaved: a shared machine's load hits every count
-                config = Config()
-                config.features.threads = threads
+                config = Config().replace("features", threads=threads)
                 vo = timed_odometry(images, camera, config)
                 copy.write_bytes(taught.read_bytes())
                 rp = timed_repeat(copy, images, config)

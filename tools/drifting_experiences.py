@@ -32,8 +32,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     changes = [float(c) for c in args.changes.split(",")]
-    config = Config()
-    config.features.threads = args.threads
+    config = Config().replace("features", threads=args.threads)
     rows, records = [], []
     for backward in (False, True):
         multi, alone = drifting_flights(args.out, changes, args.length, backward=backward, config=config)

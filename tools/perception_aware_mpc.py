@@ -241,8 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     speeds = [float(v) for v in args.speed.split(",")]
     direction = FORWARD if args.direction == "forward" else BACKWARD
     args.out.mkdir(parents=True, exist_ok=True)
-    cfg = Config()
-    cfg.features.n_features = FEATURES_PER_IMAGE
+    cfg = Config().replace("features", n_features=FEATURES_PER_IMAGE)
     base = ControlConfig() if args.margin is None else ControlConfig(perception_margin=args.margin)
     t0 = time.perf_counter()
     maps, ups, model_path, reps = prepare(args.out, cfg)

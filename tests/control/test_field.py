@@ -42,7 +42,7 @@ def test_trunk_selection_is_the_localization_chains(l_vertices):
         i = min(len(field) - 1, prev + int(rng.integers(0, 4)))
         pos = field.vehicle_position_g[i] + rng.normal(0, 1.5, 3)
         yaw = field.vehicle_yaw_g[i] + rng.normal(0, 0.3)
-        chain = LocalizationChain(taught, Config(localization=cfg), start_index=prev)
+        chain = LocalizationChain(taught, cfg, Config().smoothing, start_index=prev)
         # twig at the branch: the prior is the relative pose
         chain.succeeded(-1, field.T_g_camera[prev], prev, np.eye(4), np.eye(6) * 1e-6)
         T_g_leaf = field.camera_poses(pos[None], np.array([yaw]), field.pitch_down[prev])[0]

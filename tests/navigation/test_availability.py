@@ -135,7 +135,7 @@ IDS = np.array([vertex_id(0, i) for i in range(N)])
 
 def _chain() -> LocalizationChain:
     T = np.stack([exp_se3(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 2.0 * i])) for i in range(N)])
-    return LocalizationChain(TaughtPath(IDS, T, np.arange(N) * 10**8), Config())
+    return LocalizationChain(TaughtPath(IDS, T, np.arange(N) * 10**8), Config().localization, Config().smoothing)
 
 
 def test_the_odometry_error_is_longest_along_the_motion():

@@ -138,7 +138,8 @@ def test_aborted_and_untrusted_repeats_are_not_experiences(tmp_path_factory, for
         aborted = max(infos)
         assert infos[aborted].state == "aborted" and not infos[aborted].trusted
         cfg = Config()
-        sub = ExperienceSubmaps(m, m.taught_path(), cfg, m.camera, Repeat(m, cfg).place, ())
+        sub = ExperienceSubmaps(m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera,
+                                Repeat(m, cfg).place, ())
         assert aborted not in sub.trusted and set(sub.trusted) == {f.run for f in multi}
         # a share no flight reaches (each misses its first keyframe): none is trusted
         assert not any(e.trusted for e in experiences(m, strict.min_localized_share))
@@ -329,8 +330,9 @@ def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
     root, multi, _ = forward
     cfg = Config()
     with Map.open(root / "experiences.vtrmap") as m:
-        place = route_place_index(m, cfg.place, cfg.odometry.seed)
-        sub = ExperienceSubmaps(m, m.taught_path(), cfg, m.camera, place)
+        place = route_place_index(m, cfg.place, cfg.run.seed)
+        sub = ExperienceSubmaps(m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera,
+                                place)
         digest = sub._vocabulary_digest()
         stored = [r for r in sub.trusted if m.derived(f"{WORDS_KEY}/{r}/{digest}") is not None]
         assert set(stored) == {f.run for f in multi[:-1]}          # scored by the flights after them

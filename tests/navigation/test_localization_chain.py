@@ -31,7 +31,7 @@ twists = st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6).map(np.array)
 def test_teach_frame_pose_after_a_success(xi_world, xi_lt, trunk):
     """Right after a successful localization the chain's teach-frame pose of the leaf is its localization."""
     path = _path()
-    chain = LocalizationChain(path, Config())
+    chain = LocalizationChain(path, Config().localization, Config().smoothing)
     T_world_leaf, T_leaf_trunk = exp_se3(xi_world), exp_se3(xi_lt)
     chain.succeeded(int(IDS[5]), T_world_leaf, trunk, T_leaf_trunk, np.eye(6) * 1e-4)
     assert chain.branch_id == int(IDS[trunk]) and chain.localized
@@ -45,7 +45,7 @@ def test_teach_frame_pose_after_a_success(xi_world, xi_lt, trunk):
 
 def test_prior_finds_the_trunk_and_the_path_is_owned():
     path = _path()
-    chain = LocalizationChain(path, Config(), start_index=2)
+    chain = LocalizationChain(path, Config().localization, Config().smoothing, start_index=2)
     assert chain.branch_id == -1                       # before the first success
     chain.succeeded(int(IDS[2]), np.eye(4), 2, np.eye(4), np.eye(6) * 1e-6)
     # localized at taught vertex 2; a leaf 3 m further along is nearest to vertex 5
@@ -63,7 +63,7 @@ def test_prior_finds_the_trunk_and_the_path_is_owned():
 
 def test_a_start_hint_must_be_on_the_path():
     with pytest.raises(MapError, match="start vertex 12 is not on the taught path"):
-        LocalizationChain(_path(), Config(), start_index=N)
+        LocalizationChain(_path(), Config().localization, Config().smoothing, start_index=N)
 
 
 @given(st.integers(0, N - 1), st.integers(0, 5), st.integers(0, 9))
@@ -76,7 +76,7 @@ def test_the_trunk_window_mirrors_when_the_route_is_travelled_backward(trunk, ba
 
 def test_off_the_route_beyond_either_end():
     path = _path()
-    chain = LocalizationChain(path, Config())
+    chain = LocalizationChain(path, Config().localization, Config().smoothing)
     last, first = N - 1, 0
     # 4 m beyond the last vertex along the path (camera z is the path direction here)
     ahead = np.eye(4)

@@ -59,8 +59,7 @@ def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kit
     """Every leaf localized while tracking is matched by projecting the submap with the chain's prior (the broad
     all-against-all search never runs for it); on the kitti clip that finds at least as many inliers in all as the
     broad search on the same leaves, and never 3 % fewer on one."""
-    config = Config()
-    config.features.threads = 1
+    config = Config().replace("features", threads=1)
     tracked: list[tuple] = []
     broad_calls = {"tracking": 0}
     in_track = _tracking_flag(monkeypatch)
@@ -97,9 +96,8 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
                                                                                     monkeypatch, check_every):
     """Place recognition is asked only while searching (the start, a loss) and, while tracking, once every
     ``localization.place_check_every`` leaves: a tracked leaf costs no place query of its own."""
-    config = Config()
-    config.features.threads = 1
-    config.localization.place_check_every = check_every
+    config = Config().replace("features", threads=1)
+    config = config.replace("localization", place_check_every=check_every)
     calls = {"tracking": 0, "searching": 0}
     in_track = _tracking_flag(monkeypatch)
 
@@ -125,8 +123,7 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
 def test_the_localizer_times_its_stages(kitti_clip, taught, tmp_path, monkeypatch):
     """match / ransac / refine and the repeat's submap reads and landmark records are timed (bench_repeat's split),
     and the map writes (vertex, edges and localization record: one transaction) beside the odometry's stages."""
-    config = Config()
-    config.features.threads = 1
+    config = Config().replace("features", threads=1)
     kept = {}
     locs = _repeat(kitti_clip, taught, tmp_path, config, monkeypatch, lambda rp: kept.setdefault("rp", rp))
     seconds = dict(kept["rp"].localizer.timer.seconds)

@@ -25,8 +25,7 @@ def taught(kitti_clip, tmp_path_factory):
 
 
 def _config(threads: int) -> Config:
-    cfg = Config()
-    cfg.features.threads = threads
+    cfg = Config().replace("features", threads=threads)
     return cfg
 
 

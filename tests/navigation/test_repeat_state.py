@@ -26,6 +26,8 @@ from vtr.navigation.repeat import RepeatStep
 from vtr.navigation.repeat_state import RepeatStateEstimator, output_times
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
+SECTIONS = (Config().smoothing, Config().localization)   # RepeatStateEstimator.for_route's defaults
+
 RATE_HZ = 50.0
 MAX_VERTEX_OFFSET_M = 0.08          # smoothed position at a localized vertex vs the chain's pose
 MAX_MEDIAN_VERTEX_OFFSET_M = 0.03
@@ -84,7 +86,7 @@ def test_state_matches_localized_poses(kitti_run):
     loc = np.genfromtxt(out / "localization.csv", delimiter=",", names=True, dtype=None, encoding=None)
     with Map.open(d / "route.vtrmap") as m:
         taught = m.taught_path()
-        state_estimator = RepeatStateEstimator.for_route(taught, Config(), m.camera.T_vehicle_sensor)
+        state_estimator = RepeatStateEstimator.for_route(taught, *SECTIONS, m.camera.T_vehicle_sensor)
     ids = taught.ids
     index = {int(v): i for i, v in enumerate(ids)}
     offsets = []
@@ -150,7 +152,8 @@ def test_output_times():
 
 def _chain(ids: np.ndarray, T_priv: np.ndarray) -> LocalizationChain:
     """A chain on a taught path of these ids and poses (times one second apart)."""
-    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config())
+    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config().localization,
+                             Config().smoothing)
 
 
 def test_level_camera_frame_o():
@@ -159,7 +162,7 @@ def test_level_camera_frame_o():
     c, s = np.cos(yaw), np.sin(yaw)
     R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
     T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
-    state_estimator = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, Config(), np.eye(4))
+    state_estimator = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, *SECTIONS, np.eye(4))
     for k in range(2):
         T_wt, T_o_t = state_estimator.trunk_frame(k)
         C_world_o = T_wt[:3, :3] @ T_o_t[:3, :3].T
@@ -205,7 +208,7 @@ def _synthetic_steps(n: int, failed: set[int]):
 def test_anchored_at_first_localization(T_vehicle_sensor):
     """The first three localizations fail: the vertices wait and are placed by the first success."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1, 2})
-    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), T_vehicle_sensor)
+    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, T_vehicle_sensor)
     for step in steps:
         state_estimator.add(step)
     state_estimator.finish()
@@ -226,7 +229,7 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
 
 def test_never_localized_uses_chain_assumption():
     ids, T_priv, steps = _synthetic_steps(10, failed=set(range(10)))
-    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, Config(), np.eye(4))
+    state_estimator = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
     for step in steps:
         state_estimator.add(step)
     state_estimator.finish()

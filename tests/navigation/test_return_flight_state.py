@@ -28,6 +28,8 @@ from vtr.sim import synthetic as syn
 from vtr.state.controller import StateStatus
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
+SECTIONS = (Config().smoothing, Config().localization)   # RepeatStateEstimator.for_route's defaults
+
 # the bounds (what a controller needs of the return flight)
 MIN_DIRECTION_RIGHT = 0.95
 MAX_LATERAL_ERROR_M = 0.10
@@ -161,7 +163,7 @@ def test_export_in_the_map_gravity_frame(tmp_path):
 
     with Map.open(tmp_path / "m.vtrmap") as m:
         field = TaughtPathField.from_map(m, PerceptionModel.thesis())
-        est = RepeatStateEstimator.for_route(m.taught_path(), Config(), m.camera.T_vehicle_sensor, m.gravity_up)
+        est = RepeatStateEstimator.for_route(m.taught_path(), *SECTIONS, m.camera.T_vehicle_sensor, m.gravity_up)
     for k in range(len(field)):
         T_g_o = est.route.T_g_o(k)
         assert np.allclose(T_g_o[:3, 3], field.vehicle_position_g[k], atol=1e-9)
@@ -238,7 +240,7 @@ def _steps(path: TaughtPath, s_m: np.ndarray, t_ns: np.ndarray, *, right_m: floa
 
 
 def _estimator(path: TaughtPath, steps: list[RepeatStep]) -> RepeatStateEstimator:
-    est = RepeatStateEstimator.for_route(path, Config(), np.eye(4))
+    est = RepeatStateEstimator.for_route(path, *SECTIONS, np.eye(4))
     for step in steps:
         est.add(step)
     est.finish()
@@ -309,7 +311,7 @@ def test_dead_reckoning_after_the_chain_loses_it():
 
 def test_before_the_first_localization_a_typed_error():
     path = _path(10)
-    est = RepeatStateEstimator.for_route(path, Config(), np.eye(4))
+    est = RepeatStateEstimator.for_route(path, *SECTIONS, np.eye(4))
     with pytest.raises(NotLocalizedError):
         est.controller_state_at(0)
     for step in _steps(path, np.arange(3) * 0.5, np.arange(3) * DT_NS, right_m=0.0, localized=[False] * 3):
@@ -340,7 +342,7 @@ def test_the_chain_decides_the_direction_with_its_first_candidate():
     from vtr.navigation.chain import Candidate, LocalizationChain
 
     path = _path(20)
-    chain = LocalizationChain(path, Config())
+    chain = LocalizationChain(path, Config().localization, Config().smoothing)
     assert chain.state.direction == 0
     for j, s in enumerate((12.0, 11.0)):          # flown backward, camera as taught
         T = make_T(np.eye(3), [0.0, 0.0, s])

@@ -144,7 +144,7 @@ def euroc_localized(euroc_pairs):
     with open_source(euroc_pairs) as src:
         gt = src.ground_truth()
         sp = StereoProcessor(src.camera, cfg.features, cfg.stereo)
-        loc = Localizer(src.camera, cfg.localization, cfg.odometry, cfg.stereo.pixel_sigma)
+        loc = Localizer(src.camera, cfg.localization, cfg.estimation, cfg.stereo.pixel_sigma)
         for taught, revisit in ((0, 1), (2, 3)):
             f_taught, f_revisit = sp.process(src[taught]), sp.process(src[revisit])
             est = loc.localize(f_revisit, TaughtSubmap.of_frame(f_taught, src.camera), None, trusted_prior=False)

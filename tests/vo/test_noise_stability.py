@@ -16,7 +16,7 @@ import pytest
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.vo import odometry as od
-from vtr.vo.odometry import StereoOdometry
+from vtr.vo.odometry import OdometrySettings, StereoOdometry
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = 7                       # not among the benchmark's 1-4
@@ -78,7 +78,7 @@ def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip
     def spy(self, frame, lm, feat):
         track = estimate(self, frame, lm, feat)
         disparity = frame.features.uv[:, 0] - frame.u_right
-        near = disparity >= self.camera.fb / (self.config.odometry.far_point_baselines * self.camera.baseline)
+        near = disparity >= self.camera.fb / (self.config.estimation.far_point_baselines * self.camera.baseline)
         counts.append((near[feat].sum(), near[track.features].sum() if track is not None else 0))
         return track
 
@@ -86,9 +86,8 @@ def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip
     for seed in (None, SEED):
         counts.clear()
         with open_source(kitti_ramp_clip) as src:
-            config = Config()
-            config.odometry.inlier_rounds = 4
-            vo = StereoOdometry(src.camera, config)
+            config = Config().replace("odometry", inlier_rounds=4)
+            vo = StereoOdometry(src.camera, OdometrySettings.of(config))
             for images in tool.NoisySource(src, seed, 1.0).iter_frames():
                 vo.process(images)
         matched, kept = np.sum(counts, axis=0)

@@ -53,10 +53,10 @@ def test_translation_drift_within_bound(kitti_run):
 
 def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_run):
     """Teach and repeat run odometry with keep_history=False: same keyframes, no per-frame memory."""
-    from vtr.vo.odometry import StereoOdometry
+    from vtr.vo.odometry import OdometrySettings, StereoOdometry
 
     with open_source(kitti_clip) as src:
-        vo = StereoOdometry(src.camera, Config(), keep_history=False)
+        vo = StereoOdometry(src.camera, OdometrySettings.of(Config()), keep_history=False)
         finalized = []
         for images in src.iter_frames(range(len(src))):
             finalized += vo.process(images).finalized

@@ -18,8 +18,7 @@ from vtr.vo.stereo import StereoProcessor
 
 
 def _config(threads: int) -> Config:
-    cfg = Config()
-    cfg.features.threads = threads
+    cfg = Config().replace("features", threads=threads)
     return cfg
 
 

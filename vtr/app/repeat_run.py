@@ -46,8 +46,8 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
     ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route).
     ``gravity_up`` overrides the map's stored gravity (``Map.gravity_up``) for the controller state."""
     up = repeat.map.gravity_up if gravity_up is None else gravity_up
-    state_estimator = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config, repeat.camera.T_vehicle_sensor,
-                                                     up)
+    state_estimator = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config.smoothing,
+                                                     repeat.config.localization, repeat.camera.T_vehicle_sensor, up)
     t_ns: list[int] = []
     T_teach: list[np.ndarray] = []
     localized: list[bool] = []

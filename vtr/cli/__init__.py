@@ -72,7 +72,7 @@ def versions_cmd() -> None:
 @main.command("config")
 def config_cmd() -> None:
     """Print the default configuration as YAML (reusable with --config), every key with its comment and
-    domain from vtr/config.py."""
+    domain from vtr/config/sections.py."""
     from ..config import Config
 
     click.echo(Config().to_yaml(comments=True), nl=False)

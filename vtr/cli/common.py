@@ -26,13 +26,12 @@ EXIT_SIGTERM = 143
 
 
 def load_config(path: Path | None, threads: int | None = None) -> Config:
-    """The configuration of ``--config`` (defaults without it), with ``--threads`` applied when given."""
+    """The configuration of ``--config`` (defaults without it), with ``--threads`` applied when given; a key of an
+    older version loads under its new name with a one-line warning on stderr."""
     from ..config import Config
 
-    config = Config.load(path) if path else Config()
-    if threads is not None:
-        config.features.threads = threads
-    return config
+    config = Config.load(path, warn=lambda line: click.echo(f"warning: {line}", err=True)) if path else Config()
+    return config if threads is None else config.replace("features", threads=threads)
 
 
 #: without a terminal, a progress line every this many items (and at the first and the last)

@@ -177,7 +177,7 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
                                "rebuilds it")
             defaults = Config()
             with Map.open(map_path, "a") as m:
-                rebuild_place_index(m, defaults.place, defaults.odometry.seed)
+                rebuild_place_index(m, defaults.place, defaults.run.seed)
             click.echo(f"{map_path}: place index {stored.key}: {stored.problem}; rebuilt from the vertices")
             place = "place index rebuilt"
     click.echo(f"{map_check_line(report, map_path)}; {place}")

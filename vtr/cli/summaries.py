@@ -65,14 +65,14 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
     elif s.ground_truth_note is not None:
         out.append(f"not judged against ground truth: {s.ground_truth_note}")
     if s.state:
-        lateral = s.state["median_abs_lateral_m"]
-        out.append(f"state.csv: {s.state['rows']} rows at {s.state['rate_hz']:g} Hz, smoothed lateral error "
+        lateral = s.state.median_abs_lateral_m
+        out.append(f"state.csv: {s.state.rows} rows at {s.state.rate_hz:g} Hz, smoothed lateral error "
                    + (f"median {lateral:.3f} m" if lateral is not None else "none (never localized)")
-                   + f", smoother {s.state['smoother_ms_per_frame']:.1f} ms/frame")
-        statuses = s.state.get("statuses") or {}
+                   + f", smoother {s.state.smoother_ms_per_frame:.1f} ms/frame")
+        statuses = s.state.statuses
         if statuses:
             out.append("state.csv rows by status: " + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
-        pauses = s.state.get("pauses_s") or []
+        pauses = s.state.pauses_s
         if pauses:
             out.append(f"{len(pauses)} pause(s) without frames (longest {max(pauses):.3g} s, more than "
                        "smoothing.max_extrapolation_s): a new smoother segment after each, the states across it "

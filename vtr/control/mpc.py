@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from perception_model.frames import wrap_angle
 
-from ..config import ControlConfig, check_section
+from ..config import ControlConfig
 from ..errors import EstimationError
 from ..navigation.trunk import FORWARD
 from ..state.controller import MIN_SEGMENT_LENGTH_M, ReferencePath
@@ -126,7 +126,6 @@ class PerceptionAwareMPC:
         import osqp  # osqp (~0.1 s) only when a controller is built
 
         self.cfg = c = config or ControlConfig()
-        check_section(c, "control")  # a config built in code is checked against its declared domains too
         if mode not in ("none", "fixed", "perception"):
             raise EstimationError(f"unknown MPC mode {mode!r}")
         if mode == "perception" and field is None:

@@ -61,7 +61,6 @@ class OnlineRepeat:
         if not (isinstance(history_s, int | float) and 0 < history_s < float("inf")):
             raise EstimationError(f"history_s: expected a finite time > 0 s, got {history_s!r}")
         config = config or Config()
-        config.validate()
         map_path = Path(map_path)
         with Map.open(map_path) as m:          # a readable map with a route, not being written by another process
             m.check_taught_route(allow_partial)
@@ -73,8 +72,8 @@ class OnlineRepeat:
             up = self.map.gravity_up if gravity_up is None else np.asarray(gravity_up, float)
             self.repeat = Repeat(self.map, config, source=f"online:{map_path}", start_index=start_index,
                                  allow_partial=allow_partial)
-            self.estimator = RepeatStateEstimator.for_route(self.repeat.chain.path, config,
-                                                            self.map.camera.T_vehicle_sensor, up)
+            self.estimator = RepeatStateEstimator.for_route(self.repeat.chain.path, config.smoothing,
+                                                            config.localization, self.map.camera.T_vehicle_sensor, up)
             self.field = None if model is None else TaughtPathField.from_map(
                 self.map, model, up_map=up, mount=mount, config=config.localization, control=config.control)
         except BaseException:

@@ -13,11 +13,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from ..config import Range, check_section, setting
+from ..config import Range, Section, setting
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
 from .flat_model import GRAVITY_MPS2
@@ -32,8 +32,10 @@ CONTROLLERS: tuple[ControllerName, ...] = ("pd", "flatness_mpc", "discrete_flatn
 
 
 @dataclass(frozen=True)
-class DiscreteFlatnessSettings:
+class DiscreteFlatnessSettings(Section):
     """Every number of the simulation, with its domain (checked when built)."""
+
+    SECTION: ClassVar[str] = "discrete_flatness"
 
     plant_rate_hz: float = setting(200.0, Range(0.0, 100_000.0, lo_open=True))  # Euler step of (8.11)
     control_rate_hz: float = setting(50.0, Range(0.0, 10_000.0, lo_open=True))  # all three controllers
@@ -71,7 +73,7 @@ class DiscreteFlatnessSettings:
     window_knots_back: int = setting(2, Range(0, 100, integer=True))
 
     def __post_init__(self) -> None:
-        check_section(self, "discrete_flatness")
+        super().__post_init__()
         for name, fast, slow in (("plant_rate_hz/control_rate_hz", self.plant_rate_hz, self.control_rate_hz),
                                  ("control_rate_hz/measurement_rate_hz", self.control_rate_hz,
                                   self.measurement_rate_hz)):

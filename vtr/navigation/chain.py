@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import Config
+from ..config import LocalizationConfig, PlaceConfig, SmoothingConfig
 from ..conventions import NS_PER_S
 from ..errors import MapError
 from ..geometry import inv_T, log_se3
@@ -97,14 +97,16 @@ def innovation_chi2(T_est: np.ndarray, P_est: np.ndarray, T_pred: np.ndarray, P_
 class LocalizationChain:
     """Trunk/branch/twig/leaf bookkeeping over the taught ``path`` with a read-only :class:`ChainState`."""
 
-    def __init__(self, path: TaughtPath, config: Config, start_index: int | None = None):
+    def __init__(self, path: TaughtPath, config: LocalizationConfig, drift: SmoothingConfig,
+                 start_index: int | None = None):
+        """``drift``: odometry's drift per metre (the smoother's), growing the prior between localizations."""
         if len(path) == 0:
             raise MapError("the privileged path is empty")
         if start_index is not None and not 0 <= int(start_index) < len(path):
             raise MapError(f"start vertex {start_index} is not on the taught path (0..{len(path) - 1})")
         self.path = path
-        self.config = config.localization
-        self._drift = config.smoothing
+        self.config = config
+        self._drift = drift
         self.start_index = None if start_index is None else int(start_index)
         self.state = ChainState(trunk=self.start_index or 0)
         self._arc = path.arc_length_m()
@@ -391,13 +393,15 @@ class ChainLocalizer:
     """
 
     def __init__(self, chain: LocalizationChain, localizer: Localizer, place: PlaceIndex, submap: SubmapFn,
-                 config: Config):
+                 config: LocalizationConfig, place_config: PlaceConfig, seed: int = 0):
+        """``place_config``: how many place candidates to verify; ``seed``: ``run.seed`` (+1 per attempt)."""
         self.chain = chain
         self.localizer = localizer
         self.place = place
         self.submap = submap
         self.config = config
-        self._seed = config.odometry.seed
+        self.place_config = place_config
+        self._seed = seed
         self._attempts = 0
         self._last_t_ns: int | None = None       # the previous leaf's time
 
@@ -430,7 +434,7 @@ class ChainLocalizer:
     # -- tracking ----------------------------------------------------------------------------------
 
     def _track(self, leaf_id: int, kf: Keyframe) -> Attempt:
-        ch, c = self.chain, self.config.localization
+        ch, c = self.chain, self.config
         pr = ch.prior(kf.T_world_kf)
         if ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m:
             none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.OFF_ROUTE)
@@ -458,7 +462,7 @@ class ChainLocalizer:
         inside = float(scores[lo:hi].max())
         outside = np.r_[np.arange(0, lo), np.arange(hi, len(scores))]
         rivals = outside[scores[outside] > inside]
-        for cand in rivals[np.argsort(-scores[rivals], kind="stable")][:self.config.place.candidates]:
+        for cand in rivals[np.argsort(-scores[rivals], kind="stable")][:self.place_config.candidates]:
             other = self._localize(kf, int(cand), None, False)
             if not other.ok or other.inliers <= est.inliers:
                 continue
@@ -492,7 +496,7 @@ class ChainLocalizer:
         nearest taught vertex: a success when place recognition also scores that part of the route close to its
         best for this leaf and the estimate passes the gate of the prediction; None otherwise (search the places).
         ``trunk``: the taught vertex nearest the carried candidate (:meth:`_pending_trunk`; None: none pending)."""
-        ch, c = self.chain, self.config.localization
+        ch, c = self.chain, self.config
         if trunk is None:
             return None
         pending = ch.state.candidate
@@ -519,14 +523,14 @@ class ChainLocalizer:
         return ch.nearest_trunk(inv_T(kf.T_world_kf) @ pending.T_world_leaf @ pending.T_leaf_trunk, pending.trunk)[0]
 
     def _near(self, trunk: int) -> slice:
-        n = self.config.localization.neighbour_vertices
+        n = self.config.neighbour_vertices
         return slice(max(0, trunk - n - 1), trunk + n + 2)
 
     def _search(self, leaf_id: int, kf: Keyframe) -> Attempt:
-        ch, c = self.chain, self.config.localization
+        ch, c = self.chain, self.config
         carried = self._pending_trunk(kf)      # its part of the route scored exactly (a long route's shortlist)
         scores = self.place.scores(kf.frame.features.descriptors, also=None if carried is None else self._near(carried))
-        k = min(self.config.place.candidates, len(scores))
+        k = min(self.place_config.candidates, len(scores))
         places = [int(i) for i in np.argsort(-scores, kind="stable")[:k]]
         confirmed = self._confirm(leaf_id, kf, scores, carried)
         if confirmed is not None:
@@ -575,7 +579,7 @@ class ChainLocalizer:
         motion prior), predicts inside the innovation gate: two independent witnesses agree, so the leaf needs no
         second keyframe (re-entry after a gap, a long step, failures in a row)."""
         ch = self.chain
-        if est.inliers < CLEAR_VERIFICATION * self.config.localization.min_inliers_unlocalized:
+        if est.inliers < CLEAR_VERIFICATION * self.config.min_inliers_unlocalized:
             return False
         pred = ch.chain_prediction(kf.T_world_kf, trunk)
         return pred is not None and ch.consistent(est, *pred)

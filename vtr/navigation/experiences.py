@@ -244,19 +244,21 @@ class ExperienceSubmaps:
     ``exclude``: runs never used (the repeat under way). Trusted experiences are read once, when the repeat starts.
     """
 
-    def __init__(self, map_: Map, path: TaughtPath, config: Config, camera: StereoCamera, place: PlaceIndex,
-                 exclude: tuple[int, ...] = (), warn: Callable[[str], None] | None = None):
+    def __init__(self, map_: Map, path: TaughtPath, config: ExperienceConfig, neighbours: int, camera: StereoCamera,
+                 place: PlaceIndex, exclude: tuple[int, ...] = (), warn: Callable[[str], None] | None = None):
+        """``config``: the experiences section; ``neighbours``: taught vertices on each side of a trunk in its
+        submap (``localization.neighbour_vertices``)."""
         self.map = map_
         self.path = path
         self.camera = camera
         self.place = place
-        self.neighbours = config.localization.neighbour_vertices
-        self.recommender = Recommender(config.experiences)
+        self.neighbours = neighbours
+        self.recommender = Recommender(config)
         self._warn = warn
         self.infos: list[ExperienceInfo] = []
         trusted: list[int] = []
-        if config.experiences.max_per_keyframe > 0:
-            self.infos = experiences(map_, config.experiences.min_localized_share, exclude)
+        if config.max_per_keyframe > 0:
+            self.infos = experiences(map_, config.min_localized_share, exclude)
             trusted = [e.run for e in self.infos if e.trusted]
         self.links: ExperienceLinks = experience_links(map_, trusted)
         taught_slot = np.searchsorted(path.ids, self.links.taught_id)

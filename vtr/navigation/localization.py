@@ -17,7 +17,7 @@ from perception_model.landmarks_file import Observations
 from perception_model.records import short_repr
 
 from ..camera import MIN_DEPTH_M, StereoCamera
-from ..config import LocalizationConfig, OdometryConfig
+from ..config import EstimationConfig, LocalizationConfig
 from ..geometry import inv_T
 from ..map.records import RUN_SHIFT
 from ..timing import StageTimer
@@ -186,11 +186,11 @@ class LocalizationEstimate:
 class Localizer:
     """Matches a leaf's features to a taught submap's landmarks and estimates ``T_leaf_trunk``."""
 
-    def __init__(self, camera: StereoCamera, config: LocalizationConfig, odometry: OdometryConfig,
+    def __init__(self, camera: StereoCamera, config: LocalizationConfig, estimation: EstimationConfig,
                  pixel_sigma: float, timer: StageTimer | None = None):
         self.camera = camera
         self.config = config
-        self.odometry = odometry
+        self.estimation = estimation
         self.pixel_sigma = pixel_sigma
         # seconds in "match", "ransac" and "refine" (Repeat adds its submap reads, landmark records and spatial
         # edges): the split tools/bench_repeat.py prints
@@ -219,7 +219,7 @@ class Localizer:
             return LocalizationEstimate.failed(li, S.TOO_FEW_MATCHES)
         with self.timer("ransac"):
             rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
-                            c.ransac_threshold_px, self.odometry.ransac_confidence, seed)
+                            c.ransac_threshold_px, self.estimation.ransac_confidence, seed)
         if rs is None or len(rs.inliers) < min_inliers:
             return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS)
         sel = rs.inliers
@@ -253,7 +253,7 @@ class Localizer:
         Only the taught side is anchored so: anchoring the leaf's far landmarks on the repeat window's
         depths too would turn the two windows' scale difference, times the depth, into translation.
         """
-        o = self.odometry
+        o = self.estimation
         n, V = len(landmarks), len(submap.vertex_ids)
         z_taught = submap.z[landmarks].copy()
         w = self._row_weights(np.concatenate([z_taught, z_leaf]))
@@ -274,7 +274,7 @@ class Localizer:
         return res.T_cam_world[V], res.pose_covariance[V], inlier, err_sq, factor
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
-        return odometry_row_weights(z, self.camera, self.odometry)
+        return odometry_row_weights(z, self.camera, self.estimation)
 
     def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
                radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -295,12 +295,12 @@ class Localizer:
         c = self.config
         if T_prior is not None:
             li, lj = match_landmarks(submap.points_trunk[subset], submap.descriptors[subset], leaf, T_prior,
-                                     self.camera, radius, c.max_descriptor_distance, self.odometry.ratio_test)
+                                     self.camera, radius, c.max_descriptor_distance, self.estimation.ratio_test)
             if len(li) >= c.min_matches:
                 return subset[li], lj
         # unguided: every taught landmark against every leaf feature, ratio test
         li, lj = match_all(submap.descriptors[subset], leaf.features.descriptors, c.max_descriptor_distance,
-                           ratio=self.odometry.ratio_test)
+                           ratio=self.estimation.ratio_test)
         return subset[li], lj
 
 

@@ -31,7 +31,7 @@ from ..map.localizations import Leaf, LocalizationRecord, SpatialEdge
 from ..map.writer import LeafWriter
 from ..signals import held_signals
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from ..vo.odometry import StereoOdometry
+from ..vo.odometry import OdometrySettings, StereoOdometry
 from .chain import ChainLocalizer, LocalizationChain
 from .experiences import ExperienceLocalizer, ExperienceSubmaps
 from .localization import Localization, LocalizationStatus, TaughtSubmap, landmark_record
@@ -100,32 +100,35 @@ class Repeat:
 
     def __init__(self, map_: Map, config: Config, source: str = "", start_index: int | None = None,
                  allow_partial: bool = False, warn: Callable[[str], None] | None = None):
-        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``.
+        """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``. ``config``: a
+        run-level root, it hands each part its sections (docs/configuration.md).
 
         ``start_index`` (optional) is a hint: the taught vertex (path index) the repeat starts near. Without
         it place recognition finds where on the route the repeat is; with it that vertex is tried first.
         ``warn`` is told when the map's stored place index had to be rebuilt (else a ``RuntimeWarning``).
         """
-        config.validate()
         self.map = map_
         self.camera = map_.camera
         self.config = config
         map_.check_taught_route(allow_partial)
-        self.chain = LocalizationChain(map_.taught_path(), config, start_index)
-        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.odometry,
+        self.chain = LocalizationChain(map_.taught_path(), config.localization, config.smoothing, start_index)
+        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.estimation,
                                              config.stereo.pixel_sigma)
-        self.place = route_place_index(map_, config.place, config.odometry.seed, warn)
+        self.place = route_place_index(map_, config.place, config.run.seed, warn)
         self._odometry_broken = False             # odometry failed since the previous leaf
-        self.odometry = StereoOdometry(self.camera, config, keep_history=False)
+        self.odometry = StereoOdometry(self.camera, OdometrySettings.of(config), keep_history=False)
         self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
         self._next_vertex = map_.next_vertex_id(self.run)     # the id the next leaf gets (leaves are written in order)
         # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
-        self.submaps = ExperienceSubmaps(map_, self.chain.path, config, self.camera, self.place, (self.run,), warn)
+        self.submaps = ExperienceSubmaps(map_, self.chain.path, config.experiences,
+                                         config.localization.neighbour_vertices, self.camera, self.place, (self.run,),
+                                         warn)
         self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
-        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config)
+        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
+                                      config.place, config.run.seed)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
         self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf

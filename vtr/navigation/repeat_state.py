@@ -15,7 +15,7 @@ import numpy as np
 
 from perception_model.frames import LEVEL_CAMERA_UP, T_g_map_from_up, T_vehicle_camera_from_up
 
-from ..config import Config, SmoothingConfig, check_setting
+from ..config import LocalizationConfig, SmoothingConfig, check_setting
 from ..conventions import NS_PER_S
 from ..errors import DataError, EstimationError
 from ..geometry import inv_T, usable_covariance
@@ -139,12 +139,12 @@ class RepeatStateEstimator:
         self.seconds = 0.0                    # time spent feeding the smoother and answering queries
 
     @classmethod
-    def for_route(cls, path: TaughtPath, config: Config, T_vehicle_sensor: np.ndarray,
-                  gravity_up: np.ndarray | None = None) -> RepeatStateEstimator:
-        """The estimator of a repeat along ``path`` with the settings of ``config`` (``smoothing``, the
-        localization's trunk window and off-route distance) and the map's ``gravity_up``."""
-        loc = config.localization
-        return cls(path, config.smoothing, T_vehicle_sensor,
+    def for_route(cls, path: TaughtPath, smoothing: SmoothingConfig, localization: LocalizationConfig,
+                  T_vehicle_sensor: np.ndarray, gravity_up: np.ndarray | None = None) -> RepeatStateEstimator:
+        """The estimator of a repeat along ``path`` with ``smoothing``, the ``localization``'s trunk window and
+        off-route distance, and the map's ``gravity_up``."""
+        loc = localization
+        return cls(path, smoothing, T_vehicle_sensor,
                    trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
                    off_route_distance_m=loc.off_route_distance_m, gravity_up=gravity_up)
 

@@ -16,7 +16,7 @@ from ..errors import MapError, TeachFailedError
 from ..map import Map
 from ..map.store import abort_reason
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
-from ..vo.odometry import StereoOdometry
+from ..vo.odometry import OdometrySettings, StereoOdometry
 from .place import route_place_index
 
 
@@ -24,12 +24,15 @@ class Teach:
     """Builds the privileged path of a map from a stereo run."""
 
     def __init__(self, map_: Map, camera: StereoCamera, config: Config, source: str = ""):
+        """``config``: a run-level root, it hands each part its sections (the odometry ``OdometrySettings.of``,
+        the place index ``place`` and ``run.seed``) and keeps ``odometry.teach_max_failed_fraction``
+        (docs/configuration.md)."""
         self.map = map_
         self.camera = camera
-        self.odometry = StereoOdometry(camera, config, keep_history=False)
+        self.odometry = StereoOdometry(camera, OdometrySettings.of(config), keep_history=False)
         self.run = map_.begin_run("teach", source=source, privileged=True)
         self._place = config.place
-        self._seed = config.odometry.seed
+        self._seed = config.run.seed
         self._max_failed = config.odometry.teach_max_failed_fraction
         self.vertices = 0
         self.frames = 0                 # frames through odometry

@@ -40,7 +40,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
-from ..config import SmoothingConfig, check_section
+from ..config import SmoothingConfig
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
 from ..geometry import POSE_DIM, check_covariance, check_se3, inv_T
@@ -144,7 +144,6 @@ class TrajectorySmoother:
             INITIAL_LINEAR_VELOCITY_SIGMA,
         ),
     ) -> None:
-        check_section(config, "smoothing")
         if not all(s > 0 for s in initial_velocity_sigma):
             raise ConfigError("smoothing: initial velocity sigmas must be positive")
         self.config = config

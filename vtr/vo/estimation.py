@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import OdometryConfig
+from ..config import EstimationConfig
 from ..errors import EstimationError
 from ..geometry import exp_se3
 from .kernels import bundle as kb
@@ -75,8 +75,8 @@ def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float,
     return w
 
 
-def odometry_row_weights(z: np.ndarray, camera: StereoCamera, config: OdometryConfig) -> np.ndarray:
-    """:func:`stereo_row_weights` with the near/far settings of ``odometry`` (the one rule odometry and
+def odometry_row_weights(z: np.ndarray, camera: StereoCamera, config: EstimationConfig) -> np.ndarray:
+    """:func:`stereo_row_weights` with the near/far settings of ``estimation`` (the one rule odometry and
     localization share): near within ``far_point_baselines`` baselines."""
     return stereo_row_weights(z, camera, config.far_point_baselines * camera.baseline, config.far_disparity_weight,
                               config.min_near_observations)

@@ -12,7 +12,7 @@ from operator import attrgetter
 import cv2
 import numpy as np
 
-from ..config import FeatureConfig, check_section
+from ..config import FeatureConfig
 from ..types import Features
 from .kernels import matching as km
 
@@ -52,7 +52,6 @@ class FeatureExtractor:
     """ORB detector/descriptor with grid bucketing, built from ``FeatureConfig``."""
 
     def __init__(self, config: FeatureConfig, image_size: tuple[int, int]):
-        check_section(config, "features")      # a bad value would reach OpenCV's ORB (n_levels 0: a segfault)
         self.config = config
         self.image_size = image_size
         self._orb = cv2.ORB_create(  # type: ignore[attr-defined]  # (missing from cv2's stubs)

@@ -23,7 +23,7 @@ from typing import cast
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import Config, OdometryConfig
+from ..config import Config, EstimationConfig, FeatureConfig, OdometryConfig, StereoConfig
 from ..errors import ConfigError, EstimationError
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle, usable_covariance
 from ..timing import StageTimer
@@ -95,14 +95,31 @@ class LocalMap:
             kf.landmark_ids[ok] = remap[kf.landmark_ids[ok]]
 
 
+@dataclass(frozen=True)
+class OdometrySettings:
+    """What :class:`StereoOdometry` is built from: its sections of the configuration (each checked when built)
+    and the run's RANSAC seed (``run.seed``)."""
+
+    odometry: OdometryConfig = dataclasses.field(default_factory=OdometryConfig)
+    features: FeatureConfig = dataclasses.field(default_factory=FeatureConfig)
+    stereo: StereoConfig = dataclasses.field(default_factory=StereoConfig)
+    estimation: EstimationConfig = dataclasses.field(default_factory=EstimationConfig)
+    seed: int = 0
+
+    @classmethod
+    def of(cls, config: Config) -> OdometrySettings:
+        """The odometry's sections of ``config``."""
+        return cls(config.odometry, config.features, config.stereo, config.estimation, config.run.seed)
+
+
 class StereoOdometry:
     """Keyframe stereo visual odometry; feed frames in time order with ``process``."""
 
-    def __init__(self, camera: StereoCamera, config: Config | None = None, keep_history: bool = True):
-        """``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
+    def __init__(self, camera: StereoCamera, settings: OdometrySettings | None = None, keep_history: bool = True):
+        """``settings``: the odometry's sections (defaults without it; ``OdometrySettings.of(config)`` from a whole
+        ``Config``). ``keep_history`` keeps every frame's place for :meth:`final_poses`; teach and repeat, which
         store keyframes as they are finalized, turn it off so memory does not grow with the route."""
-        self.config = config or Config()
-        self.config.validate()
+        self.config = settings or OdometrySettings()
         self.keep_history = keep_history
         self.skipped_window_adjustments = 0    # window adjustments not run (a landmark behind a camera)
         self.camera = camera
@@ -263,7 +280,7 @@ class StereoOdometry:
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         """Weights of (u_l, v, u_r): see :func:`stereo_row_weights` (far landmarks: rotation and parallax)."""
-        return odometry_row_weights(z, self.camera, self.config.odometry)
+        return odometry_row_weights(z, self.camera, self.config.estimation)
 
     def _bundle_adjust(self) -> None:
         """Windowed bundle adjustment: oldest keyframe fixed, the others and their landmarks free.
@@ -302,7 +319,8 @@ class StereoOdometry:
         fixed[0] = True
         try:
             res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z), weights,
-                                self.camera, self.config.stereo.pixel_sigma, cfg.huber_px, cfg.window_iterations)
+                                self.camera, self.config.stereo.pixel_sigma, self.config.estimation.huber_px,
+                                cfg.window_iterations)
         except EstimationError:     # a landmark behind a camera: the window keeps its tracked poses (counted)
             self.skipped_window_adjustments += 1
             return
@@ -353,7 +371,8 @@ class StereoOdometry:
         with self.timer("matching"):
             active = self.map.active()
             lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
-                                       self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
+                                       self.camera, radius, cfg.max_descriptor_distance,
+                                       self.config.estimation.ratio_test)
             lm = active[lm]
         if len(lm) < cfg.min_inliers:
             return None
@@ -371,7 +390,7 @@ class StereoOdometry:
         """
         cfg = self.config.odometry
         rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
-                        cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
+                        cfg.ransac_threshold_px, self.config.estimation.ransac_confidence, self.config.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
         z = frame.stereo_measurements[feat]
@@ -425,6 +444,6 @@ class StereoOdometry:
         T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
         fixed = np.r_[np.ones(K, bool), False]
         res = bundle_adjust(T, fixed, self.map.positions[lm], obs_pose, obs_point, np.nan_to_num(z_all),
-                            self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma, cfg.huber_px,
-                            cfg.refine_iterations)
+                            self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma,
+                            self.config.estimation.huber_px, self.config.estimation.refine_iterations)
         return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2

@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FeatureConfig, StereoConfig, check_section
+from ..config import FeatureConfig, StereoConfig
 from ..errors import DataError
 from ..parallel import background_thread, lookahead_frames, prefetch, resolve_threads
 from ..timing import StageTimer
@@ -77,8 +77,6 @@ class StereoProcessor:
 
     def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
                  timer: StageTimer | None = None):
-        check_section(features, "features")
-        check_section(stereo, "stereo")
         self.camera = camera
         self.timer = timer or StageTimer()
         self.cfg = stereo

@@ -212,7 +212,5 @@ def _run(entry: Any, route: str, defaults: dict, base: Path, where: str, name: s
 
 def run_config(spec: RunSpec, threads: int | None) -> Config:
     config = Config.load(spec.config) if spec.config is not None else Config()
-    if threads is not None:
-        config.features.threads = threads
-    return config
+    return config if threads is None else config.replace("features", threads=threads)
 

@@ -1,155 +1,28 @@
-"""One typed configuration for the whole pipeline, with every default documented here.
-
-Defaults follow the open-source VT&R3 stack (docs/README.md); benchmarks decide changes. A config
-loads from YAML (or TOML) holding any subset of the sections below; unknown keys, a key given twice and
-nesting deeper than a config has are one-line errors.
-Dump the resolved defaults with ``vtr config``.
-
-Every field declares its domain beside its default (``setting(default, Range(...))`` or
-``Choice(...)``): type, integer-ness, finiteness and bounds. ``Config.validate`` checks every field
-against its domain, then the cross-field rules, and names ``section.key`` and the allowed values in
-a one-line ``ConfigError``; it runs when a file loads and when ``StereoOdometry``, ``Teach`` or
-``Repeat`` receive a ``Config`` built in code, so no value reaches OpenCV or numba unchecked.
-"""
+"""Every section of the configuration, each default with its domain and its comment (units, what was measured):
+``vtr config`` prints these comments. Defaults follow the open-source VT&R3 stack (docs/README.md); benchmarks
+decide changes (docs/configuration.md)."""
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import numbers
-import tomllib
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, SupportsInt, cast
-
-import yaml
+from dataclasses import dataclass
+from typing import ClassVar
 
 from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
-from .errors import ConfigError
-
-# ------------------------------------------------------------------ reading config and manifest files
-
-
-class DuplicateKeyError(yaml.YAMLError):
-    """A key given twice in one mapping of a YAML or TOML file (the message names the key and both lines)."""
-
-
-class UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader refusing a key given twice in one mapping (PyYAML keeps the last one silently):
-    :class:`DuplicateKeyError` naming the key and both lines. The config and the batch manifest use it."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: dict[Any, int] = {}
-        for key_node, _value in node.value:
-            if key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            key = self.construct_object(key_node, deep=True)
-            line = key_node.start_mark.line + 1
-            try:
-                first = seen.get(key)
-            except TypeError:                 # an unhashable key: the base class reports it
-                continue
-            if first is not None:
-                raise DuplicateKeyError(f"key {key!r} given twice (lines {first} and {line}); keep one")
-            seen[key] = line
-        return super().construct_mapping(node, deep)
-
-
-def toml_duplicate_key(text: str) -> str | None:
-    """A key or table given twice in TOML ``text`` (simple ``key = value`` lines and ``[table]`` headers, as a
-    config has), as words naming it and both lines; None when there is none (``tomllib`` checks the rest)."""
-    table, seen = "", dict[str, int]()
-    for lineno, raw in enumerate(text.splitlines(), 1):
-        line = raw.strip()
-        if not line or line.startswith("#") or line.startswith("[["):
-            continue
-        if line.startswith("["):
-            table = line[1:line.find("]")].strip() if "]" in line else line[1:]
-            name, what = f"[{table}]", "table"
-        elif "=" in line:
-            key = line.split("=", 1)[0].strip().strip('"').strip("'")
-            name, what = f"{table}.{key}" if table else key, "key"
-        else:
-            continue
-        if name in seen:
-            return f"{what} {name!r} given twice (lines {seen[name]} and {lineno}); keep one"
-        seen[name] = lineno
-    return None
-
-@dataclass(frozen=True)
-class Range:
-    """Numeric domain: ``lo <= x <= hi`` (``lo_open``/``hi_open`` make a bound strict), finite;
-    ``integer`` demands an integer (bool is refused either way)."""
-
-    lo: float
-    hi: float
-    integer: bool = False
-    lo_open: bool = False
-    hi_open: bool = False
-
-    def describe(self) -> str:
-        kind = "an integer" if self.integer else "a finite number"
-        return f"{kind} in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
-
-    def check(self, value: Any) -> int | float:
-        """The value as int/float when inside the domain; ``ValueError`` (the reason) otherwise."""
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise ValueError(f"must be {self.describe()}, got {type(value).__name__}")
-        if not math.isfinite(float(value)):
-            raise ValueError(f"must be {self.describe()}, got {value!r}")
-        if self.integer:
-            if not float(value).is_integer():
-                raise ValueError(f"must be {self.describe()}, got {value!r}")
-            out: int | float = int(cast(SupportsInt, value))
-        else:
-            out = float(value)
-        below = out <= self.lo if self.lo_open else out < self.lo
-        above = out >= self.hi if self.hi_open else out > self.hi
-        if below or above:
-            raise ValueError(f"must be {self.describe()}, got {value!r}")
-        return out
-
-
-@dataclass(frozen=True)
-class Choice:
-    """Domain of a string field: one of ``values``."""
-
-    values: tuple[str, ...]
-
-    def __init__(self, *values: str) -> None:
-        object.__setattr__(self, "values", tuple(values))
-
-    def describe(self) -> str:
-        return "one of " + ", ".join(repr(v) for v in self.values)
-
-    def check(self, value: Any) -> str:
-        if not isinstance(value, str) or value not in self.values:
-            raise ValueError(f"must be {self.describe()}, got {value!r}")
-        return value
-
-
-def setting(default: Any, domain: Range | Choice) -> Any:
-    """A config field with its default and its domain (checked by ``Config.validate``)."""
-    return field(default=default, metadata={"domain": domain})
-
-
-def domain_of(f: dataclasses.Field) -> Range | Choice:
-    if "domain" not in f.metadata:
-        raise TypeError(f"config field {f.name} declares no domain: declare it as setting(default, Range(...))")
-    return f.metadata["domain"]
-
+from .domains import Choice, Range, Section, setting
 
 DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)   # Hamming distance between 256-bit ORB descriptors
 RADIUS_PX = Range(0.0, 10_000.0, lo_open=True)
 
 
-MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (Config.validate)
+MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (FeatureConfig.rules)
 
 
-@dataclass
-class FeatureConfig:
+@dataclass(frozen=True)
+class FeatureConfig(Section):
     """Detection and description (left and right images)."""
+
+    SECTION: ClassVar[str] = "features"
 
     # features kept per image after grid bucketing; on the KITTI clip 2000 gave t_err 0.64-0.74 % over
     # five parameter variants against 0.74-0.90 % for 1500, for ~10 % more time per frame
@@ -182,10 +55,21 @@ class FeatureConfig:
     # 60.0-61.8 frames/s; 10 64.7-66.7 (the reader niced too: 63.3-65.7); 19 65.7-66.4
     worker_niceness: int = setting(10, Range(0, 19, integer=True))
 
+    def rules(self) -> list[tuple[bool, str]]:
+        # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
+        # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
+        top = self.scale_factor ** (self.n_levels - 1)
+        return [(top <= MAX_PYRAMID_SCALE,
+                 f"features.scale_factor ** (features.n_levels - 1) = {self.scale_factor:g} ** {self.n_levels - 1} = "
+                 f"{top:.4g} must be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few "
+                 f"pixels)")]
 
-@dataclass
-class StereoConfig:
+
+@dataclass(frozen=True)
+class StereoConfig(Section):
     """Left-right matching on epipolar rows and triangulation."""
+
+    SECTION: ClassVar[str] = "stereo"
 
     # |v_l - v_r| allowed at pyramid level 0 (scales with level)
     max_row_diff_px: float = setting(1.5, Range(0.0, 100.0))
@@ -199,19 +83,23 @@ class StereoConfig:
     # measurement noise on u_l, v, u_r (px) used for covariances
     pixel_sigma: float = setting(1.0, Range(0.0, 100.0, lo_open=True))
 
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.min_disparity_px < self.max_disparity_px,
+                 "stereo.min_disparity_px must be below stereo.max_disparity_px")]
 
-@dataclass
-class OdometryConfig:
-    """Frame-to-keyframe odometry, its robust estimation and the keyframe test."""
+
+@dataclass(frozen=True)
+class OdometryConfig(Section):
+    """Frame-to-keyframe odometry: matching, RANSAC and the window, the keyframe test (the estimation settings it
+    shares with localization are in ``estimation``)."""
+
+    SECTION: ClassVar[str] = "odometry"
 
     match_radius_px: float = setting(20.0, RADIUS_PX)  # search radius around the predicted projection
     match_radius_no_prior_px: float = setting(200.0, RADIUS_PX)  # radius when the motion prior is not trusted
     max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)
-    # best/second-best Hamming ratio for temporal matches
-    ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
     ransac_iterations: int = setting(2000, Range(1, 1_000_000, integer=True))
     ransac_threshold_px: float = setting(5.0, Range(0.0, 1000.0, lo_open=True))
-    ransac_confidence: float = setting(0.999, Range(0.0, 1.0, lo_open=True, hi_open=True))
     min_inliers: int = setting(15, Range(3, 100_000, integer=True))  # fewer: FAILURE
     # rounds of re-choosing a tracked frame's inliers among all its matches at the refined pose, then refining again
     # (stops early when the set is unchanged). 1: RANSAC's inliers only. On kitti00_ramp_clip RANSAC's inliers held
@@ -219,22 +107,6 @@ class OdometryConfig:
     # 0.63 points) but move the ramp up (1.08 -> 1.12 % clean, 1.12-1.75 % noisy) at twice the tracking cost, so the
     # default stays 1 (docs/odometry_stability.md)
     inlier_rounds: int = setting(1, Range(1, 100, integer=True))
-    # Gauss-Newton iterations of the two-view stereo bundle adjustment
-    refine_iterations: int = setting(10, Range(1, 1000, integer=True))
-    huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))  # robust kernel width in the refinement
-    # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
-    # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
-    # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
-    # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
-    far_point_baselines: float = setting(15.0, Range(0.0, 1e6, lo_open=True))
-    # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
-    # near landmarks
-    far_disparity_weight: float = setting(1e-4, Range(0.0, 1.0))
-    # a problem (a tracked frame, the window, a localization) with fewer near observations than this weighs every
-    # disparity fully: with nothing near (a camera high above flat ground) the scale can only come from far
-    # structure. 1: on the synthetic aerial repeats at 8 m lateral offset the largest error was 11 cm (36 cm when
-    # the 60 largest disparities counted instead) and on kitti00_ramp_clip t_err 0.8-2.0 % (1.0-2.5 %)
-    min_near_observations: int = setting(1, Range(0, 100_000, integer=True))
     # a far landmark whose rays across the window span at least this angle starts the windowed bundle
     # adjustment where they meet (its depth from parallax, not from one small disparity); on kitti00_ramp_clip
     # 0.5 deg gave t_err 0.9-1.6 % over four feature variants, 1 deg 1.1-2.3 %, none 1.4-2.0 %
@@ -262,12 +134,61 @@ class OdometryConfig:
     # its frames ends failed: its run aborted with the count, not finished, since such a map is no route.
     # 0.5: "most frames" (1 never fails a teach)
     teach_max_failed_fraction: float = setting(0.5, Range(0.0, 1.0))
-    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
+
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.keyframe_min_inliers >= self.min_inliers,
+                 "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
+                (self.match_radius_no_prior_px >= self.match_radius_px,
+                 "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px")]
 
 
-@dataclass
-class LocalizationConfig:
+@dataclass(frozen=True)
+class EstimationConfig(Section):
+    """Robust pose estimation that odometry and localization share: the ratio test, RANSAC's confidence, the
+    refinement and the near/far weighting of stereo rows (docs/configuration.md)."""
+
+    SECTION: ClassVar[str] = "estimation"
+
+    # best/second-best Hamming ratio of a descriptor match (odometry's temporal matches, localization's matches)
+    ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
+    # RANSAC's confidence (odometry's P3P against the local map, localization's against a taught submap)
+    ransac_confidence: float = setting(0.999, Range(0.0, 1.0, lo_open=True, hi_open=True))
+    # Gauss-Newton iterations refining a pose on its inliers (odometry's tracked frame, a localization)
+    refine_iterations: int = setting(10, Range(1, 1000, integer=True))
+    # Huber kernel width (px) of every refinement: odometry's tracked frame and window, a localization
+    huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))
+    # landmarks beyond this many baselines are "far": their disparity row keeps only far_disparity_weight,
+    # so they fix rotation (and their own depth by parallax) while the scale comes from near landmarks.
+    # 15 baselines = disparity f/15 (48 px on KITTI), where a systematic disparity error of 1 px (measured on
+    # kitti00_ramp_clip, docs/far_structure.md) is about 2 % of depth
+    far_point_baselines: float = setting(15.0, Range(0.0, 1e6, lo_open=True))
+    # weight of a far landmark's disparity row (1 = full, 0 = ignored): small enough to leave the scale to
+    # near landmarks
+    far_disparity_weight: float = setting(1e-4, Range(0.0, 1.0))
+    # a problem (a tracked frame, the window, a localization) with fewer near observations than this weighs every
+    # disparity fully: with nothing near (a camera high above flat ground) the scale can only come from far
+    # structure. 1: on the synthetic aerial repeats at 8 m lateral offset the largest error was 11 cm (36 cm when
+    # the 60 largest disparities counted instead) and on kitti00_ramp_clip t_err 0.8-2.0 % (1.0-2.5 %)
+    min_near_observations: int = setting(1, Range(0, 100_000, integer=True))
+
+
+@dataclass(frozen=True)
+class RunConfig(Section):
+    """The run as a whole."""
+
+    SECTION: ClassVar[str] = "run"
+
+    # seed of a run's random choices (runs are reproducible): the place vocabulary's training, and the RANSAC of
+    # odometry and localization (cv2.setRNGSeed; OpenCV's solvePnPRansac draws from its own generator, so its
+    # samples do not depend on it: docs/odometry_stability.md)
+    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))
+
+
+@dataclass(frozen=True)
+class LocalizationConfig(Section):
     """Repeat: localizing the leaf against the taught (privileged) path."""
+
+    SECTION: ClassVar[str] = "localization"
 
     ransac_iterations: int = setting(6000, Range(1, 1_000_000, integer=True))
     ransac_threshold_px: float = setting(10.0, Range(0.0, 1000.0, lo_open=True))
@@ -324,10 +245,17 @@ class LocalizationConfig:
     # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
 
+    def rules(self) -> list[tuple[bool, str]]:
+        return [(self.min_matches >= self.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
+                (self.max_match_radius_px >= self.match_radius_px,
+                 "localization.max_match_radius_px must be >= localization.match_radius_px")]
 
-@dataclass
-class PlaceConfig:
+
+@dataclass(frozen=True)
+class PlaceConfig(Section):
     """Place recognition over the taught vertices (vtr/navigation/place.py): a bag of binary ORB words."""
+
+    SECTION: ClassVar[str] = "place"
 
     # vocabulary: a two-level tree of k-majority clusters, this many nodes per level (branching^2 words)
     branching: int = setting(32, Range(2, 256, integer=True))
@@ -346,9 +274,11 @@ class PlaceConfig:
     query_words: int = setting(128, Range(1, 1_000_000, integer=True))
 
 
-@dataclass
-class SmoothingConfig:
+@dataclass(frozen=True)
+class SmoothingConfig(Section):
     """Continuous-time WNOA smoother."""
+
+    SECTION: ClassVar[str] = "smoothing"
 
     # power spectral density of the white-noise acceleration, m^2/s^3
     qc_translation: float = setting(1.0, Range(0.0, 1e6, lo_open=True))
@@ -377,9 +307,11 @@ class SmoothingConfig:
     qc_floor_share: float = setting(1e-3, Range(0.0, 1.0))
 
 
-@dataclass
-class ControlConfig:
+@dataclass(frozen=True)
+class ControlConfig(Section):
     """Perception-aware flatness-based MPC (``vtr.control.mpc``; thesis §7.4 settings)."""
+
+    SECTION: ClassVar[str] = "control"
 
     dt_s: float = setting(0.1, Range(0.0, 10.0, lo_open=True))  # MPC discretization (10 Hz)
     horizon: int = setting(15, Range(1, 1000, integer=True))  # prediction steps N (1.5 s)
@@ -434,9 +366,11 @@ class ControlConfig:
     osqp_polishing: str = setting("disabled", Choice("disabled", "enabled"))
 
 
-@dataclass
-class ExperienceConfig:
+@dataclass(frozen=True)
+class ExperienceConfig(Section):
     """Multi-experience localization (docs/map.md, "Experiences"): earlier repeats matched besides the teach."""
+
+    SECTION: ClassVar[str] = "experiences"
 
     # experiences (earlier finished repeats) whose landmarks a keyframe is matched against besides the teach's, at
     # most; 0 localizes against the teach alone (single experience). Bounds the matching cost per keyframe
@@ -451,206 +385,10 @@ class ExperienceConfig:
     keep_most_used: int = setting(5, Range(0, 1_000_000, integer=True))
 
 
-@dataclass
-class MapConfig:
+@dataclass(frozen=True)
+class MapConfig(Section):
     """On-disk map."""
 
+    SECTION: ClassVar[str] = "map"
+
     compress_level: int = setting(3, Range(0, 9, integer=True))  # zlib level of array blobs
-
-
-@dataclass
-class Config:
-    """The whole pipeline configuration."""
-
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    stereo: StereoConfig = field(default_factory=StereoConfig)
-    odometry: OdometryConfig = field(default_factory=OdometryConfig)
-    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
-    place: PlaceConfig = field(default_factory=PlaceConfig)
-    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
-    map: MapConfig = field(default_factory=MapConfig)
-    control: ControlConfig = field(default_factory=ControlConfig)
-    experiences: ExperienceConfig = field(default_factory=ExperienceConfig)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    def to_yaml(self, comments: bool = False) -> str:
-        """The configuration as YAML; with ``comments``, every section and key preceded by its comment in
-        this module (units, measurements) and its domain (what ``vtr config`` prints; still loadable)."""
-        if not comments:
-            return yaml.safe_dump(self.to_dict(), sort_keys=False)
-        lines = ["# vtr configuration: every key with its default, its comment in vtr/config.py and its domain.",
-                 "# Keep only the keys you change; load with --config FILE.", ""]
-        for section in dataclasses.fields(self):
-            part = getattr(self, section.name)
-            doc = (type(part).__doc__ or "").strip().splitlines()[0]
-            lines.append(f"{section.name}:  # {doc}")
-            notes = field_comments(type(part))
-            for f in dataclasses.fields(part):
-                for text in notes.get(f.name, []):
-                    lines.append(f"  # {text}")
-                lines.append(f"  # domain: {domain_of(f).describe()}")
-                value = yaml.safe_dump({f.name: getattr(part, f.name)}, default_flow_style=True).strip()
-                lines.append(f"  {value.removeprefix('{').removesuffix('}')}")
-            lines.append("")
-        return "\n".join(lines)
-
-    @classmethod
-    def from_dict(cls, data: Any, where: str = "config") -> Config:
-        cfg = cls()
-        if not isinstance(data, dict):
-            raise ConfigError(f"{where}: expected a mapping of sections, got {type(data).__name__}")
-        sections = {f.name for f in dataclasses.fields(cls)}
-        for section, values in data.items():
-            if section not in sections:
-                hint = _did_you_mean(cls, None, section)
-                raise ConfigError(f"{where}: unknown section {section!r}{hint or ''} "
-                                  f"(sections: {', '.join(sorted(sections))})")
-            target = getattr(cfg, section)
-            if not isinstance(values, dict):
-                raise ConfigError(f"{where}: section {section!r} must be a mapping of keys")
-            known = {f.name: f for f in dataclasses.fields(target)}
-            for key, value in values.items():
-                if key not in known:
-                    raise ConfigError(f"{where}: unknown key {section}.{key}{_did_you_mean(cls, section, key)}")
-                try:
-                    value = domain_of(known[key]).check(value)
-                except ValueError as err:
-                    raise ConfigError(f"{where}: {section}.{key} {err}") from None
-                setattr(target, key, value)
-        cfg.validate(where)
-        return cfg
-
-    @classmethod
-    def load(cls, path: str | Path) -> Config:
-        from perception_model.inputs import input_problem
-
-        path = Path(path)
-        if not path.exists():
-            raise ConfigError(f"{path}: no such config file")
-        problem = input_problem(path)            # a folder, a named pipe or a device: never opened
-        if problem is not None:
-            raise ConfigError(f"{path}: {problem}")
-        try:
-            text = path.read_bytes().decode("utf-8")
-        except OSError as err:
-            raise ConfigError(f"{path}: cannot read config file ({err.strerror or err})") from None
-        except UnicodeDecodeError:
-            raise ConfigError(f"{path}: not a text config file (not UTF-8; expected YAML or TOML)") from None
-        try:
-            if path.suffix == ".toml":
-                duplicate = toml_duplicate_key(text)
-                if duplicate is not None:
-                    raise ConfigError(f"{path}: {duplicate}")
-                data = tomllib.loads(text)
-            else:
-                data = yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader
-        except DuplicateKeyError as err:
-            raise ConfigError(f"{path}: {err}") from None
-        except (yaml.YAMLError, tomllib.TOMLDecodeError) as err:
-            reason = " ".join(str(err).split())
-            raise ConfigError(f"{path}: cannot parse ({reason})") from None
-        except RecursionError:
-            raise ConfigError(f"{path}: nested too deeply to read (a config is two levels: section, key)") from None
-        return cls.from_dict({} if data is None else data, str(path))
-
-    def validate(self, where: str = "config") -> None:
-        """Every field inside its declared domain, then the cross-field rules; ``ConfigError`` naming the key."""
-        for section in dataclasses.fields(self):
-            check_section(getattr(self, section.name), section.name, where)
-        o, s, loc = self.odometry, self.stereo, self.localization
-        checks = [
-            (s.min_disparity_px < s.max_disparity_px,
-             "stereo.min_disparity_px must be below stereo.max_disparity_px"),
-            (o.keyframe_min_inliers >= o.min_inliers, "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
-            (o.match_radius_no_prior_px >= o.match_radius_px,
-             "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px"),
-            (loc.min_matches >= loc.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
-            (loc.max_match_radius_px >= loc.match_radius_px,
-             "localization.max_match_radius_px must be >= localization.match_radius_px"),
-            # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
-            # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
-            (self.features.scale_factor ** (self.features.n_levels - 1) <= MAX_PYRAMID_SCALE,
-             f"features.scale_factor ** (features.n_levels - 1) = {self.features.scale_factor:g} ** "
-             f"{self.features.n_levels - 1} = {self.features.scale_factor ** (self.features.n_levels - 1):.4g} must "
-             f"be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few pixels)"),
-        ]
-        for ok, msg in checks:
-            if not ok:
-                raise ConfigError(f"{where}: {msg}")
-
-
-def check_section(values: Any, name: str, where: str = "config") -> None:
-    """Every field of one section (e.g. a ``SmoothingConfig`` handed to the smoother alone) in its domain."""
-    for f in dataclasses.fields(values):
-        try:
-            domain_of(f).check(getattr(values, f.name))
-        except ValueError as err:
-            raise ConfigError(f"{where}: {name}.{f.name} {err}") from None
-
-
-def check_setting(section: str, key: str, value: Any, where: str = "config") -> Any:
-    """``value`` checked against the domain of ``section.key`` (for a command-line override such as
-    ``--rate``); returns it as the field's type."""
-    f = {f.name: f for f in dataclasses.fields(getattr(Config(), section))}[key]
-    try:
-        return domain_of(f).check(value)
-    except ValueError as err:
-        raise ConfigError(f"{where}: {section}.{key} {err}") from None
-
-
-def config_keys() -> list[tuple[str, str, Range | Choice]]:
-    """Every ``(section, key, domain)`` of the configuration, in declaration order."""
-    return [(section.name, f.name, domain_of(f))
-            for section in dataclasses.fields(Config)
-            for f in dataclasses.fields(section.default_factory)]  # type: ignore[arg-type]
-
-
-def _did_you_mean(cls: type, section: str | None, key: str) -> str:
-    """``" (did you mean features.n_features?)"`` for a mistyped key (also one put in the wrong section) or
-    section; empty when nothing is close."""
-    import difflib
-
-    sections = {f.name: f.type for f in dataclasses.fields(cls)}
-    keys = {f"{s}.{k.name}": k.name for s in sections for k in dataclasses.fields(getattr(cls(), s))}
-    if section is None:
-        close = difflib.get_close_matches(key, list(sections), n=1, cutoff=0.6)
-    else:
-        close = [k for k, name in keys.items() if name == key][:1]     # the right key in the wrong section
-        if not close:
-            close = difflib.get_close_matches(f"{section}.{key}", list(keys), n=1, cutoff=0.75)
-    return f" (did you mean {close[0]}?)" if close else ""
-
-
-def field_comments(section_cls: type) -> dict[str, list[str]]:
-    """Comment lines of each field of a config section class, as written in this module: the comment
-    lines right above the field and the comment at its end (read from the source, not hand-copied)."""
-    import ast
-    import inspect
-    import io
-    import tokenize
-
-    source = Path(inspect.getsourcefile(section_cls) or __file__).read_text()
-    comments: dict[int, str] = {}
-    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-        if tok.type == tokenize.COMMENT:
-            comments[tok.start[0]] = tok.string.lstrip("#").strip()
-    lines = source.splitlines()
-    out: dict[str, list[str]] = {}
-    for node in ast.walk(ast.parse(source)):
-        if not (isinstance(node, ast.ClassDef) and node.name == section_cls.__name__):
-            continue
-        for item in node.body:
-            if not (isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)):
-                continue
-            above: list[str] = []
-            n = item.lineno - 1
-            while n >= 1 and lines[n - 1].strip().startswith("#"):
-                above.insert(0, comments.get(n, ""))
-                n -= 1
-            trailing = [comments[k] for k in range(item.lineno, (item.end_lineno or item.lineno) + 1)
-                        if k in comments and not lines[k - 1].strip().startswith("#")]
-            out[item.target.id] = [t for t in above + trailing if t]
-    return out
-
