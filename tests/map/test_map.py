@@ -20,7 +20,7 @@ import pytest
 
 from vtr.camera import StereoCamera
 from vtr.config import MapConfig
-from vtr.errors import MapError, VtrError
+from vtr.errors import ConfigError, MapError, VtrError
 from vtr.geometry import usable_covariance
 from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, split_vertex_id, vertex_id
 from vtr.map.placement import landmarks_in_map_frame, poses_in_map_frame
@@ -306,7 +306,7 @@ def test_create_refuses_to_overwrite(tmp_path):
     with pytest.raises(MapError, match="already exists"):
         Map.create(path, CAMERA)
     assert path.read_bytes() == before
-    with pytest.raises(MapError, match="compress_level"):
+    with pytest.raises(ConfigError, match="map.compress_level"):   # an invalid section cannot even be built
         Map.create(tmp_path / "x.vtrmap", CAMERA, MapConfig(compress_level=12))
     assert not (tmp_path / "x.vtrmap").exists()
     with pytest.raises(MapError, match="is a directory: a vtr map is one SQLite file"):
