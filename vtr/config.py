@@ -219,6 +219,11 @@ class OdometryConfig:
     # 0.63 points) but move the ramp up (1.08 -> 1.12 % clean, 1.12-1.75 % noisy) at twice the tracking cost, so the
     # default stays 1 (docs/odometry_stability.md)
     inlier_rounds: int = setting(1, Range(1, 100, integer=True))
+    # a tracked frame's matches against the local map (its own gates; ratio_test and max_descriptor_distance above
+    # are localization's and the scale check's too): a matched landmark that does not fit the refined pose is
+    # dropped by the inlier rounds, so a match decided by a descriptor margin only loses scale anchors
+    tracking_max_descriptor_distance: int = setting(64, DESCRIPTOR_DISTANCE)
+    tracking_ratio_test: float = setting(0.9, Range(0.0, 1.0, lo_open=True))
     # Gauss-Newton iterations of the two-view stereo bundle adjustment
     refine_iterations: int = setting(10, Range(1, 1000, integer=True))
     huber_px: float = setting(1.5, Range(0.0, 1000.0, lo_open=True))  # robust kernel width in the refinement
@@ -262,7 +267,9 @@ class OdometryConfig:
     # its frames ends failed: its run aborted with the count, not finished, since such a map is no route.
     # 0.5: "most frames" (1 never fails a teach)
     teach_max_failed_fraction: float = setting(0.5, Range(0.0, 1.0))
-    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))  # RANSAC seed (runs are reproducible)
+    # RANSAC seed: 0 keeps the matching order, another shuffles the correspondences by (seed, frame index) before
+    # OpenCV's RANSAC, whose own generator has a fixed seed (cv2.setRNGSeed does not reach it)
+    seed: int = setting(0, Range(0, 2**31 - 1, integer=True))
 
 
 @dataclass

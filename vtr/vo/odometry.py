@@ -353,7 +353,8 @@ class StereoOdometry:
         with self.timer("matching"):
             active = self.map.active()
             lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
-                                       self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
+                                       self.camera, radius, cfg.tracking_max_descriptor_distance,
+                                       cfg.tracking_ratio_test)
             lm = active[lm]
         if len(lm) < cfg.min_inliers:
             return None
@@ -370,13 +371,14 @@ class StereoOdometry:
         the inlier set is that of the refined pose, not of a random sample.
         """
         cfg = self.config.odometry
-        rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
-                        cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
+        order = self._ransac_order(len(lm), frame.index)
+        rs = ransac_pnp(self.map.positions[lm[order]], frame.features.uv[feat[order]], self.camera,
+                        cfg.ransac_iterations, cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
         z = frame.stereo_measurements[feat]
         inlier = np.zeros(len(lm), bool)
-        inlier[rs.inliers] = True
+        inlier[order[rs.inliers]] = True
         inlier &= self.map.positions[lm] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3] > MIN_DEPTH_M
         T_cw = rs.T_q_r
         for round_ in range(cfg.inlier_rounds):
@@ -394,6 +396,16 @@ class StereoOdometry:
             return None
         lm_in, feat_in = lm[inlier][ok], feat[inlier][ok]
         return _Track(res.T_cam_world[-1], res.pose_covariance[-1], lm_in, feat_in, len(lm))
+
+    def _ransac_order(self, n: int, frame_index: int) -> np.ndarray:
+        """The order in which RANSAC sees a frame's ``n`` correspondences. OpenCV's RANSAC draws its samples from a
+        generator of its own with a fixed seed (``cv2.setRNGSeed`` does not reach it), so its samples depend only on
+        the correspondences and their order: ``odometry.seed`` 0 keeps the matching order, another seed shuffles it
+        by (seed, frame index), so a run is reproducible from its seed and different seeds draw different samples."""
+        seed = self.config.odometry.seed
+        if seed == 0:
+            return np.arange(n)
+        return np.random.default_rng((seed, frame_index)).permutation(n)
 
     def _fits(self, T_cam_world: np.ndarray, points_world: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Which landmarks (world points) project at ``T_cam_world`` within the RANSAC threshold of their stereo
