@@ -353,8 +353,7 @@ class StereoOdometry:
         with self.timer("matching"):
             active = self.map.active()
             lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
-                                       self.camera, radius, cfg.tracking_max_descriptor_distance,
-                                       cfg.tracking_ratio_test)
+                                       self.camera, radius, cfg.max_descriptor_distance, cfg.ratio_test)
             lm = active[lm]
         if len(lm) < cfg.min_inliers:
             return None
@@ -381,12 +380,13 @@ class StereoOdometry:
         inlier[order[rs.inliers]] = True
         inlier &= self.map.positions[lm] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3] > MIN_DEPTH_M
         T_cw = rs.T_q_r
+        points = self.map.positions[lm]
         for round_ in range(cfg.inlier_rounds):
-            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier])
+            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier], points[inlier])
             T_cw = res.T_cam_world[-1]
             if round_ == cfg.inlier_rounds - 1:
                 break
-            points = self.map.positions[lm].copy()
+            points = points.copy()
             points[inlier] = res.points
             again = self._fits(T_cw, points, z) & (self.map.positions[lm] @ T_cw[2, :3] + T_cw[2, 3] > MIN_DEPTH_M)
             if np.array_equal(again, inlier) or again.sum() < cfg.min_inliers:
@@ -415,7 +415,7 @@ class StereoOdometry:
         err = np.where(np.isfinite(z), self.camera.project(np.where(in_front[:, None], P, 1.0)) - z, 0.0)
         return in_front & ((err**2).sum(1) <= self.config.odometry.ransac_threshold_px**2)
 
-    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
+    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray, points_world: np.ndarray):
         """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
 
         The landmarks are not held fixed at their current estimate: they stay free, constrained by
@@ -436,7 +436,7 @@ class StereoOdometry:
         z_all = np.concatenate([z_obs[keep], z])
         T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
         fixed = np.r_[np.ones(K, bool), False]
-        res = bundle_adjust(T, fixed, self.map.positions[lm], obs_pose, obs_point, np.nan_to_num(z_all),
+        res = bundle_adjust(T, fixed, points_world, obs_pose, obs_point, np.nan_to_num(z_all),
                             self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma, cfg.huber_px,
                             cfg.refine_iterations)
         return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2
