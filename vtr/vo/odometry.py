@@ -416,7 +416,8 @@ class StereoOdometry:
         return in_front & ((err**2).sum(1) <= self.config.odometry.ransac_threshold_px**2)
 
     def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray, points_world: np.ndarray):
-        """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
+        """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm`` (starting at
+        ``points_world``, where the map or the previous inlier round has them).
 
         The landmarks are not held fixed at their current estimate: they stay free, constrained by
         their observations in the window keyframes (poses held), so a far landmark's uncertain depth
