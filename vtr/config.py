@@ -217,7 +217,7 @@ class OdometryConfig:
     # (stops early when the set is unchanged; each round starts where the last left the landmarks). 1: RANSAC's
     # inliers only, which on kitti00_ramp_clip held 0-9 of a frame's 3-15 matched near landmarks (the scale's anchors)
     # and depended on RANSAC's sample; with 4, t_err over clean + 16 noise seeds has a standard deviation of 0.14
-    # points instead of 0.44, at 1.04x (kitti06) to 1.27x (the ramp) the odometry frame's cost
+    # points instead of 0.44, at 1.04-1.14x (kitti06) and 1.20-1.27x (the ramp) the odometry frame's cost
     # (docs/odometry_stability.md)
     inlier_rounds: int = setting(4, Range(1, 100, integer=True))
     # Gauss-Newton iterations of the two-view stereo bundle adjustment
