@@ -2,7 +2,8 @@
 ``--sigma`` grey levels (1: +-1 level) added to both images, one seed per variant, and its spread.
 
 Per clip: t_err (KITTI-style, 10-40 m sub-segments, ``vtr.app.evaluation.drift_metrics``) of the clean run and of
-each seed, then max, min and spread (max - min, percentage points). A run whose result moves by a fraction of a
+each seed, then max, min, spread (max - min, percentage points), mean and standard deviation (the spread of five
+variants is itself a noisy figure: pass more ``--seeds`` to judge a change). A run whose result moves by a fraction of a
 point with noise no one can see is luck, not accuracy (docs/odometry_stability.md).
 
 usage: python tools/bench_noise.py [CLIP ...] [--seeds 1 2 3 4] [--sigma 1] [--threads 1] [--out out/bench_noise]
@@ -102,7 +103,8 @@ def run_variant(clip: Path, seed: int | None, sigma: float, config: Config, out:
 def spread(rows: list[dict]) -> dict:
     t = np.array([r["t_err_pct"] for r in rows])
     return {"clip": rows[0]["clip"], "max_pct": float(t.max()), "min_pct": float(t.min()),
-            "spread_points": float(t.max() - t.min()), "clean_pct": rows[0]["t_err_pct"]}
+            "spread_points": float(t.max() - t.min()), "mean_pct": float(t.mean()), "std_points": float(t.std()),
+            "clean_pct": rows[0]["t_err_pct"]}
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -160,7 +162,8 @@ def main() -> None:
                   f" deg/m  path x{r['length_ratio']:.4f}  failures {r['failures']}", flush=True)
         s = spread(mine)
         print(f"{clip.name:20s} clean {s['clean_pct']:.3f} %  max {s['max_pct']:.3f} %  min {s['min_pct']:.3f} %  "
-              f"spread {s['spread_points']:.3f} points", flush=True)
+              f"spread {s['spread_points']:.3f} points  mean {s['mean_pct']:.3f} %  std {s['std_points']:.3f}",
+              flush=True)
         rows += mine
         summaries.append(s)
     fields = list(rows[0])

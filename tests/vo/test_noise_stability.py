@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vtr.app.evaluation import drift_metrics
+from vtr.app.pipeline import run_odometry
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.vo import odometry as od
@@ -23,11 +25,12 @@ SEED = 7                       # not among the benchmark's 1-4
 KITTI06_BOUND_PCT = 0.70
 RAMP_BOUND_PCT = 1.3
 RAMP_SPREAD_POINTS = 0.3     # max - min over clean and the four seeds (issue bound)
+RANSAC_SEEDS = (0, 1, 2, 3)   # odometry.seed: the order in which RANSAC sees the correspondences
+RANSAC_SPREAD_POINTS = 0.3   # the clean ramp over those orders: RANSAC's sample must not decide the result
 # share of the matched near landmarks (within far_point_baselines) that tracking keeps as inliers over the ramp;
-# with RANSAC's inliers alone it was 0.42 clean and with seed 7 (0-8 of 5-22 per frame: its translation rests on
-# far landmarks), with the inliers chosen again at the refined pose 0.82
+# with RANSAC's inliers alone (odometry.inlier_rounds 1) it was 0.42 clean and with seed 7 (0-8 of 5-22 per frame:
+# its translation rests on far landmarks), with the inliers chosen again at the refined pose (4, the default) 0.81
 NEAR_INLIER_SHARE = 0.7
-
 
 def _tool():
     spec = importlib.util.spec_from_file_location("bench_noise_tool", ROOT / "tools" / "bench_noise.py")
@@ -58,20 +61,36 @@ def test_kitti06_with_noise_within_bound(tool, kitti_clip):
     assert r["t_err_pct"] <= KITTI06_BOUND_PCT
 
 
-@pytest.mark.xfail(strict=True, reason="measured clean 1.08 %, seeds 1-4 0.71-1.65 % (spread 0.94 points; "
-                   "odometry.inlier_rounds 4: 1.12-1.75 %, spread 0.63, at twice the tracking cost): the ramp's scale "
-                   "rests on a few dozen near landmarks whose selection flips with the noise "
-                   "(docs/odometry_stability.md)")
+@pytest.mark.xfail(strict=True, reason="measured clean 1.41 %, seeds 1-4 1.19-1.72 % (spread 0.53 points); "
+                   "over clean + 16 seeds 1.19-1.72 %, mean 1.43, standard deviation 0.14 (odometry.inlier_rounds 1: "
+                   "0.71-2.47 %, mean 1.42, 0.44). The level is the ramp's images: its pairs' disparities sit 1.16 px "
+                   "low, so the near landmarks that carry the scale put the path x1.010-1.014 long; with that offset "
+                   "removed by hand, 0.94-1.38 % over clean + 8 seeds (docs/odometry_stability.md)")
 def test_ramp_with_noise_within_bound_and_spread(tool, kitti_ramp_clip):
     """The issue's bound on the ramp: clean and the benchmark's four noise seeds each <= 1.3 %, spread <= 0.3."""
     errors = [tool.run_variant(kitti_ramp_clip, seed, 1.0, Config())["t_err_pct"] for seed in (None, 1, 2, 3, 4)]
     assert max(errors) <= RAMP_BOUND_PCT and max(errors) - min(errors) <= RAMP_SPREAD_POINTS, errors
 
 
+def test_ransac_sample_does_not_decide(kitti_ramp_clip):
+    """The clean ramp with the correspondences shown to RANSAC in four orders (``odometry.seed``): the inliers are
+    chosen at the refined pose, so the result moves by less than the issue's spread (measured 1.41-1.56 %; with
+    ``odometry.inlier_rounds`` 1, RANSAC's inliers alone, 1.08-1.80 %)."""
+    errors = []
+    for seed in RANSAC_SEEDS:
+        config = Config()
+        config.odometry.seed = seed
+        with open_source(kitti_ramp_clip) as src:
+            _, poses, _ = run_odometry(src, list(range(len(src))), config)
+            T_gt = src.ground_truth().T_world_cam
+        errors.append(drift_metrics(poses, T_gt).t_err_pct)
+    assert max(errors) - min(errors) <= RANSAC_SPREAD_POINTS, errors
+
+
 def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip, monkeypatch):
-    """With ``odometry.inlier_rounds`` 4 the inliers are those of the refined pose, not of RANSAC's best sample: on the
-    ramp most matched near landmarks (the scale's only anchor) are inliers, for the noisy copy as for the clean one
-    (with 1, the default, 42 %)."""
+    """The inliers are those of the refined pose, not of RANSAC's best sample: on the ramp most matched near landmarks
+    (the scale's only anchor) are inliers, for the noisy copy as for the clean one (with ``odometry.inlier_rounds`` 1,
+    RANSAC's inliers alone, 42 %)."""
     counts = []
     estimate = StereoOdometry._estimate
 
@@ -86,8 +105,7 @@ def test_tracking_keeps_the_near_landmarks_ransac_left_out(tool, kitti_ramp_clip
     for seed in (None, SEED):
         counts.clear()
         with open_source(kitti_ramp_clip) as src:
-            config = Config().replace("odometry", inlier_rounds=4)
-            vo = StereoOdometry(src.camera, OdometrySettings.of(config))
+            vo = StereoOdometry(src.camera, OdometrySettings.of(Config()))
             for images in tool.NoisySource(src, seed, 1.0).iter_frames():
                 vo.process(images)
         matched, kept = np.sum(counts, axis=0)

@@ -389,21 +389,24 @@ class StereoOdometry:
         the inlier set is that of the refined pose, not of a random sample.
         """
         cfg = self.config.odometry
-        rs = ransac_pnp(self.map.positions[lm], frame.features.uv[feat], self.camera, cfg.ransac_iterations,
-                        cfg.ransac_threshold_px, self.config.estimation.ransac_confidence, self.config.seed)
+        order = self._ransac_order(len(lm), frame.index)
+        rs = ransac_pnp(self.map.positions[lm[order]], frame.features.uv[feat[order]], self.camera,
+                        cfg.ransac_iterations, cfg.ransac_threshold_px, self.config.estimation.ransac_confidence,
+                        self.config.seed)
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
         z = frame.stereo_measurements[feat]
         inlier = np.zeros(len(lm), bool)
-        inlier[rs.inliers] = True
+        inlier[order[rs.inliers]] = True
         inlier &= self.map.positions[lm] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3] > MIN_DEPTH_M
         T_cw = rs.T_q_r
+        points = self.map.positions[lm]
         for round_ in range(cfg.inlier_rounds):
-            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier])
+            res, ok = self._refine_pose(T_cw, lm[inlier], z[inlier], points[inlier])
             T_cw = res.T_cam_world[-1]
             if round_ == cfg.inlier_rounds - 1:
                 break
-            points = self.map.positions[lm].copy()
+            points = points.copy()
             points[inlier] = res.points
             again = self._fits(T_cw, points, z) & (self.map.positions[lm] @ T_cw[2, :3] + T_cw[2, 3] > MIN_DEPTH_M)
             if np.array_equal(again, inlier) or again.sum() < cfg.min_inliers:
@@ -414,6 +417,16 @@ class StereoOdometry:
         lm_in, feat_in = lm[inlier][ok], feat[inlier][ok]
         return _Track(res.T_cam_world[-1], res.pose_covariance[-1], lm_in, feat_in, len(lm))
 
+    def _ransac_order(self, n: int, frame_index: int) -> np.ndarray:
+        """The order in which RANSAC sees a frame's ``n`` correspondences. OpenCV's RANSAC draws its samples from a
+        generator of its own with a fixed seed (``cv2.setRNGSeed`` does not reach it), so its samples depend only on
+        the correspondences and their order: ``run.seed`` 0 keeps the matching order, another seed shuffles it
+        by (seed, frame index), so a run is reproducible from its seed and different seeds draw different samples."""
+        seed = self.config.seed
+        if seed == 0:
+            return np.arange(n)
+        return np.random.default_rng((seed, frame_index)).permutation(n)
+
     def _fits(self, T_cam_world: np.ndarray, points_world: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Which landmarks (world points) project at ``T_cam_world`` within the RANSAC threshold of their stereo
         measurements ``z`` (rows that were measured), in front of the camera."""
@@ -422,8 +435,9 @@ class StereoOdometry:
         err = np.where(np.isfinite(z), self.camera.project(np.where(in_front[:, None], P, 1.0)) - z, 0.0)
         return in_front & ((err**2).sum(1) <= self.config.odometry.ransac_threshold_px**2)
 
-    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray):
-        """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm``.
+    def _refine_pose(self, T_cam_world: np.ndarray, lm: np.ndarray, z: np.ndarray, points_world: np.ndarray):
+        """Refine the new frame's ``T_cam_world`` from its measurements ``z`` of landmarks ``lm`` (starting at
+        ``points_world``, where the map or the previous inlier round has them).
 
         The landmarks are not held fixed at their current estimate: they stay free, constrained by
         their observations in the window keyframes (poses held), so a far landmark's uncertain depth
@@ -443,7 +457,7 @@ class StereoOdometry:
         z_all = np.concatenate([z_obs[keep], z])
         T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
         fixed = np.r_[np.ones(K, bool), False]
-        res = bundle_adjust(T, fixed, self.map.positions[lm], obs_pose, obs_point, np.nan_to_num(z_all),
+        res = bundle_adjust(T, fixed, points_world, obs_pose, obs_point, np.nan_to_num(z_all),
                             self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma,
                             self.config.estimation.huber_px, self.config.estimation.refine_iterations)
         return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2
