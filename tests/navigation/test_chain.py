@@ -123,11 +123,12 @@ class Run:
     """A chain over the straight route with the scripted localizer and place index."""
 
     def __init__(self, start_index: int | None = None):
-        self.chain = LocalizationChain(_path(), CFG, start_index)
+        self.chain = LocalizationChain(_path(), CFG.localization, CFG.smoothing, start_index)
         self.localizer = ScriptedLocalizer()
         self.places = ScriptedPlaces()
         self.chain_localizer = ChainLocalizer(self.chain, self.localizer, self.places,  # type: ignore[arg-type]
-                                              lambda trunk: trunk, CFG)                # type: ignore[arg-type,return-value]
+                                              lambda trunk: trunk,                     # type: ignore[arg-type,return-value]
+                                              CFG.localization, CFG.place, CFG.run.seed)
         self.t_ns = 0
         self.leaves = 0
 
