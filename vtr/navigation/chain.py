@@ -31,8 +31,6 @@ from .localization import LocalizationEstimate, LocalizationStatus, Localizer, T
 from .place import PlaceIndex
 from .trunk import BACKWARD, FORWARD, UNDECIDED, select_trunk, trunk_window
 
-S = LocalizationStatus
-
 
 @dataclass(frozen=True)
 class Candidate:
@@ -383,7 +381,7 @@ class Attempt:
 
     @property
     def success(self) -> bool:
-        return self.status == S.LOCALIZED
+        return self.status == LocalizationStatus.LOCALIZED
 
 
 class ChainLocalizer:
@@ -437,20 +435,20 @@ class ChainLocalizer:
         ch, c = self.chain, self.config
         pr = ch.prior(kf.T_world_kf)
         if ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m:
-            none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.OFF_ROUTE)
-            return self._fail(kf, pr.trunk, none, S.OFF_ROUTE, pr.T_leaf_trunk, lost=True)
+            none = LocalizationEstimate.failed(np.zeros(0, np.int64), LocalizationStatus.OFF_ROUTE)
+            return self._fail(kf, pr.trunk, none, LocalizationStatus.OFF_ROUTE, pr.T_leaf_trunk, lost=True)
         est = self._localize(kf, pr.trunk, pr.T_leaf_trunk, True, ch.state.consecutive_failures)
         if est.T_leaf_trunk is None:
             return self._fail(kf, pr.trunk, est, est.status, pr.T_leaf_trunk, lost=False)
         if not ch.consistent(est, pr.T_leaf_trunk, pr.covariance):
-            return self._fail(kf, pr.trunk, est, S.INCONSISTENT, est.T_leaf_trunk, lost=False)
+            return self._fail(kf, pr.trunk, est, LocalizationStatus.INCONSISTENT, est.T_leaf_trunk, lost=False)
         if ch.beyond_end_m(pr.trunk, est.T_leaf_trunk) > c.off_route_distance_m:
-            return self._fail(kf, pr.trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
+            return self._fail(kf, pr.trunk, est, LocalizationStatus.OFF_ROUTE, est.T_leaf_trunk, lost=True)
         if ch.state.leaves_since_check + 1 >= c.place_check_every and self._elsewhere(kf, pr.trunk, est):
             ch.state = dataclasses.replace(ch.state, doubted=True)
-            return self._fail(kf, pr.trunk, est, S.INCONSISTENT, est.T_leaf_trunk, lost=True)
+            return self._fail(kf, pr.trunk, est, LocalizationStatus.INCONSISTENT, est.T_leaf_trunk, lost=True)
         ch.succeeded(leaf_id, kf.T_world_kf, pr.trunk, est.T_leaf_trunk, est.covariance)
-        return Attempt(pr.trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+        return Attempt(pr.trunk, est, LocalizationStatus.LOCALIZED, est.T_leaf_trunk)
 
     def _elsewhere(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
         """Periodic check: does a place outside the trunk's window look more like the leaf than every vertex in it,
@@ -512,7 +510,7 @@ class ChainLocalizer:
             return None
         ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
                      along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
-        return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+        return Attempt(trunk, est, LocalizationStatus.LOCALIZED, est.T_leaf_trunk)
 
     def _pending_trunk(self, kf: Keyframe) -> int | None:
         """The taught vertex nearest to the pending candidate carried to this leaf by odometry (None: none pending)."""
@@ -550,28 +548,28 @@ class ChainLocalizer:
             # nothing verified; past an end of the route by odometry since the last localization: off the route
             off = pr is not None and ch.beyond_end_m(pr.trunk, pr.T_leaf_trunk) > c.off_route_distance_m
             if not tried:
-                none = LocalizationEstimate.failed(np.zeros(0, np.int64), S.NO_CANDIDATES)
-                return self._fail(kf, ch.state.trunk, none, S.OFF_ROUTE if off else S.NO_CANDIDATES, T_chain,
-                                  lost=True)
+                none = LocalizationEstimate.failed(np.zeros(0, np.int64), LocalizationStatus.NO_CANDIDATES)
+                status = LocalizationStatus.OFF_ROUTE if off else LocalizationStatus.NO_CANDIDATES
+                return self._fail(kf, ch.state.trunk, none, status, T_chain, lost=True)
             trunk, est = max(tried, key=lambda x: x[1].inliers)
             if pr is not None:              # the reported T_leaf_trunk is the chain's prior: against its trunk
                 trunk = pr.trunk
-            return self._fail(kf, trunk, est, S.OFF_ROUTE if off else est.status, T_chain, lost=True)
+            return self._fail(kf, trunk, est, LocalizationStatus.OFF_ROUTE if off else est.status, T_chain, lost=True)
         trunk, est = self._nearest_trunk(kf, *best)
         assert est.T_leaf_trunk is not None
         if ch.beyond_end_m(trunk, est.T_leaf_trunk) > c.off_route_distance_m:
-            return self._fail(kf, trunk, est, S.OFF_ROUTE, est.T_leaf_trunk, lost=True)
+            return self._fail(kf, trunk, est, LocalizationStatus.OFF_ROUTE, est.T_leaf_trunk, lost=True)
         pred = ch.candidate_prediction(kf.T_world_kf, trunk)
         pending = ch.state.candidate
         if pred is not None and pending is not None and ch.consistent(est, *pred):
             ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance,
                          along_prev_m=ch.along_track_m(pending.trunk, pending.T_leaf_trunk))
-            return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+            return Attempt(trunk, est, LocalizationStatus.LOCALIZED, est.T_leaf_trunk)
         if self._chain_confirms(kf, trunk, est):
             ch.succeeded(leaf_id, kf.T_world_kf, trunk, est.T_leaf_trunk, est.covariance)
-            return Attempt(trunk, est, S.LOCALIZED, est.T_leaf_trunk)
+            return Attempt(trunk, est, LocalizationStatus.LOCALIZED, est.T_leaf_trunk)
         new = Candidate(leaf_id, np.array(kf.T_world_kf, float), trunk, est.T_leaf_trunk, est.covariance)
-        return self._fail(kf, trunk, est, S.UNCONFIRMED, est.T_leaf_trunk, lost=True, candidate=new)
+        return self._fail(kf, trunk, est, LocalizationStatus.UNCONFIRMED, est.T_leaf_trunk, lost=True, candidate=new)
 
     def _chain_confirms(self, kf: Keyframe, trunk: int, est: LocalizationEstimate) -> bool:
         """A place candidate verified beyond doubt (``CLEAR_VERIFICATION`` times ``min_inliers_unlocalized`` inliers,

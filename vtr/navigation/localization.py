@@ -210,18 +210,17 @@ class Localizer:
         :func:`vtr.navigation.experiences.taught_covariance` (docs/localization.md, "What the covariance holds").
         """
         c = self.config
-        S = LocalizationStatus
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
         radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
         with self.timer("match"):
             li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
-            return LocalizationEstimate.failed(li, S.TOO_FEW_MATCHES)
+            return LocalizationEstimate.failed(li, LocalizationStatus.TOO_FEW_MATCHES)
         with self.timer("ransac"):
             rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
                             c.ransac_threshold_px, self.estimation.ransac_confidence, seed)
         if rs is None or len(rs.inliers) < min_inliers:
-            return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS)
+            return LocalizationEstimate.failed(li, LocalizationStatus.TOO_FEW_INLIERS)
         sel = rs.inliers
         depth = submap.points_trunk[li[sel]] @ rs.T_q_r[2, :3] + rs.T_q_r[2, 3]
         sel = sel[depth > MIN_DEPTH_M]
@@ -232,14 +231,14 @@ class Localizer:
         n_in = int(inlier.sum())
         median_px = float(np.sqrt(np.median(err_sq[ok]))) if n_in else float("nan")
         if n_in < min_inliers:
-            return LocalizationEstimate.failed(li, S.TOO_FEW_INLIERS, inlier, median_px)
+            return LocalizationEstimate.failed(li, LocalizationStatus.TOO_FEW_INLIERS, inlier, median_px)
         if n_in < c.min_inlier_ratio * len(li):
-            return LocalizationEstimate.failed(li, S.LOW_INLIER_RATIO, inlier, median_px)
+            return LocalizationEstimate.failed(li, LocalizationStatus.LOW_INLIER_RATIO, inlier, median_px)
         if not median_px <= c.max_median_residual_px:
-            return LocalizationEstimate.failed(li, S.RESIDUALS, inlier, median_px)
+            return LocalizationEstimate.failed(li, LocalizationStatus.RESIDUALS, inlier, median_px)
         # the pixel noise as the residuals estimate it (the a-posteriori variance factor), times the user's scale
         cov = cov * factor * c.covariance_scale
-        return LocalizationEstimate(T, cov, len(li), li, inlier, S.LOCALIZED, median_px)
+        return LocalizationEstimate(T, cov, len(li), li, inlier, LocalizationStatus.LOCALIZED, median_px)
 
     def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
                 T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:

@@ -127,7 +127,7 @@ class Repeat:
         self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
-        self.locator = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
+        self.chain_localizer = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
                                       config.place, config.run.seed)
         self.latest: Localization | None = None
         self._leaf: int | None = None            # map id of the newest repeat vertex
@@ -284,7 +284,7 @@ class Repeat:
         current = {leaf: window[k] for leaf, k in self._kf_of_leaf.items() if k in window}
         self._kf_of_leaf = {leaf: k for leaf, k in self._kf_of_leaf.items() if k in window}
         self.submaps.set_leaf(kf.frame)
-        attempt = self.locator.localize(leaf_id, kf, broken, current)
+        attempt = self.chain_localizer.localize(leaf_id, kf, broken, current)
         est = attempt.estimate
         trunk_id = int(c.path.ids[attempt.trunk])
         covariance = est.covariance
