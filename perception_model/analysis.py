@@ -50,8 +50,9 @@ def trend_1d(x_deg: np.ndarray, y: np.ndarray, width: float, min_count: int) -> 
     f = k[keep] / n[keep]
     centre = (keep + 0.5) * width
     out = _steps(f, n[keep])
-    out.update(bins=int(keep.size), centre_deg=centre.round(2).tolist(), frequency=f.round(4).tolist(),
-               count=n[keep].tolist())
+    out.update(
+        bins=int(keep.size), centre_deg=centre.round(2).tolist(), frequency=f.round(4).tolist(), count=n[keep].tolist()
+    )
     out["spearman_rho"] = float(spearmanr(centre, f).statistic) if keep.size >= 3 else math.nan
     return out
 
@@ -63,9 +64,12 @@ def _steps(f: np.ndarray, n: np.ndarray) -> dict[str, Any]:
     se = np.sqrt(f * (1 - f) / n)
     se_d = np.sqrt(se[1:] ** 2 + se[:-1] ** 2)
     se_d = np.maximum(se_d, 1e-12)
-    return {"steps": int(d.size), "steps_down": int((d < 0).sum()),
-            "significant_up": int((d > SIGNIFICANT_SE * se_d).sum()),
-            "significant_down": int((d < -SIGNIFICANT_SE * se_d).sum())}
+    return {
+        "steps": int(d.size),
+        "steps_down": int((d < 0).sum()),
+        "significant_up": int((d > SIGNIFICANT_SE * se_d).sum()),
+        "significant_down": int((d < -SIGNIFICANT_SE * se_d).sum()),
+    }
 
 
 def trend_within(count: np.ndarray, inl: np.ndarray, axis: int, min_count: int) -> dict[str, Any]:
@@ -106,8 +110,12 @@ def monotonic_checks(obs: Any) -> dict[str, Any]:
         m, w = out[f"{name}_marginal"], out[f"{name}_within_{'theta' if name == 'alpha' else 'alpha'}_bands"]
         # falls: negative rank correlation over bins, more significant falls than rises, and a negative mean
         # step with the other angle held to one band; monotone: in addition no significant rise at all
-        out[f"{name}_falls"] = bool(m["spearman_rho"] < 0 and m["significant_down"] > m["significant_up"]
-                                    and w["mean_step"] < 0 and w["significant_down"] > w["significant_up"])
+        out[f"{name}_falls"] = bool(
+            m["spearman_rho"] < 0
+            and m["significant_down"] > m["significant_up"]
+            and w["mean_step"] < 0
+            and w["significant_down"] > w["significant_up"]
+        )
         out[f"{name}_monotone"] = bool(out[f"{name}_falls"] and m["significant_up"] == 0)
     return out
 
@@ -115,8 +123,10 @@ def monotonic_checks(obs: Any) -> dict[str, Any]:
 def fit_summary(res: Any, obs_train_rate: float, caught: list[str]) -> dict[str, Any]:
     """The numbers of one fit: constants with intervals and correlations, whether they are well determined,
     R², log-loss (training, held out, constant predictor), the signs of the slopes, warnings caught."""
-    c = {ci.name: {"estimate": ci.estimate, "low": ci.low, "high": ci.high, "std_err": ci.std_err}
-         for ci in res.intervals}
+    c = {
+        ci.name: {"estimate": ci.estimate, "low": ci.low, "high": ci.high, "std_err": ci.std_err}
+        for ci in res.intervals
+    }
     cov = np.asarray(res.covariance)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -176,10 +186,12 @@ def analyse(name: str, files: list[Path], out: Path, seed: int) -> dict[str, Any
         "n_localizations": d["n_localizations"],
         "inlier_rate": d["n_inliers"] / max(d["n_observations"], 1),
         "alpha_theta_correlation": float(np.corrcoef(a_deg, t_deg)[0, 1]),
-        "alpha_deg_percentiles": dict(zip(map(str, PERCENTILES), np.percentile(a_deg, PERCENTILES).round(3).tolist(),
-                                          strict=True)),
-        "theta_deg_percentiles": dict(zip(map(str, PERCENTILES), np.percentile(t_deg, PERCENTILES).round(3).tolist(),
-                                          strict=True)),
+        "alpha_deg_percentiles": dict(
+            zip(map(str, PERCENTILES), np.percentile(a_deg, PERCENTILES).round(3).tolist(), strict=True)
+        ),
+        "theta_deg_percentiles": dict(
+            zip(map(str, PERCENTILES), np.percentile(t_deg, PERCENTILES).round(3).tolist(), strict=True)
+        ),
         "monotonic": monotonic_checks(obs),
         "fits": {},
     }
@@ -211,18 +223,24 @@ def _fmt_c(c: dict[str, float], at_bound: bool, digits: int = 4) -> str:
 def table(results: list[dict[str, Any]]) -> str:
     """A compact text report of :func:`analyse` summaries (with ``mu_check`` rows when present)."""
     lines = []
-    hdr = (f"{'set':9s} {'n obs':>7s} {'inl%':>5s} {'alpha deg p5/50/95/max':>23s} "
-           f"{'theta deg p5/50/95/max':>23s}  corr(alpha, theta)")
+    hdr = (
+        f"{'set':9s} {'n obs':>7s} {'inl%':>5s} {'alpha deg p5/50/95/max':>23s} "
+        f"{'theta deg p5/50/95/max':>23s}  corr(alpha, theta)"
+    )
     lines.append(hdr)
     for r in results:
         a, t = r["alpha_deg_percentiles"], r["theta_deg_percentiles"]
-        lines.append(f"{r['dataset']:9s} {r['n_observations']:7d} {100 * r['inlier_rate']:5.1f} "
-                     f"{a['5']:5.1f}/{a['50']:4.1f}/{a['95']:4.1f}/{a['100']:5.1f}   "
-                     f"{t['5']:5.1f}/{t['50']:4.1f}/{t['95']:4.1f}/{t['100']:5.1f}   "
-                     f"{r['alpha_theta_correlation']:+.2f}")
+        lines.append(
+            f"{r['dataset']:9s} {r['n_observations']:7d} {100 * r['inlier_rate']:5.1f} "
+            f"{a['5']:5.1f}/{a['50']:4.1f}/{a['95']:4.1f}/{a['100']:5.1f}   "
+            f"{t['5']:5.1f}/{t['50']:4.1f}/{t['95']:4.1f}/{t['100']:5.1f}   "
+            f"{r['alpha_theta_correlation']:+.2f}"
+        )
     lines.append("")
-    lines.append(f"{'set':9s} {'fit':6s} {'c1 [95% CI]':>26s} {'c2 [95% CI] /deg':>26s} {'c3 [95% CI] /deg':>26s} "
-                 f"{'R2':>6s} {'LL':>6s} {'LLho':>6s} {'LL0':>6s}  d/dalpha d/dtheta   determined")
+    lines.append(
+        f"{'set':9s} {'fit':6s} {'c1 [95% CI]':>26s} {'c2 [95% CI] /deg':>26s} {'c3 [95% CI] /deg':>26s} "
+        f"{'R2':>6s} {'LL':>6s} {'LLho':>6s} {'LL0':>6s}  d/dalpha d/dtheta   determined"
+    )
     for r in results:
         for method in ("binned", "mle"):
             f = r["fits"].get(method)
@@ -232,37 +250,56 @@ def table(results: list[dict[str, Any]]) -> str:
                 lines.append(f"{r['dataset']:9s} {method:6s} error: {f['error']}")
                 continue
             c = f["c"]
-            sa = ("<0*" if f["falls_with_parallax_significant"] else "<0" if f["falls_with_parallax"] else ">=0")
-            st = ("=0 (bound)" if "c2" in f["at_bound"] else "<0*" if f["falls_with_view_angle_significant"]
-                  else "<0" if f["falls_with_view_angle"] else ">=0")
+            sa = "<0*" if f["falls_with_parallax_significant"] else "<0" if f["falls_with_parallax"] else ">=0"
+            st = (
+                "=0 (bound)"
+                if "c2" in f["at_bound"]
+                else "<0*"
+                if f["falls_with_view_angle_significant"]
+                else "<0"
+                if f["falls_with_view_angle"]
+                else ">=0"
+            )
             det = "yes" if f["well_determined"] else "weak: " + ",".join(f["weakly_determined"])
-            lines.append(f"{r['dataset']:9s} {method:6s} "
-                         + " ".join(_fmt_c(c[k], k in f["at_bound"]) for k in ("c1", "c2", "c3"))
-                         + f" "
-                         f"{f['r2_binned']:6.3f} {f['log_loss']:6.3f} {f['holdout_log_loss']:6.3f} "
-                         f"{f['holdout_base_rate_log_loss']:6.3f}  {sa:8s} {st:10s} {det}")
+            lines.append(
+                f"{r['dataset']:9s} {method:6s} "
+                + " ".join(_fmt_c(c[k], k in f["at_bound"]) for k in ("c1", "c2", "c3"))
+                + f" "
+                f"{f['r2_binned']:6.3f} {f['log_loss']:6.3f} {f['holdout_log_loss']:6.3f} "
+                f"{f['holdout_base_rate_log_loss']:6.3f}  {sa:8s} {st:10s} {det}"
+            )
     lines.append("")
-    lines.append(f"{'set':9s} {'trend of binned frequency':28s} {'rho':>6s} {'down/steps':>10s} {'sig up/down':>11s} "
-                 f"{'within-band down/steps':>22s} {'sig up/down':>11s} {'mean step':>9s}  falls monotone")
+    lines.append(
+        f"{'set':9s} {'trend of binned frequency':28s} {'rho':>6s} {'down/steps':>10s} {'sig up/down':>11s} "
+        f"{'within-band down/steps':>22s} {'sig up/down':>11s} {'mean step':>9s}  falls monotone"
+    )
     for r in results:
         m = r["monotonic"]
         for name, other in (("alpha", "theta"), ("theta", "alpha")):
             mg, wb = m[f"{name}_marginal"], m[f"{name}_within_{other}_bands"]
-            lines.append(f"{r['dataset']:9s} {'over ' + name + ' bins':28s} {mg['spearman_rho']:6.2f} "
-                         f"{mg['steps_down']:4d}/{mg['steps']:<5d} "
-                         f"{mg['significant_up']:5d}/{mg['significant_down']:<5d} "
-                         f"{wb['steps_down']:16d}/{wb['steps']:<5d} "
-                         f"{wb['significant_up']:5d}/{wb['significant_down']:<5d} "
-                         f"{wb['mean_step']:+9.4f}  {m[f'{name}_falls']!s:5s} {m[f'{name}_monotone']}")
+            lines.append(
+                f"{r['dataset']:9s} {'over ' + name + ' bins':28s} {mg['spearman_rho']:6.2f} "
+                f"{mg['steps_down']:4d}/{mg['steps']:<5d} "
+                f"{mg['significant_up']:5d}/{mg['significant_down']:<5d} "
+                f"{wb['steps_down']:16d}/{wb['steps']:<5d} "
+                f"{wb['significant_up']:5d}/{wb['significant_down']:<5d} "
+                f"{wb['mean_step']:+9.4f}  {m[f'{name}_falls']!s:5s} {m[f'{name}_monotone']}"
+            )
     lines.append("")
-    lines.append(f"{'set':9s} {'repeat':18s} {'n':>3s} {'mu (map, MLE fit)':>17s} {'sigma':>6s} "
-                 f"{'inliers observed':>16s} {'in view map/obs':>16s}   (medians per localization)")
+    lines.append(
+        f"{'set':9s} {'repeat':18s} {'n':>3s} {'mu (map, MLE fit)':>17s} {'sigma':>6s} "
+        f"{'inliers observed':>16s} {'in view map/obs':>16s}   (medians per localization)"
+    )
     for r in results:
         for c in r.get("mu_check", []):
-            lines.append(f"{r['dataset']:9s} {c['run']:18s} {c['positions']:3d} {c['predicted_mu_median']:17.0f} "
-                         f"{c['predicted_sigma_median']:6.1f} {c['observed_inliers_median']:16.0f} "
-                         f"{c['in_view_median_map']:8.0f}/{c['in_view_median_observed']:<7.0f}")
-    lines.append("(R2: count-weighted over (alpha, theta) bins of the training data; LL: log-loss training / held out "
-                 "/ constant predictor on the held-out data; d/dalpha, d/dtheta: sign of the model's slope, "
-                 "* = CI excludes 0; steps between adjacent bins of >= 10 observations, sig = beyond 2 s.e.)")
+            lines.append(
+                f"{r['dataset']:9s} {c['run']:18s} {c['positions']:3d} {c['predicted_mu_median']:17.0f} "
+                f"{c['predicted_sigma_median']:6.1f} {c['observed_inliers_median']:16.0f} "
+                f"{c['in_view_median_map']:8.0f}/{c['in_view_median_observed']:<7.0f}"
+            )
+    lines.append(
+        "(R2: count-weighted over (alpha, theta) bins of the training data; LL: log-loss training / held out "
+        "/ constant predictor on the held-out data; d/dalpha, d/dtheta: sign of the model's slope, "
+        "* = CI excludes 0; steps between adjacent bins of >= 10 observations, sig = beyond 2 s.e.)"
+    )
     return "\n".join(lines)

@@ -53,9 +53,7 @@ def angle_between(u: ArrayLike, v: ArrayLike, *, on_degenerate: Degenerate = "na
     return ang
 
 
-def parallax_angle(
-    p_is: ArrayLike, p_ao: ArrayLike, *, on_degenerate: Degenerate = "nan"
-) -> NDArray[np.float64]:
+def parallax_angle(p_is: ArrayLike, p_ao: ArrayLike, *, on_degenerate: Degenerate = "nan") -> NDArray[np.float64]:
     """Parallax angle ``alpha = angle(-p_is, -p_is + p_ao)`` in radians, in [0, pi].
 
     ``p_is`` (taught camera -> landmark) and ``p_ao`` (taught camera -> current camera) are
@@ -95,9 +93,7 @@ def optical_axis(yaw: ArrayLike, pitch_down: float = THESIS_PITCH_DOWN_RAD) -> N
     return np.stack([np.cos(psi) * cb, np.sin(psi) * cb, np.full_like(psi, -sb)], axis=-1)
 
 
-def optical_axis_yaw_derivative(
-    yaw: ArrayLike, pitch_down: float = THESIS_PITCH_DOWN_RAD
-) -> NDArray[np.float64]:
+def optical_axis_yaw_derivative(yaw: ArrayLike, pitch_down: float = THESIS_PITCH_DOWN_RAD) -> NDArray[np.float64]:
     """Derivative ``dz/dyaw = [-sin(yaw) cos(b), cos(yaw) cos(b), 0]`` of ``optical_axis``."""
     psi = np.asarray(yaw, dtype=np.float64)
     cb = np.cos(pitch_down)

@@ -33,8 +33,14 @@ __all__ = ["OneLineGroup", "existing_output", "force_option", "version_option"]
 class OneLineGroup(click.Group):
     """A click group whose usage errors are one line and exit code 1 (click's own: three lines, exit 2)."""
 
-    def main(self, args: Any = None, prog_name: str | None = None, complete_var: str | None = None,
-             standalone_mode: bool = True, **extra: Any) -> Any:
+    def main(
+        self,
+        args: Any = None,
+        prog_name: str | None = None,
+        complete_var: str | None = None,
+        standalone_mode: bool = True,
+        **extra: Any,
+    ) -> Any:
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         try:

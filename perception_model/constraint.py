@@ -49,7 +49,7 @@ class ConstraintEvaluation:
     radian); ``None`` when not requested (or, for yaw, when explicit axes were given).
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     p: NDArray[np.float64]
     mu: NDArray[np.float64]
@@ -73,7 +73,7 @@ class Linearization:
     For one SQP step of an MPC: impose ``value_k + grad_k . (y_k - y0_k) >= 0`` for each step k.
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     kind: str
     positions: NDArray[np.float64]
@@ -132,9 +132,7 @@ POLY_DERIV_TOL_FACTOR = 100.0
 _POLY_CHECK_POINTS = 4001
 
 
-def _view_exact(
-    s: NDArray[np.float64], c1: float, c2r: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _view_exact(s: NDArray[np.float64], c1: float, c2r: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Exact ``c1 cos(c2 theta)`` and its derivative w.r.t. ``s = 2 - 2 cos(theta)``."""
     theta = 2.0 * np.arcsin(np.minimum(np.sqrt(np.maximum(s, 0.0)) * 0.5, 1.0))
     value = c1 * np.cos(c2r * theta)
@@ -153,9 +151,7 @@ def _build_view_factor(c1: float, c2r: float, s_cut: float) -> _ViewFactor | Non
     exact, exact_d = _view_exact(grid, c1, c2r)
     interior = grid > 0.0
     for degree in range(4, POLY_MAX_DEGREE + 1):
-        cheb = chebyshev.Chebyshev.interpolate(
-            lambda t: _view_exact(t, c1, c2r)[0], degree, domain=[0.0, s_max]
-        )
+        cheb = chebyshev.Chebyshev.interpolate(lambda t: _view_exact(t, c1, c2r)[0], degree, domain=[0.0, s_max])
         coef = chebyshev.cheb2poly(cheb.coef)
         dcoef = polynomial.polyder(coef) * k1
         x = grid * k1 + k0
@@ -167,9 +163,7 @@ def _build_view_factor(c1: float, c2r: float, s_cut: float) -> _ViewFactor | Non
     return None
 
 
-def _horner(
-    coefs: tuple[float, ...], x: NDArray[np.float64], out: NDArray[np.float64]
-) -> NDArray[np.float64]:
+def _horner(coefs: tuple[float, ...], x: NDArray[np.float64], out: NDArray[np.float64]) -> NDArray[np.float64]:
     """Evaluate a polynomial (highest power first) at ``x`` into ``out`` (in place, no temporaries)."""
     if len(coefs) == 1:
         out.fill(coefs[0])
@@ -186,8 +180,12 @@ def check_bounds(l_min: float, c_bar: float) -> None:
     """``PerceptionModelError`` unless ``l_min`` (an inlier count) and ``c_bar`` (a normal quantile) are finite
     and non-negative: a negative one turns the chance constraint into one that any pose satisfies."""
     for name, v in (("l_min", l_min), ("c_bar", c_bar)):
-        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating) \
-                or not math.isfinite(float(v)) or v < 0:
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, int | float | np.integer | np.floating)
+            or not math.isfinite(float(v))
+            or v < 0
+        ):
             raise PerceptionModelError(f"{name} must be a finite number >= 0, got {v!r}")
 
 
@@ -219,9 +217,7 @@ class PerceptionConstraint:
             raise GeometryError("landmarks contain NaN/inf")
         dist = np.linalg.norm(pts, axis=1)
         if np.any(dist == 0.0):
-            raise GeometryError(
-                f"landmark {int(np.argmax(dist == 0.0))} is at the taught camera (parallax undefined)"
-            )
+            raise GeometryError(f"landmark {int(np.argmax(dist == 0.0))} is at the taught camera (parallax undefined)")
         if not (math.isfinite(c_bar) and math.isfinite(l_min) and math.isfinite(pitch_down)):
             raise PerceptionModelError("c_bar, l_min and pitch_down must be finite")
         check_bounds(l_min, c_bar)
@@ -516,9 +512,7 @@ class PerceptionConstraint:
             raise PerceptionModelError(f"unknown constraint kind {kind!r} (use 'normal' or 'conservative')")
         ev = self.evaluate(positions, yaw, axes=axes, gradient=True)
         x = self._positions(positions).copy()
-        psi = (
-            None if yaw is None else np.broadcast_to(np.asarray(yaw, dtype=np.float64), (x.shape[0],)).copy()
-        )
+        psi = None if yaw is None else np.broadcast_to(np.asarray(yaw, dtype=np.float64), (x.shape[0],)).copy()
         if kind == "normal":
             value, gpos, gyaw = ev.g, ev.dg_dpos, ev.dg_dyaw
         else:

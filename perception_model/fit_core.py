@@ -114,13 +114,19 @@ def make_model(
     except PerceptionModelError as err:
         raise FitError(f"{source}: the fit gave unusable constants {c.tolist()} ({err})") from None
     if not converged:
-        warnings.warn(
-            f"{source}: the optimizer did not converge ({message})", PerceptionModelWarning, stacklevel=3
-        )
+        warnings.warn(f"{source}: the optimizer did not converge ({message})", PerceptionModelWarning, stacklevel=3)
     for problem in model.range_problems():
         warnings.warn(f"{source}: fitted model: {problem}", PerceptionModelWarning, stacklevel=3)
     return model
 
 
-__all__ = ["C1_BOUND_RTOL", "C1_FLOOR", "initial_constants", "make_model", "prob_and_jac", "safe_inverse",
-           "snap_c1", "wald_intervals"]
+__all__ = [
+    "C1_BOUND_RTOL",
+    "C1_FLOOR",
+    "initial_constants",
+    "make_model",
+    "prob_and_jac",
+    "safe_inverse",
+    "snap_c1",
+    "wald_intervals",
+]

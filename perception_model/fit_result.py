@@ -147,8 +147,11 @@ class FitResult:
     def unidentifiable(self) -> tuple[str, ...]:
         """The constants these data cannot determine (no finite standard error, or one standard error changes the
         model by more than :data:`MAX_IDENTIFIABLE_EFFECT` over the data's angle range)."""
-        return tuple(name for name, e in self.effect_of_one_std_err().items()
-                     if not math.isfinite(e) or e > MAX_IDENTIFIABLE_EFFECT)
+        return tuple(
+            name
+            for name, e in self.effect_of_one_std_err().items()
+            if not math.isfinite(e) or e > MAX_IDENTIFIABLE_EFFECT
+        )
 
     def check_identified(self, source: str) -> FitResult:
         """This result, or ``FitError`` naming every constant the data cannot determine (a degenerate fit is not a
@@ -158,16 +161,21 @@ class FitResult:
             return self
         effect = self.effect_of_one_std_err()
         by = {c.name: c for c in self.intervals}
-        angles = (f"parallax up to {math.degrees(self.model.alpha_max):.3g} deg, view up to "
-                  f"{math.degrees(self.model.theta_max):.3g} deg")
+        angles = (
+            f"parallax up to {math.degrees(self.model.alpha_max):.3g} deg, view up to "
+            f"{math.degrees(self.model.theta_max):.3g} deg"
+        )
         if not all(math.isfinite(effect[n]) for n in bad):
             why = f"the fit's matrix is singular: no standard errors; {angles}"
         else:
             why = "; ".join(f"{n} = {by[n].estimate:+.3g}, standard error {by[n].std_err:.2g}" for n in bad) + (
                 f": one standard error changes the model by more than {MAX_IDENTIFIABLE_EFFECT:g} over the data's "
-                f"angles, {angles}")
-        raise FitError(f"{source}: the data cannot identify {', '.join(bad)} ({why}): not a result; collect "
-                       "observations over a wider range of angles")
+                f"angles, {angles}"
+            )
+        raise FitError(
+            f"{source}: the data cannot identify {', '.join(bad)} ({why}): not a result; collect "
+            "observations over a wider range of angles"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary for the model file's ``fit`` section."""
@@ -196,5 +204,13 @@ class FitResult:
         return out
 
 
-__all__ = ["C1_MAX", "CONSTANT_NAMES", "MAX_IDENTIFIABLE_EFFECT", "BinnedFrequencies", "CalibrationBin",
-           "ConstantInterval", "Evaluation", "FitResult"]
+__all__ = [
+    "C1_MAX",
+    "CONSTANT_NAMES",
+    "MAX_IDENTIFIABLE_EFFECT",
+    "BinnedFrequencies",
+    "CalibrationBin",
+    "ConstantInterval",
+    "Evaluation",
+    "FitResult",
+]

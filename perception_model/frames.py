@@ -17,15 +17,17 @@ from .errors import GeometryError
 #: ``T_vehicle_camera`` of a level, forward-looking camera (x right, y down, z forward) at the centre of a vehicle
 #: whose frame is FLU (x forward, y left, z up): vehicle x = camera z, y = -camera x, z = -camera y. The one
 #: statement of the "level camera" convention; the identity ``T_vehicle_sensor`` of a source (KITTI) means it.
-T_VEHICLE_LEVEL_CAMERA = np.array([[0.0, 0.0, 1.0, 0.0],
-                                   [-1.0, 0.0, 0.0, 0.0],
-                                   [0.0, -1.0, 0.0, 0.0],
-                                   [0.0, 0.0, 0.0, 1.0]])
+T_VEHICLE_LEVEL_CAMERA = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
 T_VEHICLE_LEVEL_CAMERA.flags.writeable = False
 #: Gravity up in a level camera's coordinates (the vehicle's z seen from the camera: its -y); the map frame's up
 #: when the first teach camera was level.
-LEVEL_CAMERA_UP: tuple[float, float, float] = (float(T_VEHICLE_LEVEL_CAMERA[2, 0]), float(T_VEHICLE_LEVEL_CAMERA[2, 1]),
-                                               float(T_VEHICLE_LEVEL_CAMERA[2, 2]))
+LEVEL_CAMERA_UP: tuple[float, float, float] = (
+    float(T_VEHICLE_LEVEL_CAMERA[2, 0]),
+    float(T_VEHICLE_LEVEL_CAMERA[2, 1]),
+    float(T_VEHICLE_LEVEL_CAMERA[2, 2]),
+)
 
 UP = np.array([0.0, 0.0, 1.0])
 #: A horizontal direction shorter than this (unit vectors) has no heading.

@@ -38,7 +38,7 @@ class TrunkLandmarks:
     pitch below the horizon (used for yaw-defined axes).
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     vertex_id: int
     position_g: NDArray[np.float64]
@@ -52,7 +52,7 @@ class TrunkLandmarks:
 class HorizonEvaluation:
     """Values (N,) and gradients of the constraint along a horizon (gradients in frame g)."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     trunk: NDArray[np.int64]  # index of each step's trunk in the evaluator
     mu: NDArray[np.float64]
@@ -169,8 +169,9 @@ class HorizonEvaluator:
             raise GeometryError("positions: an empty horizon (shape (0, 3)); give at least one step")
         trunk_a = np.asarray(trunk)
         if trunk_a.dtype.kind not in "iu" or trunk_a.shape not in ((), (n,)):
-            raise PerceptionModelError(f"trunk must be integer indices of shape ({n},), got {trunk_a.dtype} "
-                                       f"{trunk_a.shape}")
+            raise PerceptionModelError(
+                f"trunk must be integer indices of shape ({n},), got {trunk_a.dtype} {trunk_a.shape}"
+            )
         tr = np.broadcast_to(trunk_a.astype(np.int64), (n,))
         if tr.min() < 0 or tr.max() >= len(self.trunks):
             raise PerceptionModelError(f"trunk indices must be in [0, {len(self.trunks)})")
@@ -209,10 +210,25 @@ class HorizonEvaluator:
         poly = np.asarray(view.value if view else (), dtype=np.float64)
         dpoly = np.asarray(view.deriv if view else (), dtype=np.float64)
         bad = _kernel().horizon_moments(
-            X, np.ascontiguousarray(z), np.ascontiguousarray(tr), self._P, self._U, self.counts,
-            self._c1, self._c2r, self._c3r, self._s_cut, poly, dpoly,
-            view.k1 if view else 1.0, view.k0 if view else 0.0, view.s_max if view else 0.0,
-            gradient, mu, var, grads,
+            X,
+            np.ascontiguousarray(z),
+            np.ascontiguousarray(tr),
+            self._P,
+            self._U,
+            self.counts,
+            self._c1,
+            self._c2r,
+            self._c3r,
+            self._s_cut,
+            poly,
+            dpoly,
+            view.k1 if view else 1.0,
+            view.k0 if view else 0.0,
+            view.s_max if view else 0.0,
+            gradient,
+            mu,
+            var,
+            grads,
         )
         if bad >= 0:
             raise GeometryError(f"step {bad}: the camera coincides with a landmark (angles undefined)")
@@ -227,8 +243,9 @@ class HorizonEvaluator:
             return HorizonEvaluation(tr.copy(), mu, sigma, g, gc, flag, distance_m=distance)
         k_sigma = np.divide(0.5, sigma, out=np.zeros_like(sigma), where=sigma > 0.0)
         root = np.sqrt(mu)
-        k_sqrt = np.where(root > 0.0, 1.0 - np.divide(0.5 * self.c_bar, root, out=np.zeros_like(mu),
-                                                      where=root > 0.0), 0.0)
+        k_sqrt = np.where(
+            root > 0.0, 1.0 - np.divide(0.5 * self.c_bar, root, out=np.zeros_like(mu), where=root > 0.0), 0.0
+        )
         dmu_o, dsig_o = grads[0], grads[1] * k_sigma[:, None]
         dg_o = dmu_o - self.c_bar * dsig_o
         dgc_o = dmu_o * k_sqrt[:, None]
@@ -249,12 +266,32 @@ class HorizonEvaluator:
             dgc_dyaw = np.einsum("nk,nk->n", dgc_ax_o, dz)
             dmu_dyaw = np.einsum("nk,nk->n", dax_mu, dz)
         return HorizonEvaluation(
-            tr.copy(), mu, sigma, g, gc, flag,
-            dg_dpos=to_g(dg_o), dgc_dpos=to_g(dgc_o), dg_dyaw=dg_dyaw, dgc_dyaw=dgc_dyaw,
-            dg_daxis=to_g(dg_ax_o), dgc_daxis=to_g(dgc_ax_o), dmu_dpos=to_g(dmu_o), dsigma_dpos=to_g(dsig_o),
-            dmu_dyaw=dmu_dyaw, dmu_daxis=to_g(dax_mu), distance_m=distance,
+            tr.copy(),
+            mu,
+            sigma,
+            g,
+            gc,
+            flag,
+            dg_dpos=to_g(dg_o),
+            dgc_dpos=to_g(dgc_o),
+            dg_dyaw=dg_dyaw,
+            dgc_dyaw=dgc_dyaw,
+            dg_daxis=to_g(dg_ax_o),
+            dgc_daxis=to_g(dgc_ax_o),
+            dmu_dpos=to_g(dmu_o),
+            dsigma_dpos=to_g(dsig_o),
+            dmu_dyaw=dmu_dyaw,
+            dmu_daxis=to_g(dax_mu),
+            distance_m=distance,
         )
 
 
-__all__ = ["EMPTY_TRUNK", "NO_LANDMARK_IN_VIEW", "OFF_ROUTE", "OK", "HorizonEvaluation", "HorizonEvaluator",
-           "TrunkLandmarks"]
+__all__ = [
+    "EMPTY_TRUNK",
+    "NO_LANDMARK_IN_VIEW",
+    "OFF_ROUTE",
+    "OK",
+    "HorizonEvaluation",
+    "HorizonEvaluator",
+    "TrunkLandmarks",
+]

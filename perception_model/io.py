@@ -41,6 +41,7 @@ class _Table:
     def where(self, k: int) -> str:
         return f"{self.path}, line {self.lines[k]}"
 
+
 #: a path position farther than this from the frame origin (m) is a unit or data error
 MAX_POSITION_M = 1e7
 
@@ -60,9 +61,7 @@ def _read_table(path: Path, required: Sequence[str]) -> _Table:
             check_unique_columns(path, names)
             missing = [c for c in required if c not in names]
             if missing:
-                raise InputDataError(
-                    f"{path}: missing column(s) {', '.join(missing)} (header has: {', '.join(names)})"
-                )
+                raise InputDataError(f"{path}: missing column(s) {', '.join(missing)} (header has: {', '.join(names)})")
             index = {name: names.index(name) for name in names}
             cols: dict[str, list[str]] = {name: [] for name in names}
             lines: list[int] = []
@@ -151,8 +150,9 @@ def read_positions(path: str | Path) -> PathPositions:
     far = np.abs(xyz).max(axis=1) > MAX_POSITION_M
     if far.any():
         k = int(np.argmax(far))
-        raise InputDataError(f"{table.where(k)}: position {xyz[k].tolist()} is beyond {MAX_POSITION_M:g} m "
-                             "(metres expected)")
+        raise InputDataError(
+            f"{table.where(k)}: position {xyz[k].tolist()} is beyond {MAX_POSITION_M:g} m (metres expected)"
+        )
     yaw = None
     if "yaw" in table.names:
         yaw = _finite_matrix(table, ("yaw",))[:, 0]

@@ -125,9 +125,7 @@ class LandmarksWriter:
     def __enter__(self) -> LandmarksWriter:
         return self
 
-    def __exit__(
-        self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None, tb: TracebackType | None) -> None:
         self.close()
 
 
@@ -159,8 +157,9 @@ def check_unique_columns(path: Path, names: Sequence[str]) -> None:
     seen: dict[str, int] = {}
     for k, name in enumerate(names):
         if name in seen:
-            raise InputDataError(f"{path}: column {name!r} appears twice in the header (columns {seen[name] + 1} "
-                                 f"and {k + 1})")
+            raise InputDataError(
+                f"{path}: column {name!r} appears twice in the header (columns {seen[name] + 1} and {k + 1})"
+            )
         seen[name] = k
 
 
@@ -304,9 +303,7 @@ def _read_csv_strict(path: Path, fields: tuple[str, ...]) -> Observations:
                         try:
                             bufs[name].append(int(v))
                         except (ValueError, OverflowError):
-                            raise InputDataError(
-                                f"{path}, line {line}: column {name}: not an integer: {v!r}"
-                            ) from None
+                            raise InputDataError(f"{path}, line {line}: column {name}: not an integer: {v!r}") from None
                     elif kind == "bool":
                         low = v.lower()
                         if low in TRUE_WORDS:

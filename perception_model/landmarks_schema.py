@@ -81,7 +81,7 @@ class Observations:
     ranges back to files.
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     alpha: NDArray[np.float64]
     theta: NDArray[np.float64]
@@ -158,9 +158,7 @@ class Observations:
             "parallax_deg_range": [float(np.degrees(self.alpha.min())), float(np.degrees(self.alpha.max()))]
             if n
             else None,
-            "view_deg_range": [float(np.degrees(self.theta.min())), float(np.degrees(self.theta.max()))]
-            if n
-            else None,
+            "view_deg_range": [float(np.degrees(self.theta.min())), float(np.degrees(self.theta.max()))] if n else None,
         }
 
     @staticmethod

@@ -79,8 +79,7 @@ def _lsq_binned(binned: BinnedFrequencies, k: float, x0: NDArray[np.float64]) ->
     )  # fmt: skip
 
 
-def _solve(binned: BinnedFrequencies, settings: FitSettings, initial: ArrayLike | None,
-           source: str) -> _BinnedSolution:
+def _solve(binned: BinnedFrequencies, settings: FitSettings, initial: ArrayLike | None, source: str) -> _BinnedSolution:
     """The constants of the bins (at least ``MIN_FIT_BINS`` used ones), c1 snapped to its bound when there."""
     spec = settings.bins
     if binned.count.size < MIN_FIT_BINS:
@@ -93,18 +92,31 @@ def _solve(binned: BinnedFrequencies, settings: FitSettings, initial: ArrayLike 
     res = _lsq_binned(binned, k, x0)
     c, c1_at_bound = snap_c1(res.x, bool(res.active_mask[0] == 1))
     p_bins, jac = prob_and_jac(c, binned.alpha * k, binned.theta * k, 0.0, 1.0)
-    return _BinnedSolution(c, c1_at_bound, bool(res.success), str(res.message), p_bins, jac,
-                           binned.count.astype(np.float64), binned.frequency)
+    return _BinnedSolution(
+        c,
+        c1_at_bound,
+        bool(res.success),
+        str(res.message),
+        p_bins,
+        jac,
+        binned.count.astype(np.float64),
+        binned.frequency,
+    )
 
 
 def _bins_report(spec: BinSpec, angle_unit: str) -> dict[str, Any]:
     k = UNIT_SCALE[angle_unit]
-    return {"alpha_width": spec.alpha_width * k, "theta_width": spec.theta_width * k, "min_count": spec.min_count,
-            "unit": angle_unit}
+    return {
+        "alpha_width": spec.alpha_width * k,
+        "theta_width": spec.theta_width * k,
+        "min_count": spec.min_count,
+        "unit": angle_unit,
+    }
 
 
-def fit_binned(samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *,
-               initial: ArrayLike | None = None) -> FitResult:
+def fit_binned(
+    samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *, initial: ArrayLike | None = None
+) -> FitResult:
     """Thesis protocol on samples held in memory: weighted least squares of the model to per-bin frequencies.
 
     Constants returned for ``settings.angle_unit``, bins ``settings.bins``; ``settings.ci="sandwich"`` gives
@@ -119,8 +131,15 @@ def fit_binned(samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *,
     else:  # "sandwich"
         cov = sol.sandwich()
         intervals = wald_intervals(sol.c, cov, settings.confidence)
-    model = make_model(sol.c, settings.angle_unit, float(samples.alpha.max()), float(samples.theta.max()),
-                       samples.source, sol.success, sol.message)
+    model = make_model(
+        sol.c,
+        settings.angle_unit,
+        float(samples.alpha.max()),
+        float(samples.theta.max()),
+        samples.source,
+        sol.success,
+        sol.message,
+    )
     return FitResult(
         model=model,
         method="binned",
@@ -141,8 +160,9 @@ def fit_binned(samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *,
     )
 
 
-def _bootstrap(samples: Samples, settings: FitSettings,
-               c: NDArray[np.float64]) -> tuple[NDArray[np.float64], tuple[ConstantInterval, ...]]:
+def _bootstrap(
+    samples: Samples, settings: FitSettings, c: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], tuple[ConstantInterval, ...]]:
     """Covariance and percentile intervals of the constants over ``settings.n_bootstrap`` resamples."""
     check_bootstrap(settings.n_bootstrap)
     k = UNIT_SCALE[settings.angle_unit]
@@ -168,8 +188,9 @@ def _bootstrap(samples: Samples, settings: FitSettings,
     return cov, intervals
 
 
-def fit_binned_stream(chunks: Chunks, settings: FitSettings = DEFAULT_SETTINGS, *, source: str,
-                      initial: ArrayLike | None = None) -> FitResult:
+def fit_binned_stream(
+    chunks: Chunks, settings: FitSettings = DEFAULT_SETTINGS, *, source: str, initial: ArrayLike | None = None
+) -> FitResult:
     """``fit_binned`` (sandwich intervals) over samples that need not fit in memory together.
 
     ``chunks()`` returns a fresh iterable of :class:`Samples` (e.g. one per landmarks file); it is iterated

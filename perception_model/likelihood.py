@@ -54,9 +54,7 @@ def neg_log_likelihood(
     return -total / n, grad / n
 
 
-def fisher_information(
-    c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64]
-) -> NDArray[np.float64]:
+def fisher_information(c: ArrayLike, a_u: NDArray[np.float64], t_u: NDArray[np.float64]) -> NDArray[np.float64]:
     """Expected Fisher information ``sum J J^T / (p (1 - p))`` of n Bernoulli observations (model unit)."""
     cc = np.asarray(c, dtype=np.float64)
     info = np.zeros((3, 3))
@@ -78,8 +76,9 @@ def _start(samples: Samples, settings: FitSettings) -> NDArray[np.float64]:
         return initial_constants(settings.angle_unit)
 
 
-def fit_mle(samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *,
-            initial: ArrayLike | None = None) -> FitResult:
+def fit_mle(
+    samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *, initial: ArrayLike | None = None
+) -> FitResult:
     """Per-observation Bernoulli maximum likelihood; intervals from the Fisher information.
 
     Starts from ``initial`` (default: a binned fit when enough bins exist, else the thesis constants).
@@ -89,8 +88,10 @@ def fit_mle(samples: Samples, settings: FitSettings = DEFAULT_SETTINGS, *,
     a, t, y, source = samples.alpha, samples.theta, samples.inlier, samples.source
     for name, values in (("parallax angle", a), ("view angle", t)):
         if np.ptp(values) == 0:
-            raise FitError(f"{source}: every observation has the same {name} ({values[0]:.6g} rad); "
-                           "the constants cannot be identified (collect data over a range of angles)")
+            raise FitError(
+                f"{source}: every observation has the same {name} ({values[0]:.6g} rad); "
+                "the constants cannot be identified (collect data over a range of angles)"
+            )
     k = UNIT_SCALE[settings.angle_unit]
     x0 = _start(samples, settings) if initial is None else np.asarray(initial, dtype=np.float64)
     a_u, t_u = a * k, t * k

@@ -48,7 +48,7 @@ def yaw_pitch_of_axis(z: ArrayLike) -> tuple[float, float]:
 class Trunk:
     """A privileged vertex and its landmarks in the map frame."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     vertex_id: int
     T_map_vertex: NDArray[np.float64]
@@ -69,7 +69,7 @@ class Trunk:
 class MapConstraintTable:
     """Per-position results of the constraint on a map (arrays of length N)."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     positions: NDArray[np.float64]
     yaw: NDArray[np.float64]  # heading used (radians, map convention; the trunk's when none given)

@@ -39,9 +39,7 @@ RANGE_CHECK_POINTS = 81
 #: Tolerance on "probability outside [0, 1]" in that check.
 RANGE_CHECK_TOL = 1e-9
 
-FORMULA = (
-    "p = clip(c1*cos(c2*theta)*exp(c3*alpha), 0, 1); p = 0 where |c2*theta| > pi/2; angles in angle_unit"
-)
+FORMULA = "p = clip(c1*cos(c2*theta)*exp(c3*alpha), 0, 1); p = 0 where |c2*theta| > pi/2; angles in angle_unit"
 
 
 def _finite_float(value: Any, name: str) -> float:
@@ -72,9 +70,7 @@ class PerceptionModel:
         for name in ("c1", "c2", "c3", "alpha_max", "theta_max"):
             object.__setattr__(self, name, _finite_float(getattr(self, name), name))
         if self.angle_unit not in UNIT_SCALE:
-            raise PerceptionModelError(
-                f"angle_unit must be one of {sorted(UNIT_SCALE)}, got {self.angle_unit!r}"
-            )
+            raise PerceptionModelError(f"angle_unit must be one of {sorted(UNIT_SCALE)}, got {self.angle_unit!r}")
         if self.c1 <= 0.0:
             raise PerceptionModelError(f"c1 must be > 0 (got {self.c1}): the model would predict no inliers")
         if not (0.0 < self.alpha_max <= math.pi and 0.0 < self.theta_max <= math.pi):
@@ -174,9 +170,7 @@ class PerceptionModel:
         return problems
 
     # ----------------------------------------------------------------- files
-    def to_dict(
-        self, *, fit: dict[str, Any] | None = None, data: dict[str, Any] | None = None
-    ) -> dict[str, Any]:
+    def to_dict(self, *, fit: dict[str, Any] | None = None, data: dict[str, Any] | None = None) -> dict[str, Any]:
         """JSON-ready dict: constants at top level, range in the model unit, optional sections."""
         k = self.unit_scale
         out: dict[str, Any] = {
@@ -210,9 +204,7 @@ class PerceptionModel:
             )
         missing = [key for key in REQUIRED_KEYS if key not in d]
         if missing:
-            raise ModelFileError(
-                f"{source}: missing key(s) {', '.join(missing)} (need {', '.join(REQUIRED_KEYS)})"
-            )
+            raise ModelFileError(f"{source}: missing key(s) {', '.join(missing)} (need {', '.join(REQUIRED_KEYS)})")
         unit = d["angle_unit"]
         if unit not in UNIT_SCALE:
             raise ModelFileError(f"{source}: angle_unit must be one of {sorted(UNIT_SCALE)}, got {unit!r}")
@@ -232,9 +224,7 @@ class PerceptionModel:
         except PerceptionModelError as err:
             raise ModelFileError(f"{source}: {err}") from None
 
-    def save(
-        self, path: str | Path, *, fit: dict[str, Any] | None = None, data: dict[str, Any] | None = None
-    ) -> None:
+    def save(self, path: str | Path, *, fit: dict[str, Any] | None = None, data: dict[str, Any] | None = None) -> None:
         """Write the model as JSON (see ``to_dict``), whole and never through a link at ``path``
         (:func:`perception_model.outputs.replace_file`)."""
         text = json.dumps(self.to_dict(fit=fit, data=data), indent=2, allow_nan=False)
@@ -255,9 +245,7 @@ class PerceptionModel:
         try:
             d = json.loads(text)
         except json.JSONDecodeError as err:
-            raise ModelFileError(
-                f"{p}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})"
-            ) from None
+            raise ModelFileError(f"{p}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
         except RecursionError:
             raise ModelFileError(f"{p}: nested too deeply to read (a model file is an object of constants)") from None
         model = cls.from_dict(d, source=str(p))

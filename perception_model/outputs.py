@@ -73,9 +73,16 @@ def input_clash(path: Path, inputs: Iterable[Path | str | None]) -> Path | None:
     return None
 
 
-def existing_output(path: Path, force: bool, *, folder: bool = False, option: str | None = None,
-                    can_force: bool = True, empty_folder_ok: bool = False,
-                    inputs: Iterable[Path | str | None] = ()) -> str | None:
+def existing_output(
+    path: Path,
+    force: bool,
+    *,
+    folder: bool = False,
+    option: str | None = None,
+    can_force: bool = True,
+    empty_folder_ok: bool = False,
+    inputs: Iterable[Path | str | None] = (),
+) -> str | None:
     """Why ``path`` may not be written, as one line, or None when it may.
 
     A file (``folder=False``): refused when it names one of ``inputs``, or a symbolic link, a folder or a
@@ -106,8 +113,10 @@ def existing_output(path: Path, force: bool, *, folder: bool = False, option: st
             return None
         return f"{name}: already exists and is a folder (not overwriting)"
     if what is not None:
-        return f"{name}: {what}; not writing through or over it, with or without --force (remove it or choose " \
-               "another path)"
+        return (
+            f"{name}: {what}; not writing through or over it, with or without --force (remove it or choose "
+            "another path)"
+        )
     if force and can_force:
         return None
     return f"{name}: already exists (not overwriting{hint})"
@@ -138,7 +147,7 @@ def replace_file(path: Path | str, writer: Callable[[Path], Any]) -> Path:
         os.close(create_exclusive(tmp))
     except OSError as err:
         failed = err
-    if failed is not None:                 # named after the output (its folder is missing, not writable...)
+    if failed is not None:  # named after the output (its folder is missing, not writable...)
         raise OSError(failed.errno, failed.strerror, str(path))
     try:
         writer(tmp)

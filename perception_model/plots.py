@@ -43,8 +43,9 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
     t_mid = 0.5 * (t_edges[1:] + t_edges[:-1])
     fitted = model.probability(a_mid[:, None], t_mid[None, :])
     vmax = float(np.nanmax([np.nanmax(freq) if np.isfinite(freq).any() else 0.0, fitted.max(), 1e-3]))
-    fig, axes = plt.subplots(1, 3, figsize=(PLOT_SIZE_IN[0] * 1.4, PLOT_SIZE_IN[1]), sharey=True,
-                             constrained_layout=True)
+    fig, axes = plt.subplots(
+        1, 3, figsize=(PLOT_SIZE_IN[0] * 1.4, PLOT_SIZE_IN[1]), sharey=True, constrained_layout=True
+    )
     sparse = (counts > 0) & (counts < min_count)
     contours_drawable = len(a_mid) >= 2 and len(t_mid) >= 2
     for ax, data, title in (
@@ -52,7 +53,7 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
         (axes[1], fitted, f"fitted model ({result.method})"),
     ):
         mesh = ax.pcolormesh(a_edges * k, t_edges * k, data.T, vmin=0.0, vmax=vmax, cmap="viridis")
-        if contours_drawable:          # contour lines need at least 2 x 2 bins (one view-angle row has none)
+        if contours_drawable:  # contour lines need at least 2 x 2 bins (one view-angle row has none)
             cs = ax.contour(
                 a_mid * k,
                 t_mid * k,
@@ -65,16 +66,24 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
         ax.set_xlabel(f"parallax angle alpha [{unit}]")
         ax.set_title(title, fontsize=9)
     if sparse.any() and contours_drawable:
-        axes[0].contourf(a_mid * k, t_mid * k, sparse.T.astype(float), levels=[0.5, 1.5], colors="none",
-                         hatches=["////"])
-        axes[0].text(0.01, 0.99, f"hatched: 1-{min_count - 1} observations (not used)",
-                     transform=axes[0].transAxes, va="top", fontsize=7,
-                     bbox={"facecolor": "white", "alpha": 0.7, "linewidth": 0})
+        axes[0].contourf(
+            a_mid * k, t_mid * k, sparse.T.astype(float), levels=[0.5, 1.5], colors="none", hatches=["////"]
+        )
+        axes[0].text(
+            0.01,
+            0.99,
+            f"hatched: 1-{min_count - 1} observations (not used)",
+            transform=axes[0].transAxes,
+            va="top",
+            fontsize=7,
+            bbox={"facecolor": "white", "alpha": 0.7, "linewidth": 0},
+        )
     axes[0].set_ylabel(f"view angle theta [{unit}]")
     fig.colorbar(mesh, ax=axes[:2], label="probability of inlier [-]", shrink=0.9)
     shown = np.where(counts > 0, counts, np.nan)
-    cmesh = axes[2].pcolormesh(a_edges * k, t_edges * k, shown.T, cmap="magma",
-                               norm=LogNorm(vmin=1, vmax=max(2.0, float(counts.max()))))
+    cmesh = axes[2].pcolormesh(
+        a_edges * k, t_edges * k, shown.T, cmap="magma", norm=LogNorm(vmin=1, vmax=max(2.0, float(counts.max())))
+    )
     axes[2].set_xlabel(f"parallax angle alpha [{unit}]")
     axes[2].set_title("observations per bin (white: none)", fontsize=9)
     fig.colorbar(cmesh, ax=axes[2], label="observations [count]", shrink=0.9)
@@ -85,7 +94,7 @@ def plot_fit(result: Any, path: Path, min_count: int | None = None) -> None:
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        replace_file(path, lambda tmp: fig.savefig(tmp, dpi=PLOT_DPI))   # never through a link at ``path``
+        replace_file(path, lambda tmp: fig.savefig(tmp, dpi=PLOT_DPI))  # never through a link at ``path``
     finally:
         plt.close(fig)
 
@@ -98,5 +107,7 @@ def figure_problem(path: Path) -> str | None:
     suffix = Path(path).suffix.lower().lstrip(".")
     if suffix in formats:
         return None
-    return (f"{path}: not a figure file name (the suffix {('.' + suffix) if suffix else '(none)'} is no image "
-            f"format; use one of {', '.join('.' + f for f in sorted(formats))})")
+    return (
+        f"{path}: not a figure file name (the suffix {('.' + suffix) if suffix else '(none)'} is no image "
+        f"format; use one of {', '.join('.' + f for f in sorted(formats))})"
+    )

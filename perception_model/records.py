@@ -11,15 +11,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-SMALL_ARRAY = 6          # arrays up to this many elements are printed with their values
-LONG_SEQUENCE = 8        # tuples/lists longer than this are shown by their length
+SMALL_ARRAY = 6  # arrays up to this many elements are printed with their values
+LONG_SEQUENCE = 8  # tuples/lists longer than this are shown by their length
 
 
 def summarize(value: Any) -> str:
     """One short text for a field value."""
     shape = getattr(value, "shape", None)
     dtype = getattr(value, "dtype", None)
-    if shape is not None and dtype is not None:            # an ndarray (numpy not imported for the check)
+    if shape is not None and dtype is not None:  # an ndarray (numpy not imported for the check)
         if getattr(value, "size", SMALL_ARRAY + 1) <= SMALL_ARRAY:
             return " ".join(repr(value.tolist()).split())
         return f"<{dtype} {tuple(shape)}>"

@@ -170,5 +170,16 @@ class BinSpec:
 DEFAULT_SETTINGS = FitSettings()
 
 
-__all__ = ["CI_METHODS", "DEFAULT_SETTINGS", "METHODS", "THESIS_C_BAR", "THESIS_L_MIN", "THESIS_PITCH_DOWN_RAD",
-           "UNIT_SCALE", "BinSpec", "CiMethod", "FitSettings", "Method"]
+__all__ = [
+    "CI_METHODS",
+    "DEFAULT_SETTINGS",
+    "METHODS",
+    "THESIS_C_BAR",
+    "THESIS_L_MIN",
+    "THESIS_PITCH_DOWN_RAD",
+    "UNIT_SCALE",
+    "BinSpec",
+    "CiMethod",
+    "FitSettings",
+    "Method",
+]

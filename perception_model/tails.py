@@ -85,9 +85,7 @@ def poisson_binomial_pmf(p: ArrayLike, method: PmfMethod = "recursion") -> NDArr
     raise PerceptionModelError(f"unknown method {method!r} (use 'recursion' or 'dft')")
 
 
-def poisson_binomial_tail(
-    p: ArrayLike, k: float, method: PmfMethod = "recursion", *, lower: bool = False
-) -> float:
+def poisson_binomial_tail(p: ArrayLike, k: float, method: PmfMethod = "recursion", *, lower: bool = False) -> float:
     """Exact ``P(L >= k)`` (or ``P(L < k)`` with ``lower=True``) of the Poisson-binomial count.
 
     ``k`` is rounded up to an integer. The requested tail is summed directly from the pmf, so

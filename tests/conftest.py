@@ -33,24 +33,26 @@ def euroc_pairs() -> Path:
 #: The long end-to-end modules (runs on imagery, Dask clusters, subprocess commands): marked ``slow`` and left out
 #: of the default ``python3 -m pytest -q`` (``-m "not slow"`` in pyproject.toml's addopts; the README gives both
 #: times). ``python3 -m pytest -q -m "slow or not slow"`` runs everything, as CI does (.ci/run).
-SLOW_MODULES = frozenset({
-    "tests/app/test_batch.py",
-    "tests/app/test_output_safety.py",
-    "tests/app/test_mission.py",
-    "tests/cli/test_batch_cli.py",
-    "tests/cli/test_run_lifecycle.py",
-    "tests/cli/test_vtr_cli.py",
-    "tests/control/test_return_flight.py",
-    "tests/navigation/test_experiences.py",
-    "tests/navigation/test_teach_repeat.py",
-    "tests/navigation/test_repeat_pipeline.py",
-    "tests/navigation/test_return_flight_state.py",
-    "tests/navigation/test_synthetic_repeat.py",
-    "tests/perception_model/test_end_to_end.py",
-    "tests/vo/test_far_structure.py",
-    "tests/vo/test_odometry_kitti.py",
-    "tests/test_readme.py",
-})
+SLOW_MODULES = frozenset(
+    {
+        "tests/app/test_batch.py",
+        "tests/app/test_output_safety.py",
+        "tests/app/test_mission.py",
+        "tests/cli/test_batch_cli.py",
+        "tests/cli/test_run_lifecycle.py",
+        "tests/cli/test_vtr_cli.py",
+        "tests/control/test_return_flight.py",
+        "tests/navigation/test_experiences.py",
+        "tests/navigation/test_teach_repeat.py",
+        "tests/navigation/test_repeat_pipeline.py",
+        "tests/navigation/test_return_flight_state.py",
+        "tests/navigation/test_synthetic_repeat.py",
+        "tests/perception_model/test_end_to_end.py",
+        "tests/vo/test_far_structure.py",
+        "tests/vo/test_odometry_kitti.py",
+        "tests/test_readme.py",
+    }
+)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -26,15 +26,30 @@ ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS = ("bottom", "io", "vo", "map", "state", "navigation", "sim", "control", "app", "cli")
 RANK = {name: i for i, name in enumerate(LAYERS)}
-BOTTOM_MODULES = {"vtr", "vtr.errors", "vtr.conventions", "vtr.config", "vtr.geometry", "vtr.camera", "vtr.timing",
-                  "vtr.types", "vtr.parallel", "vtr.signals"}
-ENTRY_POINTS = {"vtr.__main__": "cli"}   # ``python -m vtr`` runs the command line
-SQLITE_OWNER = "vtr.map.database"       # the one module that talks to SQLite
-GTSAM_FREE = ("vtr.state.wnoa",)        # pure numpy algebra
+BOTTOM_MODULES = {
+    "vtr",
+    "vtr.errors",
+    "vtr.conventions",
+    "vtr.config",
+    "vtr.geometry",
+    "vtr.camera",
+    "vtr.timing",
+    "vtr.types",
+    "vtr.parallel",
+    "vtr.signals",
+}
+ENTRY_POINTS = {"vtr.__main__": "cli"}  # ``python -m vtr`` runs the command line
+SQLITE_OWNER = "vtr.map.database"  # the one module that talks to SQLite
+GTSAM_FREE = ("vtr.state.wnoa",)  # pure numpy algebra
 #: The command-line modules (a name and everything below it); every other module of both packages is a library
 #: module, and no library module imports one of these.
-CLI_MODULES = ("vtr.cli", "vtr.__main__", "perception_model.cli", "perception_model.commandline",
-               "perception_model.__main__")
+CLI_MODULES = (
+    "vtr.cli",
+    "vtr.__main__",
+    "perception_model.cli",
+    "perception_model.commandline",
+    "perception_model.__main__",
+)
 
 
 def module_name(path: Path) -> str:
@@ -60,10 +75,10 @@ def imports(path: Path) -> list[tuple[int, str]]:
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 parts = package.split(".")
-                base = ".".join(parts[:len(parts) - node.level + 1] + ([node.module] if node.module else []))
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([node.module] if node.module else []))
             else:
                 base = node.module or ""
-            for alias in node.names:   # ``from pkg import module`` imports the module
+            for alias in node.names:  # ``from pkg import module`` imports the module
                 sub = f"{base}.{alias.name}"
                 found.append((node.lineno, sub if is_module(sub) else base))
     return found
@@ -72,7 +87,7 @@ def imports(path: Path) -> list[tuple[int, str]]:
 def layer(module: str) -> str:
     if module in ENTRY_POINTS:
         return ENTRY_POINTS[module]
-    if module in BOTTOM_MODULES or module.startswith("vtr.config."):     # the config package's modules
+    if module in BOTTOM_MODULES or module.startswith("vtr.config."):  # the config package's modules
         return "bottom"
     sub = module.split(".")[1]
     assert sub in RANK, f"{module} is in no declared layer: add it to LAYERS or BOTTOM_MODULES"
@@ -103,29 +118,35 @@ def test_vtr_imports_only_its_own_subpackage_or_lower_layers():
 
 
 def test_perception_model_imports_nothing_from_vtr():
-    bad = [f"{path.relative_to(ROOT)}:{line}: {target}"
-           for path in sources("perception_model")
-           for line, target in imports(path)
-           if target == "vtr" or target.startswith("vtr.")]
+    bad = [
+        f"{path.relative_to(ROOT)}:{line}: {target}"
+        for path in sources("perception_model")
+        for line, target in imports(path)
+        if target == "vtr" or target.startswith("vtr.")
+    ]
     assert not bad, "perception_model imports vtr:\n" + "\n".join(bad)
 
 
 def test_only_the_map_file_layer_imports_sqlite3():
-    bad = [f"{path.relative_to(ROOT)}:{line}: {module_name(path)} imports {target}"
-           for package in ("vtr", "perception_model")
-           for path in sources(package)
-           if module_name(path) != SQLITE_OWNER
-           for line, target in imports(path)
-           if target == "sqlite3" or target.startswith("sqlite3.")]
+    bad = [
+        f"{path.relative_to(ROOT)}:{line}: {module_name(path)} imports {target}"
+        for package in ("vtr", "perception_model")
+        for path in sources(package)
+        if module_name(path) != SQLITE_OWNER
+        for line, target in imports(path)
+        if target == "sqlite3" or target.startswith("sqlite3.")
+    ]
     assert not bad, f"only {SQLITE_OWNER} may import sqlite3 (use the map API):\n" + "\n".join(bad)
 
 
 def test_wnoa_algebra_imports_no_gtsam():
-    bad = [f"{path.relative_to(ROOT)}:{line}: {target}"
-           for path in sources("vtr")
-           if module_name(path) in GTSAM_FREE
-           for line, target in imports(path)
-           if target == "gtsam" or target.startswith("gtsam.")]
+    bad = [
+        f"{path.relative_to(ROOT)}:{line}: {target}"
+        for path in sources("vtr")
+        if module_name(path) in GTSAM_FREE
+        for line, target in imports(path)
+        if target == "gtsam" or target.startswith("gtsam.")
+    ]
     assert not bad, "the WNOA algebra is numpy only:\n" + "\n".join(bad)
 
 
@@ -138,10 +159,12 @@ def test_the_cli_modules_exist():
 
 
 def test_no_library_module_imports_a_cli_module():
-    bad = [f"{path.relative_to(ROOT)}:{line}: {mod} imports {target}"
-           for package in ("vtr", "perception_model")
-           for path in sources(package)
-           if not is_cli(mod := module_name(path))
-           for line, target in imports(path)
-           if is_cli(target)]
+    bad = [
+        f"{path.relative_to(ROOT)}:{line}: {mod} imports {target}"
+        for package in ("vtr", "perception_model")
+        for path in sources(package)
+        if not is_cli(mod := module_name(path))
+        for line, target in imports(path)
+        if is_cli(target)
+    ]
     assert not bad, "library modules import command-line modules:\n" + "\n".join(bad)

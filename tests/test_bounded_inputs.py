@@ -25,8 +25,9 @@ DEEP = "[" * 5000 + "]" * 5000
 
 def run(*args, timeout: float = 60) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("DASK_")}
-    return subprocess.run([sys.executable, "-m", *map(str, args)], capture_output=True, text=True, timeout=timeout,
-                          env=env)
+    return subprocess.run(
+        [sys.executable, "-m", *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env
+    )
 
 
 def one_line(r: subprocess.CompletedProcess, prog: str, *words: str) -> str:
@@ -41,8 +42,9 @@ def one_line(r: subprocess.CompletedProcess, prog: str, *words: str) -> str:
 # ------------------------------------------------------------------ nesting and duplicate keys
 
 
-@pytest.mark.parametrize("name, text", [("deep.yaml", f"odometry: {DEEP}\n"), ("deep.toml", f"a = {DEEP}\n")],
-                         ids=["yaml", "toml"])
+@pytest.mark.parametrize(
+    "name, text", [("deep.yaml", f"odometry: {DEEP}\n"), ("deep.toml", f"a = {DEEP}\n")], ids=["yaml", "toml"]
+)
 def test_a_config_nested_5000_deep_is_one_line(tmp_path, name, text):
     (tmp_path / name).write_text(text)
     with pytest.raises(ConfigError, match="nested too deeply"):
@@ -60,14 +62,27 @@ def test_a_manifest_and_a_model_nested_5000_deep_are_one_line(tmp_path):
     one_line(r, "vtr", "nested too deeply")
 
 
-@pytest.mark.parametrize("name, text, words", [
-    ("c.yaml", "odometry:\n  min_inliers: 10\nstereo: {}\nodometry:\n  min_inliers: 12\n",
-     ["key 'odometry' given twice", "lines 1 and 4"]),
-    ("c.yaml", "odometry:\n  min_inliers: 10\n  min_inliers: 12\n", ["key 'min_inliers' given twice", "lines 2 and 3"]),
-    ("c.toml", "[odometry]\nmin_inliers = 10\n\n[odometry]\n", ["table '[odometry]' given twice", "lines 1 and 4"]),
-    ("c.toml", "[odometry]\nmin_inliers = 10\nmin_inliers = 12\n", ["'odometry.min_inliers' given twice",
-                                                                      "lines 2 and 3"]),
-])
+@pytest.mark.parametrize(
+    "name, text, words",
+    [
+        (
+            "c.yaml",
+            "odometry:\n  min_inliers: 10\nstereo: {}\nodometry:\n  min_inliers: 12\n",
+            ["key 'odometry' given twice", "lines 1 and 4"],
+        ),
+        (
+            "c.yaml",
+            "odometry:\n  min_inliers: 10\n  min_inliers: 12\n",
+            ["key 'min_inliers' given twice", "lines 2 and 3"],
+        ),
+        ("c.toml", "[odometry]\nmin_inliers = 10\n\n[odometry]\n", ["table '[odometry]' given twice", "lines 1 and 4"]),
+        (
+            "c.toml",
+            "[odometry]\nmin_inliers = 10\nmin_inliers = 12\n",
+            ["'odometry.min_inliers' given twice", "lines 2 and 3"],
+        ),
+    ],
+)
 def test_a_key_given_twice_in_a_config_names_it_and_both_lines(tmp_path, name, text, words):
     (tmp_path / name).write_text(text)
     with pytest.raises(ConfigError) as err:
@@ -85,7 +100,7 @@ def test_a_key_given_twice_in_a_manifest_names_it_and_both_lines(tmp_path):
     m.write_text("frames: '0:4'\nroutes:\n  - name: a\n    teach: t\nframes: '0:8'\n")
     with pytest.raises(ConfigError, match=r"key 'frames' given twice \(lines 1 and 5\)"):
         load_manifest(m)
-    m.write_text("base: &b {frames: '0:4'}\nroutes:\n  - {name: a, teach: t}\n")     # anchors still work
+    m.write_text("base: &b {frames: '0:4'}\nroutes:\n  - {name: a, teach: t}\n")  # anchors still work
     with pytest.raises(ConfigError, match="unknown key"):
         load_manifest(m)
 
@@ -110,8 +125,11 @@ def test_named_pipes_and_devices_are_refused_at_once(tmp_path, landmarks):
     PerceptionModel.thesis().save(tmp_path / "model.json")
     one_line(run(pm, "evaluate", "/dev/zero", landmarks), "perception-model", "a device")
     one_line(run(pm, "evaluate", tmp_path / "model.json", "/dev/zero"), "perception-model", "a device")
-    one_line(run(pm, "constraint", tmp_path / "model.json", "--landmarks", pipe, "--positions", pipe),
-             "perception-model", "named pipe")
+    one_line(
+        run(pm, "constraint", tmp_path / "model.json", "--landmarks", pipe, "--positions", pipe),
+        "perception-model",
+        "named pipe",
+    )
     mp = tmp_path / "m.vtrmap"
     os.mkfifo(mp)
     for args in (("map", "check", mp), ("map", "info", mp), ("map", "info", "/dev/zero")):
@@ -123,7 +141,7 @@ def test_a_model_file_is_read_bounded(tmp_path):
 
     big = tmp_path / "big.json"
     with big.open("wb") as f:
-        f.truncate(inputs.MAX_MODEL_FILE_BYTES + 1)            # sparse: no disk used
+        f.truncate(inputs.MAX_MODEL_FILE_BYTES + 1)  # sparse: no disk used
     with pytest.raises(ModelFileError, match="larger than"):
         PerceptionModel.load(big)
 
@@ -147,7 +165,7 @@ def test_a_time_outside_int64_is_refused_at_the_smoothers_entry(t_ns):
         s.add_pose(t_ns, np.eye(4), np.eye(6) * 1e-4)
     with pytest.raises(EstimationError, match="outside the int64"):
         s.add_knot(t_ns, T_world_sensor=np.eye(4), covariance=np.eye(6) * 1e-4)
-    s.add_pose(0, np.eye(4), np.eye(6) * 1e-4)                  # refused before anything was inserted
+    s.add_pose(0, np.eye(4), np.eye(6) * 1e-4)  # refused before anything was inserted
     s.add_pose(10**8, np.eye(4), np.eye(6) * 1e-4)
     assert s.state_at(5 * 10**7).t_ns == 5 * 10**7
 
@@ -172,9 +190,20 @@ def test_a_long_constraint_path_is_evaluated_in_chunks_with_the_same_rows(tmp_pa
     PerceptionModel.thesis().save(tmp_path / "model.json")
 
     def csv_of(out: Path) -> bytes:
-        r = CliRunner().invoke(cli.main, ["constraint", str(tmp_path / "model.json"), "--landmarks",
-                                          str(tmp_path / "lm.csv"), "--positions", str(tmp_path / "pos.csv"),
-                                          "--no-exact", "--out", str(out)])
+        r = CliRunner().invoke(
+            cli.main,
+            [
+                "constraint",
+                str(tmp_path / "model.json"),
+                "--landmarks",
+                str(tmp_path / "lm.csv"),
+                "--positions",
+                str(tmp_path / "pos.csv"),
+                "--no-exact",
+                "--out",
+                str(out),
+            ],
+        )
         assert r.exit_code == 0, r.output
         return (out / "constraint.csv").read_bytes()
 

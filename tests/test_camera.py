@@ -63,7 +63,10 @@ def test_in_view_is_depth_and_image_bounds(u, v, z, margin):
     from vtr.camera import MIN_DEPTH_M
 
     p = np.array([[(u - CAM.cx) * z / CAM.fx, (v - CAM.cy) * z / CAM.fy, z]])
-    expected = z > MIN_DEPTH_M and -margin <= CAM.project(p)[0, 0] < CAM.width + margin \
+    expected = (
+        z > MIN_DEPTH_M
+        and -margin <= CAM.project(p)[0, 0] < CAM.width + margin
         and -margin <= CAM.project(p)[0, 1] < CAM.height + margin
+    )
     assert CAM.in_view(p, margin).tolist() == [bool(expected)]
     assert CAM.in_view(np.zeros((0, 3))).shape == (0,)

@@ -60,8 +60,11 @@ def test_nan_and_infinity_refused(section, key, domain):
         _one_line(err, f"{section}.{key}")
 
 
-@pytest.mark.parametrize(("section", "key", "domain"), [k for k in KEYS if isinstance(k[2], Range)],
-                         ids=[i for i, k in zip(IDS, KEYS, strict=True) if isinstance(k[2], Range)])
+@pytest.mark.parametrize(
+    ("section", "key", "domain"),
+    [k for k in KEYS if isinstance(k[2], Range)],
+    ids=[i for i, k in zip(IDS, KEYS, strict=True) if isinstance(k[2], Range)],
+)
 def test_bool_is_not_a_number(section, key, domain):
     with pytest.raises(ConfigError) as err:
         Config.from_dict({section: {key: True}})
@@ -74,7 +77,7 @@ def test_constructed_in_code_is_validated_too(section, key, domain):
     with pytest.raises(ConfigError) as err:
         kind(**{key: _out_of_range(domain)})
     assert _one_line(err, f"{section}.{key}").startswith(f"config: {section}.{key} ")
-    with pytest.raises(ConfigError) as err:           # a changed copy is checked the same way
+    with pytest.raises(ConfigError) as err:  # a changed copy is checked the same way
         Config().replace(section, **{key: _wrong_type(domain)})
     _one_line(err, f"{section}.{key}")
 
@@ -108,8 +111,14 @@ def _in_domain(domain) -> st.SearchStrategy:
         lo = int(domain.lo) + (1 if domain.lo_open else 0)
         hi = int(domain.hi) - (1 if domain.hi_open else 0)
         return st.integers(lo, hi)
-    return st.floats(domain.lo, domain.hi, exclude_min=domain.lo_open, exclude_max=domain.hi_open,
-                     allow_nan=False, allow_infinity=False)
+    return st.floats(
+        domain.lo,
+        domain.hi,
+        exclude_min=domain.lo_open,
+        exclude_max=domain.hi_open,
+        allow_nan=False,
+        allow_infinity=False,
+    )
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -129,19 +138,22 @@ def test_any_in_domain_value_loads(data):
 # ------------------------------------------------------------------ the reported cases
 
 
-@pytest.mark.parametrize(("yaml_text", "key"), [
-    ("features:\n  n_levels: 0\n", "features.n_levels"),               # was a segfault in OpenCV's ORB
-    ("features:\n  grid_rows: 0\n", "features.grid_rows"),             # was ZeroDivisionError
-    ("odometry:\n  window_keyframes: 0\n", "odometry.window_keyframes"),
-    ("stereo:\n  refine_half_window: -2\n", "stereo.refine_half_window"),
-    ("estimation:\n  ransac_confidence: 5\n", "estimation.ransac_confidence"),
-    ("odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),   # was accepted
-    ("features:\n  n_features: true\n", "features.n_features"),        # was accepted as 1
-    ("odometry:\n  ransac_threshold_px: -1\n", "odometry.ransac_threshold_px"),
-    ("stereo:\n  pixel_sigma: -1.0\n", "stereo.pixel_sigma"),
-    ("smoothing:\n  rate_hz: 1e9\n", "smoothing.rate_hz"),
-    ("features:\n  n_features: '2000'\n", "features.n_features"),
-])
+@pytest.mark.parametrize(
+    ("yaml_text", "key"),
+    [
+        ("features:\n  n_levels: 0\n", "features.n_levels"),  # was a segfault in OpenCV's ORB
+        ("features:\n  grid_rows: 0\n", "features.grid_rows"),  # was ZeroDivisionError
+        ("odometry:\n  window_keyframes: 0\n", "odometry.window_keyframes"),
+        ("stereo:\n  refine_half_window: -2\n", "stereo.refine_half_window"),
+        ("estimation:\n  ransac_confidence: 5\n", "estimation.ransac_confidence"),
+        ("odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),  # was accepted
+        ("features:\n  n_features: true\n", "features.n_features"),  # was accepted as 1
+        ("odometry:\n  ransac_threshold_px: -1\n", "odometry.ransac_threshold_px"),
+        ("stereo:\n  pixel_sigma: -1.0\n", "stereo.pixel_sigma"),
+        ("smoothing:\n  rate_hz: 1e9\n", "smoothing.rate_hz"),
+        ("features:\n  n_features: '2000'\n", "features.n_features"),
+    ],
+)
 def test_reported_config_cases(tmp_path: Path, yaml_text, key):
     f = tmp_path / "bad.yaml"
     f.write_text(yaml_text)
@@ -151,14 +163,17 @@ def test_reported_config_cases(tmp_path: Path, yaml_text, key):
     assert str(f) in msg
 
 
-@pytest.mark.parametrize(("content", "expect"), [
-    (bytes(range(256)) * 4, "not UTF-8"),
-    (b"- a\n- b\n", "expected a mapping"),
-    (b"42\n", "expected a mapping"),
-    (b"features: [1, 2]\n", "must be a mapping"),
-    (b"features:\n  n_features: [\n", "cannot parse"),
-    (b"nosuch:\n  a: 1\n", "unknown section"),
-])
+@pytest.mark.parametrize(
+    ("content", "expect"),
+    [
+        (bytes(range(256)) * 4, "not UTF-8"),
+        (b"- a\n- b\n", "expected a mapping"),
+        (b"42\n", "expected a mapping"),
+        (b"features: [1, 2]\n", "must be a mapping"),
+        (b"features:\n  n_features: [\n", "cannot parse"),
+        (b"nosuch:\n  a: 1\n", "unknown section"),
+    ],
+)
 def test_unreadable_config_files(tmp_path: Path, content, expect):
     f = tmp_path / "c.yaml"
     f.write_bytes(content)
@@ -207,9 +222,13 @@ def test_the_whole_config_reaches_only_the_run_roots():
     import ast
 
     root = Path(__file__).resolve().parents[1] / "vtr"
-    roots = {"navigation/teach.py", "navigation/repeat.py", "control/online.py",
-             "vo/odometry.py",                   # OdometrySettings.of(config)
-             "navigation/experiences.py"}        # single_experience(config) -> Config
+    roots = {
+        "navigation/teach.py",
+        "navigation/repeat.py",
+        "control/online.py",
+        "vo/odometry.py",  # OdometrySettings.of(config)
+        "navigation/experiences.py",
+    }  # single_experience(config) -> Config
     importers, checkers = set(), set()
     for path in root.rglob("*.py"):
         rel = path.relative_to(root).as_posix()
@@ -222,8 +241,12 @@ def test_the_whole_config_reaches_only_the_run_roots():
                     importers.add(rel)
                 if names & {"validate", "check_section"}:
                     checkers.add(rel)
-            if isinstance(node, ast.Attribute) and node.attr in ("validate", "check_section") \
-                    and isinstance(node.value, ast.Name) and node.value.id in ("config", "cfg", "self"):
+            if (
+                isinstance(node, ast.Attribute)
+                and node.attr in ("validate", "check_section")
+                and isinstance(node.value, ast.Name)
+                and node.value.id in ("config", "cfg", "self")
+            ):
                 checkers.add(rel)
     assert importers <= roots, sorted(importers - roots)
     assert not checkers, sorted(checkers)
@@ -244,7 +267,7 @@ def test_a_moved_key_still_loads_with_a_one_line_warning(tmp_path: Path, old, ne
     cfg = Config.load(f, warn=told.append)
     assert getattr(getattr(cfg, new_section), new_key) == changed
     assert told == [f"{f}: {old} is now {new} (loaded as {new}; rename it in the file)"]
-    with pytest.warns(FutureWarning, match=f"{old} is now {new}"):      # without a listener: a FutureWarning
+    with pytest.warns(FutureWarning, match=f"{old} is now {new}"):  # without a listener: a FutureWarning
         assert getattr(getattr(Config.load(f), new_section), new_key) == changed
 
 

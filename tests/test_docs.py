@@ -8,15 +8,20 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = [*ROOT.glob("vtr/**/*.py"), *ROOT.glob("perception_model/**/*.py"), *ROOT.glob("tools/*.py"),
-           *ROOT.glob("tests/**/*.py"), ROOT / "README.md"]
+SOURCES = [
+    *ROOT.glob("vtr/**/*.py"),
+    *ROOT.glob("perception_model/**/*.py"),
+    *ROOT.glob("tools/*.py"),
+    *ROOT.glob("tests/**/*.py"),
+    ROOT / "README.md",
+]
 CITATION = re.compile(r"docs/([A-Za-z0-9_]+\.md)")
 LINK = re.compile(r"\]\(([^)#:]+\.md)(#[^)]*)?\)")
 
 
 def test_cited_pages_exist():
     cited = {(p.relative_to(ROOT), m) for p in SOURCES for m in CITATION.findall(p.read_text())}
-    assert len({m for _p, m in cited}) >= 5          # the modules do point at the pages
+    assert len({m for _p, m in cited}) >= 5  # the modules do point at the pages
     missing = sorted((str(p), m) for p, m in cited if not (ROOT / "docs" / m).is_file())
     assert not missing, missing
 
@@ -24,14 +29,19 @@ def test_cited_pages_exist():
 def test_links_between_pages_resolve():
     pages = sorted((ROOT / "docs").glob("*.md"))
     assert pages
-    broken = [(p.name, link) for p in pages for link, _anchor in LINK.findall(p.read_text())
-              if not (p.parent / link).is_file()]
+    broken = [
+        (p.name, link)
+        for p in pages
+        for link, _anchor in LINK.findall(p.read_text())
+        if not (p.parent / link).is_file()
+    ]
     assert not broken, broken
 
 
 def test_no_citation_of_an_outside_design_file():
-    offenders = [str(p.relative_to(ROOT)) for p in SOURCES if p != Path(__file__).resolve()
-                 and "DESIGN" + ".md" in p.read_text()]
+    offenders = [
+        str(p.relative_to(ROOT)) for p in SOURCES if p != Path(__file__).resolve() and "DESIGN" + ".md" in p.read_text()
+    ]
     assert not offenders, offenders
 
 

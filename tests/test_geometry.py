@@ -55,8 +55,8 @@ def test_check_se3_rejects_bad_matrices():
 
 
 @given(arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)), st.floats(-12.0, 0.0))
-@example(np.full((6, 6), 1.97899807e-162), 0.0)       # subnormal products: no information, not a broken floor
-@example(np.full((6, 6), 1e-100) + np.eye(6) * 1e-100, 0.0)   # tiny but informative
+@example(np.full((6, 6), 1.97899807e-162), 0.0)  # subnormal products: no information, not a broken floor
+@example(np.full((6, 6), 1e-100) + np.eye(6) * 1e-100, 0.0)  # tiny but informative
 def test_usable_covariance_is_the_one_repair_rule(A, log_scale):
     """Symmetric, eigenvalues floored at MIN_EIGENVALUE_RATIO of the largest, unchanged where already fine."""
     from vtr.geometry import MIN_EIGENVALUE_RATIO, MIN_INFORMATIVE_VARIANCE, check_covariance, usable_covariance
@@ -64,15 +64,15 @@ def test_usable_covariance_is_the_one_repair_rule(A, log_scale):
     C = 10.0**log_scale * (A @ A.T)
     out = usable_covariance(C)
     w = np.linalg.eigvalsh(0.5 * (C + C.T))
-    if w[-1] < MIN_INFORMATIVE_VARIANCE:       # no information (e.g. subnormal entries: found by hypothesis)
+    if w[-1] < MIN_INFORMATIVE_VARIANCE:  # no information (e.g. subnormal entries: found by hypothesis)
         assert out is None and np.array_equal(usable_covariance(C, 100.0), np.eye(6) * 100.0)
         return
     assert out is not None and np.array_equal(out, out.T)
     w_out = np.linalg.eigvalsh(out)
-    assert w_out[0] >= (MIN_EIGENVALUE_RATIO - 64 * np.finfo(float).eps) * w_out[-1]   # floor, to rounding
-    if w[0] > 1e-6 * w[-1]:        # well-conditioned input passes through (to rounding)
+    assert w_out[0] >= (MIN_EIGENVALUE_RATIO - 64 * np.finfo(float).eps) * w_out[-1]  # floor, to rounding
+    if w[0] > 1e-6 * w[-1]:  # well-conditioned input passes through (to rounding)
         np.testing.assert_allclose(out, C, rtol=1e-9, atol=1e-12 * w[-1])
-    check_covariance(out, definite=True)       # the smoother accepts every repaired covariance
+    check_covariance(out, definite=True)  # the smoother accepts every repaired covariance
 
 
 def test_covariance_validation_and_unknown_estimates():
@@ -86,9 +86,9 @@ def test_covariance_validation_and_unknown_estimates():
     assert usable_covariance(np.eye(3)) is None
     with pytest.raises(MapError, match="positive semi-definite"):
         check_covariance(-np.eye(6), "edge", MapError)
-    check_covariance(np.zeros((6, 6)), "edge", MapError)           # semi-definite: accepted by the map
+    check_covariance(np.zeros((6, 6)), "edge", MapError)  # semi-definite: accepted by the map
     with pytest.raises(EstimationError, match="non-zero"):
-        check_covariance(np.zeros((6, 6)), definite=True)          # not by the smoother
+        check_covariance(np.zeros((6, 6)), definite=True)  # not by the smoother
     with pytest.raises(EstimationError, match="positive definite"):
         check_covariance(np.diag([1.0, 1, 1, 1, 1, 1e-16]), definite=True)
     asym = np.eye(6)
@@ -98,8 +98,10 @@ def test_covariance_validation_and_unknown_estimates():
 
 
 @settings(max_examples=200, deadline=None)
-@given(axis=st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda a: np.linalg.norm(a) > 1e-3),
-       angle=st.one_of(st.floats(0.0, 1e-6), st.floats(0.0, np.pi), st.floats(np.pi - 0.02, np.pi)))
+@given(
+    axis=st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda a: np.linalg.norm(a) > 1e-3),
+    angle=st.one_of(st.floats(0.0, 1e-6), st.floats(0.0, np.pi), st.floats(np.pi - 0.02, np.pi)),
+)
 def test_rotvec_batch_is_scipys(axis, angle):
     from scipy.spatial.transform import Rotation
 
@@ -109,7 +111,7 @@ def test_rotvec_batch_is_scipys(axis, angle):
     R = Rotation.from_rotvec(w).as_matrix()
     got = rotvec_batch(R[None])[0]
     want = Rotation.from_matrix(R).as_rotvec()
-    if angle > np.pi - 1e-6:                   # a half turn: w and -w are the same rotation
+    if angle > np.pi - 1e-6:  # a half turn: w and -w are the same rotation
         assert np.allclose(np.abs(got), np.abs(want), atol=1e-6)
     else:
         assert np.allclose(got, want, atol=1e-9)

@@ -27,8 +27,9 @@ SECRET = "root:$6$secret-hash:19000:0:99999:7:::\n"
 
 def pm(*args) -> subprocess.CompletedProcess:
     """The perception-model console script installed with vtr, in a real process."""
-    return subprocess.run([sys.executable, "-m", "vtr.cli.perception_model", *map(str, args)],
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "vtr.cli.perception_model", *map(str, args)], capture_output=True, text=True
+    )
 
 
 def vtr(*args) -> subprocess.CompletedProcess:
@@ -69,7 +70,7 @@ def test_fit_plot_through_a_link_is_refused_with_force(data, tmp_path, victim):
     r = pm("fit", data / "in.csv", "--out", tmp_path / "O", "--plot", tmp_path / "P.png", "--force")
     one_error_line(r, "perception-model", "P.png", "symbolic link")
     assert victim.read_text() == SECRET
-    assert not (tmp_path / "O" / "model.json").exists()       # refused before any work
+    assert not (tmp_path / "O" / "model.json").exists()  # refused before any work
 
 
 def test_fit_model_json_link_in_out_is_refused_with_force(data, tmp_path, victim):
@@ -89,7 +90,7 @@ def test_evaluate_json_link_in_out_is_refused_with_force(data, tmp_path, victim)
 
 
 def test_fit_never_replaces_its_input_by_any_name(data, tmp_path):
-    src = tmp_path / "in.json"                       # a landmarks file, whatever its name
+    src = tmp_path / "in.json"  # a landmarks file, whatever its name
     src.write_bytes((data / "in.csv").read_bytes())
     before = src.read_bytes()
     r = pm("fit", src, "--out", src, "--force")
@@ -113,11 +114,11 @@ def test_fit_force_replaces_a_plain_file_whole(data, tmp_path):
     out = tmp_path / "O"
     out.mkdir()
     (out / "model.json").write_text("old")
-    os.link(out / "model.json", tmp_path / "other_name")        # another name for the old file
+    os.link(out / "model.json", tmp_path / "other_name")  # another name for the old file
     r = pm("fit", data / "in.csv", "--out", out, "--force")
     assert r.returncode == 0, r.stderr
     assert json.loads((out / "model.json").read_text())["c1"] > 0
-    assert (tmp_path / "other_name").read_text() == "old"       # renamed over, not written into
+    assert (tmp_path / "other_name").read_text() == "old"  # renamed over, not written into
     assert not [p for p in out.iterdir() if p.name.startswith(pm_outputs.TMP_TAG)]
 
 
@@ -215,13 +216,13 @@ def test_a_run_file_planted_as_a_link_is_not_read_back(tmp_path, victim):
     folder.write_text("landmarks.csv", "alpha_deg,theta_deg,inlier\n")
     assert folder.own_file("landmarks.csv") == folder.path / "landmarks.csv"
     (folder.path / "landmarks.csv").unlink()
-    (folder.path / "landmarks.csv").symlink_to(victim)      # recorded name, planted link
+    (folder.path / "landmarks.csv").symlink_to(victim)  # recorded name, planted link
     fresh = OutputFolder(folder.path)
     with pytest.raises(OutputError, match="landmarks.csv: is a symbolic link"):
         fresh.own_file("landmarks.csv")
     with pytest.raises(OutputError, match="symbolic link"):
         fresh.read_own("landmarks.csv")
-    (folder.path / "notes.csv").write_text("mine")           # a user's file vtr did not make
+    (folder.path / "notes.csv").write_text("mine")  # a user's file vtr did not make
     with pytest.raises(OutputError, match=f"not in {RECORD}"):
         fresh.own_file("notes.csv")
     assert fresh.own_file("absent.csv") is None
@@ -243,7 +244,7 @@ def test_batch_fit_and_resume_refuse_planted_links(tmp_path, victim):
     obs = simulate_observations(PerceptionModel.thesis(), 2_000, np.random.default_rng(1), name="rep")
     run.write("landmarks.csv", write_landmarks, obs)
     outcomes = [RunOutcome("r", "teach", "teach", "finished"), RunOutcome("r", "rep", "repeat", "finished")]
-    assert "model" in fit_repeats(spec, out, outcomes)           # vtr's own file is read
+    assert "model" in fit_repeats(spec, out, outcomes)  # vtr's own file is read
 
     (run.path / "landmarks.csv").unlink()
     (run.path / "landmarks.csv").symlink_to(victim)
@@ -256,4 +257,3 @@ def test_batch_fit_and_resume_refuse_planted_links(tmp_path, victim):
     (run.path / "run.json").symlink_to(victim)
     with pytest.raises(OutputError, match="run.json: is a symbolic link"):
         checked_run(run.path)
-

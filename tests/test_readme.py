@@ -34,8 +34,10 @@ def workdir(tmp_path_factory, kitti_clip):
     d = tmp_path_factory.mktemp("readme")
     (d / "datasets").mkdir()
     (d / "datasets" / kitti_clip.name).symlink_to(kitti_clip)
-    r = CliRunner().invoke(main, ["teach", str(d / "datasets" / kitti_clip.name), "--map",
-                                  str(d / "out" / "route.vtrmap"), "--frames", "0::2"])
+    r = CliRunner().invoke(
+        main,
+        ["teach", str(d / "datasets" / kitti_clip.name), "--map", str(d / "out" / "route.vtrmap"), "--frames", "0::2"],
+    )
     assert r.exit_code == 0, r.output
     (d / "out" / "model").mkdir()
     PerceptionModel.thesis().save(d / "out" / "model" / "model.json")
@@ -47,4 +49,4 @@ def test_readme_python_block_runs(index, workdir):
     code = python_blocks()[index]
     r = subprocess.run([sys.executable, "-c", code], cwd=workdir, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, f"README python block {index + 1}:\n{code}\n{r.stderr[-3000:]}"
-    assert len(r.stdout) < 5000, f"block {index + 1} printed {len(r.stdout)} characters"   # short reprs
+    assert len(r.stdout) < 5000, f"block {index + 1} printed {len(r.stdout)} characters"  # short reprs

@@ -18,7 +18,7 @@ def test_ctrl_c_is_delivered_when_the_block_ends():
     with pytest.raises(KeyboardInterrupt):
         with held_signals():
             os.kill(os.getpid(), signal.SIGINT)
-            done.extend(range(1000))            # runs to the end: the signal is held
+            done.extend(range(1000))  # runs to the end: the signal is held
     assert len(done) == 1000
     assert signal.getsignal(signal.SIGINT) is before
 
@@ -29,7 +29,7 @@ def test_sigterm_is_delivered_as_terminated_within_sigterm_as_exception():
         with held_signals():
             os.kill(os.getpid(), signal.SIGTERM)
             done.append(1)
-        done.append(2)                          # not reached: delivered as the held block ended
+        done.append(2)  # not reached: delivered as the held block ended
     assert done == [1]
 
 
@@ -40,7 +40,7 @@ def test_only_the_first_signal_is_delivered_and_nothing_without_one():
                 os.kill(os.getpid(), signal.SIGTERM)
                 os.kill(os.getpid(), signal.SIGINT)
         with held_signals():
-            pass                                # no signal: no exception
+            pass  # no signal: no exception
 
 
 def test_an_error_in_the_block_comes_out_as_the_context_of_the_signal():
@@ -61,4 +61,4 @@ def test_outside_the_main_thread_nothing_is_held():
     t = threading.Thread(target=work)
     t.start()
     t.join()
-    assert seen == [signal.getsignal(signal.SIGINT)]    # handlers untouched (only the main thread may set them)
+    assert seen == [signal.getsignal(signal.SIGINT)]  # handlers untouched (only the main thread may set them)

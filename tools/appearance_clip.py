@@ -28,13 +28,13 @@ import numpy as np
 
 CHANGES = ("gamma", "dusk", "shadows", "noise")
 GRAY_MAX = 255.0
-DUSK_GAIN = 0.45           # dusk: the image at this share of its brightness ...
-DUSK_OFFSET = 12.0         # ... plus this floor (gray levels): darker and lower contrast
-DUSK_NOISE = 1.5           # ... with this much sensor noise (gray levels, 1 sigma)
-SHADOW_BLOBS = 4           # cloud shadows in view
-SHADOW_DEPTH = 0.55        # a shadow's centre keeps 1 - this of the light
-SHADOW_SIZE = 0.25         # a shadow's 1-sigma radius, share of the image width
-SHADOW_DRIFT = 0.02        # a shadow's motion per frame, share of the image width
+DUSK_GAIN = 0.45  # dusk: the image at this share of its brightness ...
+DUSK_OFFSET = 12.0  # ... plus this floor (gray levels): darker and lower contrast
+DUSK_NOISE = 1.5  # ... with this much sensor noise (gray levels, 1 sigma)
+SHADOW_BLOBS = 4  # cloud shadows in view
+SHADOW_DEPTH = 0.55  # a shadow's centre keeps 1 - this of the light
+SHADOW_SIZE = 0.25  # a shadow's 1-sigma radius, share of the image width
+SHADOW_DRIFT = 0.02  # a shadow's motion per frame, share of the image width
 
 
 def _gray(img: np.ndarray) -> np.ndarray:
@@ -69,8 +69,9 @@ def shadow_field(shape: tuple[int, int], frame: int, seed: int) -> np.ndarray:
     return 1.0 - SHADOW_DEPTH * dark
 
 
-def transform(change: str, *, g: float = 1.0, seed: int = 0,
-              sigma: float = 1.0) -> Callable[[np.ndarray, int], np.ndarray]:
+def transform(
+    change: str, *, g: float = 1.0, seed: int = 0, sigma: float = 1.0
+) -> Callable[[np.ndarray, int], np.ndarray]:
     """The change as a function of (image, frame index) -> image (uint8 grayscale in, uint8 out)."""
     if change not in CHANGES:
         raise ValueError(f"change: {change!r} is not one of {', '.join(CHANGES)}")
@@ -84,8 +85,9 @@ def transform(change: str, *, g: float = 1.0, seed: int = 0,
     return lambda img, k: _gray(img.astype(np.float64) * shadow_field(img.shape[:2], k, seed))
 
 
-def appearance_clip(src: str | Path, dst: str | Path, change: str, *, g: float = 1.0, seed: int = 0,
-                    sigma: float = 1.0) -> Path:
+def appearance_clip(
+    src: str | Path, dst: str | Path, change: str, *, g: float = 1.0, seed: int = 0, sigma: float = 1.0
+) -> Path:
     """Copy clip ``src`` (KITTI layout: image_0, image_1, calib.txt, times.txt, poses.txt) to ``dst`` with
     ``change`` applied to both images of every frame; returns ``dst``."""
     import cv2

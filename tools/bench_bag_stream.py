@@ -87,13 +87,19 @@ def read(path: Path) -> dict:
     t_random = (time.perf_counter() - t) / RANDOM_ACCESSES
     src.close()
     return {
-        "frames": n, "image_size": list(src.camera.size), "open_index_s": round(t_open, 3),
-        "stream_fps": round(n / t_stream, 1), "stream_s": round(t_stream, 2),
+        "frames": n,
+        "image_size": list(src.camera.size),
+        "open_index_s": round(t_open, 3),
+        "stream_fps": round(n / t_stream, 1),
+        "stream_s": round(t_stream, 2),
         "random_access_ms": round(1e3 * t_random, 1),
-        "rss_start_mb": round(rss_start, 1), "rss_after_open_mb": round(rss_open, 1),
+        "rss_start_mb": round(rss_start, 1),
+        "rss_after_open_mb": round(rss_open, 1),
         f"rss_after_{min(EARLY_FRAME, n - 1) + 1}_frames_mb": round(rss_early, 1),
-        f"rss_after_{n}_frames_mb": round(rss_end, 1), "peak_rss_mb": round(peak_rss_mb(), 1),
-        "rss_growth_early_to_end_mb": round(rss_end - rss_early, 1), "checksum": checksum,
+        f"rss_after_{n}_frames_mb": round(rss_end, 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+        "rss_growth_early_to_end_mb": round(rss_end - rss_early, 1),
+        "checksum": checksum,
     }
 
 
@@ -125,10 +131,14 @@ def main() -> None:
     try:
         t_write = write(path, args.kind, args.frames, width, height)
         size = bag_size(path)
-        print(f"wrote {args.frames} stereo frames {width}x{height} ({args.kind}) to {path}: {size / MB:.0f} MB "
-              f"in {t_write:.1f} s", flush=True)
-        out = subprocess.run([sys.executable, __file__, "--read", str(path), "--json"], check=True,
-                             capture_output=True, text=True).stdout
+        print(
+            f"wrote {args.frames} stereo frames {width}x{height} ({args.kind}) to {path}: {size / MB:.0f} MB "
+            f"in {t_write:.1f} s",
+            flush=True,
+        )
+        out = subprocess.run(
+            [sys.executable, __file__, "--read", str(path), "--json"], check=True, capture_output=True, text=True
+        ).stdout
         res = json.loads(out.strip().splitlines()[-1])
         res.update(kind=args.kind, bag_mb=round(size / MB, 1))
         if args.json:
@@ -136,9 +146,11 @@ def main() -> None:
         else:
             for k, v in res.items():
                 print(f"  {k}: {v}")
-            print(f"peak RSS {res['peak_rss_mb']} MB while streaming a {res['bag_mb']} MB bag at "
-                  f"{res['stream_fps']} frames/s; RSS grew {res['rss_growth_early_to_end_mb']} MB from frame "
-                  f"{EARLY_FRAME} to frame {res['frames']}")
+            print(
+                f"peak RSS {res['peak_rss_mb']} MB while streaming a {res['bag_mb']} MB bag at "
+                f"{res['stream_fps']} frames/s; RSS grew {res['rss_growth_early_to_end_mb']} MB from frame "
+                f"{EARLY_FRAME} to frame {res['frames']}"
+            )
     finally:
         if not args.keep and path.exists():
             shutil.rmtree(path) if path.is_dir() else path.unlink()

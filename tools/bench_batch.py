@@ -30,7 +30,7 @@ from vtr.cli.summaries import batch_table
 from vtr.sim.batch_routes import KillWorkerOnce, write_batch_routes
 
 OUTPUTS = ("localization.csv", "landmarks.csv", "trajectory_tum.txt", "state.csv", "frames.csv")
-CTRL_C_AFTER_RUNS = 4      # send SIGINT once this many runs have finished
+CTRL_C_AFTER_RUNS = 4  # send SIGINT once this many runs have finished
 
 
 def compare(a: Path, b: Path, manifest) -> list[str]:
@@ -55,8 +55,12 @@ def ctrl_c_then_rerun(manifest_path: Path, out: Path, n_runs: int) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     cmd = [sys.executable, "-m", "vtr", "batch", str(manifest_path), "--out", str(out), "--workers", "2"]
     # SIGINT as a terminal's Ctrl-C; default disposition in the child (a shell's background job ignores SIGINT)
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     manifest = load_manifest(manifest_path)
     while proc.poll() is None:
         done = sum(run_status(s.folder(out)) == "finished" for s in manifest.runs())
@@ -69,17 +73,26 @@ def ctrl_c_then_rerun(manifest_path: Path, out: Path, n_runs: int) -> dict:
     t0 = time.perf_counter()
     result = run_batch(manifest, out, BatchOptions(workers=2))
     statuses = [o.status for o in result.outcomes]
-    return {"exit_code_after_sigint": code, "finished_before_rerun": finished_before,
-            "rerun_resumed": statuses.count("resumed"), "rerun_finished": statuses.count("finished"),
-            "rerun_s": time.perf_counter() - t0, "runs": n_runs}
+    return {
+        "exit_code_after_sigint": code,
+        "finished_before_rerun": finished_before,
+        "rerun_resumed": statuses.count("resumed"),
+        "rerun_finished": statuses.count("finished"),
+        "rerun_s": time.perf_counter() - t0,
+        "runs": n_runs,
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", nargs="?", type=Path, default=Path("/tmp/vtr_bench_batch"))
     ap.add_argument("--repeats-per-route", type=int, default=4)
-    ap.add_argument("--length", type=float, default=80.0,
-                    help="route length (m); at 40 m per-run start-up is a third of a run (2 workers 1.46x, 80 m 1.91x)")
+    ap.add_argument(
+        "--length",
+        type=float,
+        default=80.0,
+        help="route length (m); at 40 m per-run start-up is a third of a run (2 workers 1.46x, 80 m 1.91x)",
+    )
     ap.add_argument("--spacing", type=float, default=0.5, help="frame spacing (m)")
     ap.add_argument("--skip-ctrlc", action="store_true")
     args = ap.parse_args()
@@ -96,9 +109,11 @@ def main() -> None:
         wall[workers], result = timed_batch(manifest, args.out / f"w{workers}", workers, threads=1)
         assert not result.failed, batch_table(result)
         busy = sum(o.seconds for o in result.outcomes) / (workers * wall[workers])
-        print(f"workers {workers}: {wall[workers]:.1f} s wall for {n} runs "
-              f"({sum(o.frames for o in result.outcomes)} frames); workers busy {100 * busy:.0f} % of the wall time; "
-              f"second core available before: {control[workers]:.2f}x")
+        print(
+            f"workers {workers}: {wall[workers]:.1f} s wall for {n} runs "
+            f"({sum(o.frames for o in result.outcomes)} frames); workers busy {100 * busy:.0f} % of the wall time; "
+            f"second core available before: {control[workers]:.2f}x"
+        )
     report["second_core_available"] = control
     report["wall_s"] = wall
     report["speedup_2_vs_1"] = wall[1] / wall[2]
@@ -112,22 +127,32 @@ def main() -> None:
     victim = manifest.routes[0].repeats[-1].name
     seconds, killed = timed_batch(manifest, args.out / "killed", 2, on_start=KillWorkerOnce(marker, victim))
     differ = compare(args.out / "killed", args.out / "w2", manifest)
-    report["killed_worker"] = {"victim": f"{manifest.routes[0].name}/{victim}", "files_at_kill": marker.read_text(),
-                               "all_finished": not killed.failed, "differing_files": differ, "wall_s": seconds}
-    print(f"worker killed mid-run ({victim}; its folder held {marker.read_text().split()}): all finished "
-          f"{not killed.failed}, outputs equal to the undisturbed run: {not differ} {differ or ''}")
+    report["killed_worker"] = {
+        "victim": f"{manifest.routes[0].name}/{victim}",
+        "files_at_kill": marker.read_text(),
+        "all_finished": not killed.failed,
+        "differing_files": differ,
+        "wall_s": seconds,
+    }
+    print(
+        f"worker killed mid-run ({victim}; its folder held {marker.read_text().split()}): all finished "
+        f"{not killed.failed}, outputs equal to the undisturbed run: {not differ} {differ or ''}"
+    )
 
     if not args.skip_ctrlc:
         r = ctrl_c_then_rerun(manifest_path, args.out / "ctrlc", n)
         r["differing_files"] = compare(args.out / "ctrlc", args.out / "w2", manifest)
         report["ctrl_c"] = r
-        print(f"Ctrl-C after {r['finished_before_rerun']} of {n} runs finished (exit {r['exit_code_after_sigint']}); "
-              f"rerun: {r['rerun_resumed']} resumed, {r['rerun_finished']} run, {r['rerun_s']:.1f} s; outputs equal "
-              f"to the undisturbed run: {not r['differing_files']}")
+        print(
+            f"Ctrl-C after {r['finished_before_rerun']} of {n} runs finished (exit {r['exit_code_after_sigint']}); "
+            f"rerun: {r['rerun_resumed']} resumed, {r['rerun_finished']} run, {r['rerun_s']:.1f} s; outputs equal "
+            f"to the undisturbed run: {not r['differing_files']}"
+        )
     report["load_average"] = os.getloadavg()
     (args.out / "bench_batch.json").write_text(json.dumps(report, indent=2, default=str))
-    print(f"load average {[round(x, 2) for x in os.getloadavg()]} (shared machine); "
-          f"wrote {args.out / 'bench_batch.json'}")
+    print(
+        f"load average {[round(x, 2) for x in os.getloadavg()]} (shared machine); wrote {args.out / 'bench_batch.json'}"
+    )
 
 
 if __name__ == "__main__":

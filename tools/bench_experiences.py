@@ -35,8 +35,9 @@ def warm(snapshot: Path, config: Config) -> None:
     """Store the experiences' place-recognition words in the map (what the first repeat against them does)."""
     with Map.open(snapshot, "a") as m:
         place = route_place_index(m, config.place, config.run.seed)
-        sub = ExperienceSubmaps(m, m.taught_path(), config.experiences, config.localization.neighbour_vertices,
-                                m.camera, place)
+        sub = ExperienceSubmaps(
+            m, m.taught_path(), config.experiences, config.localization.neighbour_vertices, m.camera, place
+        )
         for run in sub.trusted:
             sub.run_words(run)
 
@@ -77,15 +78,16 @@ def main() -> None:
             if k in snapshots:
                 shutil.copyfile(grown, snapshots[k])
         sizes_file.write_text(json.dumps(sizes) + "\n")
-    for snapshot in snapshots.values():         # the experiences' place words stored, as after one repeat
+    for snapshot in snapshots.values():  # the experiences' place words stored, as after one repeat
         warm(snapshot, config)
     probe = out / f"probe_{args.probe:.2f}"
     truth = render_flight(probe, 0, T, args.probe)
     bound = config.experiences.max_per_keyframe
 
     def probe_flight(snapshot: Path, max_per_keyframe: int):
-        cfg = dataclasses.replace(config, experiences=dataclasses.replace(config.experiences,
-                                                                          max_per_keyframe=max_per_keyframe))
+        cfg = dataclasses.replace(
+            config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=max_per_keyframe)
+        )
         copy = out / "probe.vtrmap"
         shutil.copyfile(snapshot, copy)
         f = fly(copy, probe, truth, taught, args.probe, False, cfg)
@@ -94,31 +96,47 @@ def main() -> None:
 
     cases = [(max(COUNTS), 0)] + [(k, bound) for k in COUNTS] + [(max(COUNTS), max(COUNTS))]
     flights: dict[tuple[int, int], list] = {c: [] for c in cases}
-    for _ in range(args.rounds):               # interleaved: the machine's load falls on every case alike
+    for _ in range(args.rounds):  # interleaved: the machine's load falls on every case alike
         for stored, most in cases:
             flights[(stored, most)].append(probe_flight(snapshots[stored], most))
     rows = []
     for (stored, most), fs in flights.items():
-        ms = 1000 * np.array([f.keyframe_seconds for f in fs])          # (rounds, keyframes)
+        ms = 1000 * np.array([f.keyframe_seconds for f in fs])  # (rounds, keyframes)
         per_kf = [len(loc.experiences) for loc in fs[0].localizations if loc.success]
         i = fs[0].integrity
-        rows.append({"stored": stored, "max_per_keyframe": most, "ms_per_keyframe": float(ms.mean()),
-                     "median_ms": float(np.median(ms[:, 1:])), "first_ms": float(np.median(ms[:, 0])),
-                     "correct": i.correct, "attempts": i.attempts, "wrong": max(f.integrity.wrong for f in fs),
-                     "mean_experiences_per_success": float(np.mean(per_kf)) if per_kf else 0.0})
-    print(f"| experiences stored | matched per keyframe at most | localization ms per keyframe after the first: median "
-          f"({args.rounds} rounds) | mean (all) | first keyframe (search) | correct | wrong | experiences per success "
-          "(mean) |")
+        rows.append(
+            {
+                "stored": stored,
+                "max_per_keyframe": most,
+                "ms_per_keyframe": float(ms.mean()),
+                "median_ms": float(np.median(ms[:, 1:])),
+                "first_ms": float(np.median(ms[:, 0])),
+                "correct": i.correct,
+                "attempts": i.attempts,
+                "wrong": max(f.integrity.wrong for f in fs),
+                "mean_experiences_per_success": float(np.mean(per_kf)) if per_kf else 0.0,
+            }
+        )
+    print(
+        f"| experiences stored | matched per keyframe at most | localization ms per keyframe after the first: median "
+        f"({args.rounds} rounds) | mean (all) | first keyframe (search) | correct | wrong | experiences per success "
+        "(mean) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['stored']} | {r['max_per_keyframe']} | {r['median_ms']:.1f} | {r['ms_per_keyframe']:.1f} | "
-              f"{r['first_ms']:.0f} | {r['correct']} / {r['attempts']} | {r['wrong']} | "
-              f"{r['mean_experiences_per_success']:.1f} |")
+        print(
+            f"| {r['stored']} | {r['max_per_keyframe']} | {r['median_ms']:.1f} | {r['ms_per_keyframe']:.1f} | "
+            f"{r['first_ms']:.0f} | {r['correct']} / {r['attempts']} | {r['wrong']} | "
+            f"{r['mean_experiences_per_success']:.1f} |"
+        )
     growth = np.diff(sizes)
-    print(f"map bytes: teach {sizes[0]}, after each flight +{', +'.join(str(int(g)) for g in growth)}; "
-          f"median {int(np.median(growth))} bytes per experience ({int(np.median(growth)) // len(T)} per vertex)")
-    (out / "bench_experiences.json").write_text(json.dumps({"rows": rows, "map_bytes_per_flight": sizes}, indent=2)
-                                                + "\n")
+    print(
+        f"map bytes: teach {sizes[0]}, after each flight +{', +'.join(str(int(g)) for g in growth)}; "
+        f"median {int(np.median(growth))} bytes per experience ({int(np.median(growth)) // len(T)} per vertex)"
+    )
+    (out / "bench_experiences.json").write_text(
+        json.dumps({"rows": rows, "map_bytes_per_flight": sizes}, indent=2) + "\n"
+    )
 
 
 if __name__ == "__main__":

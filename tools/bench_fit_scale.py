@@ -72,7 +72,7 @@ def run_fit(data: Path, out: Path, method: str, pythonpath: Path, label: str) ->
     """One ``perception-model fit`` in a fresh process: wall seconds, peak RSS (wait4), exit code, constants."""
     model_path = out / f"model_{data.name}_{method}_{label}.json"
     log = out / f"log_{data.name}_{method}_{label}.txt"
-    model_path.unlink(missing_ok=True)   # fit refuses to replace an existing model (no --force: older versions lack it)
+    model_path.unlink(missing_ok=True)  # fit refuses to replace an existing model (no --force: older versions lack it)
     cmd = [sys.executable, "-m", "perception_model.cli", "fit", str(data), "--out", str(model_path),
            "--method", method]  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(pythonpath))
@@ -117,10 +117,15 @@ def main() -> None:
     ap.add_argument("--rows", type=lambda s: [int(v) for v in s.split(",")], default=list(DEFAULT_ROWS))
     ap.add_argument("--formats", default="csv,parquet")
     ap.add_argument("--methods", default="binned")
-    ap.add_argument("--baseline-src", type=Path, default=None,
-                    help="also run this source tree's perception-model fit on the CSV files (before/after)")
-    ap.add_argument("--baseline-max-rows", type=int, default=1_000_000,
-                    help="run the baseline only up to this many rows")
+    ap.add_argument(
+        "--baseline-src",
+        type=Path,
+        default=None,
+        help="also run this source tree's perception-model fit on the CSV files (before/after)",
+    )
+    ap.add_argument(
+        "--baseline-max-rows", type=int, default=1_000_000, help="run the baseline only up to this many rows"
+    )
     ap.add_argument("--regenerate", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()

@@ -83,6 +83,7 @@ def route_constraint(n_vertices: int, model: PerceptionModel, repeats: int) -> t
         pos, yaw, k = ticks[state["i"] % len(ticks)]
         state["i"] += 1
         field.evaluate(pos, yaw, previous=k)
+
     return _time(tick, repeats)
 
 
@@ -115,10 +116,11 @@ def main() -> None:
     rows = [
         ("horizon value+gradient (15 trunks x 800)", _time(lambda: ev.evaluate(pos, tr, yaw), args.repeats)),
         ("horizon value only", _time(lambda: ev.evaluate(pos, tr, yaw, gradient=False), args.repeats)),
-        ("trunk selection, 15 steps", _time(lambda: field.select_trunks(pos, yaw - math.pi / 2, 0),
-                                            args.repeats // 4)),
-        ("single-trunk PerceptionConstraint (15 x 800)", _time(lambda: single.evaluate(pos - pos.mean(0), yaw),
-                                                               args.repeats)),
+        ("trunk selection, 15 steps", _time(lambda: field.select_trunks(pos, yaw - math.pi / 2, 0), args.repeats // 4)),
+        (
+            "single-trunk PerceptionConstraint (15 x 800)",
+            _time(lambda: single.evaluate(pos - pos.mean(0), yaw), args.repeats),
+        ),
     ]
     tick = route_constraint(args.route_vertices, model, args.repeats // 4)
     rows.append((f"constraint per tick ({args.route_vertices}-vertex route)", tick))

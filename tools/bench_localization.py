@@ -46,12 +46,14 @@ def cases(work: Path) -> list[tuple[str, str, str, Path, str]]:
         rev = write_reordered_clip(clip, work / f"{name}_reversed", list(range(n - 1, -1, -1)))
         a, b = int(0.4 * n), int(0.6 * n)
         gap = write_reordered_clip(clip, work / f"{name}_gap", [i for i in range(n) if not a <= i < b])
-        out += [(f"{name} even/odd", name, "0::2", clip, "1::2"),
-                (f"{name} from 1/3", name, "0::2", clip, f"{third}::2"),
-                (f"{name} from 2/3", name, "0::2", clip, f"{two_thirds}::2"),
-                (f"{name} backward", name, "0::2", rev, "1::2"),
-                (f"{name} gap {a}-{b}", name, "0::2", gap, "1::2"),
-                (f"{name} past end", name, f"0:{n // 2}:2", clip, "1::2")]
+        out += [
+            (f"{name} even/odd", name, "0::2", clip, "1::2"),
+            (f"{name} from 1/3", name, "0::2", clip, f"{third}::2"),
+            (f"{name} from 2/3", name, "0::2", clip, f"{two_thirds}::2"),
+            (f"{name} backward", name, "0::2", rev, "1::2"),
+            (f"{name} gap {a}-{b}", name, "0::2", gap, "1::2"),
+            (f"{name} past end", name, f"0:{n // 2}:2", clip, "1::2"),
+        ]
     return out
 
 
@@ -69,11 +71,19 @@ def run_case(work: Path, name: str, clip_name: str, teach_frames: str, rep_clip:
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1
-    return {"case": name, "attempts": integ.attempts, "successes": integ.successes, "wrong": integ.wrong,
-            "first_correct": integ.first_correct, "rate_after": integ.rate_after,
-            "median_error_mm": 1000 * integ.median_error_m, "sigma_covers": integ.covered,
-            "median_nees": integ.median_nees, "fps": summary.frames / summary.seconds,
-            "statuses": statuses}
+    return {
+        "case": name,
+        "attempts": integ.attempts,
+        "successes": integ.successes,
+        "wrong": integ.wrong,
+        "first_correct": integ.first_correct,
+        "rate_after": integ.rate_after,
+        "median_error_mm": 1000 * integ.median_error_m,
+        "sigma_covers": integ.covered,
+        "median_nees": integ.median_nees,
+        "fps": summary.frames / summary.seconds,
+        "statuses": statuses,
+    }
 
 
 def place_timing(vertices: int, seed: int = 0) -> dict:
@@ -116,17 +126,24 @@ def main() -> None:
         raise SystemExit(f"{work}: not empty (choose another --out)")
     work.mkdir(parents=True, exist_ok=True)
     results = []
-    print(f"{'case':<22} {'att':>4} {'succ':>4} {'wrong':>5} {'first':>5} {'after':>6} {'med mm':>7} "
-          f"{'3sig cov':>8} {'NEES':>6}")
+    print(
+        f"{'case':<22} {'att':>4} {'succ':>4} {'wrong':>5} {'first':>5} {'after':>6} {'med mm':>7} "
+        f"{'3sig cov':>8} {'NEES':>6}"
+    )
     for case in cases(work):
         r = run_case(work, *case)
         results.append(r)
-        print(f"{r['case']:<22} {r['attempts']:>4} {r['successes']:>4} {r['wrong']:>5} {str(r['first_correct']):>5} "
-              f"{100 * r['rate_after']:>5.0f}% {r['median_error_mm']:>7.1f} {100 * r['sigma_covers']:>7.0f}% "
-              f"{r['median_nees']:>6.2f}", flush=True)
+        print(
+            f"{r['case']:<22} {r['attempts']:>4} {r['successes']:>4} {r['wrong']:>5} {str(r['first_correct']):>5} "
+            f"{100 * r['rate_after']:>5.0f}% {r['median_error_mm']:>7.1f} {100 * r['sigma_covers']:>7.0f}% "
+            f"{r['median_nees']:>6.2f}",
+            flush=True,
+        )
     timing = place_timing(args.vertices)
-    print(f"place recognition on {timing['vertices']} vertices: build {timing['build_s']:.1f} s, "
-          f"query {timing['query_ms']:.2f} ms")
+    print(
+        f"place recognition on {timing['vertices']} vertices: build {timing['build_s']:.1f} s, "
+        f"query {timing['query_ms']:.2f} ms"
+    )
     with open(work / "cases.csv", "w", newline="") as f:
         w = csv.DictWriter(f, [k for k in results[0] if k != "statuses"])
         w.writeheader()

@@ -37,8 +37,8 @@ from vtr.sim import synthetic as syn  # noqa: E402
 from vtr.types import StereoImages  # noqa: E402
 
 cv2.setNumThreads(1)
-FRAME_INTERVAL_NS = 100_000_000   # 10 Hz
-EARLY_KEYFRAMES = 500             # memory is read here and at the end
+FRAME_INTERVAL_NS = 100_000_000  # 10 Hz
+EARLY_KEYFRAMES = 500  # memory is read here and at the end
 
 
 def rss_mb() -> float:
@@ -95,7 +95,7 @@ def main() -> None:
     with Map.create(path, camera) as m:
         teach = Teach(m, camera, config, "synthetic circuit")
         rss_teach, t0 = {}, time.perf_counter()
-        stream = teach.odometry.stereo.frames(frames(teach_lap, args.laps))     # as `vtr teach` runs it
+        stream = teach.odometry.stereo.frames(frames(teach_lap, args.laps))  # as `vtr teach` runs it
         for k, frame in enumerate(tqdm(stream, total=total, desc="teach", unit="frame")):
             teach.process_frame(frame)
             if k + 1 == EARLY_KEYFRAMES:
@@ -125,10 +125,14 @@ def main() -> None:
         rss_repeat["end"] = rss_mb()
         repeat_fps = total / (time.perf_counter() - t0)
 
-    print(f"teach: {vertices} vertices, map {size_mb:.0f} MB, {teach_fps:.1f} frames/s; "
-          + memory_line(rss_teach, vertices))
-    print(f"repeat: {localized}/{attempts} keyframes localized, {repeat_fps:.1f} frames/s; "
-          + memory_line(rss_repeat, attempts))
+    print(
+        f"teach: {vertices} vertices, map {size_mb:.0f} MB, {teach_fps:.1f} frames/s; "
+        + memory_line(rss_teach, vertices)
+    )
+    print(
+        f"repeat: {localized}/{attempts} keyframes localized, {repeat_fps:.1f} frames/s; "
+        + memory_line(rss_repeat, attempts)
+    )
     if args.keep is None:
         for p in folder.iterdir():
             p.unlink()

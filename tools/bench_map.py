@@ -26,8 +26,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-WINDOW_BACK, WINDOW_FORWARD = 10, 20        # VT&R3 localization window along the path
-RSS_EARLY_STEP = 500                        # compare memory after this many steps with the end
+WINDOW_BACK, WINDOW_FORWARD = 10, 20  # VT&R3 localization window along the path
+RSS_EARLY_STEP = 500  # compare memory after this many steps with the end
 FEATURE_DEPTH_FRACTION = 2 / 3
 IMAGE_W, IMAGE_H = 1226, 370
 FX, BASELINE = 718.856, 0.537
@@ -54,8 +54,9 @@ def synthetic_frame(rng: np.random.Generator, n: int, index: int):
     no_depth = rng.random(n) > FEATURE_DEPTH_FRACTION
     u_right[no_depth] = np.nan
     points[no_depth] = np.nan
-    features = SimpleNamespace(uv=uv, octave=rng.integers(0, 8, n).astype(np.int32),
-                               descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8))
+    features = SimpleNamespace(
+        uv=uv, octave=rng.integers(0, 8, n).astype(np.int32), descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    )
     return SimpleNamespace(t_ns=index * 100_000_000, index=index, features=features, u_right=u_right, points=points)
 
 
@@ -75,8 +76,9 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
     from vtr.map import Map
     from vtr.types import Keyframe
 
-    camera = StereoCamera(fx=FX, fy=FX, cx=IMAGE_W / 2, cy=IMAGE_H / 2, baseline=BASELINE,
-                          width=IMAGE_W, height=IMAGE_H)
+    camera = StereoCamera(
+        fx=FX, fy=FX, cx=IMAGE_W / 2, cy=IMAGE_H / 2, baseline=BASELINE, width=IMAGE_W, height=IMAGE_H
+    )
     rng = np.random.default_rng(0)
     cov = np.eye(6) * 1e-4
     t_write = 0.0
@@ -86,7 +88,7 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
         for i in range(n_vertices):
             frame = synthetic_frame(rng, n_features, i)
             T = route_pose(i, spacing)
-            kf = Keyframe(i, frame, T, cov, 100)     # vertex and temporal edge in one transaction
+            kf = Keyframe(i, frame, T, cov, 100)  # vertex and temporal edge in one transaction
             t0 = time.perf_counter()
             m.add_keyframe(run, kf)
             t_write += time.perf_counter() - t0
@@ -95,11 +97,15 @@ def write(path: Path, n_vertices: int, n_features: int, spacing: float) -> dict:
         rss_end = rss_kb()["VmRSS"]
     size = path.stat().st_size
     return {
-        "vertices": n_vertices, "features_per_vertex": n_features, "spacing_m": spacing,
+        "vertices": n_vertices,
+        "features_per_vertex": n_features,
+        "spacing_m": spacing,
         "write_s_per_vertex": t_write / n_vertices,
-        "bytes_on_disk": size, "bytes_per_keyframe": size / n_vertices,
+        "bytes_on_disk": size,
+        "bytes_per_keyframe": size / n_vertices,
         "bytes_per_km": size / n_vertices * 1000.0 / spacing,
-        "write_rss_kb_after_500": rss_early, "write_rss_kb_end": rss_end,
+        "write_rss_kb_after_500": rss_early,
+        "write_rss_kb_end": rss_end,
     }
 
 
@@ -137,11 +143,16 @@ def walk(path: Path) -> dict:
         rss["end"] = rss_kb()
     n = len(ids)
     return {
-        "walk_steps": n, "taught_path_s": t_poses,
-        "walk_ms_per_step": 1e3 * t_total / n, "nearest_ms": 1e3 * t_nearest / n, "window_read_ms": 1e3 * t_window / n,
-        "walk_rss_kb_at_open": base, "walk_rss_kb_warm": warm,
+        "walk_steps": n,
+        "taught_path_s": t_poses,
+        "walk_ms_per_step": 1e3 * t_total / n,
+        "nearest_ms": 1e3 * t_nearest / n,
+        "window_read_ms": 1e3 * t_window / n,
+        "walk_rss_kb_at_open": base,
+        "walk_rss_kb_warm": warm,
         "walk_rss_kb_after_500": rss.get("after_500", {}).get("VmRSS"),
-        "walk_rss_kb_end": rss["end"]["VmRSS"], "walk_peak_rss_kb": rss["end"]["VmHWM"],
+        "walk_rss_kb_end": rss["end"]["VmRSS"],
+        "walk_peak_rss_kb": rss["end"]["VmHWM"],
     }
 
 
@@ -166,29 +177,46 @@ def main() -> None:
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         path = Path(tmp) / "bench.vtrmap"
         res = write(path, args.vertices, args.features, args.spacing)
-        out = subprocess.run([sys.executable, __file__, "--walk-only", str(path)], capture_output=True, text=True,
-                             check=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+        out = subprocess.run(
+            [sys.executable, __file__, "--walk-only", str(path)],
+            capture_output=True,
+            text=True,
+            check=True,
+            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+        )
         res.update(json.loads(out.stdout))
         if args.keep:
             kept = Path(args.dir or ".") / "bench.vtrmap"
             path.replace(kept)
             res["map"] = str(kept)
-    print(f"route: {res['vertices']} keyframes x {res['features_per_vertex']} features, "
-          f"{res['spacing_m']} m apart ({res['vertices'] * res['spacing_m'] / 1000:.1f} km)")
-    print(f"write: {1e3 * res['write_s_per_vertex']:.2f} ms/vertex "
-          "(vertex + temporal edge in one commit, synchronous=FULL)")
-    print(f"size:  {res['bytes_on_disk'] / 1e6:.1f} MB, {res['bytes_per_keyframe'] / 1e3:.1f} kB/keyframe, "
-          f"{res['bytes_per_km'] / 1e6:.1f} MB/km")
-    print(f"write RSS: {_mb(res['write_rss_kb_after_500'])} MB after 500 vertices, "
-          f"{res['write_rss_kb_end'] / 1e3:.1f} MB after {res['vertices']}")
-    print(f"walk:  taught path in {1e3 * res['taught_path_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
-          f"(nearest {res['nearest_ms']:.3f} ms, window -{WINDOW_BACK}..+{WINDOW_FORWARD} read "
-          f"{res['window_read_ms']:.2f} ms)")
-    print(f"walk RSS: {res['walk_rss_kb_at_open'] / 1e3:.1f} MB at open, "
-          f"{res['walk_rss_kb_warm'] / 1e3:.1f} MB after warm-up (scipy, k-d tree, first vertex), "
-          f"{_mb(res['walk_rss_kb_after_500'])} MB after 500 steps, "
-          f"{res['walk_rss_kb_end'] / 1e3:.1f} MB after {res['walk_steps']}, "
-          f"peak {res['walk_peak_rss_kb'] / 1e3:.1f} MB")
+    print(
+        f"route: {res['vertices']} keyframes x {res['features_per_vertex']} features, "
+        f"{res['spacing_m']} m apart ({res['vertices'] * res['spacing_m'] / 1000:.1f} km)"
+    )
+    print(
+        f"write: {1e3 * res['write_s_per_vertex']:.2f} ms/vertex "
+        "(vertex + temporal edge in one commit, synchronous=FULL)"
+    )
+    print(
+        f"size:  {res['bytes_on_disk'] / 1e6:.1f} MB, {res['bytes_per_keyframe'] / 1e3:.1f} kB/keyframe, "
+        f"{res['bytes_per_km'] / 1e6:.1f} MB/km"
+    )
+    print(
+        f"write RSS: {_mb(res['write_rss_kb_after_500'])} MB after 500 vertices, "
+        f"{res['write_rss_kb_end'] / 1e3:.1f} MB after {res['vertices']}"
+    )
+    print(
+        f"walk:  taught path in {1e3 * res['taught_path_s']:.1f} ms; {res['walk_ms_per_step']:.2f} ms/step "
+        f"(nearest {res['nearest_ms']:.3f} ms, window -{WINDOW_BACK}..+{WINDOW_FORWARD} read "
+        f"{res['window_read_ms']:.2f} ms)"
+    )
+    print(
+        f"walk RSS: {res['walk_rss_kb_at_open'] / 1e3:.1f} MB at open, "
+        f"{res['walk_rss_kb_warm'] / 1e3:.1f} MB after warm-up (scipy, k-d tree, first vertex), "
+        f"{_mb(res['walk_rss_kb_after_500'])} MB after 500 steps, "
+        f"{res['walk_rss_kb_end'] / 1e3:.1f} MB after {res['walk_steps']}, "
+        f"peak {res['walk_peak_rss_kb'] / 1e3:.1f} MB"
+    )
     if args.json:
         args.json.write_text(json.dumps(res, indent=2))
 

@@ -93,18 +93,32 @@ def run_variant(clip: Path, seed: int | None, sigma: float, config: Config, out:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory_tum.txt", t_ns, poses)
-    return {"clip": clip.name, "variant": "clean" if seed is None else f"seed {seed}", "seed": seed,
-            "sigma": 0.0 if seed is None else sigma, "t_err_pct": drift.t_err_pct,
-            "r_err_deg_per_m": drift.r_err_deg_per_m, "end_pct": drift.end_pct, "length_ratio": drift.length_ratio,
-            "failures": sum(r.kind == FrameKind.FAILURE for r in records), "frames": len(records),
-            "seconds": seconds}
+    return {
+        "clip": clip.name,
+        "variant": "clean" if seed is None else f"seed {seed}",
+        "seed": seed,
+        "sigma": 0.0 if seed is None else sigma,
+        "t_err_pct": drift.t_err_pct,
+        "r_err_deg_per_m": drift.r_err_deg_per_m,
+        "end_pct": drift.end_pct,
+        "length_ratio": drift.length_ratio,
+        "failures": sum(r.kind == FrameKind.FAILURE for r in records),
+        "frames": len(records),
+        "seconds": seconds,
+    }
 
 
 def spread(rows: list[dict]) -> dict:
     t = np.array([r["t_err_pct"] for r in rows])
-    return {"clip": rows[0]["clip"], "max_pct": float(t.max()), "min_pct": float(t.min()),
-            "spread_points": float(t.max() - t.min()), "mean_pct": float(t.mean()), "std_points": float(t.std()),
-            "clean_pct": rows[0]["t_err_pct"]}
+    return {
+        "clip": rows[0]["clip"],
+        "max_pct": float(t.max()),
+        "min_pct": float(t.min()),
+        "spread_points": float(t.max() - t.min()),
+        "mean_pct": float(t.mean()),
+        "std_points": float(t.std()),
+        "clean_pct": rows[0]["t_err_pct"],
+    }
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -117,8 +131,11 @@ def plot(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, len(clips), figsize=(4.5 * len(clips), 3.6), squeeze=False)
     for ax, clip in zip(axes[0], clips, strict=True):
         mine = [r for r in rows if r["clip"] == clip]
-        ax.bar(range(len(mine)), [r["t_err_pct"] for r in mine],
-               color=["tab:blue" if r["seed"] is None else "tab:orange" for r in mine])
+        ax.bar(
+            range(len(mine)),
+            [r["t_err_pct"] for r in mine],
+            color=["tab:blue" if r["seed"] is None else "tab:orange" for r in mine],
+        )
         ax.set_xticks(range(len(mine)), [r["variant"] for r in mine], rotation=30)
         ax.set_ylabel("t_err (%)")
         s = spread(mine)
@@ -155,15 +172,21 @@ def main() -> None:
     for clip in args.clips or CLIPS:
         mine = []
         for seed in [None, *args.seeds]:
-            r = run_variant(clip, seed, args.sigma, config, args.out / clip.name / ("clean" if seed is None
-                                                                                    else f"seed{seed}"))
+            r = run_variant(
+                clip, seed, args.sigma, config, args.out / clip.name / ("clean" if seed is None else f"seed{seed}")
+            )
             mine.append(r)
-            print(f"{clip.name:20s} {r['variant']:8s} t_err {r['t_err_pct']:.3f} %  r_err {r['r_err_deg_per_m']:.4f}"
-                  f" deg/m  path x{r['length_ratio']:.4f}  failures {r['failures']}", flush=True)
+            print(
+                f"{clip.name:20s} {r['variant']:8s} t_err {r['t_err_pct']:.3f} %  r_err {r['r_err_deg_per_m']:.4f}"
+                f" deg/m  path x{r['length_ratio']:.4f}  failures {r['failures']}",
+                flush=True,
+            )
         s = spread(mine)
-        print(f"{clip.name:20s} clean {s['clean_pct']:.3f} %  max {s['max_pct']:.3f} %  min {s['min_pct']:.3f} %  "
-              f"spread {s['spread_points']:.3f} points  mean {s['mean_pct']:.3f} %  std {s['std_points']:.3f}",
-              flush=True)
+        print(
+            f"{clip.name:20s} clean {s['clean_pct']:.3f} %  max {s['max_pct']:.3f} %  min {s['min_pct']:.3f} %  "
+            f"spread {s['spread_points']:.3f} points  mean {s['mean_pct']:.3f} %  std {s['std_points']:.3f}",
+            flush=True,
+        )
         rows += mine
         summaries.append(s)
     fields = list(rows[0])
@@ -171,13 +194,22 @@ def main() -> None:
         w = csv.DictWriter(f, fields)
         w.writeheader()
         w.writerows(rows)
-    (args.out / "noise.json").write_text(json.dumps({"sigma": args.sigma, "seeds": args.seeds,
-                                                     "overrides": args.set, "runs": rows, "clips": summaries},
-                                                    indent=1))
+    (args.out / "noise.json").write_text(
+        json.dumps(
+            {"sigma": args.sigma, "seeds": args.seeds, "overrides": args.set, "runs": rows, "clips": summaries},
+            indent=1,
+        )
+    )
     plot(rows, args.out / "noise.png")
-    print("summary: " + "; ".join(f"{s['clip']} {s['min_pct']:.2f}-{s['max_pct']:.2f} % (clean {s['clean_pct']:.2f},"
-                                  f" spread {s['spread_points']:.2f})" for s in summaries)
-          + f"  [sigma {args.sigma:g} grey levels, seeds {' '.join(map(str, args.seeds))}; {args.out}]")
+    print(
+        "summary: "
+        + "; ".join(
+            f"{s['clip']} {s['min_pct']:.2f}-{s['max_pct']:.2f} % (clean {s['clean_pct']:.2f},"
+            f" spread {s['spread_points']:.2f})"
+            for s in summaries
+        )
+        + f"  [sigma {args.sigma:g} grey levels, seeds {' '.join(map(str, args.seeds))}; {args.out}]"
+    )
 
 
 if __name__ == "__main__":

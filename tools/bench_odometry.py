@@ -55,7 +55,7 @@ def bench_once(path: Path, frames: str | None, threads: int, preload: bool = Fal
         images = [src[i] for i in idx] if preload else src.iter_frames(idx)
         vo = StereoOdometry(src.camera, OdometrySettings.of(config))
         load = 0.0
-        inline = vo.stereo.threads == 1     # one thread: waiting for a frame also runs its features and stereo
+        inline = vo.stereo.threads == 1  # one thread: waiting for a frame also runs its features and stereo
 
         def stereo_seconds() -> float:
             return sum(vo.timer.seconds.get(k, 0.0) for k in ("features", "stereo")) if inline else 0.0
@@ -71,13 +71,20 @@ def bench_once(path: Path, frames: str | None, threads: int, preload: bool = Fal
             vo.process_frame(frame)
         total = time.perf_counter() - t0
     stages = {"load": load, **vo.timer.seconds}
-    return {"source": path.name, "size": f"{src.camera.width}x{src.camera.height}", "frames": len(idx),
-            "fps": len(idx) / total, "ms_per_frame": 1000 * total / len(idx), "poses": vo.final_poses(),
-            **{f"{k}_ms": 1000 * stages.get(k, 0.0) / len(idx) for k in STAGES}}
+    return {
+        "source": path.name,
+        "size": f"{src.camera.width}x{src.camera.height}",
+        "frames": len(idx),
+        "fps": len(idx) / total,
+        "ms_per_frame": 1000 * total / len(idx),
+        "poses": vo.final_poses(),
+        **{f"{k}_ms": 1000 * stages.get(k, 0.0) / len(idx) for k in STAGES},
+    }
 
 
-def bench(path: Path, frames: str | None, repeats: int, thread_counts: list[int],
-          preload: bool = False) -> dict[int, dict]:
+def bench(
+    path: Path, frames: str | None, repeats: int, thread_counts: list[int], preload: bool = False
+) -> dict[int, dict]:
     """Best of ``repeats`` passes per thread count, the counts interleaved (a shared machine's load hits
     them alike)."""
     best: dict[int, dict] = {}
@@ -107,15 +114,19 @@ def main() -> None:
         runs = bench(path, args.frames, args.repeats, args.threads, args.preload)
         for threads, r in runs.items():
             split = "  ".join(f"{k} {r[f'{k}_ms']:.1f}" for k in STAGES)
-            print(f"{r['source']} ({r['size']}, {r['frames']} frames, best of {args.repeats}"
-                  f"{', preloaded' if args.preload else ''}) threads {threads}: "
-                  f"{r['fps']:.1f} frames/s, {r['ms_per_frame']:.1f} ms/frame  [{split} ms]  "
-                  f"peak RSS {r['peak_rss_mb']:.0f} MB")
+            print(
+                f"{r['source']} ({r['size']}, {r['frames']} frames, best of {args.repeats}"
+                f"{', preloaded' if args.preload else ''}) threads {threads}: "
+                f"{r['fps']:.1f} frames/s, {r['ms_per_frame']:.1f} ms/frame  [{split} ms]  "
+                f"peak RSS {r['peak_rss_mb']:.0f} MB"
+            )
         first = runs[args.threads[0]]
         for threads, r in runs.items():
             if threads != args.threads[0]:
-                print(f"    threads {threads} vs {args.threads[0]}: {r['fps'] / first['fps']:.2f}x, trajectories "
-                      f"{'identical' if np.array_equal(r['poses'], first['poses']) else 'DIFFERENT'}")
+                print(
+                    f"    threads {threads} vs {args.threads[0]}: {r['fps'] / first['fps']:.2f}x, trajectories "
+                    f"{'identical' if np.array_equal(r['poses'], first['poses']) else 'DIFFERENT'}"
+                )
     print(f"OpenCV threads {cv2.getNumThreads()}, BLAS 1; load average {np.round(os.getloadavg(), 2).tolist()}")
 
 

@@ -88,8 +88,9 @@ def run_case(name: str, map_path: Path, source_dir: Path, indices: list[int], tr
     ticks: list[float] = []
     nees: list[float] = []
     done = threading.Event()
-    clock: dict[str, float] = {}            # the frame time the feeder last published, and its wall time
+    clock: dict[str, float] = {}  # the frame time the feeder last published, and its wall time
     with OnlineRepeat(map_path, model=PerceptionModel.thesis()) as live:
+
         def control() -> None:
             nonlocal not_localized
             period = 1.0 / args.control_hz
@@ -102,7 +103,7 @@ def run_case(name: str, map_path: Path, source_dir: Path, indices: list[int], tr
                     if t_frame is None:
                         raise NotLocalizedError("no frame yet")
                     t = int(t_frame + (now - clock["wall"]) * 1e9)
-                    view = live.view      # one view for the state and its check (the feeder may publish between)
+                    view = live.view  # one view for the state and its check (the feeder may publish between)
                     s = view.controller_state_at(t, with_covariance=True)
                     live.window(t, 3, 0.02)
                     p_g, psi_g = s.in_map_gravity_frame()
@@ -135,13 +136,20 @@ def run_case(name: str, map_path: Path, source_dir: Path, indices: list[int], tr
     tick_ms = 1000 * np.array(ticks)
     nees_a = np.array(nees)
     row = {
-        "case": name, "frames": len(images), "ticks": len(ticks), "not_localized_ticks": not_localized,
-        "other_exceptions": errors, "odometry_frame_ms": odo_ms, "feed_ms_median": float(np.median(feed_ms)),
-        "tick_ms_p50": float(np.percentile(tick_ms, 50)), "tick_ms_p99": float(np.percentile(tick_ms, 99)),
+        "case": name,
+        "frames": len(images),
+        "ticks": len(ticks),
+        "not_localized_ticks": not_localized,
+        "other_exceptions": errors,
+        "odometry_frame_ms": odo_ms,
+        "feed_ms_median": float(np.median(feed_ms)),
+        "tick_ms_p50": float(np.percentile(tick_ms, 50)),
+        "tick_ms_p99": float(np.percentile(tick_ms, 99)),
         "tick_ms_max": float(tick_ms.max()),
         "tick_p99_per_odometry_frame": float(np.percentile(tick_ms, 99)) / odo_ms,
         "tick_max_per_odometry_frame": float(tick_ms.max()) / odo_ms,
-        "nees_samples": len(nees_a), "nees_median": float(np.median(nees_a)) if len(nees_a) else None,
+        "nees_samples": len(nees_a),
+        "nees_median": float(np.median(nees_a)) if len(nees_a) else None,
         "nees_inside_99": float(np.mean(nees_a <= NEES_BOUND)) if len(nees_a) else None,
     }
     return row
@@ -153,7 +161,7 @@ def _nees(view: RepeatStateView, s, t: int, truth: Truth, teach_t: dict[int, int
     k = int(view.trunk_index_at(np.array([t]))[0])
     trunk_id = int(view.route.path.ids[k])
     T_cam_trunk_true = truth.teach_at(teach_t[trunk_id])
-    T_rel = inv_T(T_cam_trunk_true) @ truth.repeat_at(t)                   # true repeat camera in the trunk camera
+    T_rel = inv_T(T_cam_trunk_true) @ truth.repeat_at(t)  # true repeat camera in the trunk camera
     T_vs = inv_T(view.route.T_sensor_vehicle)
     T_o_t = view.route.trunk(k)[0]
     p_true = (T_o_t @ T_vs @ T_rel @ view.route.T_sensor_vehicle)[:3, 3]
@@ -179,8 +187,11 @@ def replay_nees(map_path: Path, images: list, truth: Truth, args) -> dict:
                 s = view.controller_state_at(t, with_covariance=True)
                 nees.append(_nees(view, s, t, truth, teach_t))
     a = np.array(nees)
-    return {"replay_nees_samples": len(a), "replay_nees_median": float(np.median(a)) if len(a) else None,
-            "replay_nees_inside_99": float(np.mean(a <= NEES_BOUND)) if len(a) else None}
+    return {
+        "replay_nees_samples": len(a),
+        "replay_nees_median": float(np.median(a)) if len(a) else None,
+        "replay_nees_inside_99": float(np.mean(a <= NEES_BOUND)) if len(a) else None,
+    }
 
 
 def reversed_repeat(images: list, truth: Truth) -> tuple[list, Truth]:
@@ -204,7 +215,7 @@ def aerial_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
         teach_command(teach_seq, map_path, None, Config(), gravity_up=up_in_map(T_teach[0]))
     s = np.arange(spacing, total - spacing + 1e-9, spacing)[::-1]
     T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[-1]))
-    T = T[:len(s)][::-1].copy()
+    T = T[: len(s)][::-1].copy()
     seq = render(out / "aerial" / "backward", scene, T, noise_seed=1, speed_mps=args.speed)
     truth = Truth(syn.route_times(T_teach, args.speed), T_teach, syn.route_times(T, args.speed), T)
     return map_path, seq, list(range(len(T))), truth
@@ -218,7 +229,7 @@ def aerial_forward_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
     total = sum(length for length, _ in ROUTE_SEGMENTS)
     T_teach = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing)
     s = np.arange(spacing, total - spacing + 1e-9, spacing)
-    T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[0]))[:len(s)]
+    T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[0]))[: len(s)]
     seq = render(out / "aerial" / "forward", scene, T, noise_seed=2, speed_mps=args.speed)
     truth = Truth(syn.route_times(T_teach, args.speed), T_teach, syn.route_times(T, args.speed), T)
     return map_path, seq, list(range(len(T))), truth
@@ -245,7 +256,7 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    rows = [r for r in rows if "tick_p99_per_odometry_frame" in r]        # the threaded runs
+    rows = [r for r in rows if "tick_p99_per_odometry_frame" in r]  # the threaded runs
     names = [r["case"] for r in rows]
     for key, label in (("tick_p99_per_odometry_frame", "tick p99"), ("tick_max_per_odometry_frame", "tick max")):
         ax.bar([n + " " + label for n in names], [r[key] for r in rows])
@@ -265,20 +276,32 @@ def main() -> None:
     ap.add_argument("--horizon", type=int, default=15)
     ap.add_argument("--speed", type=float, default=6.0, help="aerial flight speed (m/s)")
     ap.add_argument("--cases", default="aerial,kitti06", help="comma-separated: aerial, kitti06")
-    ap.add_argument("--switch-interval-ms", type=float, default=None,
-                    help="Python's thread switch interval for the run (sys.setswitchinterval; default: Python's, 5 ms)")
-    ap.add_argument("--replay-cases", default="aerial forward,kitti06 reversed,ramp,ramp reversed",
-                    help="comma-separated cases replayed without threads only (calibration): aerial forward, "
-                         "kitti06 reversed, ramp, ramp reversed; empty for none")
+    ap.add_argument(
+        "--switch-interval-ms",
+        type=float,
+        default=None,
+        help="Python's thread switch interval for the run (sys.setswitchinterval; default: Python's, 5 ms)",
+    )
+    ap.add_argument(
+        "--replay-cases",
+        default="aerial forward,kitti06 reversed,ramp,ramp reversed",
+        help="comma-separated cases replayed without threads only (calibration): aerial forward, "
+        "kitti06 reversed, ramp, ramp reversed; empty for none",
+    )
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.switch_interval_ms is not None:
         sys.setswitchinterval(args.switch_interval_ms / 1000)
     print(f"thread switch interval {1000 * sys.getswitchinterval():g} ms")
     rows = []
-    cases = [(name, case) for name, case in (("aerial backward", lambda: aerial_case(args.out, args)),
-                                             ("kitti06", lambda: kitti_case(args.out)))
-             if name.split()[0] in args.cases.split(",")]
+    cases = [
+        (name, case)
+        for name, case in (
+            ("aerial backward", lambda: aerial_case(args.out, args)),
+            ("kitti06", lambda: kitti_case(args.out)),
+        )
+        if name.split()[0] in args.cases.split(",")
+    ]
     for name, case in cases:
         map_path, source, indices, truth = case()
         print(f"{name}: {len(indices)} frames at {args.camera_hz:g} Hz, control at {args.control_hz:g} Hz ...")
@@ -287,10 +310,12 @@ def main() -> None:
             row.update(replay_nees(map_path, [src[i] for i in indices], truth, args))
         rows.append(row)
         print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()))
-    replays = {"aerial forward": lambda: aerial_forward_case(args.out, args),
-               "kitti06 reversed": lambda: kitti_case(args.out),
-               "ramp": lambda: kitti_case(args.out, "kitti00_ramp_clip"),
-               "ramp reversed": lambda: kitti_case(args.out, "kitti00_ramp_clip")}
+    replays = {
+        "aerial forward": lambda: aerial_forward_case(args.out, args),
+        "kitti06 reversed": lambda: kitti_case(args.out),
+        "ramp": lambda: kitti_case(args.out, "kitti00_ramp_clip"),
+        "ramp reversed": lambda: kitti_case(args.out, "kitti00_ramp_clip"),
+    }
     for name in [c.strip() for c in args.replay_cases.split(",") if c.strip()]:
         if name not in replays:
             raise SystemExit(f"--replay-cases: unknown case {name!r} (known: {', '.join(replays)})")

@@ -43,12 +43,12 @@ from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1] / "datasets"
 CLIPS = (ROOT / "kitti06_clip", ROOT / "kitti00_ramp_clip")
-DESCRIPTORS_PER_VERTEX = 2000      # a KITTI keyframe's features (features.n_features)
-COVISIBLE_VERTICES = 10            # a landmark stays in view over this many vertices (3 m at 0.3 m per keyframe)
-LANDMARK_BITS = 24                 # bits flipped from a real descriptor to make a landmark (distinct places)
-OBSERVATION_BITS = 12              # bits flipped per observation (two views of a landmark: ~24 bits apart)
-CLUTTER_FRACTION = 0.2             # share of a query's descriptors the teach never saw
-TARGET_MS = 5.0                    # issue 33: at most 5 ms per query at 50 k vertices
+DESCRIPTORS_PER_VERTEX = 2000  # a KITTI keyframe's features (features.n_features)
+COVISIBLE_VERTICES = 10  # a landmark stays in view over this many vertices (3 m at 0.3 m per keyframe)
+LANDMARK_BITS = 24  # bits flipped from a real descriptor to make a landmark (distinct places)
+OBSERVATION_BITS = 12  # bits flipped per observation (two views of a landmark: ~24 bits apart)
+CLUTTER_FRACTION = 0.2  # share of a query's descriptors the teach never saw
+TARGET_MS = 5.0  # issue 33: at most 5 ms per query at 50 k vertices
 
 
 def real_descriptors(config: Config) -> np.ndarray:
@@ -68,7 +68,7 @@ class Route:
         self.pool = pool
         self.seed = seed
         self.born_per_vertex = DESCRIPTORS_PER_VERTEX // COVISIBLE_VERTICES
-        self._blocks: dict[int, np.ndarray] = {}       # landmark descriptors of recent birth vertices
+        self._blocks: dict[int, np.ndarray] = {}  # landmark descriptors of recent birth vertices
 
     def _block(self, block: int) -> np.ndarray:
         out = self._blocks.get(block)
@@ -89,7 +89,7 @@ class Route:
     def landmarks(self, ids: np.ndarray) -> np.ndarray:
         """Descriptors (len(ids), 32) of landmarks ``ids``: a real descriptor with ``LANDMARK_BITS`` flipped."""
         out = np.empty((len(ids), 32), np.uint8)
-        for block in np.unique(ids // self.born_per_vertex):      # one generator per birth vertex: deterministic
+        for block in np.unique(ids // self.born_per_vertex):  # one generator per birth vertex: deterministic
             sel = np.flatnonzero(ids // self.born_per_vertex == block)
             out[sel] = self._block(int(block))[ids[sel] % self.born_per_vertex]
         return out
@@ -129,7 +129,7 @@ def odometry_frame_ms(config: Config) -> float:
 def bench_size(route: Route, vertices: int, queries: int, config: Config) -> dict:
     t0 = time.perf_counter()
     index = PlaceIndex.build(lambda: (route.view(i, salt=0) for i in range(vertices)), vertices, config.place)
-    index.query(route.view(0.5, salt=1), config.place.candidates)    # derived query structures, if any, built now
+    index.query(route.view(0.5, salt=1), config.place.candidates)  # derived query structures, if any, built now
     build_s = time.perf_counter() - t0
     rng = np.random.default_rng(vertices)
     at = rng.integers(0, vertices - 1, queries)
@@ -142,11 +142,17 @@ def bench_size(route: Route, vertices: int, queries: int, config: Config) -> dic
         cpu_ms.append(1000 * (time.thread_time() - c))
         found += bool(np.any(np.abs(match.indices - (i + 0.5)) <= 1.5))
     size = index.nbytes()
-    return {"vertices": vertices, "build_s": build_s, "query_ms_median": float(np.median(ms)),
-            "query_ms_p95": float(np.percentile(ms, 95)), "query_cpu_ms_median": float(np.median(cpu_ms)),
-            "bytes_per_vertex": size / vertices,
-            "index_mib": size / 2**20,
-            "found": found / queries, "queries": queries}
+    return {
+        "vertices": vertices,
+        "build_s": build_s,
+        "query_ms_median": float(np.median(ms)),
+        "query_ms_p95": float(np.percentile(ms, 95)),
+        "query_cpu_ms_median": float(np.median(cpu_ms)),
+        "bytes_per_vertex": size / vertices,
+        "index_mib": size / 2**20,
+        "found": found / queries,
+        "queries": queries,
+    }
 
 
 def main() -> None:
@@ -160,8 +166,10 @@ def main() -> None:
     config = Config()
     pool = real_descriptors(config)
     frame_ms = odometry_frame_ms(config)
-    print(f"world: {len(pool)} real ORB descriptors of {len(CLIPS)} KITTI clips; {DESCRIPTORS_PER_VERTEX} descriptors "
-          f"per vertex; one odometry frame (kitti06_clip, 1 thread) {frame_ms:.1f} ms")
+    print(
+        f"world: {len(pool)} real ORB descriptors of {len(CLIPS)} KITTI clips; {DESCRIPTORS_PER_VERTEX} descriptors "
+        f"per vertex; one odometry frame (kitti06_clip, 1 thread) {frame_ms:.1f} ms"
+    )
     route = Route(pool)
     rows = []
     for n in args.vertices:
@@ -169,17 +177,23 @@ def main() -> None:
         r["odometry_frame_ms"] = frame_ms
         r["query_per_odometry_frame"] = r["query_ms_median"] / frame_ms
         rows.append(r)
-        print(f"{n:>6} vertices: build {r['build_s']:.1f} s, {r['bytes_per_vertex'] / 1024:.1f} KiB per vertex "
-              f"({r['index_mib']:.0f} MiB), query {r['query_ms_median']:.2f} ms median ({r['query_ms_p95']:.2f} p95, "
-              f"CPU {r['query_cpu_ms_median']:.2f}) "
-              f"= {r['query_per_odometry_frame']:.2f} odometry frames, found {100 * r['found']:.1f} % "
-              f"of {r['queries']} queries", flush=True)
+        print(
+            f"{n:>6} vertices: build {r['build_s']:.1f} s, {r['bytes_per_vertex'] / 1024:.1f} KiB per vertex "
+            f"({r['index_mib']:.0f} MiB), query {r['query_ms_median']:.2f} ms median ({r['query_ms_p95']:.2f} p95, "
+            f"CPU {r['query_cpu_ms_median']:.2f}) "
+            f"= {r['query_per_odometry_frame']:.2f} odometry frames, found {100 * r['found']:.1f} % "
+            f"of {r['queries']} queries",
+            flush=True,
+        )
     big = max(rows, key=lambda r: r["vertices"])
-    print(f"target: <= {TARGET_MS} ms per query at 50 k vertices -> {big['query_ms_median']:.2f} ms at "
-          f"{big['vertices']} ({'met' if big['query_ms_median'] <= TARGET_MS else 'NOT met'}); load average "
-          f"{np.round(os.getloadavg(), 2).tolist()}")
-    (args.out / "bench_place.json").write_text(json.dumps({"rows": rows, "target_ms": TARGET_MS,
-                                                          "load_average": list(os.getloadavg())}, indent=1))
+    print(
+        f"target: <= {TARGET_MS} ms per query at 50 k vertices -> {big['query_ms_median']:.2f} ms at "
+        f"{big['vertices']} ({'met' if big['query_ms_median'] <= TARGET_MS else 'NOT met'}); load average "
+        f"{np.round(os.getloadavg(), 2).tolist()}"
+    )
+    (args.out / "bench_place.json").write_text(
+        json.dumps({"rows": rows, "target_ms": TARGET_MS, "load_average": list(os.getloadavg())}, indent=1)
+    )
     with open(args.out / "bench_place.csv", "w", newline="") as f:
         w = csv.DictWriter(f, list(rows[0]))
         w.writeheader()

@@ -40,7 +40,7 @@ from vtr.types import StereoImages  # noqa: E402
 from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
 
 CLIP = Path(__file__).resolve().parents[1] / "datasets" / "kitti06_clip"
-TARGET_RATIO = 0.9            # issue 33: a repeat at least 0.9x the odometry's frames/s
+TARGET_RATIO = 0.9  # issue 33: a repeat at least 0.9x the odometry's frames/s
 
 
 def timed_odometry(images: list[StereoImages], camera, config: Config) -> dict:
@@ -67,11 +67,18 @@ def timed_repeat(map_path: Path, images: list[StereoImages], config: Config) -> 
     n = len(images)
     locs = [s.localization for s in steps if s.localization is not None]
     key = [(loc.trunk_id, str(loc.status), loc.matches, loc.inliers, loc.T_leaf_trunk.tobytes()) for loc in locs]
-    return {"fps": n / seconds, "cpu_ms": 1000 * cpu / n, "main_cpu_ms": 1000 * main / n, "keyframes": len(locs),
-            "localized": sum(loc.success for loc in locs), "inliers": sum(loc.inliers for loc in locs if loc.success),
-            "stages_ms_per_frame": {k: 1000 * v / n for k, v in stages.items()},
-            "localization_split_ms_per_keyframe": {k: 1000 * v / max(len(locs), 1) for k, v in split.items()},
-            "loc_ms": [1000 * s.localization_seconds for s in steps if s.localization is not None], "key": key}
+    return {
+        "fps": n / seconds,
+        "cpu_ms": 1000 * cpu / n,
+        "main_cpu_ms": 1000 * main / n,
+        "keyframes": len(locs),
+        "localized": sum(loc.success for loc in locs),
+        "inliers": sum(loc.inliers for loc in locs if loc.success),
+        "stages_ms_per_frame": {k: 1000 * v / n for k, v in stages.items()},
+        "localization_split_ms_per_keyframe": {k: 1000 * v / max(len(locs), 1) for k, v in split.items()},
+        "loc_ms": [1000 * s.localization_seconds for s in steps if s.localization is not None],
+        "key": key,
+    }
 
 
 def main() -> None:
@@ -92,65 +99,113 @@ def main() -> None:
         with Map.open(taught) as m:
             km = path_length(m.taught_path().T_world_vertex) / 1000.0
             size = m.bytes_on_disk()
-        print(f"map: {teach.vertices} keyframes over {1000 * km:.1f} m, {size / teach.vertices / 1024:.1f} KiB per "
-              f"keyframe, {size / km / 2**20:.1f} MiB per km")
+        print(
+            f"map: {teach.vertices} keyframes over {1000 * km:.1f} m, {size / teach.vertices / 1024:.1f} KiB per "
+            f"keyframe, {size / km / 2**20:.1f} MiB per km"
+        )
         with open_source(CLIP) as src:
             idx = parse_frame_range(args.frames, len(src), str(CLIP))
-            images = [src[i] for i in idx]              # decoded first: load time is not repeat time
+            images = [src[i] for i in idx]  # decoded first: load time is not repeat time
             camera = src.camera
         copy = Path(tmp) / "repeat.vtrmap"
-        for k in range(-1, args.repeats):              # round -1 warms up (kernels, caches) and is not kept
-            for threads in args.threads:               # interleaved: a shared machine's load hits every count
+        for k in range(-1, args.repeats):  # round -1 warms up (kernels, caches) and is not kept
+            for threads in args.threads:  # interleaved: a shared machine's load hits every count
                 config = Config().replace("features", threads=threads)
                 vo = timed_odometry(images, camera, config)
                 copy.write_bytes(taught.read_bytes())
                 rp = timed_repeat(copy, images, config)
                 copy.unlink()
                 if k >= 0:
-                    rows.append({"round": k, "threads": threads, "odometry_fps": vo["fps"], "repeat_fps": rp["fps"],
-                                 "ratio": rp["fps"] / vo["fps"], "odometry_cpu_ms": vo["cpu_ms"],
-                                 "repeat_cpu_ms": rp["cpu_ms"], "cpu_ratio": vo["cpu_ms"] / rp["cpu_ms"],
-                                 "odometry_main_cpu_ms": vo["main_cpu_ms"], "repeat_main_cpu_ms": rp["main_cpu_ms"],
-                                 "main_cpu_ratio": vo["main_cpu_ms"] / rp["main_cpu_ms"],
-                                 "_vo": vo, "_rp": rp})
-    summary: dict = {"clip": CLIP.name, "frames": args.frames, "n_frames": len(idx), "rounds": args.repeats,
-                     "load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
-                     "target_ratio": TARGET_RATIO, "threads": {}}
+                    rows.append(
+                        {
+                            "round": k,
+                            "threads": threads,
+                            "odometry_fps": vo["fps"],
+                            "repeat_fps": rp["fps"],
+                            "ratio": rp["fps"] / vo["fps"],
+                            "odometry_cpu_ms": vo["cpu_ms"],
+                            "repeat_cpu_ms": rp["cpu_ms"],
+                            "cpu_ratio": vo["cpu_ms"] / rp["cpu_ms"],
+                            "odometry_main_cpu_ms": vo["main_cpu_ms"],
+                            "repeat_main_cpu_ms": rp["main_cpu_ms"],
+                            "main_cpu_ratio": vo["main_cpu_ms"] / rp["main_cpu_ms"],
+                            "_vo": vo,
+                            "_rp": rp,
+                        }
+                    )
+    summary: dict = {
+        "clip": CLIP.name,
+        "frames": args.frames,
+        "n_frames": len(idx),
+        "rounds": args.repeats,
+        "load_average_before": list(load_before),
+        "load_average_after": list(os.getloadavg()),
+        "target_ratio": TARGET_RATIO,
+        "threads": {},
+    }
     first = [r for r in rows if r["threads"] == args.threads[0]][0]
     identical_loc = all(r["_rp"]["key"] == first["_rp"]["key"] for r in rows)
     identical_vo = all(np.array_equal(r["_vo"]["poses"], first["_vo"]["poses"]) for r in rows)
-    print(f"{CLIP.name} frames {args.frames} ({len(idx)} frames), medians of {args.repeats} rounds "
-          f"(odometry and repeat back to back in each round):")
+    print(
+        f"{CLIP.name} frames {args.frames} ({len(idx)} frames), medians of {args.repeats} rounds "
+        f"(odometry and repeat back to back in each round):"
+    )
     for threads in args.threads:
         mine = [r for r in rows if r["threads"] == threads]
-        med = {k: float(np.median([r[k] for r in mine])) for k in
-               ("odometry_fps", "repeat_fps", "ratio", "odometry_cpu_ms", "repeat_cpu_ms", "cpu_ratio",
-                "odometry_main_cpu_ms", "repeat_main_cpu_ms", "main_cpu_ratio")}
-        rp = mine[int(np.argsort([r["ratio"] for r in mine])[len(mine) // 2])]["_rp"]     # the median round's repeat
+        med = {
+            k: float(np.median([r[k] for r in mine]))
+            for k in (
+                "odometry_fps",
+                "repeat_fps",
+                "ratio",
+                "odometry_cpu_ms",
+                "repeat_cpu_ms",
+                "cpu_ratio",
+                "odometry_main_cpu_ms",
+                "repeat_main_cpu_ms",
+                "main_cpu_ratio",
+            )
+        }
+        rp = mine[int(np.argsort([r["ratio"] for r in mine])[len(mine) // 2])]["_rp"]  # the median round's repeat
         summary["threads"][threads] = {
-            **med, "ratio_range": [min(r["ratio"] for r in mine), max(r["ratio"] for r in mine)],
-            "keyframes": rp["keyframes"], "localized": rp["localized"], "inliers": rp["inliers"],
-            "localization_ms_median": float(np.median(rp["loc_ms"])), "stages_ms_per_frame": rp["stages_ms_per_frame"],
-            "localization_split_ms_per_keyframe": rp["localization_split_ms_per_keyframe"]}
+            **med,
+            "ratio_range": [min(r["ratio"] for r in mine), max(r["ratio"] for r in mine)],
+            "keyframes": rp["keyframes"],
+            "localized": rp["localized"],
+            "inliers": rp["inliers"],
+            "localization_ms_median": float(np.median(rp["loc_ms"])),
+            "stages_ms_per_frame": rp["stages_ms_per_frame"],
+            "localization_split_ms_per_keyframe": rp["localization_split_ms_per_keyframe"],
+        }
         s = summary["threads"][threads]
-        print(f"  threads {threads}: odometry {med['odometry_fps']:.1f} frames/s, repeat {med['repeat_fps']:.1f} "
-              f"frames/s: ratio {med['ratio']:.2f} (rounds {s['ratio_range'][0]:.2f}-{s['ratio_range'][1]:.2f}; "
-              f"target >= {TARGET_RATIO}); CPU per frame odometry {med['odometry_cpu_ms']:.1f} ms, repeat "
-              f"{med['repeat_cpu_ms']:.1f} ms (ratio {med['cpu_ratio']:.2f}); on the caller's thread "
-              f"{med['odometry_main_cpu_ms']:.1f} / {med['repeat_main_cpu_ms']:.1f} ms (ratio "
-              f"{med['main_cpu_ratio']:.2f})")
-        print(f"    {rp['localized']}/{rp['keyframes']} keyframes localized, {rp['inliers']} inliers in all, "
-              f"localization {s['localization_ms_median']:.1f} ms median per keyframe")
+        print(
+            f"  threads {threads}: odometry {med['odometry_fps']:.1f} frames/s, repeat {med['repeat_fps']:.1f} "
+            f"frames/s: ratio {med['ratio']:.2f} (rounds {s['ratio_range'][0]:.2f}-{s['ratio_range'][1]:.2f}; "
+            f"target >= {TARGET_RATIO}); CPU per frame odometry {med['odometry_cpu_ms']:.1f} ms, repeat "
+            f"{med['repeat_cpu_ms']:.1f} ms (ratio {med['cpu_ratio']:.2f}); on the caller's thread "
+            f"{med['odometry_main_cpu_ms']:.1f} / {med['repeat_main_cpu_ms']:.1f} ms (ratio "
+            f"{med['main_cpu_ratio']:.2f})"
+        )
+        print(
+            f"    {rp['localized']}/{rp['keyframes']} keyframes localized, {rp['inliers']} inliers in all, "
+            f"localization {s['localization_ms_median']:.1f} ms median per keyframe"
+        )
         print("    repeat ms/frame: " + "  ".join(f"{k} {v:.1f}" for k, v in rp["stages_ms_per_frame"].items()))
         if rp["localization_split_ms_per_keyframe"]:
-            print("    localization ms/keyframe: " + "  ".join(
-                f"{k} {v:.2f}" for k, v in rp["localization_split_ms_per_keyframe"].items()))
+            print(
+                "    localization ms/keyframe: "
+                + "  ".join(f"{k} {v:.2f}" for k, v in rp["localization_split_ms_per_keyframe"].items())
+            )
     summary["localizations_identical_across_threads_and_rounds"] = identical_loc
     summary["odometry_identical_across_threads_and_rounds"] = identical_vo
-    print(f"  localizations {'identical' if identical_loc else 'DIFFERENT'} for threads {args.threads} in every round; "
-          f"odometry trajectories {'identical' if identical_vo else 'DIFFERENT'}")
-    print(f"OpenCV threads {cv2.getNumThreads()}, BLAS 1; load average before {np.round(load_before, 2).tolist()}, "
-          f"after {np.round(os.getloadavg(), 2).tolist()}")
+    print(
+        f"  localizations {'identical' if identical_loc else 'DIFFERENT'} for threads {args.threads} in every round; "
+        f"odometry trajectories {'identical' if identical_vo else 'DIFFERENT'}"
+    )
+    print(
+        f"OpenCV threads {cv2.getNumThreads()}, BLAS 1; load average before {np.round(load_before, 2).tolist()}, "
+        f"after {np.round(os.getloadavg(), 2).tolist()}"
+    )
     (args.out / "bench_repeat.json").write_text(json.dumps(summary, indent=1))
     with open(args.out / "bench_repeat.csv", "w", newline="") as f:
         fields = [k for k in rows[0] if not k.startswith("_")]

@@ -30,14 +30,14 @@ from vtr.config import SmoothingConfig  # noqa: E402
 from vtr.geometry import exp_se3  # noqa: E402
 from vtr.state.smoothing import TrajectorySmoother  # noqa: E402
 
-KEYFRAME_PERIOD_NS = 66_666_667          # 15 Hz
-CONTROL_PERIOD_NS = 20_000_000           # 50 Hz
+KEYFRAME_PERIOD_NS = 66_666_667  # 15 Hz
+CONTROL_PERIOD_NS = 20_000_000  # 50 Hz
 CHECKPOINTS = (100, 1000, 10_000)
-BLOCK = 25                               # keyframes averaged before each checkpoint (window full)
-NOISE_ROT, NOISE_TRANS = 0.002, 0.01     # rad, m
+BLOCK = 25  # keyframes averaged before each checkpoint (window full)
+NOISE_ROT, NOISE_TRANS = 0.002, 0.01  # rad, m
 SEED = 0
-CIRCLE_RADIUS, CIRCLE_RATE = 10.0, 0.3      # m, rad/s
-REFERENCE_SIZE, REFERENCE_REPEATS = 60, 20   # fixed workload timed next to each checkpoint
+CIRCLE_RADIUS, CIRCLE_RATE = 10.0, 0.3  # m, rad/s
+REFERENCE_SIZE, REFERENCE_REPEATS = 60, 20  # fixed workload timed next to each checkpoint
 
 
 def trajectory(t: float) -> np.ndarray:
@@ -49,8 +49,11 @@ def trajectory(t: float) -> np.ndarray:
     T[:3, :3] = Rotation.from_euler(
         "ZYX", [CIRCLE_RATE * t + np.pi / 2, 0.05 * np.sin(1.3 * t), 0.1 * np.sin(2.0 * t)]
     ).as_matrix()
-    T[:3, 3] = [CIRCLE_RADIUS * np.cos(CIRCLE_RATE * t), CIRCLE_RADIUS * np.sin(CIRCLE_RATE * t),
-                10.0 + 2.0 * np.sin(0.3 * t)]
+    T[:3, 3] = [
+        CIRCLE_RADIUS * np.cos(CIRCLE_RATE * t),
+        CIRCLE_RADIUS * np.sin(CIRCLE_RATE * t),
+        10.0 + 2.0 * np.sin(0.3 * t),
+    ]
     return T
 
 
@@ -67,8 +70,8 @@ def run(n_keyframes: int, n_queries: int) -> None:
     rng = np.random.default_rng(SEED)
     cov = np.diag([NOISE_ROT**2] * 3 + [NOISE_TRANS**2] * 3)
     sm = TrajectorySmoother(SmoothingConfig())
-    update_s = np.zeros(n_keyframes)        # wall time
-    update_cpu = np.zeros(n_keyframes)      # CPU time of this thread (gtsam runs in it: no TBB in the wheel)
+    update_s = np.zeros(n_keyframes)  # wall time
+    update_cpu = np.zeros(n_keyframes)  # CPU time of this thread (gtsam runs in it: no TBB in the wheel)
     reference = {}
     t_start = time.perf_counter()
     for k in range(n_keyframes):
@@ -81,17 +84,21 @@ def run(n_keyframes: int, n_queries: int) -> None:
         if k + 1 in CHECKPOINTS:
             reference[k + 1] = reference_workload_ms()
     total = time.perf_counter() - t_start
-    print(f"fed {n_keyframes} keyframes at 15 Hz in {total:.1f} s; window {sm.config.lag_s} s "
-          f"(~{int(sm.config.lag_s * 1e9 / KEYFRAME_PERIOD_NS)} knots)")
+    print(
+        f"fed {n_keyframes} keyframes at 15 Hz in {total:.1f} s; window {sm.config.lag_s} s "
+        f"(~{int(sm.config.lag_s * 1e9 / KEYFRAME_PERIOD_NS)} knots)"
+    )
     print("update cost per keyframe (add_pose: ISAM2 update + refinement + cache refresh), ms:")
     for c in CHECKPOINTS:
         if c > n_keyframes:
             continue
         lo = max(0, c - BLOCK)
         wall, cpu = update_s[lo:c] * 1e3, update_cpu[lo:c] * 1e3
-        print(f"  keyframes {lo:6d}-{c:6d}: CPU median {np.median(cpu):6.2f} mean {np.mean(cpu):6.2f} | "
-              f"wall median {np.median(wall):6.2f} mean {np.mean(wall):6.2f} max {np.max(wall):6.2f} | "
-              f"reference workload {reference[c]:5.2f}")
+        print(
+            f"  keyframes {lo:6d}-{c:6d}: CPU median {np.median(cpu):6.2f} mean {np.mean(cpu):6.2f} | "
+            f"wall median {np.median(wall):6.2f} mean {np.mean(wall):6.2f} max {np.max(wall):6.2f} | "
+            f"reference workload {reference[c]:5.2f}"
+        )
 
     # Query latency, controller-like: times in the last segment and up to 0.2 s after the last keyframe.
     last = sm.last_time_ns
@@ -106,9 +113,11 @@ def run(n_keyframes: int, n_queries: int) -> None:
                 sm.state_at(t, with_covariance=with_cov)
                 lat[i] = time.perf_counter() - a
                 cpu[i] = time.thread_time() - a_cpu
-            print(f"state_at {kind:12s} {label:32s}: wall median {np.median(lat) * 1e6:6.1f} us "
-                  f"p99 {np.percentile(lat, 99) * 1e6:7.1f} us | CPU median {np.median(cpu) * 1e6:6.1f} us "
-                  f"({len(times)} queries)")
+            print(
+                f"state_at {kind:12s} {label:32s}: wall median {np.median(lat) * 1e6:6.1f} us "
+                f"p99 {np.percentile(lat, 99) * 1e6:7.1f} us | CPU median {np.median(cpu) * 1e6:6.1f} us "
+                f"({len(times)} queries)"
+            )
 
 
 def main() -> None:

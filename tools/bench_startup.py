@@ -53,7 +53,7 @@ def first_frame(cmd: list[str], tty: bool) -> tuple[float, float]:
         import termios
 
         master, slave = pty.openpty()
-        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 160, 0, 0))   # a 160-column terminal
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 160, 0, 0))  # a 160-column terminal
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=slave)
         os.close(slave)
@@ -72,7 +72,7 @@ def first_frame(cmd: list[str], tty: bool) -> tuple[float, float]:
             continue
         try:
             chunk = os.read(fd, 4096)
-        except OSError:             # pty closed by the child
+        except OSError:  # pty closed by the child
             chunk = b""
         if not chunk:
             break
@@ -89,8 +89,10 @@ def first_frame(cmd: list[str], tty: bool) -> tuple[float, float]:
 
 
 def summary(name: str, values: list[float]) -> str:
-    return (f"{name:<42s} median {statistics.median(values):6.3f} s  "
-            f"(min {min(values):.3f}, max {max(values):.3f}, n {len(values)})")
+    return (
+        f"{name:<42s} median {statistics.median(values):6.3f} s  "
+        f"(min {min(values):.3f}, max {max(values):.3f}, n {len(values)})"
+    )
 
 
 def main() -> None:
@@ -100,8 +102,8 @@ def main() -> None:
     ap.add_argument("--tty", action="store_true", help="read odometry progress through a pseudo-terminal")
     args = ap.parse_args()
 
-    subprocess.run([sys.executable, "-m", "vtr.vo.kernels"], check=True, capture_output=True)   # warm cache
-    wall(vtr_cmd("--help"))                                                                       # warm page cache
+    subprocess.run([sys.executable, "-m", "vtr.vo.kernels"], check=True, capture_output=True)  # warm cache
+    wall(vtr_cmd("--help"))  # warm page cache
     helps = [wall(vtr_cmd("--help")) for _ in range(args.repeats)]
     versions = [wall(vtr_cmd("versions")) for _ in range(args.repeats)]
     firsts, ends = [], []
@@ -111,10 +113,13 @@ def main() -> None:
             t_first, t_end = first_frame(vtr_cmd("odometry", str(args.clip), "--out", str(out)), args.tty)
             firsts.append(t_first)
             ends.append(t_end)
-    print(f"python {sys.version.split()[0]}, {os.cpu_count()} cores, vtr from "
-          f"{Path(__import__('vtr').__file__).parent}")
-    print(summary("vtr --help", helps) + ("   goal <= 0.4 s" if statistics.median(helps) <= 0.4
-                                          else "   ABOVE the 0.4 s goal"))
+    print(
+        f"python {sys.version.split()[0]}, {os.cpu_count()} cores, vtr from {Path(__import__('vtr').__file__).parent}"
+    )
+    print(
+        summary("vtr --help", helps)
+        + ("   goal <= 0.4 s" if statistics.median(helps) <= 0.4 else "   ABOVE the 0.4 s goal")
+    )
     print(summary("vtr versions", versions))
     print(summary(f"vtr odometry {args.clip.name}: first frame", firsts))
     print(summary(f"vtr odometry {args.clip.name}: whole run", ends))

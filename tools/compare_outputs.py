@@ -36,8 +36,11 @@ def _place_free(text: str, root: str) -> str:
 
 def _without_clock(value, a: str, b: str):
     if isinstance(value, dict):
-        return {k: _without_clock(v, a, b) for k, v in value.items()
-                if k not in CLOCK_KEYS | PLACE_KEYS and "_ms_" not in k and not k.endswith("_seconds")}
+        return {
+            k: _without_clock(v, a, b)
+            for k, v in value.items()
+            if k not in CLOCK_KEYS | PLACE_KEYS and "_ms_" not in k and not k.endswith("_seconds")
+        }
     if isinstance(value, list):
         return [_without_clock(v, a, b) for v in value]
     if isinstance(value, str):
@@ -54,10 +57,11 @@ def _map_rows(path: Path, root: Path) -> dict[str, list[tuple]]:
             columns = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
             keep = [c for c in columns if c != "created"]
             found = con.execute(f"SELECT {', '.join(keep)} FROM {table} ORDER BY 1").fetchall()
-            if table == "meta":             # the map's creation time is a meta row
+            if table == "meta":  # the map's creation time is a meta row
                 found = [r for r in found if r[0] != "created"]
-            rows[table] = [tuple(_place_free(v, str(root)) if isinstance(v, str) else v for v in r)
-                           for r in found]     # a run's source is a path inside the folder
+            rows[table] = [
+                tuple(_place_free(v, str(root)) if isinstance(v, str) else v for v in r) for r in found
+            ]  # a run's source is a path inside the folder
         return rows
     finally:
         con.close()
@@ -86,8 +90,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("second", type=Path)
     args = parser.parse_args(argv)
     files = sorted(p.relative_to(args.first) for p in args.first.rglob("*") if p.is_file())
-    extra = sorted(p.relative_to(args.second) for p in args.second.rglob("*") if p.is_file()
-                   and not (args.first / p.relative_to(args.second)).is_file())
+    extra = sorted(
+        p.relative_to(args.second)
+        for p in args.second.rglob("*")
+        if p.is_file() and not (args.first / p.relative_to(args.second)).is_file()
+    )
     bad = 0
     for rel in files:
         why = differs(rel, args.first / rel, args.second / rel, args.first, args.second)
@@ -98,8 +105,10 @@ def main(argv: list[str] | None = None) -> int:
         bad += 1
         print(f"{rel}: only in the second folder")
     compared = len(files) - sum(rel.name == ".vtr-outputs" for rel in files)
-    print(f"{compared} files compared ({sum(r.suffix == '.vtrmap' for r in files)} maps by rows, run.json without the "
-          f"clock): {'identical' if not bad else f'{bad} differ'}")
+    print(
+        f"{compared} files compared ({sum(r.suffix == '.vtrmap' for r in files)} maps by rows, run.json without the "
+        f"clock): {'identical' if not bad else f'{bad} differ'}"
+    )
     return 1 if bad else 0
 
 

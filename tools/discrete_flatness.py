@@ -49,6 +49,7 @@ def names(allowed: Sequence[str]):
         if bad or not out:
             raise argparse.ArgumentTypeError(f"expected some of {', '.join(allowed)}, got {text!r}")
         return out
+
     return parse
 
 
@@ -65,12 +66,16 @@ def ordering(rows: Sequence[SweepRow]) -> list[tuple[str, bool, str]]:
             figures = f"pd {pd:.4f}  flatness_mpc {mpc:.4f}  discrete_flatness {df:.4f} m"
             if sigma <= LOW_SIGMA_M:
                 spread = max(e.values()) / min(e.values()) - 1  # type: ignore[type-var, operator]
-                out.append((f"{loop} sigma={sigma:g}: the three within {AGREEMENT:.0%} (spread {spread:.0%})",
-                            spread <= AGREEMENT, figures))
+                out.append(
+                    (
+                        f"{loop} sigma={sigma:g}: the three within {AGREEMENT:.0%} (spread {spread:.0%})",
+                        spread <= AGREEMENT,
+                        figures,
+                    )
+                )
             if sigma >= HIGH_SIGMA_M:
                 out.append((f"{loop} sigma={sigma:g}: flatness MPC worse than PD", mpc > pd, figures))
-                out.append((f"{loop} sigma={sigma:g}: discrete flatness better than both", df < min(pd, mpc),
-                            figures))
+                out.append((f"{loop} sigma={sigma:g}: discrete flatness better than both", df < min(pd, mpc), figures))
     return out
 
 
@@ -86,9 +91,15 @@ def plot(rows: Sequence[SweepRow], path: Path) -> None:
         for c in CONTROLLERS:
             rs = sorted((r for r in rows if r.loop == loop and r.controller == c), key=lambda r: r.sigma_m)
             if rs:
-                ax.errorbar([r.sigma_m for r in rs], [r.mean_error_m for r in rs],
-                            yerr=[r.std_error_m for r in rs], color=COLORS[c], label=LABELS[c], marker="o",
-                            capsize=3)
+                ax.errorbar(
+                    [r.sigma_m for r in rs],
+                    [r.mean_error_m for r in rs],
+                    yerr=[r.std_error_m for r in rs],
+                    color=COLORS[c],
+                    label=LABELS[c],
+                    marker="o",
+                    capsize=3,
+                )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("position noise sigma (m)")
@@ -106,8 +117,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="folder for results.csv and error_vs_sigma.png")
     ap.add_argument("--trials", type=int, default=10, help="runs per controller and sigma (default 10)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the noise draws (default 0)")
-    ap.add_argument("--sigmas", type=floats, default=list(DEFAULT_SIGMAS_M),
-                    help="position noise levels in m, comma-separated (default %(default)s)")
+    ap.add_argument(
+        "--sigmas",
+        type=floats,
+        default=list(DEFAULT_SIGMAS_M),
+        help="position noise levels in m, comma-separated (default %(default)s)",
+    )
     ap.add_argument("--loops", type=names(LOOPS), default=list(LOOPS), help="perfect,estimator (default both)")
     ap.add_argument("--calibrate", action="store_true", help="re-derive and print the tuning, then sweep with it")
     args = ap.parse_args(argv)
@@ -116,10 +131,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.calibrate:
             say("calibrating (noiseless, perfect loop) ...")
             settings = calibrate(settings)
-            say(f"calibrated: pd_kp={settings.pd_kp:.4g} pd_kd={settings.pd_kd:.4g} "
+            say(
+                f"calibrated: pd_kp={settings.pd_kp:.4g} pd_kd={settings.pd_kd:.4g} "
                 f"r_command_flatness_mpc={settings.r_command_flatness_mpc:.3g} "
                 f"r_jerk_discrete_flatness={settings.r_jerk_discrete_flatness:.3g}; noiseless errors "
-                + ", ".join(f"{c} {noiseless_error_m(settings, c):.4f} m" for c in CONTROLLERS))
+                + ", ".join(f"{c} {noiseless_error_m(settings, c):.4f} m" for c in CONTROLLERS)
+            )
         if args.out.exists() and not args.out.is_dir():
             raise VtrError(f"--out {args.out}: exists and is not a folder")
         args.out.mkdir(parents=True, exist_ok=True)
@@ -129,9 +146,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         def progress(r: SweepRow) -> None:
             done[0] += 1
-            say(f"[{done[0]}/{total}] {r.loop} sigma={r.sigma_m:g} {r.controller}: mean error "
+            say(
+                f"[{done[0]}/{total}] {r.loop} sigma={r.sigma_m:g} {r.controller}: mean error "
                 f"{r.mean_error_m:.4f} m (std {r.std_error_m:.4f}, {r.trials} trials, "
-                f"{time.perf_counter() - started:.0f} s)")
+                f"{time.perf_counter() - started:.0f} s)"
+            )
 
         rows = sweep(settings, args.sigmas, args.trials, args.seed, loops=args.loops, progress=progress)
         write_results_csv(args.out / "results.csv", rows)
@@ -139,8 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except VtrError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    print(f"{len(rows)} rows in {time.perf_counter() - started:.0f} s -> {args.out / 'results.csv'}, "
-          f"{args.out / 'error_vs_sigma.png'}")
+    print(
+        f"{len(rows)} rows in {time.perf_counter() - started:.0f} s -> {args.out / 'results.csv'}, "
+        f"{args.out / 'error_vs_sigma.png'}"
+    )
     print("Fig. 8.2 ordering:")
     for claim, holds, figures in ordering(rows):
         print(f"  {'holds' if holds else 'FAILS'}  {claim}:  {figures}")

@@ -37,17 +37,28 @@ def main() -> None:
     for backward in (False, True):
         multi, alone = drifting_flights(args.out, changes, args.length, backward=backward, config=config)
         for m, a in zip(multi, alone, strict=True):
-            rows.append(f"| {'backward' if backward else 'forward'} | {m.change:.2f} | {_cell(a)} | {_cell(m)} | "
-                        f"{m.with_experience} | {len(m.experiences_used)} | {1000 * a.seconds_per_keyframe:.0f} / "
-                        f"{1000 * m.seconds_per_keyframe:.0f} |")
-            records.append({"backward": backward, "change": m.change, "alone": a.integrity.to_dict(),
-                            "experiences": m.integrity.to_dict(), "localized_with_experience": m.with_experience,
-                            "experiences_used": list(m.experiences_used),
-                            "ms_per_keyframe_alone": 1000 * a.seconds_per_keyframe,
-                            "ms_per_keyframe_experiences": 1000 * m.seconds_per_keyframe})
-    head = ("| direction | change | teach alone: correct | wrong | first correct | correct after | 3-sigma covers | "
-            "with experiences: correct | wrong | first correct | correct after | 3-sigma covers | used an experience | "
-            "experiences used | ms per keyframe (alone / experiences) |")
+            rows.append(
+                f"| {'backward' if backward else 'forward'} | {m.change:.2f} | {_cell(a)} | {_cell(m)} | "
+                f"{m.with_experience} | {len(m.experiences_used)} | {1000 * a.seconds_per_keyframe:.0f} / "
+                f"{1000 * m.seconds_per_keyframe:.0f} |"
+            )
+            records.append(
+                {
+                    "backward": backward,
+                    "change": m.change,
+                    "alone": a.integrity.to_dict(),
+                    "experiences": m.integrity.to_dict(),
+                    "localized_with_experience": m.with_experience,
+                    "experiences_used": list(m.experiences_used),
+                    "ms_per_keyframe_alone": 1000 * a.seconds_per_keyframe,
+                    "ms_per_keyframe_experiences": 1000 * m.seconds_per_keyframe,
+                }
+            )
+    head = (
+        "| direction | change | teach alone: correct | wrong | first correct | correct after | 3-sigma covers | "
+        "with experiences: correct | wrong | first correct | correct after | 3-sigma covers | used an experience | "
+        "experiences used | ms per keyframe (alone / experiences) |"
+    )
     table = "\n".join([head, "|" + "---|" * 15, *rows])
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ def second_core_available() -> float:
     idle 2-core machine, ~1 when other processes take the second core."""
     img = np.random.default_rng(0).integers(0, 255, (1500, 1500), dtype=np.uint8)
     before = cv2.getNumThreads()
-    cv2.setNumThreads(1)              # one thread per call: the two calls are the only parallelism
+    cv2.setNumThreads(1)  # one thread per call: the two calls are the only parallelism
 
     def work() -> None:
         for _ in range(15):

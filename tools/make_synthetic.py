@@ -40,18 +40,24 @@ def write_examples(out_dir: Path) -> list[Path]:
     aerial = syn.aerial_scene(SEED)
     written = []
     teach = syn.aerial_route(AERIAL_LENGTH_M, AERIAL_SPACING_M)
-    repeat = syn.aerial_route(AERIAL_LENGTH_M, AERIAL_SPACING_M, start_offset_m=AERIAL_SPACING_M / 2,
-                              lateral_offset_m=REPEAT_LATERAL_OFFSET_M,
-                              vertical_offset_m=REPEAT_VERTICAL_OFFSET_M)
+    repeat = syn.aerial_route(
+        AERIAL_LENGTH_M,
+        AERIAL_SPACING_M,
+        start_offset_m=AERIAL_SPACING_M / 2,
+        lateral_offset_m=REPEAT_LATERAL_OFFSET_M,
+        vertical_offset_m=REPEAT_VERTICAL_OFFSET_M,
+    )
     for name, T, seed in (("aerial_teach", teach, 1), ("aerial_repeat", repeat, 2)):
         t_ns = syn.route_times(T, AERIAL_SPEED_MPS)
-        written.append(syn.write_sequence(out_dir / name, aerial, camera, T, t_ns, noise_sigma=NOISE_SIGMA,
-                                          noise_seed=seed))
+        written.append(
+            syn.write_sequence(out_dir / name, aerial, camera, T, t_ns, noise_sigma=NOISE_SIGMA, noise_seed=seed)
+        )
     turn = syn.turning_route(TURN_SPACING_M)
     far = syn.far_structure_scene(SEED, route_xy=turn[:, :2, 3], centre_xy=TURN_CENTRE_XY)
     t_ns = syn.route_times(turn, TURN_SPEED_MPS)
-    written.append(syn.write_sequence(out_dir / "turn_far", far, camera, turn, t_ns, noise_sigma=NOISE_SIGMA,
-                                      noise_seed=3))
+    written.append(
+        syn.write_sequence(out_dir / "turn_far", far, camera, turn, t_ns, noise_sigma=NOISE_SIGMA, noise_seed=3)
+    )
     return written
 
 

@@ -42,21 +42,21 @@ from vtr.navigation.trunk import BACKWARD, FORWARD, trunk_window
 from vtr.state.controller import ReferencePath, controller_state, gravity_aligned_T_o_t, trunk_in_world
 from vtr.state.smoothing import TrajectorySmoother
 
-G = 9.81                                  # m/s²
+G = 9.81  # m/s²
 # Route and run
 ALTITUDE_M = 10.0
-ROUTE_CORNERS = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 30.0]])   # m, world (ENU) x-y
-VERTEX_SPACING_M = 1.0                    # taught (privileged) vertex every metre
+ROUTE_CORNERS = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 30.0]])  # m, world (ENU) x-y
+VERTEX_SPACING_M = 1.0  # taught (privileged) vertex every metre
 START_OFFSET = np.array([0.0, 1.0, -0.5])  # m, initial offset from the first vertex (left, down)
-GOAL_TOLERANCE_M = 0.5                    # stop when this close to the end along the path
+GOAL_TOLERANCE_M = 0.5  # stop when this close to the end along the path
 MAX_TIME_S = 60.0
 # Rates
 VISION_HZ = 15.0
 CONTROL_HZ = 50.0
-SIM_SUBSTEPS = 4                          # integration steps per control tick
+SIM_SUBSTEPS = 4  # integration steps per control tick
 # Vision noise (per axis) and its covariance as told to the smoother
-VISION_SIGMA_ROT = 0.005                  # rad
-VISION_SIGMA_TRANS = 0.02                 # m
+VISION_SIGMA_ROT = 0.005  # rad
+VISION_SIGMA_TRANS = 0.02  # m
 # Trunk search window (VT&R3: -10...+20 vertices) and look-ahead of the reference path
 TRUNK_WINDOW_BACK, TRUNK_WINDOW_FORWARD = 10, 20
 PATH_LOOKAHEAD_VERTICES = 5
@@ -66,10 +66,10 @@ TAU_PSI = 1.0
 ZETA_THETA, TAU_THETA = 1.0, 1.2
 MAX_TILT_RAD = np.radians(25.0)
 # Vehicle response
-TAU_ATTITUDE_S = 0.08                     # roll/pitch follow their commands with this lag
-TAU_CLIMB_S = 0.2                         # climb rate follows its command with this lag
-LINEAR_DRAG = 0.1                         # 1/s, horizontal
-ARRIVAL_DECEL = 0.6                       # m/s per m remaining: slow down before the end
+TAU_ATTITUDE_S = 0.08  # roll/pitch follow their commands with this lag
+TAU_CLIMB_S = 0.2  # climb rate follows its command with this lag
+LINEAR_DRAG = 0.1  # 1/s, horizontal
+ARRIVAL_DECEL = 0.6  # m/s per m remaining: slow down before the end
 
 
 def taught_vertices() -> np.ndarray:
@@ -121,7 +121,7 @@ def run(speed: float, seed: int, direction: int = FORWARD) -> dict[str, np.ndarr
     rng = np.random.default_rng(seed)
     verts = taught_vertices()
     travel = np.arange(len(verts)) if direction == FORWARD else np.arange(len(verts))[::-1]
-    full_path_world = ReferencePath(verts[travel, :3, 3])          # in the order of travel
+    full_path_world = ReferencePath(verts[travel, :3, 3])  # in the order of travel
     first = int(travel[0])
     start = verts[first] @ make_T(np.eye(3), START_OFFSET)
     veh = Vehicle(start[:3, 3], yaw=float(np.arctan2(verts[first, 1, 0], verts[first, 0, 0])))
@@ -153,9 +153,9 @@ def run(speed: float, seed: int, direction: int = FORWARD) -> dict[str, np.ndarr
         T_o_t = gravity_aligned_T_o_t(T_world_trunk[:3, :3])
         # the previous vertex and the next ones, in the direction of travel
         if direction == FORWARD:
-            ahead = verts[max(0, trunk - 1): trunk + PATH_LOOKAHEAD_VERTICES + 1]
+            ahead = verts[max(0, trunk - 1) : trunk + PATH_LOOKAHEAD_VERTICES + 1]
         else:
-            ahead = verts[max(0, trunk - PATH_LOOKAHEAD_VERTICES): trunk + 2][::-1]
+            ahead = verts[max(0, trunk - PATH_LOOKAHEAD_VERTICES) : trunk + 2][::-1]
         path = ReferencePath.from_world(ahead, T_world_trunk, T_o_t)
         cs = controller_state(state, T_world_trunk, T_o_t)
         err = path.error(cs.position)
@@ -168,7 +168,7 @@ def run(speed: float, seed: int, direction: int = FORWARD) -> dict[str, np.ndarr
         z_dot_cmd = v_ref[2] + 2 * ZETA_Z / TAU_Z * (p_ref[2] - cs.position[2])
         yaw_rate_cmd = wrap(0.0 - cs.yaw) / TAU_PSI
         a_xy = (p_ref[:2] - cs.position[:2]) / TAU_THETA**2 + 2 * ZETA_THETA / TAU_THETA * (v_ref[:2] - cs.velocity[:2])
-        a_xy = a_xy + LINEAR_DRAG * cs.velocity[:2]        # feed-forward of the known drag
+        a_xy = a_xy + LINEAR_DRAG * cs.velocity[:2]  # feed-forward of the known drag
         psi = cs.yaw
         sin_theta = np.clip(a_xy[0] / G * np.cos(psi) + a_xy[1] / G * np.sin(psi), -1, 1)
         sin_phi = np.clip(-a_xy[0] / G * np.sin(psi) + a_xy[1] / G * np.cos(psi), -1, 1)
@@ -196,22 +196,32 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--speed", type=float, default=3.0, help="desired speed s_des (m/s)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--direction", choices=("forward", "backward"), default="forward",
-                    help="fly the route in taught order or back from its end")
+    ap.add_argument(
+        "--direction",
+        choices=("forward", "backward"),
+        default="forward",
+        help="fly the route in taught order or back from its end",
+    )
     args = ap.parse_args()
     wall = time.perf_counter()
     r = run(args.speed, args.seed, FORWARD if args.direction == "forward" else BACKWARD)
-    settle = r["time_s"] > 0 and slice(int(CONTROL_HZ * 3), None)     # skip the initial offset transient
+    settle = r["time_s"] > 0 and slice(int(CONTROL_HZ * 3), None)  # skip the initial offset transient
 
     def stats(name: str, a: np.ndarray, unit: str) -> None:
         a = np.abs(a)
-        print(f"  {name:28s} mean {a.mean():6.3f}  rms {np.sqrt(np.mean(a**2)):6.3f}  "
-              f"p95 {np.percentile(a, 95):6.3f}  max {a.max():6.3f} {unit}")
+        print(
+            f"  {name:28s} mean {a.mean():6.3f}  rms {np.sqrt(np.mean(a**2)):6.3f}  "
+            f"p95 {np.percentile(a, 95):6.3f}  max {a.max():6.3f} {unit}"
+        )
 
-    print(f"PD path follower ({args.direction}) at s_des = {args.speed} m/s, vision {VISION_HZ:.0f} Hz, "
-          f"control {CONTROL_HZ:.0f} Hz")
-    print(f"route {ROUTE_CORNERS.tolist()} at {ALTITUDE_M} m; finished in {r['time_s']:.1f} s simulated "
-          f"({r['remaining_m']:.2f} m from the end), {time.perf_counter() - wall:.1f} s wall")
+    print(
+        f"PD path follower ({args.direction}) at s_des = {args.speed} m/s, vision {VISION_HZ:.0f} Hz, "
+        f"control {CONTROL_HZ:.0f} Hz"
+    )
+    print(
+        f"route {ROUTE_CORNERS.tolist()} at {ALTITUDE_M} m; finished in {r['time_s']:.1f} s simulated "
+        f"({r['remaining_m']:.2f} m from the end), {time.perf_counter() - wall:.1f} s wall"
+    )
     print("true path-tracking error after the first 3 s:")
     stats("lateral", r["lateral"][settle], "m")
     stats("vertical", r["vertical"][settle], "m")

@@ -51,8 +51,13 @@ from vtr.navigation.trunk import BACKWARD, FORWARD
 from vtr.sim import synthetic as syn
 
 CORNER_RADIUS_M = 5.0  # larger than the repeat offsets (an offset path must not collapse at a corner)
-SEGMENTS = [(24.0, 0.0), (0.5 * math.pi * CORNER_RADIUS_M, 1.0 / CORNER_RADIUS_M), (20.0, 0.0),
-            (0.5 * math.pi * CORNER_RADIUS_M, -1.0 / CORNER_RADIUS_M), (24.0, 0.0)]
+SEGMENTS = [
+    (24.0, 0.0),
+    (0.5 * math.pi * CORNER_RADIUS_M, 1.0 / CORNER_RADIUS_M),
+    (20.0, 0.0),
+    (0.5 * math.pi * CORNER_RADIUS_M, -1.0 / CORNER_RADIUS_M),
+    (24.0, 0.0),
+]
 CASES = {"toward": math.pi / 2, "away": -math.pi / 2}  # gimbal heading (ENU): north, south
 REPEAT_OFFSETS = {"toward": (3.0, 1.5), "away": (-3.0, 1.5)}  # (left, up) m, reached after RAMP_M
 RAMP_M = 6.0
@@ -69,8 +74,15 @@ PITCH_DOWN_RAD = math.radians(50.0)
 def scene() -> syn.Scene:
     """Buildings and trees on both sides of the path over faint ground texture; the route is kept clear."""
     route = syn.segmented_aerial_route(SEGMENTS, 2.0)[:, :2, 3]
-    return syn.aerial_scene(SCENE_SEED, area_m=(-15.0, 75.0, -30.0, 55.0), n_boxes=50, n_trees=110,
-                            clear_path_xy=route, clear_radius_m=4.0, ground_contrast=GROUND_CONTRAST)
+    return syn.aerial_scene(
+        SCENE_SEED,
+        area_m=(-15.0, 75.0, -30.0, 55.0),
+        n_boxes=50,
+        n_trees=110,
+        clear_path_xy=route,
+        clear_radius_m=4.0,
+        ground_contrast=GROUND_CONTRAST,
+    )
 
 
 def say(text: str) -> None:
@@ -83,11 +95,13 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
     sc = scene()
     maps, ups, files, reps = {}, {}, [], []
     for case, heading in CASES.items():
-        T_teach = syn.segmented_aerial_route(SEGMENTS, SPACING_M, camera_heading_rad=heading,
-                                             pitch_down_rad=PITCH_DOWN_RAD)
+        T_teach = syn.segmented_aerial_route(
+            SEGMENTS, SPACING_M, camera_heading_rad=heading, pitch_down_rad=PITCH_DOWN_RAD
+        )
         say(f"{case}: rendering the teach sequence ({len(T_teach)} frames; cached after the first run)")
-        seq = mission.render_sequence(out / case / "teach", sc, T_teach,
-                                      progress=frame_progress(f"render {case} teach"))
+        seq = mission.render_sequence(
+            out / case / "teach", sc, T_teach, progress=frame_progress(f"render {case} teach")
+        )
         map_path = out / case / "route.vtrmap"
         stamp = out / case / "route.done"  # the map is reused only for the same taught poses and config
         key = hashlib.sha1(np.ascontiguousarray(T_teach).tobytes() + cfg.to_yaml().encode()).hexdigest()
@@ -98,19 +112,33 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
             shutil.rmtree(out / case / "repeat", ignore_errors=True)
         maps[case], ups[case] = map_path, mission.up_in_map(T_teach[0])
         dy, dz = REPEAT_OFFSETS[case]
-        T_rep = syn.segmented_aerial_route(SEGMENTS[:-1] + [(SEGMENTS[-1][0] - 1.0, 0.0)], SPACING_M,
-                                           camera_heading_rad=heading, pitch_down_rad=PITCH_DOWN_RAD,
-                                           lateral_offset_m=dy, vertical_offset_m=dz, ramp_m=RAMP_M,
-                                           start_offset_m=0.5 * SPACING_M)
+        T_rep = syn.segmented_aerial_route(
+            SEGMENTS[:-1] + [(SEGMENTS[-1][0] - 1.0, 0.0)],
+            SPACING_M,
+            camera_heading_rad=heading,
+            pitch_down_rad=PITCH_DOWN_RAD,
+            lateral_offset_m=dy,
+            vertical_offset_m=dz,
+            ramp_m=RAMP_M,
+            start_offset_m=0.5 * SPACING_M,
+        )
         say(f"{case}: rendering the repeat {dy:+g} m / {dz:+g} m off the path")
-        rep_seq = mission.render_sequence(out / case / "repeat_seq", sc, T_rep, noise_seed=1,
-                                 progress=frame_progress(f"render {case} repeat"))
+        rep_seq = mission.render_sequence(
+            out / case / "repeat_seq", sc, T_rep, noise_seed=1, progress=frame_progress(f"render {case} repeat")
+        )
         rep_dir = out / case / "repeat"
         if not (rep_dir / "landmarks.csv").is_file():
             say(f"{case}: repeating through the pipeline (localization against the taught map)")
             summary = mission.repeat_sequence(rep_seq, map_path, rep_dir, cfg, skip_first_m=RAMP_M)
-            reps.append({"case": case, "lateral_m": dy, "vertical_m": dz, "localizations": summary.localizations,
-                         "successes": summary.successes})
+            reps.append(
+                {
+                    "case": case,
+                    "lateral_m": dy,
+                    "vertical_m": dz,
+                    "localizations": summary.localizations,
+                    "successes": summary.successes,
+                }
+            )
         files.append(rep_dir / "landmarks.csv")
     model_path = out / "model.json"
     say(f"fitting the perception model on {len(files)} repeats' landmarks")
@@ -119,14 +147,22 @@ def prepare(out: Path, cfg: Config) -> tuple[dict[str, Path], dict[str, np.ndarr
     return maps, ups, model_path, reps
 
 
-def build_field(map_path: Path, up: np.ndarray, model_path: Path, control: ControlConfig,
-                cfg: Config) -> TaughtPathField:
+def build_field(
+    map_path: Path, up: np.ndarray, model_path: Path, control: ControlConfig, cfg: Config
+) -> TaughtPathField:
     """The case's taught-path field."""
     from perception_model.model import PerceptionModel
 
     with Map.open(map_path, "r") as m:
-        return TaughtPathField.from_map(m, PerceptionModel.load(model_path), up_map=up, config=cfg.localization,
-                                        l_min=control.l_min, c_bar=control.c_bar, control=control)
+        return TaughtPathField.from_map(
+            m,
+            PerceptionModel.load(model_path),
+            up_map=up,
+            config=cfg.localization,
+            l_min=control.l_min,
+            c_bar=control.c_bar,
+            control=control,
+        )
 
 
 def fly(field: TaughtPathField, control: ControlConfig, controller: str, direction: int) -> ClosedLoopResult:
@@ -143,17 +179,24 @@ def fly(field: TaughtPathField, control: ControlConfig, controller: str, directi
 
 
 def row(case: str, controller: str, r: ClosedLoopResult, control: ControlConfig) -> dict:
-    return {"case": case, "direction": "forward" if r.direction == FORWARD else "backward",
-            "speed_mps": control.speed_mps, "controller": controller, "avg_speed_mps": round(r.avg_speed_mps, 3),
-            "min_bound": round(r.min_bound, 2), "guaranteed": bool(r.min_bound >= control.l_min),
-            "completed": r.completed, "duration_s": round(r.duration_s, 2),
-            "max_lateral_error_m": round(float(np.abs(r.lateral_m).max()), 2),
-            "max_vertical_error_m": round(float(np.abs(r.vertical_m).max()), 2),
-            "max_slack_m": round(float(r.max_slack_m.max()) if r.max_slack_m.size else 0.0, 4),
-            "max_slack_inliers": round(float(r.max_slack_inliers.max()) if r.max_slack_inliers.size else 0.0, 3),
-            "tick_ms_median": round(float(np.median(r.tick_ms)), 2),
-            "tick_ms_p95": round(float(np.percentile(r.tick_ms, 95)), 2),
-            "tick_ms_max": round(float(r.tick_ms.max()), 2)}
+    return {
+        "case": case,
+        "direction": "forward" if r.direction == FORWARD else "backward",
+        "speed_mps": control.speed_mps,
+        "controller": controller,
+        "avg_speed_mps": round(r.avg_speed_mps, 3),
+        "min_bound": round(r.min_bound, 2),
+        "guaranteed": bool(r.min_bound >= control.l_min),
+        "completed": r.completed,
+        "duration_s": round(r.duration_s, 2),
+        "max_lateral_error_m": round(float(np.abs(r.lateral_m).max()), 2),
+        "max_vertical_error_m": round(float(np.abs(r.vertical_m).max()), 2),
+        "max_slack_m": round(float(r.max_slack_m.max()) if r.max_slack_m.size else 0.0, 4),
+        "max_slack_inliers": round(float(r.max_slack_inliers.max()) if r.max_slack_inliers.size else 0.0, 3),
+        "tick_ms_median": round(float(np.median(r.tick_ms)), 2),
+        "tick_ms_p95": round(float(np.percentile(r.tick_ms, 95)), 2),
+        "tick_ms_max": round(float(r.tick_ms.max()), 2),
+    }
 
 
 def plot(runs: dict, fields: dict, out: Path, l_min: float, suffix: str = "") -> None:
@@ -173,8 +216,13 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float, suffix: str = "") ->
             if name in by_ctrl:
                 xy = by_ctrl[name].z[:, :2] @ R.T
                 ax.plot(xy[:, 0], xy[:, 1], lw=2 if name == "pa" else 1.2, label=name)
-        ax.annotate("camera", (12.0, 5.0), xytext=(12.0, 5.0 + 6.0 * math.sin(CASES[case])),
-                    arrowprops={"arrowstyle": "<-"}, ha="center")
+        ax.annotate(
+            "camera",
+            (12.0, 5.0),
+            xytext=(12.0, 5.0 + 6.0 * math.sin(CASES[case])),
+            arrowprops={"arrowstyle": "<-"},
+            ha="center",
+        )
         ax.set_aspect("equal")
         ax.set_title(f"case {case}: flown paths (camera {case})")
         ax.set_xlabel("east [m]")
@@ -203,9 +251,21 @@ def plot(runs: dict, fields: dict, out: Path, l_min: float, suffix: str = "") ->
 
 
 def table(rows: list[dict]) -> str:
-    cols = ["case", "direction", "speed_mps", "controller", "avg_speed_mps", "min_bound", "guaranteed",
-            "max_lateral_error_m", "max_vertical_error_m", "max_slack_m", "max_slack_inliers", "tick_ms_median",
-            "tick_ms_p95"]
+    cols = [
+        "case",
+        "direction",
+        "speed_mps",
+        "controller",
+        "avg_speed_mps",
+        "min_bound",
+        "guaranteed",
+        "max_lateral_error_m",
+        "max_vertical_error_m",
+        "max_slack_m",
+        "max_slack_inliers",
+        "tick_ms_median",
+        "tick_ms_p95",
+    ]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
     return "\n".join(lines)
@@ -220,23 +280,33 @@ def summary(rows: list[dict]) -> list[str]:
         best = max(fixed_ok, key=lambda r: r["avg_speed_mps"]) if fixed_ok else None
         pa = next(r for r in group if r["controller"] == "pa")
         faster = best is None or pa["avg_speed_mps"] > best["avg_speed_mps"]
-        out.append(f"{key[0]} {key[1]} {key[2]:g} m/s: P-A {pa['avg_speed_mps']} m/s (guaranteed {pa['guaranteed']}, "
-                   f"min bound {pa['min_bound']}); fastest guaranteed fixed bound "
-                   f"{best['controller'] + ' ' + str(best['avg_speed_mps']) + ' m/s' if best else 'none'}; "
-                   f"P-A guaranteed and faster: {pa['guaranteed'] and faster}")
+        out.append(
+            f"{key[0]} {key[1]} {key[2]:g} m/s: P-A {pa['avg_speed_mps']} m/s (guaranteed {pa['guaranteed']}, "
+            f"min bound {pa['min_bound']}); fastest guaranteed fixed bound "
+            f"{best['controller'] + ' ' + str(best['avg_speed_mps']) + ' m/s' if best else 'none'}; "
+            f"P-A guaranteed and faster: {pa['guaranteed'] and faster}"
+        )
     return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("out/perception_aware_mpc"))
-    ap.add_argument("--speed", default=f"{ControlConfig().speed_mps:g}",
-                    help="desired speed(s) (m/s), comma-separated: one sweep of every controller each")
-    ap.add_argument("--direction", choices=("forward", "backward"), default="forward",
-                    help="fly the taught route forward or back from its end (the return flight)")
+    ap.add_argument(
+        "--speed",
+        default=f"{ControlConfig().speed_mps:g}",
+        help="desired speed(s) (m/s), comma-separated: one sweep of every controller each",
+    )
+    ap.add_argument(
+        "--direction",
+        choices=("forward", "backward"),
+        default="forward",
+        help="fly the taught route forward or back from its end (the return flight)",
+    )
     ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--margin", type=float, default=None,
-                    help="P-A: linearized constraint margin (inliers; default the library's)")
+    ap.add_argument(
+        "--margin", type=float, default=None, help="P-A: linearized constraint margin (inliers; default the library's)"
+    )
     args = ap.parse_args(argv)
     speeds = [float(v) for v in args.speed.split(",")]
     direction = FORWARD if args.direction == "forward" else BACKWARD
@@ -250,8 +320,10 @@ def main(argv: list[str] | None = None) -> None:
     plotted = base.speed_mps if base.speed_mps in speeds else speeds[0]
     rows, runs, fields = [], {}, {}
     for case in args.cases.split(","):
-        say(f"{case}: building the taught-path field, then flying {len(controllers)} controllers "
-            f"{args.direction} at {args.speed} m/s")
+        say(
+            f"{case}: building the taught-path field, then flying {len(controllers)} controllers "
+            f"{args.direction} at {args.speed} m/s"
+        )
         fields[case] = field = build_field(maps[case], ups[case], model_path, base, cfg)
         runs[case] = {}
         for speed in speeds:
@@ -261,9 +333,11 @@ def main(argv: list[str] | None = None) -> None:
                 if speed == plotted:
                     runs[case][name] = r
                 rows.append(row(case, name, r, control))
-                print(f"{case:7s} {args.direction} {speed:g} {name:9s} speed {rows[-1]['avg_speed_mps']:5.2f} m/s  "
-                      f"min(mu-3sigma) {rows[-1]['min_bound']:7.1f}  guaranteed {rows[-1]['guaranteed']}",
-                      file=sys.stderr)
+                print(
+                    f"{case:7s} {args.direction} {speed:g} {name:9s} speed {rows[-1]['avg_speed_mps']:5.2f} m/s  "
+                    f"min(mu-3sigma) {rows[-1]['min_bound']:7.1f}  guaranteed {rows[-1]['guaranteed']}",
+                    file=sys.stderr,
+                )
     suffix = "" if direction == FORWARD else "_backward"
     (args.out / f"results{suffix}.json").write_text(json.dumps(rows, indent=1))
     with open(args.out / f"results{suffix}.csv", "w", newline="") as fh:
@@ -273,8 +347,10 @@ def main(argv: list[str] | None = None) -> None:
     plot(runs, fields, args.out, base.l_min, suffix)
     print(table(rows))
     print("\n".join(summary(rows)))
-    print(f"wrote {args.out}/results{suffix}.json, results{suffix}.csv, flown_paths{suffix}.png, bounds{suffix}.png "
-          f"({time.perf_counter() - t0:.0f} s)")
+    print(
+        f"wrote {args.out}/results{suffix}.json, results{suffix}.csv, flown_paths{suffix}.png, bounds{suffix}.png "
+        f"({time.perf_counter() - t0:.0f} s)"
+    )
 
 
 if __name__ == "__main__":

@@ -56,8 +56,9 @@ KITTI_REPEATS = ("1::2", "1::3")
 
 
 # --------------------------------------------------------------------------- runs
-def synthetic_runs(out: Path, lateral: list[float], vertical: list[float], length: float, seed: int,
-                   reuse: bool) -> tuple[list[Path], list[dict]]:
+def synthetic_runs(
+    out: Path, lateral: list[float], vertical: list[float], length: float, seed: int, reuse: bool
+) -> tuple[list[Path], list[dict]]:
     files = [out / repeat_name(dy, dz) / "landmarks.csv" for dz in vertical for dy in lateral]
     if reuse and all(f.exists() for f in files):
         rows = _read_csv_dicts(out / "offsets.csv") if (out / "offsets.csv").exists() else []
@@ -78,8 +79,11 @@ def kitti_runs(out: Path, source: Path, reuse: bool) -> tuple[list[Path], list[d
     names = [f"repeat_{spec.replace('::', '_every')}" for spec in KITTI_REPEATS]
     files = [out / n / "landmarks.csv" for n in names]
     if reuse and all(f.exists() for f in files):
-        rows = [json.loads((out / n / "run.json").read_text()).get("summary", {}) for n in names
-                if (out / n / "run.json").exists()]
+        rows = [
+            json.loads((out / n / "run.json").read_text()).get("summary", {})
+            for n in names
+            if (out / n / "run.json").exists()
+        ]
         return files, rows
     from vtr.app.pipeline import repeat_command, teach_command
     from vtr.config import Config
@@ -114,7 +118,7 @@ def synthetic_positions(out: Path, name: str) -> np.ndarray:
     """True camera centres of a synthetic repeat in the map frame (first teach camera), offset reached."""
     T_teach = _kitti_poses(out / "teach" / "poses_world.txt")
     T_rep = _kitti_poses(out / name / "poses_world.txt")
-    return (np.linalg.inv(T_teach[0]) @ T_rep)[math.ceil(RAMP_M):, :3, 3]
+    return (np.linalg.inv(T_teach[0]) @ T_rep)[math.ceil(RAMP_M) :, :3, 3]
 
 
 def kitti_positions(out: Path, name: str) -> np.ndarray:
@@ -137,12 +141,20 @@ def mu_check(model_path: Path, map_path: Path, runs: list[tuple[str, np.ndarray,
         _, group = np.unique(lm["t_ns"], return_inverse=True)
         inliers = np.bincount(group, weights=lm["inlier"])
         in_view = np.bincount(group)
-        out.append({"run": name, "positions": len(t), "localizations": int(inliers.size),
-                    "predicted_mu_median": float(np.median(t.mu)), "observed_inliers_median": float(np.median(inliers)),
-                    "predicted_mu_mean": float(t.mu.mean()), "observed_inliers_mean": float(inliers.mean()),
-                    "predicted_sigma_median": float(np.median(t.sigma)),
-                    "in_view_median_map": float(np.median(t.n_in_view)),
-                    "in_view_median_observed": float(np.median(in_view))})
+        out.append(
+            {
+                "run": name,
+                "positions": len(t),
+                "localizations": int(inliers.size),
+                "predicted_mu_median": float(np.median(t.mu)),
+                "observed_inliers_median": float(np.median(inliers)),
+                "predicted_mu_mean": float(t.mu.mean()),
+                "observed_inliers_mean": float(inliers.mean()),
+                "predicted_sigma_median": float(np.median(t.sigma)),
+                "in_view_median_map": float(np.median(t.n_in_view)),
+                "in_view_median_observed": float(np.median(in_view)),
+            }
+        )
     return out
 
 
@@ -150,8 +162,13 @@ def write_summary_csv(results: list[dict[str, Any]], path: Path) -> None:
     rows = []
     for r in results:
         for method, f in r["fits"].items():
-            row: dict[str, Any] = {"dataset": r["dataset"], "method": method, "n_observations": r["n_observations"],
-                                   "n_localizations": r["n_localizations"], "inlier_rate": r["inlier_rate"]}
+            row: dict[str, Any] = {
+                "dataset": r["dataset"],
+                "method": method,
+                "n_observations": r["n_observations"],
+                "n_localizations": r["n_localizations"],
+                "inlier_rate": r["inlier_rate"],
+            }
             for q in ("5", "50", "95", "100"):
                 row[f"alpha_deg_p{q}"] = r["alpha_deg_percentiles"][q]
             for q in ("5", "50", "95", "100"):
@@ -161,9 +178,17 @@ def write_summary_csv(results: list[dict[str, Any]], path: Path) -> None:
             else:
                 for name, c in f["c"].items():
                     row[name], row[f"{name}_low"], row[f"{name}_high"] = c["estimate"], c["low"], c["high"]
-                for key in ("r2_binned", "log_loss", "holdout_log_loss", "holdout_base_rate_log_loss",
-                            "falls_with_parallax", "falls_with_parallax_significant", "falls_with_view_angle",
-                            "falls_with_view_angle_significant", "well_determined"):
+                for key in (
+                    "r2_binned",
+                    "log_loss",
+                    "holdout_log_loss",
+                    "holdout_base_rate_log_loss",
+                    "falls_with_parallax",
+                    "falls_with_parallax_significant",
+                    "falls_with_view_angle",
+                    "falls_with_view_angle_significant",
+                    "well_determined",
+                ):
                     row[key] = f[key]
             for name in ("alpha", "theta"):
                 row[f"{name}_bins_falls"] = r["monotonic"][f"{name}_falls"]
@@ -212,16 +237,20 @@ def main(argv: list[str] | None = None) -> int:
     results, timings, runs = [], {}, {}
     if "synthetic" not in args.skip:
         t0 = time.perf_counter()
-        files, rows = synthetic_runs(args.out / "synthetic", _floats(args.lateral), _floats(args.vertical),
-                                     args.length, args.seed, args.reuse)
+        files, rows = synthetic_runs(
+            args.out / "synthetic", _floats(args.lateral), _floats(args.vertical), args.length, args.seed, args.reuse
+        )
         timings["synthetic_runs_s"] = time.perf_counter() - t0
         runs["synthetic"] = rows
         t0 = time.perf_counter()
         res = analyse("synthetic", files, args.out / "synthetic", args.seed)
         if "error" not in res["fits"]["mle"]:
             syn_out = args.out / "synthetic"
-            res["mu_check"] = mu_check(syn_out / "model_mle.json", syn_out / "route.vtrmap",
-                                       [(f.parent.name, synthetic_positions(syn_out, f.parent.name), f) for f in files])
+            res["mu_check"] = mu_check(
+                syn_out / "model_mle.json",
+                syn_out / "route.vtrmap",
+                [(f.parent.name, synthetic_positions(syn_out, f.parent.name), f) for f in files],
+            )
         results.append(res)
         timings["synthetic_fit_s"] = time.perf_counter() - t0
     if "kitti" not in args.skip:
@@ -233,18 +262,31 @@ def main(argv: list[str] | None = None) -> int:
         res = analyse("kitti", files, args.out / "kitti", args.seed)
         if "error" not in res["fits"]["mle"]:
             k_out = args.out / "kitti"
-            res["mu_check"] = mu_check(k_out / "model_mle.json", k_out / "route.vtrmap",
-                                       [(f.parent.name, kitti_positions(k_out, f.parent.name), f) for f in files])
+            res["mu_check"] = mu_check(
+                k_out / "model_mle.json",
+                k_out / "route.vtrmap",
+                [(f.parent.name, kitti_positions(k_out, f.parent.name), f) for f in files],
+            )
         results.append(res)
         timings["kitti_fit_s"] = time.perf_counter() - t0
-    summary = {"command": " ".join(sys.argv), "lateral_m": _floats(args.lateral), "vertical_m": _floats(args.vertical),
-               "length_m": args.length, "kitti_teach": KITTI_TEACH, "kitti_repeats": list(KITTI_REPEATS),
-               "timings_s": timings, "runs": runs, "results": results}
+    summary = {
+        "command": " ".join(sys.argv),
+        "lateral_m": _floats(args.lateral),
+        "vertical_m": _floats(args.vertical),
+        "length_m": args.length,
+        "kitti_teach": KITTI_TEACH,
+        "kitti_repeats": list(KITTI_REPEATS),
+        "timings_s": timings,
+        "runs": runs,
+        "results": results,
+    }
     (args.out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2, allow_nan=False) + "\n")
     write_summary_csv(results, args.out / "summary.csv")
     print(table(results))
-    print(f"wrote {args.out / 'summary.json'}, {args.out / 'summary.csv'} and the heatmaps "
-          f"({', '.join(f'{k} {v:.0f} s' for k, v in timings.items())})")
+    print(
+        f"wrote {args.out / 'summary.json'}, {args.out / 'summary.csv'} and the heatmaps "
+        f"({', '.join(f'{k} {v:.0f} s' for k, v in timings.items())})"
+    )
     return 0
 
 

@@ -53,8 +53,9 @@ def main() -> None:
     ap.add_argument("--past", type=float, default=10.0, help="flown past the taught start on the way back (m)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    checks = run_return_flight(args.out, offset_m=args.offset, speed_mps=args.speed, past_start_m=args.past,
-                               progress=print)
+    checks = run_return_flight(
+        args.out, offset_m=args.offset, speed_mps=args.speed, past_start_m=args.past, progress=print
+    )
     with open(args.out / "return_flight.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(asdict(checks[0])))
         w.writeheader()

@@ -42,8 +42,9 @@ def main() -> None:
     ap.add_argument("--length", type=float, default=40.0)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = run_offset_repeats(args.out, [float(v) for v in args.lateral.split(",")],
-                              [float(v) for v in args.vertical.split(",")], args.length)
+    rows = run_offset_repeats(
+        args.out, [float(v) for v in args.lateral.split(",")], [float(v) for v in args.vertical.split(",")], args.length
+    )
     with open(args.out / "offsets.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

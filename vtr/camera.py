@@ -14,8 +14,8 @@ import numpy as np
 from .errors import CalibrationError
 from .geometry import check_se3
 
-MIN_BASELINE_M = 1e-6      # cameras closer than this on the body are the same camera
-RIGID_TOLERANCE = 1e-4     # T_BS of a calibration file is rigid to this (printed with ~8 digits)
+MIN_BASELINE_M = 1e-6  # cameras closer than this on the body are the same camera
+RIGID_TOLERANCE = 1e-4  # T_BS of a calibration file is rigid to this (printed with ~8 digits)
 
 MIN_DEPTH_M = 0.1  # points closer than this in front of the camera are not in view (not predicted)
 
@@ -44,9 +44,7 @@ class StereoCamera:
         object.__setattr__(self, "T_vehicle_sensor", np.asarray(self.T_vehicle_sensor, float))
         vals = np.array([self.fx, self.fy, self.cx, self.cy, self.baseline], float)
         if not np.all(np.isfinite(vals)) or self.fx <= 0 or self.fy <= 0 or self.baseline <= 0:
-            raise CalibrationError(
-                f"invalid stereo calibration fx={self.fx} fy={self.fy} baseline={self.baseline}"
-            )
+            raise CalibrationError(f"invalid stereo calibration fx={self.fx} fy={self.fy} baseline={self.baseline}")
         if self.width <= 0 or self.height <= 0:
             raise CalibrationError(f"invalid image size {self.width}x{self.height}")
 
@@ -79,8 +77,12 @@ class StereoCamera:
         p = np.asarray(p, float)
         ok = p[:, 2] > MIN_DEPTH_M
         uv = self.project(p[ok])
-        inside = (uv[:, 0] >= -margin_px) & (uv[:, 0] < self.width + margin_px) \
-            & (uv[:, 1] >= -margin_px) & (uv[:, 1] < self.height + margin_px)
+        inside = (
+            (uv[:, 0] >= -margin_px)
+            & (uv[:, 0] < self.width + margin_px)
+            & (uv[:, 1] >= -margin_px)
+            & (uv[:, 1] < self.height + margin_px)
+        )
         ok[np.flatnonzero(ok)[~inside]] = False
         return ok
 
@@ -111,16 +113,26 @@ class StereoCamera:
     def to_dict(self) -> dict:
         """Plain-data form for JSON/maps."""
         return {
-            "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "baseline": self.baseline,
-            "width": self.width, "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "baseline": self.baseline,
+            "width": self.width,
+            "height": self.height,
             "T_vehicle_sensor": np.asarray(self.T_vehicle_sensor).tolist(),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> StereoCamera:
         return cls(
-            fx=float(d["fx"]), fy=float(d["fy"]), cx=float(d["cx"]), cy=float(d["cy"]),
-            baseline=float(d["baseline"]), width=int(d["width"]), height=int(d["height"]),
+            fx=float(d["fx"]),
+            fy=float(d["fy"]),
+            cx=float(d["cx"]),
+            cy=float(d["cy"]),
+            baseline=float(d["baseline"]),
+            width=int(d["width"]),
+            height=int(d["height"]),
             T_vehicle_sensor=np.asarray(d.get("T_vehicle_sensor", np.eye(4)), float),
         )
 
@@ -156,8 +168,9 @@ class StereoRectifier:
     T_rawleft_rect: np.ndarray
 
     @classmethod
-    def from_raw(cls, left: RawCamera, right: RawCamera, alpha: float = 0.0, where: str = "stereo calibration"
-                 ) -> StereoRectifier:
+    def from_raw(
+        cls, left: RawCamera, right: RawCamera, alpha: float = 0.0, where: str = "stereo calibration"
+    ) -> StereoRectifier:
         """Rectify a raw pair (OpenCV ``stereoRectify``); alpha 0 keeps only valid pixels.
 
         ``CalibrationError`` naming ``where`` (the calibration files) for a pair OpenCV cannot rectify.
@@ -177,13 +190,21 @@ class StereoRectifier:
             check_se3(raw.T_body_cam, f"{where}: {side} camera T_BS", tol=RIGID_TOLERANCE, error=CalibrationError)
         T_right_left = np.linalg.inv(right.T_body_cam) @ left.T_body_cam
         if np.linalg.norm(T_right_left[:3, 3]) < MIN_BASELINE_M:
-            raise CalibrationError(f"{where}: left and right cameras are at the same place on the body "
-                                   "(identical T_BS translations): no stereo baseline")
+            raise CalibrationError(
+                f"{where}: left and right cameras are at the same place on the body "
+                "(identical T_BS translations): no stereo baseline"
+            )
         try:
             R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-                left.K, left.dist, right.K, right.dist, size,
-                T_right_left[:3, :3].copy(), T_right_left[:3, 3].reshape(3, 1).copy(),
-                flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+                left.K,
+                left.dist,
+                right.K,
+                right.dist,
+                size,
+                T_right_left[:3, :3].copy(),
+                T_right_left[:3, 3].reshape(3, 1).copy(),
+                flags=cv2.CALIB_ZERO_DISPARITY,
+                alpha=alpha,
             )
         except cv2.error as err:
             raise CalibrationError(f"{where}: OpenCV cannot rectify this pair ({' '.join(str(err).split())})") from None
@@ -194,8 +215,13 @@ class StereoRectifier:
         T_rawleft_rect = np.eye(4)
         T_rawleft_rect[:3, :3] = R1.T
         cam = StereoCamera(
-            fx=float(fx), fy=float(P1[1, 1]), cx=float(P1[0, 2]), cy=float(P1[1, 2]),
-            baseline=float(baseline), width=size[0], height=size[1],
+            fx=float(fx),
+            fy=float(P1[1, 1]),
+            cx=float(P1[0, 2]),
+            cy=float(P1[1, 2]),
+            baseline=float(baseline),
+            width=size[0],
+            height=size[1],
             T_vehicle_sensor=left.T_body_cam @ T_rawleft_rect,
         )
         ml = cv2.initUndistortRectifyMap(left.K, left.dist, R1, P1, size, cv2.CV_16SC2)

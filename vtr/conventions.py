@@ -3,4 +3,4 @@
 Time is int64 nanoseconds everywhere; seconds appear only in TUM files and displays.
 """
 
-NS_PER_S = 1_000_000_000   # nanoseconds per second (int, so int64 time arithmetic stays exact)
+NS_PER_S = 1_000_000_000  # nanoseconds per second (int, so int64 time arithmetic stays exact)

@@ -34,10 +34,12 @@ class UnfinishedRouteError(MapError):
 
     def __init__(self, reason: str, vertices: int, allow: str = "allow_partial=True"):
         self.reason, self.vertices, self.allow = reason, int(vertices), allow
-        super().__init__(f"{reason}: its route may be incomplete; refusing to repeat it ({allow} to use its "
-                         f"{self.vertices} vertices anyway)")
+        super().__init__(
+            f"{reason}: its route may be incomplete; refusing to repeat it ({allow} to use its "
+            f"{self.vertices} vertices anyway)"
+        )
 
-    def __reduce__(self) -> tuple[type, tuple[str, int, str]]:   # pickled whole (a batch's worker hands it back)
+    def __reduce__(self) -> tuple[type, tuple[str, int, str]]:  # pickled whole (a batch's worker hands it back)
         return type(self), (self.reason, self.vertices, self.allow)
 
     def allowed_by(self, allow: str) -> UnfinishedRouteError:

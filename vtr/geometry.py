@@ -21,16 +21,16 @@ from .errors import EstimationError, VtrError
 #: Below this rotation angle (rad) ``log_se3_batch`` uses the series form of V^-1.
 SMALL_ANGLE_RAD = 1e-4
 
-SE3_TOLERANCE = 1e-6   # max deviation of R R^T from I and of the last row from [0 0 0 1]
-COVARIANCE_SYMMETRY_RTOL = 1e-9    # |C - C^T| allowed, relative to max |C|
-COVARIANCE_PSD_RTOL = 1e-9         # negative eigenvalue allowed (semi-definite check), relative to the largest
-MAX_COVARIANCE_CONDITION = 1e14    # larger condition numbers are treated as singular (definite check)
-MIN_EIGENVALUE_RATIO = 1e-12       # usable_covariance floors eigenvalues at this fraction of the largest
+SE3_TOLERANCE = 1e-6  # max deviation of R R^T from I and of the last row from [0 0 0 1]
+COVARIANCE_SYMMETRY_RTOL = 1e-9  # |C - C^T| allowed, relative to max |C|
+COVARIANCE_PSD_RTOL = 1e-9  # negative eigenvalue allowed (semi-definite check), relative to the largest
+MAX_COVARIANCE_CONDITION = 1e14  # larger condition numbers are treated as singular (definite check)
+MIN_EIGENVALUE_RATIO = 1e-12  # usable_covariance floors eigenvalues at this fraction of the largest
 # the largest variance of a covariance that carries information: below it (far below any physical variance)
 # the floored eigenvalues would sink into subnormal numbers, where the floor no longer keeps them positive
 MIN_INFORMATIVE_VARIANCE = 1e-200
-POSE_DIM = 6                       # pose tangent dimension [rot, trans]
-QUATERNION_NORM_TOLERANCE = 1e-3   # a quaternion read from a text file is unit to this (else: malformed)
+POSE_DIM = 6  # pose tangent dimension [rot, trans]
+QUATERNION_NORM_TOLERANCE = 1e-3  # a quaternion read from a text file is unit to this (else: malformed)
 _I3 = np.eye(3)
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
@@ -107,8 +107,7 @@ def log_se3_batch(T: np.ndarray) -> np.ndarray:
     W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
     small = th < SMALL_ANGLE_RAD
     ths = np.where(small, 1.0, th)
-    coef = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
-                    (1.0 - ths * np.sin(ths) / (2.0 * (1.0 - np.cos(ths)))) / ths**2)
+    coef = np.where(small, 1.0 / 12.0 + th**2 / 720.0, (1.0 - ths * np.sin(ths) / (2.0 * (1.0 - np.cos(ths)))) / ths**2)
     t = T[:, :3, 3]
     Wt = np.einsum("kij,kj->ki", W, t)
     WWt = np.einsum("kij,kj->ki", W, Wt)
@@ -163,8 +162,9 @@ def tum_to_T(xyzq: np.ndarray) -> np.ndarray:
     return T.reshape(xyzq.shape[:-1] + (4, 4))
 
 
-def check_se3(T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE,
-              error: type[VtrError] = EstimationError) -> np.ndarray:
+def check_se3(
+    T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE, error: type[VtrError] = EstimationError
+) -> np.ndarray:
     """Validate a 4x4 rigid transform; return it as float64 or raise ``error`` naming ``what``.
 
     Checks shape, finiteness, the last row ``[0 0 0 1]`` and an orthonormal rotation block with
@@ -188,8 +188,9 @@ def check_se3(T: np.ndarray, what: str = "transform", tol: float = SE3_TOLERANCE
     return T
 
 
-def check_covariance(C: np.ndarray, what: str = "covariance", error: type[VtrError] = EstimationError,
-                     definite: bool = False) -> np.ndarray:
+def check_covariance(
+    C: np.ndarray, what: str = "covariance", error: type[VtrError] = EstimationError, definite: bool = False
+) -> np.ndarray:
     """Validate a 6x6 pose covariance; return its symmetric part as float64 or raise ``error`` naming ``what``.
 
     Checks shape, finiteness and symmetry (to ``COVARIANCE_SYMMETRY_RTOL`` of its largest entry); then
@@ -214,8 +215,10 @@ def check_covariance(C: np.ndarray, what: str = "covariance", error: type[VtrErr
     eig = np.linalg.eigvalsh(C)
     if definite:
         if eig[0] <= 0.0 or eig[-1] / eig[0] > MAX_COVARIANCE_CONDITION:
-            raise error(f"{what}: not positive definite (eigenvalues {eig[0]:.3g} … {eig[-1]:.3g}); "
-                        "a measurement covariance must be invertible")
+            raise error(
+                f"{what}: not positive definite (eigenvalues {eig[0]:.3g} … {eig[-1]:.3g}); "
+                "a measurement covariance must be invertible"
+            )
     elif eig[0] < -COVARIANCE_PSD_RTOL * max(float(eig[-1]), 0.0):
         raise error(f"{what}: not positive semi-definite (smallest eigenvalue {eig[0]:.3g})")
     return C

@@ -20,16 +20,16 @@ from .errors import ConfigError
 
 T = TypeVar("T")
 
-MAX_THREADS = 1024          # upper bound of the ``threads`` setting (0 = every available core)
-MAX_NICENESS = 19           # the lowest priority Linux gives a thread
-LOOKAHEAD_PER_THREAD = 1    # frames queued ahead of the consumer beyond one per worker (a pair is ~1 MB at KITTI size)
+MAX_THREADS = 1024  # upper bound of the ``threads`` setting (0 = every available core)
+MAX_NICENESS = 19  # the lowest priority Linux gives a thread
+LOOKAHEAD_PER_THREAD = 1  # frames queued ahead of the consumer beyond one per worker (a pair is ~1 MB at KITTI size)
 
 
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity, not the machine's total)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:      # no affinity call on this platform
+    except AttributeError:  # no affinity call on this platform
         return max(1, os.cpu_count() or 1)
 
 

@@ -72,4 +72,4 @@ def _deliver(signum: int, handler: object) -> None:
     if callable(handler):
         handler(signum, None)
     elif handler in (signal.SIG_DFL, None):
-        signal.raise_signal(signum)           # the default action, now that the default is back
+        signal.raise_signal(signum)  # the default action, now that the default is back

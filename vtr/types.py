@@ -19,7 +19,7 @@ from perception_model.records import short_repr
 class StereoImages:
     """One rectified stereo pair: ``t_ns`` is the left image's time, ``index`` its position in the source."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -31,7 +31,7 @@ class StereoImages:
 class Features:
     """Keypoints of one image: ``uv`` (N, 2) px, ``octave`` (N,), ``response`` (N,), ``descriptors`` (N, 32)."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     uv: np.ndarray
     octave: np.ndarray
@@ -53,7 +53,7 @@ class StereoFrame:
     triangulated landmark in the left camera frame (NaN rows when unmatched), metres.
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -74,10 +74,10 @@ class StereoFrame:
 class FrameKind(StrEnum):
     """What odometry did with a frame (VT&R3's vertex-test results)."""
 
-    CREATE_VERTEX = "CREATE_VERTEX"        # the frame became a new keyframe
+    CREATE_VERTEX = "CREATE_VERTEX"  # the frame became a new keyframe
     CREATE_CANDIDATE = "CREATE_CANDIDATE"  # tracked; not far enough for a new keyframe
-    DO_NOTHING = "DO_NOTHING"              # tracked; the vehicle did not move measurably
-    FAILURE = "FAILURE"                    # not tracked; pose carried by the motion prior
+    DO_NOTHING = "DO_NOTHING"  # tracked; the vehicle did not move measurably
+    FAILURE = "FAILURE"  # not tracked; pose carried by the motion prior
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class Keyframe:
     relative transform from the two stored poses.
     """
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     id: int
     frame: StereoFrame
@@ -108,7 +108,7 @@ class Keyframe:
 class OdometryResult:
     """Outcome of one frame. ``T_keyframe_frame`` maps the frame into the keyframe it was matched to."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     t_ns: int
     index: int
@@ -129,15 +129,16 @@ class OdometryResult:
 
     def record(self) -> FrameRecord:
         """The few numbers a run log keeps per frame (no images, features or landmarks)."""
-        return FrameRecord(self.t_ns, self.kind, self.matches, self.inliers, self.vertex_id,
-                           self.new_keyframe is not None)
+        return FrameRecord(
+            self.t_ns, self.kind, self.matches, self.inliers, self.vertex_id, self.new_keyframe is not None
+        )
 
 
 @dataclass(frozen=True)
 class FrameRecord:
     """What a long run keeps of each frame: its result, match counts and the vertex it belongs to."""
 
-    __repr__ = short_repr        # arrays by shape: print(record) stays short
+    __repr__ = short_repr  # arrays by shape: print(record) stays short
 
     t_ns: int
     kind: FrameKind

@@ -65,8 +65,9 @@ def _version() -> str:
     return version(DIST)
 
 
-def check_output(path: Path, force: bool, *, folder: bool = False, option: str | None = None,
-                 inputs: tuple[Path | None, ...] = ()) -> None:
+def check_output(
+    path: Path, force: bool, *, folder: bool = False, option: str | None = None, inputs: tuple[Path | None, ...] = ()
+) -> None:
     """The output rule of every command (:func:`perception_model.outputs.existing_output`: never without
     ``--force`` over an output, never through a link or over one of ``inputs``) as an error."""
     problem = existing_output(path, force, folder=folder, option=option, inputs=inputs)
@@ -86,10 +87,17 @@ def main() -> None:
 
 def bin_options(command: Callable[..., Any]) -> Callable[..., Any]:
     """The (alpha, theta) bin widths used by fitting and by R^2 in evaluation (degrees)."""
-    for name, default, what in (("--theta-bin", FIT_DEFAULTS.theta_bin_deg, "View-angle"),
-                                ("--alpha-bin", FIT_DEFAULTS.alpha_bin_deg, "Parallax")):
-        command = click.option(name, type=click.FloatRange(min=0.0, min_open=True), default=default,
-                               show_default=True, help=f"{what} bin width (degrees).")(command)
+    for name, default, what in (
+        ("--theta-bin", FIT_DEFAULTS.theta_bin_deg, "View-angle"),
+        ("--alpha-bin", FIT_DEFAULTS.alpha_bin_deg, "Parallax"),
+    ):
+        command = click.option(
+            name,
+            type=click.FloatRange(min=0.0, min_open=True),
+            default=default,
+            show_default=True,
+            help=f"{what} bin width (degrees).",
+        )(command)
     return command
 
 

@@ -66,28 +66,50 @@ def taught_camera_option(command: Any) -> Any:
 def confidence_options(command: Any) -> Any:
     """``--l-min``, ``--c-bar`` and ``--delta``: the bound of the chance constraint (resolve with
     :func:`resolve_c_bar`)."""
-    for option in reversed((
-        click.option("--l-min", type=float, default=THESIS_L_MIN, show_default=True,
-                     help="Minimum inlier count L_min."),
-        click.option("--c-bar", type=float, default=None,
-                     help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta]."),
-        click.option("--delta", type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True), default=None,
-                     help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta)."),
-    )):
+    for option in reversed(
+        (
+            click.option(
+                "--l-min", type=float, default=THESIS_L_MIN, show_default=True, help="Minimum inlier count L_min."
+            ),
+            click.option(
+                "--c-bar",
+                type=float,
+                default=None,
+                help=f"Normal quantile c_bar [default: {THESIS_C_BAR:g}, or from --delta].",
+            ),
+            click.option(
+                "--delta",
+                type=click.FloatRange(0.0, 0.5, min_open=True, max_open=True),
+                default=None,
+                help="Allowed failure probability; sets c_bar = sqrt(2) erfinv(1 - 2 delta).",
+            ),
+        )
+    ):
         command = option(command)
     return command
 
 
 def constraint_output_options(command: Any) -> Any:
     """``--exact/--no-exact``, ``--out`` and ``--force`` of a per-position constraint table."""
-    for option in reversed((
-        click.option("--exact/--no-exact", default=True, show_default=True,
-                     help="Also compute the exact Poisson-binomial failure probability."),
-        click.option("--out", "out", type=click.Path(allow_dash=True, path_type=Path), default=None,
-                     help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the "
-                     "summary on stderr). Deprecated: a FILE.csv path writes that file."),
-        force_option("constraint.csv"),
-    )):
+    for option in reversed(
+        (
+            click.option(
+                "--exact/--no-exact",
+                default=True,
+                show_default=True,
+                help="Also compute the exact Poisson-binomial failure probability.",
+            ),
+            click.option(
+                "--out",
+                "out",
+                type=click.Path(allow_dash=True, path_type=Path),
+                default=None,
+                help="Output folder: constraint.csv, the per-position table ('-': the CSV on stdout, the "
+                "summary on stderr). Deprecated: a FILE.csv path writes that file.",
+            ),
+            force_option("constraint.csv"),
+        )
+    ):
         command = option(command)
     return command
 
@@ -168,8 +190,7 @@ def constraint_cmd(
     cbar = resolve_c_bar(c_bar, delta)
     model = PerceptionModel.load(model_path)
     path = read_positions(positions_path)
-    table = constraint_on_landmarks(model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera,
-                                    exact)
+    table = constraint_on_landmarks(model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact)
     report_constraint(table, l_min, cbar, to_stdout, csv_path)
 
 
@@ -228,12 +249,13 @@ def report_constraint(table: Table, l_min: float, cbar: float, to_stdout: bool, 
     if to_stdout:
         consume(csv.writer(sys.stdout, lineterminator="\n"))
     elif csv_path is not None:
+
         def write(tmp: Path) -> None:
             with tmp.open("w", newline="") as fh:
                 consume(csv.writer(fh))
 
         csv_path.parent.mkdir(parents=True, exist_ok=True)
-        replace_file(csv_path, write)        # whole, never through a link (refused before the work)
+        replace_file(csv_path, write)  # whole, never through a link (refused before the work)
     else:
         consume(None)
     n = stats["n"]

@@ -68,8 +68,9 @@ from .common import FIT_DEFAULTS, bin_options, check_output, deprecated, main
     show_default=True,
     help="Fraction of localizations held out for evaluation.",
 )
-@click.option("--seed", type=int, default=FIT_DEFAULTS.seed, show_default=True,
-              help="Seed of the hold-out split/bootstrap.")
+@click.option(
+    "--seed", type=int, default=FIT_DEFAULTS.seed, show_default=True, help="Seed of the hold-out split/bootstrap."
+)
 @bin_options
 @click.option(
     "--min-bin-count",
@@ -113,8 +114,9 @@ def fit_cmd(
     from ..landmarks_file import FIT_FIELDS, read_landmarks_files
 
     if out.suffix.lower() == ".json":
-        deprecated(f"--out {out}: a model file is deprecated; give a folder (--out DIR writes DIR/model.json and "
-                   "DIR/fit.png)")
+        deprecated(
+            f"--out {out}: a model file is deprecated; give a folder (--out DIR writes DIR/model.json and DIR/fit.png)"
+        )
         model_path = out
     else:
         check_output(out, force, folder=True, option="--out", inputs=landmarks)
@@ -132,7 +134,7 @@ def fit_cmd(
         angle_unit=unit, holdout_fraction=holdout, seed=seed, ci=ci, n_bootstrap=n_bootstrap,
     )  # fmt: skip
     result = fit_observations(obs, settings)
-    check_output(model_path, force, inputs=landmarks)      # again: the fit may have taken minutes
+    check_output(model_path, force, inputs=landmarks)  # again: the fit may have taken minutes
     if plot is not None:
         check_output(plot, force, inputs=(*landmarks, model_path))
     model_path.parent.mkdir(parents=True, exist_ok=True)
@@ -197,8 +199,9 @@ def _evaluation_lines(ev: Any) -> list[str]:
 @click.argument("landmarks", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @bin_options
 @click.option("--min-bin-count", type=click.IntRange(min=1), default=FIT_DEFAULTS.min_bin_count, show_default=True)
-@click.option("--calibration-bins", type=click.IntRange(min=1), default=FIT_DEFAULTS.calibration_bins,
-              show_default=True)
+@click.option(
+    "--calibration-bins", type=click.IntRange(min=1), default=FIT_DEFAULTS.calibration_bins, show_default=True
+)
 @click.option(
     "--out",
     "out",
@@ -237,15 +240,18 @@ def evaluate_cmd(
         check_output(out, force, folder=True, option="--out", inputs=inputs)
     json_out = None if out is None else out / "evaluation.json"
     if json_flag not in (None, "-"):
-        deprecated(f"--json {json_flag}: a file after --json is deprecated; use --out DIR (DIR/evaluation.json) "
-                   "or --json alone (JSON on stdout)")
+        deprecated(
+            f"--json {json_flag}: a file after --json is deprecated; use --out DIR (DIR/evaluation.json) "
+            "or --json alone (JSON on stdout)"
+        )
         json_out = Path(json_flag)
     if json_out is not None:
         check_output(json_out, force, inputs=inputs)
     model = PerceptionModel.load(model_path)
     obs = read_landmarks_files(landmarks, FIT_FIELDS)
-    settings = FitSettings.from_degrees(alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin,
-                                        min_bin_count=min_bin_count, calibration_bins=calibration_bins)
+    settings = FitSettings.from_degrees(
+        alpha_bin_deg=alpha_bin, theta_bin_deg=theta_bin, min_bin_count=min_bin_count, calibration_bins=calibration_bins
+    )
     ev = evaluate(model, obs.samples(), settings)
     c1, c2, c3 = model.constants
     results = json.dumps({"model": str(model_path), "data": obs.describe(), "evaluation": ev.to_dict()}, indent=2)

@@ -37,8 +37,12 @@ def data(tmp_path_factory) -> Path:
 def undisturbed(data, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
     statuses = []
-    result = run_batch(load_manifest(data), out, BatchOptions(workers=2, fit=True),
-                       progress=lambda o, done, total: statuses.append((o.name, o.status, done, total)))
+    result = run_batch(
+        load_manifest(data),
+        out,
+        BatchOptions(workers=2, fit=True),
+        progress=lambda o, done, total: statuses.append((o.name, o.status, done, total)),
+    )
     return out, result, statuses
 
 
@@ -92,10 +96,11 @@ def test_rerun_after_an_interruption_does_only_what_was_left(data, undisturbed, 
 def test_a_worker_killed_mid_run_is_retried_and_results_equal(data, undisturbed, tmp_path):
     out, _, _ = undisturbed
     marker = tmp_path / "killed.txt"
-    result = run_batch(load_manifest(data), tmp_path / "out",
-                       BatchOptions(workers=2, on_start=KillWorkerOnce(marker, "rep_1m")))
+    result = run_batch(
+        load_manifest(data), tmp_path / "out", BatchOptions(workers=2, on_start=KillWorkerOnce(marker, "rep_1m"))
+    )
     at_kill = marker.read_text().split()
-    assert "localization.csv" in at_kill and "run.json" not in at_kill      # killed mid-run
+    assert "localization.csv" in at_kill and "run.json" not in at_kill  # killed mid-run
     status = {o.name: o.status for o in result.outcomes}
     assert status == {"teach": FINISHED, "rep_0m": FINISHED, "rep_1m": FINISHED, "broken": FAILED}
     for name in ("rep_0m", "rep_1m"):
@@ -114,9 +119,20 @@ def test_repeats_are_blocked_when_their_teach_fails(tmp_path):
 
 def test_manifest_forms_and_errors(tmp_path):
     m = tmp_path / "m.yaml"
-    m.write_text(yaml.safe_dump({"frames": "0::2", "routes": [
-        {"name": "a", "teach": "/data/a/teach", "repeats": ["rel/rep1", {"source": "/x/rep1", "name": "r1b",
-                                                                         "frames": "1::2"}]}]}))
+    m.write_text(
+        yaml.safe_dump(
+            {
+                "frames": "0::2",
+                "routes": [
+                    {
+                        "name": "a",
+                        "teach": "/data/a/teach",
+                        "repeats": ["rel/rep1", {"source": "/x/rep1", "name": "r1b", "frames": "1::2"}],
+                    }
+                ],
+            }
+        )
+    )
     spec = load_manifest(m)
     teach, rep1, rep2 = spec.runs()
     assert teach.is_teach and teach.source == Path("/data/a/teach") and teach.frames == "0::2"
@@ -142,8 +158,9 @@ def test_a_running_scheduler_is_used_unchanged(data, undisturbed, tmp_path):
 
     out, _, _ = undisturbed
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        result = run_batch(load_manifest(data), tmp_path / "out",
-                           BatchOptions(scheduler=cluster.scheduler_address, threads=1))
+        result = run_batch(
+            load_manifest(data), tmp_path / "out", BatchOptions(scheduler=cluster.scheduler_address, threads=1)
+        )
     assert result.workers == cluster.scheduler_address
     assert [o.status for o in result.outcomes] == [FINISHED, FINISHED, FINISHED, FAILED]
     got, want = tmp_path / "out" / "route_0" / "rep_1m", out / "route_0" / "rep_1m"

@@ -27,6 +27,10 @@ def test_every_module_is_in_the_order():
 
 
 def test_imports_go_one_way():
-    back = [f"{name} imports {other}" for i, name in enumerate(ORDER)
-            for other in sorted(sibling_imports(BATCH / f"{name}.py")) if other not in ORDER[:i]]
+    back = [
+        f"{name} imports {other}"
+        for i, name in enumerate(ORDER)
+        for other in sorted(sibling_imports(BATCH / f"{name}.py"))
+        if other not in ORDER[:i]
+    ]
     assert back == []

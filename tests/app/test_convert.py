@@ -135,7 +135,18 @@ def test_cli_topic_options(tmp_path):
     runner = CliRunner()
     r = runner.invoke(main, ["convert", str(tmp_path / "t.bag"), str(tmp_path / "o1")])
     assert r.exit_code == 1 and "pass left_topic (CLI --left-topic)" in r.output
-    r = runner.invoke(main, ["convert", str(tmp_path / "t.bag"), str(tmp_path / "o2"), "--left-topic", "/a/image",
-                             "--right-topic", "/b/image", "--no-progress"])
+    r = runner.invoke(
+        main,
+        [
+            "convert",
+            str(tmp_path / "t.bag"),
+            str(tmp_path / "o2"),
+            "--left-topic",
+            "/a/image",
+            "--right-topic",
+            "/b/image",
+            "--no-progress",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert_identical(src, open_source(tmp_path / "o2"), range(3))

@@ -27,7 +27,7 @@ def test_drift_line_names_the_segment_lengths():
 
 
 def test_drift_line_on_a_short_path_says_why_instead_of_nan():
-    gt = _straight(5, 1.0)                 # 4 m: no 10 m segment
+    gt = _straight(5, 1.0)  # 4 m: no 10 m segment
     line = str(drift_metrics(gt, gt))
     assert "nan" not in line.lower() and "not measured" in line and "4.0 m" in line, line
 
@@ -43,7 +43,7 @@ def test_static_log_says_why_one_keyframe(kitti_clip, tmp_path):
     first = sorted((kitti_clip / "image_0").iterdir())[0].name
     for sub in ("image_0", "image_1"):
         (clip / sub).mkdir(parents=True)
-        for i in range(5):                                   # the same stereo pair five times
+        for i in range(5):  # the same stereo pair five times
             shutil.copy(kitti_clip / sub / first, clip / sub / f"{i:06d}.png")
     shutil.copy(kitti_clip / "calib.txt", clip / "calib.txt")
     (clip / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(5)))

@@ -42,15 +42,23 @@ def check_labels(fig: Figure) -> None:
 def test_envelope_figure_marks_capped_values_and_shows_headings(saved, tmp_path):
     from vtr.app.perception import EnvelopeRow, plot_envelope
 
-    rows = [EnvelopeRow(i, np.array([2.0 * i, 0.0, 10.0]), 0.0, 40.0,
-                        {"left": 20.0 if i % 2 else 8.0, "right": 6.0, "up": 5.0, "down": 3.0},
-                        {"left": bool(i % 2), "right": False, "up": False, "down": False}) for i in range(20)]
+    rows = [
+        EnvelopeRow(
+            i,
+            np.array([2.0 * i, 0.0, 10.0]),
+            0.0,
+            40.0,
+            {"left": 20.0 if i % 2 else 8.0, "right": 6.0, "up": 5.0, "down": 3.0},
+            {"left": bool(i % 2), "right": False, "up": False, "down": False},
+        )
+        for i in range(20)
+    ]
     plot_envelope(rows, tmp_path / "e.png", l_min=30.0, title="test route")
     (fig,) = saved
     check_labels(fig)
     plan, offsets = fig.axes
     quiver = next(c for c in plan.collections if type(c).__name__ == "Quiver")
-    assert np.hypot(quiver.U, quiver.V).min() > 0.05 * 38.0             # arrows of a visible length in metres
+    assert np.hypot(quiver.U, quiver.V).min() > 0.05 * 38.0  # arrows of a visible length in metres
     labels = [line.get_label() for line in offsets.get_lines()]
     assert "left: capped (10 of 20)" in labels
     capped = next(line for line in offsets.get_lines() if line.get_label() == "left: capped (10 of 20)")

@@ -27,8 +27,9 @@ def test_tiny_aerial_mission(tmp_path):
 def test_the_envelope_predicts_a_failure_and_it_is_seen(tmp_path):
     """A repeat held out from the fit, far outside the envelope: the envelope says it fails, and it does not
     localize; the on-path repeat is predicted to hold and localizes."""
-    rep = run_aerial_mission(tmp_path / "m", Config(), length_m=9.0, lateral_m=(0.0, 3.0), held_out_m=(30.0,),
-                             ramp_m=2.0)
+    rep = run_aerial_mission(
+        tmp_path / "m", Config(), length_m=9.0, lateral_m=(0.0, 3.0), held_out_m=(30.0,), ramp_m=2.0
+    )
     far = rep.rows[-1]
     assert far.fitted == "held out" and far.envelope_fails > 0, far
     assert far.fails_and_not_localized == far.envelope_fails, far

@@ -73,7 +73,7 @@ def test_a_symlinked_route_folder_inside_out_is_not_written_through(routes, tmp_
     elsewhere = tmp_path / "elsewhere"
     (elsewhere / "teach").mkdir(parents=True)
     (elsewhere / "teach" / "precious.bin").write_bytes(b"x" * 1000)
-    (elsewhere / "teach" / "run.json").write_text("{}")           # looks like an unfinished run folder
+    (elsewhere / "teach" / "run.json").write_text("{}")  # looks like an unfinished run folder
     out = tmp_path / "out"
     out.mkdir()
     (out / "route_0").symlink_to(elsewhere)
@@ -103,7 +103,7 @@ def test_a_planted_tmp_link_and_hard_link_never_receive_output(kitti_clip, tmp_p
     victim.write_text("do not touch")
     out = tmp_path / "odo"
     out.mkdir()
-    (out / "run.json.tmp").symlink_to(victim)                  # the old fixed temporary name
+    (out / "run.json.tmp").symlink_to(victim)  # the old fixed temporary name
     r = vtr("odometry", kitti_clip, "--out", out, "--frames", "0:6", "--force")
     assert r.returncode == 0, r.stderr
     assert victim.read_text() == "do not touch" and json.loads((out / "run.json").read_text())["status"] == "finished"
@@ -139,7 +139,7 @@ def test_clear_removes_exactly_what_vtr_made(tmp_path):
         fh.write("x\n")
     (f.path / "notes.txt").write_text("the user's")
     (f.path / "link").symlink_to(victim)
-    with (f.path / RECORD).open("a") as rec:                   # a record that names a link: still only unlinked
+    with (f.path / RECORD).open("a") as rec:  # a record that names a link: still only unlinked
         rec.write("link\n../victim.txt\n")
     OutputFolder(f.path).clear()
     assert sorted(p.name for p in f.path.iterdir()) == ["link", "notes.txt"]
@@ -157,8 +157,8 @@ def test_another_process_cannot_use_the_batch_cluster(tmp_path):
     with _DaskClient(BatchOptions(), 1) as client:
         address = client.scheduler.address
         assert address.startswith("tls://127.0.0.1:")
-        assert client.submit(sum, [1, 2]).result() == 3                # the batch's own client works
-        assert http_hosts(client) == {"127.0.0.1"}                     # its HTTP server (health) on loopback
+        assert client.submit(sum, [1, 2]).result() == 3  # the batch's own client works
+        assert http_hosts(client) == {"127.0.0.1"}  # its HTTP server (health) on loopback
         marker = tmp_path / "ran"
         probe = textwrap.dedent(f"""
             import sys
@@ -241,13 +241,22 @@ def test_workers_times_threads_is_bounded(routes, tmp_path):
 def test_a_second_batch_on_the_same_out_is_refused(routes, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(f"""
         import sys
         from vtr.app.batch import BatchLock
         with BatchLock({str(out)!r}):
             print("locked", flush=True)
             sys.stdin.readline()
-    """)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    """),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
         with pytest.raises(OutputError, match="another vtr batch is writing"):
@@ -255,7 +264,7 @@ def test_a_second_batch_on_the_same_out_is_refused(routes, tmp_path):
         assert sorted(p.name for p in out.iterdir()) == [".vtr-batch.lock"]
     finally:
         holder.communicate("\n")
-    with BatchLock(out):                    # released when its holder ended
+    with BatchLock(out):  # released when its holder ended
         pass
 
 
@@ -278,23 +287,25 @@ def test_changed_manifest_reruns_what_changed_and_keeps_foreign_files(routes, tm
     assert by["teach"].status == RESUMED
     assert by["rep_0m"].status == FINISHED and "frames" in by["rep_0m"].changed and by["rep_0m"].frames == 5
     assert "rerun: " in "\n".join(batch_table(changed))
-    assert notes.read_text() == "the user's"                     # not made by vtr: never removed
+    assert notes.read_text() == "the user's"  # not made by vtr: never removed
 
 
 def test_manifest_read_as_written(tmp_path):
     m = tmp_path / "m.yaml"
     m.write_text("frames: 1:10\nroutes:\n  - name: a\n    teach: t\n    repeats: [{source: r, frames: 190:20:30}]\n")
     teach, rep = load_manifest(m).runs()
-    assert teach.frames == "1:10" and rep.frames == "190:20:30"      # YAML 1.1 read them as 70 and 685230
-    m.write_text("\ufeffroutes: [{name: a, teach: t}]\n")             # a UTF-8 BOM is not part of the YAML
+    assert teach.frames == "1:10" and rep.frames == "190:20:30"  # YAML 1.1 read them as 70 and 685230
+    m.write_text("\ufeffroutes: [{name: a, teach: t}]\n")  # a UTF-8 BOM is not part of the YAML
     assert load_manifest(m).runs()[0].name == "teach"
-    bad = [("frames: 70\nroutes: [{name: a, teach: t}]\n", "frames: 70 is not a frame range"),
-           ('routes: [{name: "a\\nb", teach: t}]\n', "not a usable folder name"),
-           ('routes: [{name: "a\\n", teach: t}]\n', "not a usable folder name"),
-           ("routes: [{name: summary.csv, teach: t}]\n", "batch's own output"),
-           ("routes: [{name: fit, teach: t}]\n", "batch's own output"),
-           ("routes: [{name: A, teach: t}, {name: a, teach: t}]\n", "used twice"),
-           ("routes: [{name: a, teach: t, repeats: [teach]}]\n", "teach folder")]
+    bad = [
+        ("frames: 70\nroutes: [{name: a, teach: t}]\n", "frames: 70 is not a frame range"),
+        ('routes: [{name: "a\\nb", teach: t}]\n', "not a usable folder name"),
+        ('routes: [{name: "a\\n", teach: t}]\n', "not a usable folder name"),
+        ("routes: [{name: summary.csv, teach: t}]\n", "batch's own output"),
+        ("routes: [{name: fit, teach: t}]\n", "batch's own output"),
+        ("routes: [{name: A, teach: t}, {name: a, teach: t}]\n", "used twice"),
+        ("routes: [{name: a, teach: t, repeats: [teach]}]\n", "teach folder"),
+    ]
     for text, msg in bad:
         m.write_text(text)
         with pytest.raises(ConfigError, match=msg):
@@ -306,9 +317,11 @@ def test_an_edited_run_json_is_one_line(routes, tmp_path):
     run_batch(load_manifest(routes), out, BatchOptions(workers=1))
     run_json = out / "route_0" / "rep_0m" / "run.json"
     doc = json.loads(run_json.read_text())
-    for edit, field in ((lambda d: d.update(summary=[1, 2]), "'summary'"),
-                        (lambda d: d["summary"].update(frames="many"), "summary.frames"),
-                        (lambda d: d.update(status="done"), "status")):
+    for edit, field in (
+        (lambda d: d.update(summary=[1, 2]), "'summary'"),
+        (lambda d: d["summary"].update(frames="many"), "summary.frames"),
+        (lambda d: d.update(status="done"), "status"),
+    ):
         d = json.loads(json.dumps(doc))
         edit(d)
         run_json.write_text(json.dumps(d))
@@ -337,15 +350,17 @@ def test_a_failed_rerun_of_a_finished_run_keeps_its_outputs(routes, tmp_path):
     finished = tree_bytes(out / "route_0")
     assert "teach/route.vtrmap" in finished
 
-    shutil.move(data / "route_0" / "teach" / "image_1", tmp_path / "image_1")   # a partial sync
+    shutil.move(data / "route_0" / "teach" / "image_1", tmp_path / "image_1")  # a partial sync
     failed = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))
     teach, rep = failed.outcomes
     assert teach.status == FAILED and "finished outputs of the earlier run are kept" in teach.error
     assert rep.status == BLOCKED
-    assert tree_bytes(out / "route_0" / "teach") == {k[len("teach/"):]: v for k, v in finished.items()
-                                                     if k.startswith("teach/")}
-    assert tree_bytes(out / "route_0" / "rep_0m") == {k[len("rep_0m/"):]: v for k, v in finished.items()
-                                                      if k.startswith("rep_0m/")}
+    assert tree_bytes(out / "route_0" / "teach") == {
+        k[len("teach/") :]: v for k, v in finished.items() if k.startswith("teach/")
+    }
+    assert tree_bytes(out / "route_0" / "rep_0m") == {
+        k[len("rep_0m/") :]: v for k, v in finished.items() if k.startswith("rep_0m/")
+    }
 
     shutil.move(tmp_path / "image_1", data / "route_0" / "teach" / "image_1")
     (data / "route_0" / "teach" / "README.txt").write_text("a new file in the source: it changed")
@@ -353,7 +368,7 @@ def test_a_failed_rerun_of_a_finished_run_keeps_its_outputs(routes, tmp_path):
     assert [o.status for o in again.outcomes] == [FINISHED, FINISHED], again.outcomes
     assert all(o.changed for o in again.outcomes)
     assert notes.read_text() == "the user's"
-    assert not list((out / "route_0").glob(".vtr-rerun-*"))         # the rerun folders moved in and went
+    assert not list((out / "route_0").glob(".vtr-rerun-*"))  # the rerun folders moved in and went
     made = set((out / "route_0" / "teach" / RECORD).read_text().split())
     assert {"route.vtrmap", "run.json", "batch_key.json"} <= made and not any(".vtr-tmp-" in n for n in made)
     third = run_batch(load_manifest(manifest), out, BatchOptions(workers=1))

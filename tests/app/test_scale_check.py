@@ -24,7 +24,7 @@ def test_ramp_disparities_sit_about_one_pixel_below_the_ground_truth_motion(ramp
 
 def test_ramp_near_point_scale_grows_as_far_points_join(ramp):
     _, scale = ramp
-    s = np.array([scale[t] for t in sorted(scale, reverse=True)])       # thresholds 30, 15, 5, 1 px
+    s = np.array([scale[t] for t in sorted(scale, reverse=True)])  # thresholds 30, 15, 5, 1 px
     assert 1.0 <= s[0] <= 1.03
     assert np.all(np.diff(s) > 0)
 

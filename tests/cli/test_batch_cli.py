@@ -17,8 +17,10 @@ def vtr(*args) -> subprocess.CompletedProcess:
 
 def test_bad_manifests_are_one_line_errors(tmp_path):
     m = tmp_path / "m.yaml"
-    for doc, msg in [({"routes": [{"name": "a", "teach": "t", "repeat": []}]}, "unknown key 'repeat'"),
-                     ({"routes": [{"name": "a", "teach": "missing"}]}, "no such file or folder")]:
+    for doc, msg in [
+        ({"routes": [{"name": "a", "teach": "t", "repeat": []}]}, "unknown key 'repeat'"),
+        ({"routes": [{"name": "a", "teach": "missing"}]}, "no such file or folder"),
+    ]:
         m.write_text(yaml.safe_dump(doc))
         r = vtr("batch", m, "--out", tmp_path / "out", "--workers", "1")
         assert r.returncode == 1
@@ -30,9 +32,19 @@ def test_bad_manifests_are_one_line_errors(tmp_path):
 
 def test_batch_runs_and_resumes(kitti_clip, tmp_path):
     m = tmp_path / "m.yaml"
-    m.write_text(yaml.safe_dump({"routes": [{"name": "clip", "teach": {"source": str(kitti_clip), "frames": "0:12:2"},
-                                             "repeats": [{"source": str(kitti_clip), "frames": "1:12:2",
-                                                          "name": "odd"}]}]}))
+    m.write_text(
+        yaml.safe_dump(
+            {
+                "routes": [
+                    {
+                        "name": "clip",
+                        "teach": {"source": str(kitti_clip), "frames": "0:12:2"},
+                        "repeats": [{"source": str(kitti_clip), "frames": "1:12:2", "name": "odd"}],
+                    }
+                ]
+            }
+        )
+    )
     r = vtr("batch", m, "--out", tmp_path / "out", "--workers", "1", "--threads", "2")
     assert r.returncode == 0, r.stderr
     assert "2 finished" in r.stdout and "odd" in r.stdout
@@ -57,8 +69,7 @@ def test_batch_runs_and_resumes(kitti_clip, tmp_path):
 
 def test_threads_option_is_checked(kitti_clip, tmp_path):
     r = vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--threads", "-1")
-    assert r.returncode == 1 and "--threads" in r.stderr and len(r.stderr.splitlines()) == 1   # a usage error: one line
-
+    assert r.returncode == 1 and "--threads" in r.stderr and len(r.stderr.splitlines()) == 1  # a usage error: one line
 
 
 def test_ctrl_c_of_a_batch_leaves_no_worker_tracebacks(tmp_path):
@@ -73,10 +84,15 @@ def test_ctrl_c_of_a_batch_leaves_no_worker_tracebacks(tmp_path):
 
     manifest = write_batch_routes(tmp_path / "data", 1, [0.0, 1.0], 8.0)
     out = tmp_path / "out"
-    p = subprocess.Popen([sys.executable, "-m", "vtr", "batch", str(manifest), "--out", str(out), "--workers", "2"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "vtr", "batch", str(manifest), "--out", str(out), "--workers", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     started = out / "route_0" / "teach" / "route.vtrmap"
-    deadline = time.monotonic() + 600                   # a bound on waiting, not an assertion on time
+    deadline = time.monotonic() + 600  # a bound on waiting, not an assertion on time
     while not started.exists() and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert started.exists() and p.poll() is None
@@ -99,15 +115,30 @@ def test_a_full_disk_under_a_batch_is_one_line_per_run_naming_the_file(kitti_cli
     import resource
 
     def full_disk() -> None:
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)          # a write past the limit fails with EFBIG instead
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
 
     m = tmp_path / "m.yaml"
-    m.write_text(yaml.safe_dump({"routes": [{"name": "clip", "teach": {"source": str(kitti_clip), "frames": "0:12:2"},
-                                             "repeats": [{"source": str(kitti_clip), "frames": "1:12:2",
-                                                          "name": "odd"}]}]}))
-    r = subprocess.run([sys.executable, "-m", "vtr", "batch", str(m), "--out", str(tmp_path / "out"), "--workers",
-                        "1"], capture_output=True, text=True, preexec_fn=full_disk, timeout=600)
+    m.write_text(
+        yaml.safe_dump(
+            {
+                "routes": [
+                    {
+                        "name": "clip",
+                        "teach": {"source": str(kitti_clip), "frames": "0:12:2"},
+                        "repeats": [{"source": str(kitti_clip), "frames": "1:12:2", "name": "odd"}],
+                    }
+                ]
+            }
+        )
+    )
+    r = subprocess.run(
+        [sys.executable, "-m", "vtr", "batch", str(m), "--out", str(tmp_path / "out"), "--workers", "1"],
+        capture_output=True,
+        text=True,
+        preexec_fn=full_disk,
+        timeout=600,
+    )
     assert r.returncode == 1, (r.stdout, r.stderr)
     assert "Traceback" not in r.stdout + r.stderr
     failed = [line for line in r.stdout.splitlines() if " failed " in line and line.startswith("clip")]
@@ -123,10 +154,23 @@ def test_a_route_with_experiences_flies_its_repeats_in_order_on_one_growing_map(
 
     def manifest(first_frames: str) -> Path:
         m = tmp_path / "m.yaml"
-        m.write_text(yaml.safe_dump({"routes": [{
-            "name": "clip", "experiences": True, "teach": {"source": str(kitti_clip), "frames": "0:16:2"},
-            "repeats": [{"source": str(kitti_clip), "frames": first_frames, "name": "week1"},
-                        {"source": str(kitti_clip), "frames": "1:16:2", "name": "week2"}]}]}))
+        m.write_text(
+            yaml.safe_dump(
+                {
+                    "routes": [
+                        {
+                            "name": "clip",
+                            "experiences": True,
+                            "teach": {"source": str(kitti_clip), "frames": "0:16:2"},
+                            "repeats": [
+                                {"source": str(kitti_clip), "frames": first_frames, "name": "week1"},
+                                {"source": str(kitti_clip), "frames": "1:16:2", "name": "week2"},
+                            ],
+                        }
+                    ]
+                }
+            )
+        )
         return m
 
     out = tmp_path / "out"
@@ -144,7 +188,7 @@ def test_a_route_with_experiences_flies_its_repeats_in_order_on_one_growing_map(
     assert r.returncode == 0 and "3 resumed" in r.stdout, r.stdout
     r = vtr("batch", manifest("1:14:2"), "--out", out, "--workers", "2")
     assert r.returncode == 0, r.stderr
-    assert "2 finished, 1 resumed" in r.stdout, r.stdout      # week1 changed: week2, flown after it, reruns
+    assert "2 finished, 1 resumed" in r.stdout, r.stdout  # week1 changed: week2, flown after it, reruns
 
 
 def test_experiences_must_be_true_or_false(tmp_path):

@@ -30,7 +30,7 @@ def run(group: click.Group, *args) -> tuple[int, str, str]:
 
 def refused(group, args, path) -> str:
     code, out, err = run(group, *args)
-    err = "".join(ln for ln in err.splitlines(keepends=True) if ": warning: " not in ln)   # deprecations
+    err = "".join(ln for ln in err.splitlines(keepends=True) if ": warning: " not in ln)  # deprecations
     assert code == 1 and ONE_LINE_ERROR.match(err), (code, out, err)
     assert f"{path}" in err and "already exists" in err and "not overwriting" in err, err
     return err
@@ -58,15 +58,30 @@ OUTPUT_CASES = {
     "teach --out": (vtr_main, ["teach", "{kitti}", "--map", "{tmp}/new.vtrmap", "--out", "{out}"], "out"),
     "teach --map": (vtr_main, ["teach", "{kitti}", "--map", "{tmp}/in.txt"], "in.txt"),
     "repeat": (vtr_main, ["repeat", "{kitti}", "--map", "{tmp}/none.vtrmap", "--out", "{out}"], "out"),
-    "export-trajectory": (vtr_main, ["export-trajectory", "{tmp}/in.txt", "{tmp}/model.json", "--to", "kitti"],
-                          "model.json"),
+    "export-trajectory": (
+        vtr_main,
+        ["export-trajectory", "{tmp}/in.txt", "{tmp}/model.json", "--to", "kitti"],
+        "model.json",
+    ),
     "export-map": (vtr_main, ["export-map", "{tmp}/none.vtrmap", "--ply", "{tmp}/in.txt"], "in.txt"),
     "convert": (vtr_main, ["convert", "{kitti}", "{tmp}/old.bag", "--to", "rosbag1"], "old.bag"),
     "fit": (pm_main, ["fit", "{tmp}/lm.csv", "--out", "{out}"], "out"),
     "fit --out FILE.json (deprecated)": (pm_main, ["fit", "{tmp}/lm.csv", "--out", "{tmp}/model.json"], "model.json"),
     "evaluate --out": (pm_main, ["evaluate", "{tmp}/model.json", "{tmp}/lm.csv", "--out", "{out}"], "out"),
-    "constraint --out": (pm_main, ["constraint", "{tmp}/model.json", "--map", "{tmp}/none.vtrmap", "--positions",
-                                   "{tmp}/lm.csv", "--out", "{out}"], "out"),
+    "constraint --out": (
+        pm_main,
+        [
+            "constraint",
+            "{tmp}/model.json",
+            "--map",
+            "{tmp}/none.vtrmap",
+            "--positions",
+            "{tmp}/lm.csv",
+            "--out",
+            "{out}",
+        ],
+        "out",
+    ),
     "envelope": (pm_main, ["envelope", "{tmp}/model.json", "--map", "{tmp}/none.vtrmap", "--out", "{out}"], "out"),
 }
 #: commands that write nothing, and the documented exceptions (perception_model/commandline.py, README)
@@ -84,17 +99,18 @@ def test_every_command_refuses_to_overwrite_the_same_way(case, existing, kitti_c
     path = existing / target
     before = {p: p.read_bytes() for p in existing.rglob("*") if p.is_file()}
     err = refused(group, fill(args, existing, kitti_clip), path)
-    if case != "convert" and case != "teach --map":        # the two that never replace (documented)
+    if case != "convert" and case != "teach --map":  # the two that never replace (documented)
         assert "pass --force" in err, err
     after = {p: p.read_bytes() for p in existing.rglob("*") if p.is_file()}
-    assert after == before                               # nothing written, nothing removed
+    assert after == before  # nothing written, nothing removed
 
 
 def test_every_command_is_classified():
     """A new command must say how it treats existing outputs: add it to OUTPUT_CASES or the exceptions."""
     covered = {c.split()[0] for c in OUTPUT_CASES} | NO_OUTPUT | set(EXCEPTIONS)
-    assert set(vtr_main.commands) | set(pm_main.commands) <= covered, \
-        sorted(set(vtr_main.commands) | set(pm_main.commands) - covered)
+    assert set(vtr_main.commands) | set(pm_main.commands) <= covered, sorted(
+        set(vtr_main.commands) | set(pm_main.commands) - covered
+    )
 
 
 def test_force_writes_into_an_existing_folder(existing, kitti_clip):
@@ -111,8 +127,9 @@ def test_fit_writes_into_a_folder_and_refuses_a_second_time(tmp_path):
     from perception_model.model import PerceptionModel
     from perception_model.synthetic import simulate_observations
 
-    write_landmarks(tmp_path / "lm.csv", simulate_observations(PerceptionModel.thesis(), 30_000,
-                                                               np.random.default_rng(1), name="r"))
+    write_landmarks(
+        tmp_path / "lm.csv", simulate_observations(PerceptionModel.thesis(), 30_000, np.random.default_rng(1), name="r")
+    )
     out = tmp_path / "model"
     code, stdout, err = run(pm_main, "fit", tmp_path / "lm.csv", "--out", out)
     assert code == 0, err
@@ -121,8 +138,9 @@ def test_fit_writes_into_a_folder_and_refuses_a_second_time(tmp_path):
     code, _, err = run(pm_main, "fit", tmp_path / "lm.csv", "--out", out, "--force")
     assert code == 0, err
     # --json is a flag (JSON on stdout) as in `vtr map info`; --out DIR writes DIR/evaluation.json
-    code, stdout, err = run(pm_main, "evaluate", out / "model.json", tmp_path / "lm.csv", "--json",
-                            "--out", tmp_path / "ev")
+    code, stdout, err = run(
+        pm_main, "evaluate", out / "model.json", tmp_path / "lm.csv", "--json", "--out", tmp_path / "ev"
+    )
     assert code == 0, err
     assert json.loads(stdout)["evaluation"]["n"] == 30_000
     assert json.loads((tmp_path / "ev" / "evaluation.json").read_text())["evaluation"]["n"] == 30_000
@@ -134,13 +152,16 @@ def test_fit_writes_into_a_folder_and_refuses_a_second_time(tmp_path):
 # --------------------------------------------------------------------------- usage, versions
 
 
-@pytest.mark.parametrize("group, args, needle", [
-    (vtr_main, ["repeat", "datasets/kitti06_clip", "--out", "o"], "Missing option '--map'"),
-    (vtr_main, ["odometry", "x", "--out", "o", "--threads", "-1"], "--threads"),
-    (vtr_main, ["no-such-command"], "No such command"),
-    (pm_main, ["fit", "--out", "x"], "Missing argument"),
-    (pm_main, ["envelope", "m.json", "--map", "m", "--out", "o", "--delta", "0.7"], "--delta"),
-])
+@pytest.mark.parametrize(
+    "group, args, needle",
+    [
+        (vtr_main, ["repeat", "datasets/kitti06_clip", "--out", "o"], "Missing option '--map'"),
+        (vtr_main, ["odometry", "x", "--out", "o", "--threads", "-1"], "--threads"),
+        (vtr_main, ["no-such-command"], "No such command"),
+        (pm_main, ["fit", "--out", "x"], "Missing argument"),
+        (pm_main, ["envelope", "m.json", "--map", "m", "--out", "o", "--delta", "0.7"], "--delta"),
+    ],
+)
 def test_usage_errors_are_one_line_and_exit_1(group, args, needle):
     code, out, err = run(group, *args)
     assert code == 1 and ONE_LINE_ERROR.match(err) and needle in err and "--help" in err, (code, err)
@@ -167,11 +188,13 @@ def test_format_lists_its_choices_and_they_match_the_readers():
     from vtr.io import FORMAT_ALIASES, FORMATS
 
     assert set(SOURCE_FORMATS) == set(FORMATS) | set(FORMAT_ALIASES)
-    assert set(FORMAT_ALIASES) >= {"rosbag1", "rosbag2", "mcap"}       # what `convert --to` writes
+    assert set(FORMAT_ALIASES) >= {"rosbag1", "rosbag2", "mcap"}  # what `convert --to` writes
     for cmd in ("odometry", "teach", "repeat", "convert"):
         _, out, _ = run(vtr_main, cmd, "--help")
-        assert "[" + "|".join(SOURCE_FORMATS) + "]" in " ".join(out.split()).replace(" |", "|").replace("| ", "|"), \
-            (cmd, out)
+        assert "[" + "|".join(SOURCE_FORMATS) + "]" in " ".join(out.split()).replace(" |", "|").replace("| ", "|"), (
+            cmd,
+            out,
+        )
 
 
 def test_format_rosbag1_reads_a_converted_bag(kitti_clip, tmp_path):
@@ -199,8 +222,9 @@ def test_fit_with_too_few_held_out_observations_for_r2_still_writes_its_model(tm
     from perception_model.model import PerceptionModel
     from perception_model.synthetic import simulate_observations
 
-    write_landmarks(tmp_path / "lm.csv", simulate_observations(PerceptionModel.thesis(), 6000,
-                                                               np.random.default_rng(1), name="r"))
+    write_landmarks(
+        tmp_path / "lm.csv", simulate_observations(PerceptionModel.thesis(), 6000, np.random.default_rng(1), name="r")
+    )
     code, _, err = run(pm_main, "fit", tmp_path / "lm.csv", "--out", tmp_path / "m")
     assert code == 0, err
     assert json.loads((tmp_path / "m" / "model.json").read_text())["fit"]["holdout"]["r2_binned"] is None

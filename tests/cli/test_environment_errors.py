@@ -22,7 +22,7 @@ from vtr.io.rosbag_writer import BagTopics, write_bag
 DATA = Path(__file__).resolve().parents[2] / "datasets"
 KITTI = DATA / "kitti06_clip"
 EUROC = DATA / "euroc_v101_micro"
-FULL = Path("/dev/full")      # every write fails with ENOSPC: a full disk on demand
+FULL = Path("/dev/full")  # every write fails with ENOSPC: a full disk on demand
 needs_dev_full = pytest.mark.skipif(not FULL.exists(), reason="no /dev/full on this system")
 
 
@@ -63,7 +63,7 @@ def test_teach_refuses_out_before_writing_the_map(tmp_path):
     f.write_text("x")
     m = tmp_path / "route.vtrmap"
     assert_one_line(["teach", KITTI, "--map", m, "--frames", "0:6:2", "--out", f], "exists and is not a folder")
-    assert not m.exists() and not list(tmp_path.glob("route.vtrmap*"))    # was: refused after the whole teach
+    assert not m.exists() and not list(tmp_path.glob("route.vtrmap*"))  # was: refused after the whole teach
 
 
 def test_out_below_a_file(tmp_path):
@@ -108,12 +108,16 @@ def test_no_room_while_writing_outputs(tmp_path, limit):
     import sys
 
     def small_files():
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG instead
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
     out = tmp_path / "o"
-    r = subprocess.run([sys.executable, "-m", "vtr", "odometry", KITTI, "--out", out, "--frames", "0:12"],
-                       capture_output=True, text=True, preexec_fn=small_files)
+    r = subprocess.run(
+        [sys.executable, "-m", "vtr", "odometry", KITTI, "--out", out, "--frames", "0:12"],
+        capture_output=True,
+        text=True,
+        preexec_fn=small_files,
+    )
     assert r.returncode == 1, (r.stdout, r.stderr)
     lines = [ln for ln in r.stderr.strip().splitlines() if not PROGRESS_LINE.match(ln)]
     assert len(lines) == 1 and lines[0].startswith("vtr: error: ") and str(out) in lines[0], r.stderr
@@ -138,12 +142,16 @@ def test_full_disk_export_trajectory(tmp_path):
         assert_one_line(["export-trajectory", tum, dest, "--to", "euroc", *force], str(dest), "symbolic link")
 
     def small_files():
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)      # a write past the limit fails with EFBIG instead
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
         resource.setrlimit(resource.RLIMIT_FSIZE, (60, 60))
 
     new = tmp_path / "new.csv"
-    r = subprocess.run([sys.executable, "-m", "vtr", "export-trajectory", tum, new, "--to", "euroc"],
-                       capture_output=True, text=True, preexec_fn=small_files)
+    r = subprocess.run(
+        [sys.executable, "-m", "vtr", "export-trajectory", tum, new, "--to", "euroc"],
+        capture_output=True,
+        text=True,
+        preexec_fn=small_files,
+    )
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert str(new) in r.stderr and "File too large" in r.stderr
     assert not new.exists() and not list(tmp_path.glob(".vtr-tmp-*"))
@@ -165,8 +173,11 @@ def test_the_first_error_of_a_chain_is_reported():
 def test_missing_output_folder_names_the_file(tmp_path):
     tum = tmp_path / "t.txt"
     tum.write_text("0.0 0 0 0 0 0 0 1\n")
-    assert_one_line(["export-trajectory", tum, tmp_path / "no" / "such" / "dir.csv", "--to", "euroc"],
-                    "no/such/dir.csv", "No such file or directory")
+    assert_one_line(
+        ["export-trajectory", tum, tmp_path / "no" / "such" / "dir.csv", "--to", "euroc"],
+        "no/such/dir.csv",
+        "No such file or directory",
+    )
 
 
 # ------------------------------------------------------------------------------ odd inputs
@@ -179,15 +190,21 @@ def test_zero_norm_quaternion_in_export_trajectory(tmp_path):
 
 
 def test_rate_upper_bound(tmp_path):
-    assert_one_line(["repeat", KITTI, "--map", tmp_path / "m.vtrmap", "--out", tmp_path / "o", "--rate", "1e9"],
-                    "smoothing.rate_hz", "(0, 1000]")
+    assert_one_line(
+        ["repeat", KITTI, "--map", tmp_path / "m.vtrmap", "--out", tmp_path / "o", "--rate", "1e9"],
+        "smoothing.rate_hz",
+        "(0, 1000]",
+    )
 
 
-@pytest.mark.parametrize(("content", "named"), [
-    (bytes(range(256)) * 4, "not UTF-8"),
-    (b"features:\n  n_levels: 0\n", "features.n_levels must be an integer in [1, 16]"),
-    (b"odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),
-])
+@pytest.mark.parametrize(
+    ("content", "named"),
+    [
+        (bytes(range(256)) * 4, "not UTF-8"),
+        (b"features:\n  n_levels: 0\n", "features.n_levels must be an integer in [1, 16]"),
+        (b"odometry:\n  keyframe_translation_m: .nan\n", "odometry.keyframe_translation_m"),
+    ],
+)
 def test_bad_config_files(tmp_path, content, named):
     cfg = tmp_path / "c.yaml"
     cfg.write_bytes(content)
@@ -213,7 +230,7 @@ def test_damaged_mcap(tmp_path):
     data = bytearray(f.read_bytes())
     data_end = data.rfind(b"\x0f" + (4).to_bytes(8, "little"))
     footer = len(data) - 8 - 29
-    data[data_end + 1: data_end + 9] = (2**62).to_bytes(8, "little")
+    data[data_end + 1 : data_end + 9] = (2**62).to_bytes(8, "little")
     struct.pack_into("<Q", data, footer + 9, data_end)
     f.write_bytes(bytes(data))
     assert_one_line(["odometry", tmp_path / "b", "--out", tmp_path / "o"], "cannot open bag", "damaged")
@@ -230,13 +247,25 @@ def test_robot_topic_names_through_every_source_command(tmp_path):
     assert (tmp_path / "o" / "trajectory_tum.txt").is_file()
     code, out, err = run("teach", bag, "--map", tmp_path / "m.vtrmap", *topics)
     assert code == 0, err
-    code, out, err = run("repeat", bag, "--map", tmp_path / "m.vtrmap", "--out", tmp_path / "r", *topics,
-                         "--left-info-topic", "/front/camera_info", "--allow-unpaired")
+    code, out, err = run(
+        "repeat",
+        bag,
+        "--map",
+        tmp_path / "m.vtrmap",
+        "--out",
+        tmp_path / "r",
+        *topics,
+        "--left-info-topic",
+        "/front/camera_info",
+        "--allow-unpaired",
+    )
     assert code == 0, err
     code, out, err = run("convert", bag, tmp_path / "k", *topics)
     assert code == 0, err
-    assert_one_line(["teach", KITTI, "--map", tmp_path / "n.vtrmap", "--left-topic", "/x"],
-                    "--left-topic apply to ROS bag sources only")
+    assert_one_line(
+        ["teach", KITTI, "--map", tmp_path / "n.vtrmap", "--left-topic", "/x"],
+        "--left-topic apply to ROS bag sources only",
+    )
     assert not (tmp_path / "n.vtrmap").exists()
 
 
@@ -250,23 +279,34 @@ def test_map_with_landmarks_behind_the_camera(tmp_path):
     code, _, err = run("teach", KITTI, "--map", m, "--frames", "0:6:2")
     assert code == 0, err
     with sqlite3.connect(m) as db:
-        for (trigger,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'trigger' AND "
-                                     "tbl_name = 'vertex_data'").fetchall():
-            db.execute(f"DROP TRIGGER {trigger}")       # vertex data is immutable: damage it from outside
+        for (trigger,) in db.execute(
+            "SELECT name FROM sqlite_master WHERE type = 'trigger' AND tbl_name = 'vertex_data'"
+        ).fetchall():
+            db.execute(f"DROP TRIGGER {trigger}")  # vertex data is immutable: damage it from outside
         vid, blob = db.execute("SELECT id, data FROM vertex_data ORDER BY id LIMIT 1").fetchone()
         f = decode_frame(blob, 0, 0, "x")
-        arrays = {"uv": f.features.uv, "octave": f.features.octave, "descriptors": f.features.descriptors,
-                  "u_right": f.u_right, "points": f.points * [1.0, 1.0, -1.0]}
+        arrays = {
+            "uv": f.features.uv,
+            "octave": f.features.octave,
+            "descriptors": f.features.descriptors,
+            "u_right": f.u_right,
+            "points": f.points * [1.0, 1.0, -1.0],
+        }
         db.execute("UPDATE vertex_data SET data = ? WHERE id = ?", (pack_arrays(arrays, 3), vid))
     # the vertex's checksum finds the damage first (vtr.map.checksums) ...
-    assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r", "--frames", "1:6:2"],
-                    f"{m}: vertex {vid}", "damaged")
+    assert_one_line(
+        ["repeat", KITTI, "--map", m, "--out", tmp_path / "r", "--frames", "1:6:2"], f"{m}: vertex {vid}", "damaged"
+    )
     # ... and in a map made before checksums existed the codec's check does
     from vtr.map.checksums import META_KEY, TABLE
 
     with sqlite3.connect(m) as db:
-        db.executescript(f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; "
-                         f"DROP TABLE {TABLE};")
+        db.executescript(
+            f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; DROP TABLE {TABLE};"
+        )
         db.execute("DELETE FROM meta WHERE key = ?", (META_KEY,))
-    assert_one_line(["repeat", KITTI, "--map", m, "--out", tmp_path / "r2", "--frames", "1:6:2"],
-                    f"{m} vertex {vid}", "behind its camera")
+    assert_one_line(
+        ["repeat", KITTI, "--map", m, "--out", tmp_path / "r2", "--frames", "1:6:2"],
+        f"{m} vertex {vid}",
+        "behind its camera",
+    )

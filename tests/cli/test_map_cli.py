@@ -27,8 +27,9 @@ def frame(rng: np.random.Generator, index: int) -> StereoFrame:
     points = rng.uniform(-5, 5, (N_FEATURES, 3)) + [0, 0, 10]
     u_right[20:] = np.nan
     points[20:] = np.nan
-    feats = Features(uv, np.zeros(N_FEATURES, np.int32), np.ones(N_FEATURES),
-                     rng.integers(0, 256, (N_FEATURES, 32), dtype=np.uint8))
+    feats = Features(
+        uv, np.zeros(N_FEATURES, np.int32), np.ones(N_FEATURES), rng.integers(0, 256, (N_FEATURES, 32), dtype=np.uint8)
+    )
     return StereoFrame(index * 10**8, index, feats, u_right, points)
 
 
@@ -48,8 +49,9 @@ def route_map(tmp_path_factory):
         for i in range(5):
             m.add_vertex(teach, i * 10**8, translation(float(i)), frame(rng, i))
             if i:
-                m.add_edge(vertex_id(teach, i - 1), vertex_id(teach, i), translation(1.0), np.eye(6) * 1e-4,
-                           "temporal", 80)
+                m.add_edge(
+                    vertex_id(teach, i - 1), vertex_id(teach, i), translation(1.0), np.eye(6) * 1e-4, "temporal", 80
+                )
         rep = m.begin_run("repeat", source="odd frames")
         for i in range(3):
             v = m.add_vertex(rep, i * 10**8 + 5, translation(float(i)), frame(rng, i))
@@ -75,8 +77,10 @@ def test_map_info(route_map):
     assert "camera: 1226x370 fx=700.00" in out
     runs_part, experiences_part = out.split("\nexperiences")
     rows = [line.split() for line in runs_part.splitlines() if line.startswith("  ") and "source" not in line]
-    assert rows == [["0", "teach", "yes", "finished", "5", "datasets/kitti06_clip"],
-                    ["1", "repeat", "no", "finished", "3", "odd", "frames"]]
+    assert rows == [
+        ["0", "teach", "yes", "finished", "5", "datasets/kitti06_clip"],
+        ["1", "repeat", "no", "finished", "3", "odd", "frames"],
+    ]
     # the repeat as an experience: its 3 vertices localized, trusted, not used yet
     assert [line.split() for line in experiences_part.splitlines()[2:]] == [["1", "3", "/", "3", "yes", "0", "0"]]
     j = json.loads(invoke("map", "info", route_map, "--json").output)
@@ -102,7 +106,7 @@ def test_export_map_never_writes_through_a_link_or_over_its_map(route_map, tmp_p
     r = vtr("export-map", route_map, "--ply", tmp_path / "p.ply", "--force")
     assert r.returncode == 1 and "p.ply: is a symbolic link" in r.stderr and len(r.stderr.splitlines()) == 1
     assert victim.read_text() == "the user's file"
-    (tmp_path / "map.ply").symlink_to(route_map)             # the map itself, by another name
+    (tmp_path / "map.ply").symlink_to(route_map)  # the map itself, by another name
     before = route_map.read_bytes()
     r = vtr("export-map", route_map, "--ply", tmp_path / "map.ply", "--force")
     assert r.returncode == 1 and len(r.stderr.splitlines()) == 1, r.stderr

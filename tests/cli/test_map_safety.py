@@ -36,7 +36,7 @@ def small_map(tmp_path):
     with Map.create(path, CAMERA) as m:
         run = m.begin_run("teach", source="synthetic")
         for i in range(4):
-            f = frame(rng, i)   # t_ns = i * 10**8
+            f = frame(rng, i)  # t_ns = i * 10**8
             m.add_keyframe(run, Keyframe(i, f, translation(float(i)), np.eye(6) * 1e-4, 50))
     return path
 
@@ -120,17 +120,25 @@ def test_a_writer_on_a_read_only_folder_is_told_the_map_is_readable_and_how_to_u
     --read-only-map (it said "not a readable vtr map"); the map is untouched and still opens read-only."""
     folder = small_map.parent
     pristine = small_map.read_bytes()
-    code = ("import sys\nfrom vtr.errors import MapError\nfrom vtr.map import Map\ntry:\n"
-            "    Map.open(sys.argv[1], 'a').close()\nexcept MapError as err:\n    sys.exit(str(err))")
+    code = (
+        "import sys\nfrom vtr.errors import MapError\nfrom vtr.map import Map\ntry:\n"
+        "    Map.open(sys.argv[1], 'a').close()\nexcept MapError as err:\n    sys.exit(str(err))"
+    )
     folder.chmod(0o555)
     try:
-        for args in ([sys.executable, "-c", code, str(small_map)],
-                     [sys.executable, "-m", "vtr", "map", "prune", str(small_map)]):
+        for args in (
+            [sys.executable, "-c", code, str(small_map)],
+            [sys.executable, "-m", "vtr", "map", "prune", str(small_map)],
+        ):
             r = subprocess.run(_without_permission_override(args), capture_output=True, text=True, timeout=120)
             assert r.returncode != 0 and r.stderr.count("\n") == 1, r.stderr
             assert "cannot write it or create files beside it" in r.stderr and "--read-only-map" in r.stderr, r.stderr
-        r = subprocess.run(_without_permission_override([sys.executable, "-m", "vtr", "map", "info", str(small_map)]),
-                           capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            _without_permission_override([sys.executable, "-m", "vtr", "map", "info", str(small_map)]),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert r.returncode == 0, r.stderr
         assert sorted(p.name for p in folder.iterdir()) == ["route.vtrmap"]
         assert small_map.read_bytes() == pristine

@@ -26,8 +26,8 @@ from vtr.config import Config
 from vtr.errors import MapError, Terminated
 from vtr.map import Map
 
-BAD_FRAME = 6                 # frame whose left image is corrupted in the damaged clip
-SIGNAL_AFTER_VERTICES = 2     # the signal is sent once the map holds this many vertices
+BAD_FRAME = 6  # frame whose left image is corrupted in the damaged clip
+SIGNAL_AFTER_VERTICES = 2  # the signal is sent once the map holds this many vertices
 SUBPROCESS_TIMEOUT_S = 120
 WINDOW = Config().odometry.window_keyframes
 
@@ -97,7 +97,7 @@ def test_teach_error_mid_run_writes_window_and_aborts(damaged_clip, reference, t
     expected = reference(BAD_FRAME)
     assert len(expected) > WINDOW
     np.testing.assert_array_equal(t_ns, expected)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]   # no -wal/-shm left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]  # no -wal/-shm left
     # `map info` shows it; `repeat` refuses it in one line and writes nothing ...
     info = invoke("map", "info", path)
     assert info.exit_code == 0 and re.search(r"0\s+teach\s+yes\s+aborted\s+" + str(len(expected)), info.stdout)
@@ -118,22 +118,26 @@ def test_teach_error_mid_run_writes_window_and_aborts(damaged_clip, reference, t
 def test_teach_failing_before_any_vertex_leaves_no_file(kitti_clip, tmp_path):
     clip = tmp_path / "clip"
     shutil.copytree(kitti_clip, clip)
-    (clip / "image_1" / "000000.png").write_bytes(b"")     # the first frame's right image
+    (clip / "image_1" / "000000.png").write_bytes(b"")  # the first frame's right image
     path = tmp_path / "maps" / "route.vtrmap"
     r = invoke("teach", clip, "--map", path, "--frames", "0:4")
     assert r.exit_code == 1
     one_line_error(r.stderr, "image_1/000000.png")
-    assert list((tmp_path / "maps").iterdir()) == []      # no map, no side or temporary file
-    r = invoke("teach", kitti_clip, "--map", path, "--frames", "0:3")   # so teaching again just works
+    assert list((tmp_path / "maps").iterdir()) == []  # no map, no side or temporary file
+    r = invoke("teach", kitti_clip, "--map", path, "--frames", "0:3")  # so teaching again just works
     assert r.exit_code == 0, r.output
     assert [(x.state, x.n_vertices) for x in taught(path)[0]] == [("finished", 3)]
 
 
 def _teach_process(clip: Path, path: Path) -> subprocess.Popen:
     """`vtr teach` over the whole clip in a new process (SIGINT restored to Python's default)."""
-    return subprocess.Popen([sys.executable, "-m", "vtr", "teach", str(clip), "--map", str(path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return subprocess.Popen(
+        [sys.executable, "-m", "vtr", "teach", str(clip), "--map", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
 
 
 def _wait_for_vertices(proc: subprocess.Popen, path: Path, n: int) -> int:
@@ -152,10 +156,13 @@ def _wait_for_vertices(proc: subprocess.Popen, path: Path, n: int) -> int:
         time.sleep(0.05)
 
 
-@pytest.mark.parametrize(("sig", "code", "message", "reason"), [
-    (signal.SIGTERM, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
-    (signal.SIGINT, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
-])
+@pytest.mark.parametrize(
+    ("sig", "code", "message", "reason"),
+    [
+        (signal.SIGTERM, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
+        (signal.SIGINT, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
+    ],
+)
 def test_signal_mid_teach_writes_window_and_aborts(kitti_clip, reference, tmp_path, sig, code, message, reason):
     path = tmp_path / "route.vtrmap"
     proc = _teach_process(kitti_clip, path)
@@ -177,12 +184,16 @@ def test_signal_mid_teach_writes_window_and_aborts(kitti_clip, reference, tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]
 
 
-@pytest.mark.parametrize(("signal_exc", "code", "message", "reason"), [
-    (Terminated, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
-    (KeyboardInterrupt, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
-])
-def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_clip, tmp_path, monkeypatch,
-                                                                       signal_exc, code, message, reason):
+@pytest.mark.parametrize(
+    ("signal_exc", "code", "message", "reason"),
+    [
+        (Terminated, 143, "vtr: terminated (SIGTERM)", "terminated by SIGTERM"),
+        (KeyboardInterrupt, 130, "vtr: interrupted (Ctrl-C)", "interrupted by Ctrl-C (SIGINT)"),
+    ],
+)
+def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(
+    kitti_clip, tmp_path, monkeypatch, signal_exc, code, message, reason
+):
     """A signal handler that raises while a numba kernel returns surfaces as a SystemError caused by the
     signal's exception (seen in the process test above): still an orderly Ctrl-C / SIGTERM exit."""
     from vtr.navigation.teach import Teach
@@ -207,12 +218,16 @@ def test_signal_surfacing_from_a_compiled_kernel_still_aborts_in_order(kitti_cli
     assert (run.state, run.reason) == ("aborted", reason) and len(t_ns) > 0
 
 
-@pytest.mark.parametrize(("sig", "code", "reason"), [
-    (signal.SIGTERM, 143, "terminated by SIGTERM"),
-    (signal.SIGINT, 130, "interrupted by Ctrl-C (SIGINT)"),
-])
-def test_signal_during_a_keyframe_write_loses_no_keyframe(kitti_clip, reference, tmp_path, monkeypatch, sig, code,
-                                                         reason):
+@pytest.mark.parametrize(
+    ("sig", "code", "reason"),
+    [
+        (signal.SIGTERM, 143, "terminated by SIGTERM"),
+        (signal.SIGINT, 130, "interrupted by Ctrl-C (SIGINT)"),
+    ],
+)
+def test_signal_during_a_keyframe_write_loses_no_keyframe(
+    kitti_clip, reference, tmp_path, monkeypatch, sig, code, reason
+):
     """The signal arrives while a finalized keyframe is being written: it is delivered once the frame is
     done, so the map holds exactly the keyframes of a complete teach up to the last one (none skipped)."""
     import os
@@ -222,7 +237,7 @@ def test_signal_during_a_keyframe_write_loses_no_keyframe(kitti_clip, reference,
     def add_keyframe(self, *args, **kwargs):
         calls.append(1)
         if len(calls) == SIGNAL_AFTER_VERTICES + 1:
-            os.kill(os.getpid(), sig)             # Python runs the handler at its next instruction
+            os.kill(os.getpid(), sig)  # Python runs the handler at its next instruction
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(Map, "add_keyframe", add_keyframe)
@@ -277,7 +292,7 @@ def test_one_vertex_route_is_refused_in_one_line(kitti_clip, tmp_path):
     assert [x.kind for x in taught(path)[0]] == ["teach"]
 
 
-FILE_SIZE_LIMIT_BYTES = 600_000   # the map's log outgrows this within the clip: a full disk for SQLite
+FILE_SIZE_LIMIT_BYTES = 600_000  # the map's log outgrows this within the clip: a full disk for SQLite
 
 
 def _full_disk() -> None:
@@ -291,12 +306,17 @@ def _full_disk() -> None:
 @pytest.mark.skipif(not hasattr(signal, "SIGXFSZ"), reason="needs POSIX file size limits")
 def test_full_disk_mid_teach_is_one_line_and_never_finished(kitti_clip, reference, tmp_path):
     path = tmp_path / "route.vtrmap"
-    r = subprocess.run([sys.executable, "-m", "vtr", "teach", str(kitti_clip), "--map", str(path)],
-                       capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S, preexec_fn=_full_disk)
+    r = subprocess.run(
+        [sys.executable, "-m", "vtr", "teach", str(kitti_clip), "--map", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=SUBPROCESS_TIMEOUT_S,
+        preexec_fn=_full_disk,
+    )
     assert r.returncode == 1
     one_line_error(r.stderr, str(path))
-    [run], t_ns = taught(path)   # the map opens with what was committed
-    assert not run.finished and run.state in ("aborted", "interrupted")   # aborted when the reason still fit
+    [run], t_ns = taught(path)  # the map opens with what was committed
+    assert not run.finished and run.state in ("aborted", "interrupted")  # aborted when the reason still fit
     assert 0 < len(t_ns) < 51
     with Map.open(path) as m:
         last_frame = m.vertex(int(m.vertex_ids(0)[-1])).frame.index
@@ -318,12 +338,27 @@ def test_an_interrupted_repeat_leaves_map_and_reports_in_agreement(kitti_clip, t
     path = tmp_path / "route.vtrmap"
     assert invoke("teach", kitti_clip, "--map", path, "--frames", "0::2").exit_code == 0
     out = tmp_path / "repeat"
-    proc = subprocess.Popen([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path),
-                             "--out", str(out), "--threads", "2"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "vtr",
+            "repeat",
+            str(kitti_clip),
+            "--map",
+            str(path),
+            "--out",
+            str(out),
+            "--threads",
+            "2",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
-    while True:                                  # until the run has localized a few leaves
+    while True:  # until the run has localized a few leaves
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline, "repeat too slow"
         csv_path = out / "localization.csv"
@@ -339,7 +374,7 @@ def test_an_interrupted_repeat_leaves_map_and_reports_in_agreement(kitti_clip, t
     with Map.open(path) as m:
         repeat = [r for r in m.runs() if r.kind == "repeat"][-1]
         assert repeat.state == "aborted"
-        assert len(rows) == repeat.n_vertices            # one row per written vertex
+        assert len(rows) == repeat.n_vertices  # one row per written vertex
     landmark_leaves = {int(r["leaf_id"]) for r in csv.DictReader(open(out / "landmarks.csv"))}
     assert landmark_leaves == set(reported)
 
@@ -351,7 +386,7 @@ def test_a_teach_whose_odometry_fails_on_most_frames_fails(kitti_clip, tmp_path)
 
     clip = tmp_path / "clip"
     shutil.copytree(kitti_clip, clip)
-    for i in range(1, 10):                         # frames 1..9: a uniform grey image, nothing to track
+    for i in range(1, 10):  # frames 1..9: a uniform grey image, nothing to track
         for side in ("image_0", "image_1"):
             png = clip / side / f"{i:06d}.png"
             grey = np.full_like(cv2.imread(str(png), cv2.IMREAD_GRAYSCALE), 128)
@@ -391,43 +426,83 @@ def test_a_killed_read_only_map_repeat_leaves_no_copy_behind(kitti_clip, tmp_pat
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     env = {**os.environ, "TMPDIR": str(scratch)}
-    proc = subprocess.Popen([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path), "--out",
-                             str(tmp_path / "killed"), "--read-only-map", "--frames", "1::1"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "vtr",
+            "repeat",
+            str(kitti_clip),
+            "--map",
+            str(path),
+            "--out",
+            str(tmp_path / "killed"),
+            "--read-only-map",
+            "--frames",
+            "1::1",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
-    while not (tmp_path / "killed" / "localization.csv").exists():   # copied, and repeating
+    while not (tmp_path / "killed" / "localization.csv").exists():  # copied, and repeating
         assert proc.poll() is None, proc.stderr.read()
         assert time.monotonic() < deadline
         time.sleep(0.05)
     proc.kill()
     proc.wait()
     proc.stderr.close()
-    [left] = list(scratch.iterdir())                   # the killed repeat's copy stays ...
+    [left] = list(scratch.iterdir())  # the killed repeat's copy stays ...
     assert left.name.startswith(PREFIX) and (left / path.name).stat().st_size > 0
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
-    with private_copy(path) as live:                   # ... and so does one whose process runs
-        r = subprocess.run([sys.executable, "-m", "vtr", "repeat", str(kitti_clip), "--map", str(path), "--out",
-                            str(tmp_path / "next"), "--read-only-map", "--frames", "1:8:2"],
-                           capture_output=True, text=True, env=env, timeout=SUBPROCESS_TIMEOUT_S)
+    with private_copy(path) as live:  # ... and so does one whose process runs
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "vtr",
+                "repeat",
+                str(kitti_clip),
+                "--map",
+                str(path),
+                "--out",
+                str(tmp_path / "next"),
+                "--read-only-map",
+                "--frames",
+                "1:8:2",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=SUBPROCESS_TIMEOUT_S,
+        )
         assert r.returncode == 0, r.stderr
         assert "removed 1 private map copy folder(s) left by killed --read-only-map repeats" in r.stderr
-        assert list(scratch.iterdir()) == [live.parent]   # the stale one removed, the live one kept, its own gone
+        assert list(scratch.iterdir()) == [live.parent]  # the stale one removed, the live one kept, its own gone
     assert list(scratch.iterdir()) == []
-    assert rows(path) == before                        # the map itself only read
+    assert rows(path) == before  # the map itself only read
 
 
-UNFOLDED_TEACH = ("import os, sys; from pathlib import Path; from vtr.map import database; "
-                  "database.MapFile.fold_wal = lambda self: os._exit(0); "   # dies where the log would be folded
-                  "from vtr.app.pipeline import teach_command; from vtr.config import Config; "
-                  "teach_command(Path(sys.argv[1]), Path(sys.argv[2]), '0:20:2', Config())")
+UNFOLDED_TEACH = (
+    "import os, sys; from pathlib import Path; from vtr.map import database; "
+    "database.MapFile.fold_wal = lambda self: os._exit(0); "  # dies where the log would be folded
+    "from vtr.app.pipeline import teach_command; from vtr.config import Config; "
+    "teach_command(Path(sys.argv[1]), Path(sys.argv[2]), '0:20:2', Config())"
+)
 
 
 def test_a_read_only_map_repeat_copies_what_is_still_in_the_log(kitti_clip, tmp_path):
     """A finished teach whose process died before folding its log: the whole route is in the -wal only. A
     `--read-only-map` repeat copies the map whole (log included) and follows it, leaving the map untouched."""
     path = tmp_path / "route.vtrmap"
-    r = subprocess.run([sys.executable, "-c", UNFOLDED_TEACH, str(kitti_clip), str(path)], capture_output=True,
-                       text=True, timeout=SUBPROCESS_TIMEOUT_S)
+    r = subprocess.run(
+        [sys.executable, "-c", UNFOLDED_TEACH, str(kitti_clip), str(path)],
+        capture_output=True,
+        text=True,
+        timeout=SUBPROCESS_TIMEOUT_S,
+    )
     assert r.returncode == 0, r.stderr
     with Map.open(path) as m:
         assert m.not_closed() is not None and [x.state for x in m.runs()] == ["finished"]

@@ -40,8 +40,7 @@ def test_odometry_writes_outputs(kitti_clip, tmp_path):
     assert (out / "trajectory.png").stat().st_size > 1000
     assert (out / "config.yaml").is_file()
     # the written config is reusable
-    r2 = vtr("odometry", kitti_clip, "--out", tmp_path / "again", "--frames", "0:3",
-             "--config", out / "config.yaml")
+    r2 = vtr("odometry", kitti_clip, "--out", tmp_path / "again", "--frames", "0:3", "--config", out / "config.yaml")
     assert r2.returncode == 0, r2.stderr
 
 
@@ -108,8 +107,10 @@ def test_frames_outside_source(kitti_clip, tmp_path, spec):
     _assert_one_line_error(vtr("odometry", kitti_clip, "--out", tmp_path / "o", "--frames", spec), f"frames '{spec}'")
 
 
-@pytest.mark.parametrize("text, named", [("odometry:\n  no_such_key: 3\n", "no_such_key"),
-                                         ("features:\n  corner_score: sift\n", "corner_score")])
+@pytest.mark.parametrize(
+    "text, named",
+    [("odometry:\n  no_such_key: 3\n", "no_such_key"), ("features:\n  corner_score: sift\n", "corner_score")],
+)
 def test_bad_config(kitti_clip, tmp_path, text, named):
     cfg = tmp_path / "c.yaml"
     cfg.write_text(text)
@@ -132,8 +133,14 @@ def test_demo_is_the_readme_main_command(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "localized 24 (96.0 %)" in r.stdout
     assert "T_leaf_trunk error vs ground truth" in r.stdout
-    for f in ("odometry/trajectory.png", "repeat/report.png", "repeat/localization.csv", "repeat/landmarks.csv",
-              "repeat/state.csv", "route.vtrmap"):
+    for f in (
+        "odometry/trajectory.png",
+        "repeat/report.png",
+        "repeat/localization.csv",
+        "repeat/landmarks.csv",
+        "repeat/state.csv",
+        "route.vtrmap",
+    ):
         assert (tmp_path / "demo" / f).is_file(), f
 
 
@@ -149,7 +156,7 @@ def test_demo_deletes_only_what_its_record_says_it_made(tmp_path):
     assert "route.vtrmap: was not made by vtr here" in r.stderr
     assert (out / "route.vtrmap").read_bytes().endswith(b"the user's taught map")
     (out / "route.vtrmap").unlink()
-    for _ in range(2):                                   # the second run replaces the demo's own outputs
+    for _ in range(2):  # the second run replaces the demo's own outputs
         r = vtr("demo", "--out", out, "--no-aerial")
         assert r.returncode == 0, r.stderr
         assert (out / "route.vtrmap").is_file() and (out / "route.vtrmap.notes").read_text() == "the user's notes"

@@ -18,14 +18,16 @@ def l_path(first_m: float = 14.0, second_m: float = 10.0) -> np.ndarray:
     return np.array(a + b, float)
 
 
-def vertices(points_xy: np.ndarray, camera_heading: float | None, *, n_landmarks: int, seed: int = 0,
-             mount_yaw: float = 0.0) -> list[TaughtVertex]:
+def vertices(
+    points_xy: np.ndarray, camera_heading: float | None, *, n_landmarks: int, seed: int = 0, mount_yaw: float = 0.0
+) -> list[TaughtVertex]:
     """Camera poses along the path (fixed heading = gimbal, else path heading + mount) and ground landmarks
     inside a ZED-like field of view, as a map would hold them (map frame = g here)."""
     rng = np.random.default_rng(seed)
     lo, hi = points_xy.min(axis=0) - 30.0, points_xy.max(axis=0) + 30.0
-    ground = np.column_stack([rng.uniform(lo[0], hi[0], 40_000), rng.uniform(lo[1], hi[1], 40_000),
-                              rng.uniform(0.0, 2.0, 40_000)])
+    ground = np.column_stack(
+        [rng.uniform(lo[0], hi[0], 40_000), rng.uniform(lo[1], hi[1], 40_000), rng.uniform(0.0, 2.0, 40_000)]
+    )
     d = np.gradient(points_xy, axis=0)
     path_heading = np.arctan2(d[:, 1], d[:, 0])
     out = []
@@ -38,5 +40,3 @@ def vertices(points_xy: np.ndarray, camera_heading: float | None, *, n_landmarks
         vis = (pc[:, 2] > 1.0) & (np.abs(pc[:, 0] / pc[:, 2]) < 0.95) & (np.abs(pc[:, 1] / pc[:, 2]) < 0.53)
         out.append(TaughtVertex(i, T, ground[np.flatnonzero(vis)[:n_landmarks]]))
     return out
-
-

@@ -28,15 +28,16 @@ def field():
 
 
 def mpc_of(field, mode="perception", **cfg):
-    return PerceptionAwareMPC(TaughtPathReference(field.vehicle_position_g), ControlConfig(**cfg), mode=mode,
-                              fixed_bound_m=1.0, field=field)
+    return PerceptionAwareMPC(
+        TaughtPathReference(field.vehicle_position_g), ControlConfig(**cfg), mode=mode, fixed_bound_m=1.0, field=field
+    )
 
 
 @pytest.mark.parametrize("mode", ["none", "fixed", "perception"])
 @pytest.mark.parametrize("speed", [15.0, 40.0])
 def test_an_infeasible_start_raises_instead_of_returning_garbage(field, mode, speed):
     z = initial_state(field)
-    z[3] = speed                                      # above speed_max_mps (12): no plan meets the bounds
+    z[3] = speed  # above speed_max_mps (12): no plan meets the bounds
     with pytest.raises(MpcInfeasible, match="infeasible.*speed_max_mps") as err:
         mpc_of(field, mode).solve(z)
     assert isinstance(err.value, EstimationError)
@@ -53,12 +54,15 @@ def test_a_feasible_tick_still_solves_and_after_an_infeasible_one(field):
     assert np.abs(sol.w[:3]).max() <= ControlConfig().jerk_max_mps3 + 1e-3
 
 
-@pytest.mark.parametrize("z, msg", [
-    (np.full(10, np.nan), "not finite"),
-    (np.zeros(9), r"shape \(10,\)"),
-    (np.zeros((2, 10)), r"shape \(10,\)"),
-    ("hover", "expected"),
-])
+@pytest.mark.parametrize(
+    "z, msg",
+    [
+        (np.full(10, np.nan), "not finite"),
+        (np.zeros(9), r"shape \(10,\)"),
+        (np.zeros((2, 10)), r"shape \(10,\)"),
+        ("hover", "expected"),
+    ],
+)
 def test_bad_states_are_package_errors(field, z, msg):
     with pytest.raises(EstimationError, match=msg):
         mpc_of(field).solve(z)
@@ -73,7 +77,7 @@ def test_bad_trunks_are_package_errors(field, trunk):
 def test_control_config_owns_l_min_and_c_bar(field):
     strict = mpc_of(field, l_min=80.0, c_bar=1.0)
     assert (strict.field.l_min, strict.field.c_bar) == (80.0, 1.0)
-    assert (field.l_min, field.c_bar) == (30.0, 3.0)        # the caller's field is not changed
+    assert (field.l_min, field.c_bar) == (30.0, 3.0)  # the caller's field is not changed
     z = initial_state(field)
     p, psi = np.tile(z[:3], (3, 1)), np.full(3, z[9])
     a, b = field.evaluate(p, psi, previous=0), strict.field.evaluate(p, psi, previous=0)
@@ -104,7 +108,7 @@ def test_negative_bounds_are_refused_everywhere(field):
         with pytest.raises(EstimationError, match="l_min|c_bar"):
             field.with_bounds(kw.get("l_min", 30.0), kw.get("c_bar", 3.0))
     with pytest.raises(ConfigError, match="l_min"):
-        mpc_of(field, l_min=-1.0)                            # the config's own domain
+        mpc_of(field, l_min=-1.0)  # the config's own domain
 
 
 def test_zero_positions_are_a_clear_error():

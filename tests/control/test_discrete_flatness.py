@@ -35,7 +35,7 @@ from vtr.errors import ConfigError, EstimationError
 ROOT = Path(__file__).resolve().parents[2]
 S = DiscreteFlatnessSettings()
 G = 9.81
-LOW_SIGMA, HIGH_SIGMA, TRIALS = 0.0005, 0.005, 10     # the thesis' 10 trials
+LOW_SIGMA, HIGH_SIGMA, TRIALS = 0.0005, 0.005, 10  # the thesis' 10 trials
 
 
 # -- settings -----------------------------------------------------------------------------------
@@ -51,9 +51,9 @@ def test_settings_refuse_values_outside_their_domain_naming_the_field():
     with pytest.raises(ConfigError, match="warmup_s"):
         DiscreteFlatnessSettings(warmup_s=0.1, window_knots_back=2)
     with pytest.raises(ConfigError, match="window_length"):
-        DiscreteFlatnessSettings(window_length=60)          # 1.18 s of history before a 1 s warm-up
+        DiscreteFlatnessSettings(window_length=60)  # 1.18 s of history before a 1 s warm-up
     with pytest.raises(ConfigError, match="discrete_flatness.window_length"):
-        DiscreteFlatnessSettings(window_length=2)           # fewer outputs than the window r = 3 of (8.12)
+        DiscreteFlatnessSettings(window_length=2)  # fewer outputs than the window r = 3 of (8.12)
 
 
 def test_smoother_density_is_the_references_acceleration_over_one_camera_period():
@@ -71,7 +71,7 @@ def test_plant_integrates_the_euler_model_of_8_11():
     for _ in range(n):
         plant.step(u)
     alpha = 1 - dt / tau
-    theta = k * u * (1 - alpha ** np.arange(n)[:, None])           # pitch before each step (n, 2)
+    theta = k * u * (1 - alpha ** np.arange(n)[:, None])  # pitch before each step (n, 2)
     v = np.concatenate([[0 * u], np.cumsum(dt * G * np.tan(theta), axis=0)])
     x = np.sum(dt * v[:n], axis=0)
     np.testing.assert_allclose(plant.state[:, 2], k * u * (1 - alpha**n), rtol=1e-12)
@@ -194,15 +194,15 @@ def test_a_window_of_three_is_8_15_and_a_longer_one_averages_the_noise():
     ys_small = [small[:, 25], small[:, 26], small[:, 27]]
     for i in range(25, 30):
         ys_small.append(ctrl.forward(ys_small[-3], ys_small[-2], ys_small[-1], np.full(trials, u[i])))
-    fit3 = fit_window(small[:, 25:28], np.tile(u[25:30], (trials, 1)), S.control_dt_s, S.time_constant_s,
-                      S.attitude_gain)
+    fit3 = fit_window(
+        small[:, 25:28], np.tile(u[25:30], (trials, 1)), S.control_dt_s, S.time_constant_s, S.attitude_gain
+    )
     np.testing.assert_allclose(fit3[:, -3:], np.stack(ys_small[-3:], axis=1), atol=1e-9)
     # M = 25 ending at the same tick: the fixed outputs y_k.. carry far less noise than from three outputs
-    long = fit_window(noisy[:, 3:28], np.tile(u[3:30], (trials, 1)), S.control_dt_s, S.time_constant_s,
-                      S.attitude_gain)
+    long = fit_window(noisy[:, 3:28], np.tile(u[3:30], (trials, 1)), S.control_dt_s, S.time_constant_s, S.attitude_gain)
     err3, err25 = three - y[-3:], long[:, -3:] - y[-3:]
     assert np.sqrt(np.mean(err25**2)) < 0.1 * np.sqrt(np.mean(err3**2))
-    assert np.all(np.abs(np.mean(err25, axis=0)) < 4 * np.std(err25, axis=0) / math.sqrt(trials))   # unbiased
+    assert np.all(np.abs(np.mean(err25, axis=0)) < 4 * np.std(err25, axis=0) / math.sqrt(trials))  # unbiased
 
 
 def test_the_inner_loop_model_is_the_plants_pitch():
@@ -265,18 +265,24 @@ def test_perfect_high_noise_discrete_flatness_is_better_than_pd(ordering):
     assert e["discrete_flatness"] < e["pd"]
 
 
-@pytest.mark.xfail(strict=True, reason="measured (10 trials, sigma 0.0005, commands sent fed to the estimator): pd "
-                   "0.0684, flatness_mpc 0.0685, discrete_flatness 0.0321 m (spread 113 %; the same at 0.0001 and "
-                   "0.0002): state(now) extrapolates from the smoother's newest knot, a natural spline's end "
-                   "(zero acceleration, lagging velocity), which PD and the MPC read and discrete flatness avoids")
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured (10 trials, sigma 0.0005, commands sent fed to the estimator): pd "
+    "0.0684, flatness_mpc 0.0685, discrete_flatness 0.0321 m (spread 113 %; the same at 0.0001 and "
+    "0.0002): state(now) extrapolates from the smoother's newest knot, a natural spline's end "
+    "(zero acceleration, lagging velocity), which PD and the MPC read and discrete flatness avoids",
+)
 def test_estimator_low_noise_the_three_agree_within_20_percent(ordering):
     assert spread(ordering["estimator", LOW_SIGMA]) <= 0.20
 
 
-@pytest.mark.xfail(strict=True, reason="measured (10 trials, sigma 0.005): flatness_mpc 0.0765, pd 0.106 m (0.092 "
-                   "vs 0.153 at 0.01, 0.197 vs 1.46 at 0.05): the smoother filters the noise that ruins the MPC's "
-                   "finite differences and past the newest knot its acceleration is the command sent, not a "
-                   "derivative of positions; PD's stiffer velocity feedback reads the smoother's noisier velocity")
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured (10 trials, sigma 0.005): flatness_mpc 0.0765, pd 0.106 m (0.092 "
+    "vs 0.153 at 0.01, 0.197 vs 1.46 at 0.05): the smoother filters the noise that ruins the MPC's "
+    "finite differences and past the newest knot its acceleration is the command sent, not a "
+    "derivative of positions; PD's stiffer velocity feedback reads the smoother's noisier velocity",
+)
 def test_estimator_high_noise_flatness_mpc_is_worse_than_pd(ordering):
     e = ordering["estimator", HIGH_SIGMA]
     assert e["flatness_mpc"] > e["pd"]
@@ -293,8 +299,9 @@ def test_estimator_high_noise_discrete_flatness_is_better_than_both(ordering):
 def test_smoother_outputs_follow_the_motion_and_stop_the_window_inside_the_knots():
     ref = SpiralReference(1.4, 1.0)
     period_ns = 100_000_000
-    batch = SmootherBatch([SmootherOutputs(SmoothingConfig(qc_translation=S.qc_translation), 1e-4)], period_ns,
-                          knots_back=2)
+    batch = SmootherBatch(
+        [SmootherOutputs(SmoothingConfig(qc_translation=S.qc_translation), 1e-4)], period_ns, knots_back=2
+    )
     for i in range(20):
         batch.measure(i * period_ns, ref.position(np.array([i * 0.1])))
     newest = 19 * period_ns
@@ -321,7 +328,7 @@ def test_the_commands_sent_move_the_extrapolation_past_the_newest_knot():
     t = t_ns / 1e9
     p_plain, v_plain, _ = plain.state(t_ns)
     p_told, v_told, a_told = told.state(t_ns)
-    ahead = 0.08                                          # s past the newest knot
+    ahead = 0.08  # s past the newest knot
     assert a_told == acc
     assert p_told - p_plain == pytest.approx(0.5 * acc * ahead**2, rel=1e-9)
     assert v_told - v_plain == pytest.approx(acc * ahead, rel=1e-9)
@@ -354,7 +361,8 @@ def test_tool_writes_the_csv_columns_and_the_figure(tmp_path, capsys):
         rows = list(csv.DictReader(f))
     assert tuple(rows[0]) == RESULT_COLUMNS
     assert {(r["loop"], r["controller"], float(r["sigma_m"])) for r in rows} == {
-        ("perfect", c, s) for c in CONTROLLERS for s in (0.001, 0.01)}
+        ("perfect", c, s) for c in CONTROLLERS for s in (0.001, 0.01)
+    }
     assert all(float(r["mean_error_m"]) > 0 for r in rows)
     assert (tmp_path / "error_vs_sigma.png").stat().st_size > 0
     out = capsys.readouterr()

@@ -20,8 +20,9 @@ MODEL = PerceptionModel.thesis()
 
 
 def _field(vertices, lever=(0.2, 0.1, -0.1), config=None):
-    return TaughtPathField(MODEL, vertices, T_g_map=np.eye(4),
-                           mount=CameraMount(math.pi / 2, np.array(lever)), config=config)
+    return TaughtPathField(
+        MODEL, vertices, T_g_map=np.eye(4), mount=CameraMount(math.pi / 2, np.array(lever)), config=config
+    )
 
 
 def test_log_se3_batch_matches_log_se3():
@@ -62,11 +63,15 @@ def test_gradients_by_finite_differences_across_trunk_changes(l_vertices):
     for j in range(3):
         d = np.zeros(3)
         d[j] = h
-        fd = (field.evaluate(pos + d, yaw, trunk=ev.trunk, gradient=False).g
-              - field.evaluate(pos - d, yaw, trunk=ev.trunk, gradient=False).g) / (2 * h)
+        fd = (
+            field.evaluate(pos + d, yaw, trunk=ev.trunk, gradient=False).g
+            - field.evaluate(pos - d, yaw, trunk=ev.trunk, gradient=False).g
+        ) / (2 * h)
         assert np.allclose(ev.dg_dpos[:, j], fd, rtol=1e-5, atol=1e-5)
-    fd_yaw = (field.evaluate(pos, yaw + h, trunk=ev.trunk, gradient=False).g
-              - field.evaluate(pos, yaw - h, trunk=ev.trunk, gradient=False).g) / (2 * h)
+    fd_yaw = (
+        field.evaluate(pos, yaw + h, trunk=ev.trunk, gradient=False).g
+        - field.evaluate(pos, yaw - h, trunk=ev.trunk, gradient=False).g
+    ) / (2 * h)
     assert np.allclose(ev.dg_dyaw, fd_yaw, rtol=1e-5, atol=1e-5)  # axis yaw and lever arm together
     assert np.any(np.abs(ev.dg_dyaw) > 1.0)
 
@@ -82,8 +87,13 @@ def test_landmarks_are_cached_in_each_trunks_o(l_vertices):
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), backward=st.booleans(),
-       window=st.sampled_from([None, (1, 2), (0, 1), (3, 0)]), stride=st.integers(1, 3))
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(1, 15),
+    backward=st.booleans(),
+    window=st.sampled_from([None, (1, 2), (0, 1), (3, 0)]),
+    stride=st.integers(1, 3),
+)
 def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, backward, window, stride):
     """select_trunks over a horizon: each step's trunk is the localizer's rule (vtr.navigation.trunk) in the window of
     the previous step's trunk, in the direction of travel (computed here one step at a time, the window's candidates
@@ -91,8 +101,7 @@ def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, back
     make the chain outrun the field's first block of candidates (the block is widened)."""
     from vtr.navigation.trunk import BACKWARD, FORWARD, select_trunk, trunk_window
 
-    config = None if window is None else LocalizationConfig(trunk_window_back=window[0],
-                                                            trunk_window_forward=window[1])
+    config = None if window is None else LocalizationConfig(trunk_window_back=window[0], trunk_window_forward=window[1])
     field = _field(l_vertices, config=config)
     rng = np.random.default_rng(seed)
     cfg = field.config
@@ -105,7 +114,7 @@ def test_a_horizon_follows_the_trunk_rule_step_by_step(l_vertices, seed, n, back
     prev, want = start, []
     for k in range(n):
         lo, hi = trunk_window(prev, len(field), cfg.trunk_window_back, cfg.trunk_window_forward, direction)
-        T_g_leaf = field.camera_poses(pos[k:k + 1], yaw[k:k + 1], field.pitch_down[start])[0]
+        T_g_leaf = field.camera_poses(pos[k : k + 1], yaw[k : k + 1], field.pitch_down[start])[0]
         prev = select_trunk(np.linalg.inv(T_g_leaf) @ field.T_g_camera[lo:hi], lo, cfg.rotation_weight)
         want.append(prev)
     assert got.tolist() == want

@@ -56,18 +56,25 @@ def test_mpc_keeps_its_constraints(scenario):
     for r in (free, fixed, pa):
         assert r.completed and np.all(np.isfinite(r.z))
         assert np.abs(r.z[:, 6:9]).max() <= ControlConfig().accel_max_mps2 + 1e-2  # box constraints
-    print({n: (round(r.avg_speed_mps, 2), round(r.min_bound, 1), round(float(np.abs(r.lateral_m).max()), 2))
-           for n, r in (("none", free), ("fixed", fixed), ("pa", pa))})
+    print(
+        {
+            n: (round(r.avg_speed_mps, 2), round(r.min_bound, 1), round(float(np.abs(r.lateral_m).max()), 2))
+            for n, r in (("none", free), ("fixed", fixed), ("pa", pa))
+        }
+    )
     # the scenario is one where flying unconstrained loses the guarantee at the corner
     assert free.min_bound < 30.0
     assert np.abs(fixed.lateral_m).max() <= 0.5 + 0.05
     assert pa.min_bound >= 30.0
     assert fixed.avg_speed_mps < free.avg_speed_mps
-    assert np.all(fixed.max_slack_inliers == 0.0) and np.all(pa.max_slack_m == 0.0)   # slacks in their units
+    assert np.all(fixed.max_slack_inliers == 0.0) and np.all(pa.max_slack_m == 0.0)  # slacks in their units
 
 
-@pytest.mark.xfail(strict=True, reason="measured: with the library's defaults (margin 1.5, governor 0.8) P-A "
-                   "reaches min mu - 3 sigma 29.3 at 10 m/s (29.1 at 8, 30.3 at 6) at this sharp corner")
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured: with the library's defaults (margin 1.5, governor 0.8) P-A "
+    "reaches min mu - 3 sigma 29.3 at 10 m/s (29.1 at 8, 30.3 at 6) at this sharp corner",
+)
 def test_the_defaults_keep_the_guarantee_at_a_sharp_corner(scenario):
     field, axis = scenario
     assert _fly(field, axis, "perception").min_bound >= 30.0

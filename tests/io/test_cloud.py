@@ -150,7 +150,7 @@ def test_geodetic_to_enu_closed_forms():
     M = WGS84_A * (1 - WGS84_E2) / (1 - WGS84_E2 * np.sin(lat0) ** 2) ** 1.5 + ORIGIN[2]
     s = 1000.0
     enu = geodetic_to_enu(ORIGIN[0] + np.degrees(s / M), ORIGIN[1], ORIGIN[2], *ORIGIN)
-    np.testing.assert_allclose(enu, [0.0, s, -s**2 / (2 * M)], atol=GPS_TOL_M)
+    np.testing.assert_allclose(enu, [0.0, s, -(s**2) / (2 * M)], atol=GPS_TOL_M)
     # a flat-earth conversion would be off by ~8 cm in height over this kilometre: this one is not
     assert abs(enu[2]) > 5 * GPS_TOL_M
     # and the inverse returns the fix
@@ -237,15 +237,18 @@ def test_missing_stream(run_dir, tmp_path):
         run.ground_truth()
 
 
-@pytest.mark.parametrize(("stream", "row", "match"), [
-    ("attitude.txt", "{t},0.1,0.2,0.3", r"attitude.txt:5: expected 5 comma-separated values"),
-    ("attitude.txt", "{t},0.1,0.2,0.3,0.4", r"attitude.txt:5: quaternion norm"),
-    ("gps.txt", "{t},43.7,abc,150", r"gps.txt:5: non-numeric value"),
-    ("gps.txt", "{t},143.7,-79.4,150", r"gps.txt:5: latitude/longitude out of range"),
-    ("velocities.txt", "12.5,1,2,3", r"velocities.txt:5: timestamp '12.5' is not an integer"),
-    ("acceleration.txt", "{t0},1,2,3", r"acceleration.txt:5: timestamp .* is earlier"),
-    ("gimbalstate.txt", "{t},1,2,3,nan,0,0,1", r"gimbalstate.txt:5: non-finite value"),
-])
+@pytest.mark.parametrize(
+    ("stream", "row", "match"),
+    [
+        ("attitude.txt", "{t},0.1,0.2,0.3", r"attitude.txt:5: expected 5 comma-separated values"),
+        ("attitude.txt", "{t},0.1,0.2,0.3,0.4", r"attitude.txt:5: quaternion norm"),
+        ("gps.txt", "{t},43.7,abc,150", r"gps.txt:5: non-numeric value"),
+        ("gps.txt", "{t},143.7,-79.4,150", r"gps.txt:5: latitude/longitude out of range"),
+        ("velocities.txt", "12.5,1,2,3", r"velocities.txt:5: timestamp '12.5' is not an integer"),
+        ("acceleration.txt", "{t0},1,2,3", r"acceleration.txt:5: timestamp .* is earlier"),
+        ("gimbalstate.txt", "{t},1,2,3,nan,0,0,1", r"gimbalstate.txt:5: non-finite value"),
+    ],
+)
 def test_malformed_rows_name_file_and_row(run_dir, tmp_path, stream, row, match):
     d = _copy(run_dir, tmp_path)
     f = d / stream

@@ -172,8 +172,9 @@ def _row_errors(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     orb = cv2.ORB_create(ORB_FEATURES)
     kl, dl = orb.detectAndCompute(left, None)
     kr, dr = orb.detectAndCompute(right, None)
-    matches = [m for m in cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
-               if m.distance < ORB_MAX_HAMMING]
+    matches = [
+        m for m in cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr) if m.distance < ORB_MAX_HAMMING
+    ]
     pl = np.array([kl[m.queryIdx].pt for m in matches])
     pr = np.array([kr[m.trainIdx].pt for m in matches])
     disparity, dv = pl[:, 0] - pr[:, 0], np.abs(pl[:, 1] - pr[:, 1])

@@ -52,7 +52,7 @@ def _write(csv: Path, head: list[str], rows: list[str]) -> None:
 def test_euroc_unsorted_stamps_refused(euroc, cam):
     csv = euroc / cam / "data.csv"
     head, rows = _rows(csv)
-    rows[2], rows[5] = rows[5], rows[2]          # was: half the frames silently dropped
+    rows[2], rows[5] = rows[5], rows[2]  # was: half the frames silently dropped
     _write(csv, head, rows)
     with pytest.raises(DataError) as err:
         open_source(euroc.parent)
@@ -62,7 +62,7 @@ def test_euroc_unsorted_stamps_refused(euroc, cam):
 def test_euroc_duplicated_row_refused(euroc):
     csv = euroc / "cam0" / "data.csv"
     head, rows = _rows(csv)
-    rows.insert(4, rows[3])                       # was: two poses with one time
+    rows.insert(4, rows[3])  # was: two poses with one time
     _write(csv, head, rows)
     with pytest.raises(DataError) as err:
         open_source(euroc.parent)
@@ -88,18 +88,21 @@ def test_euroc_valid_ground_truth_is_read_at_open(euroc):
         assert len(gt.t_ns) == len(src) and np.all(np.diff(gt.t_ns) > 0)
 
 
-@pytest.mark.parametrize(("damage", "named"), [
-    (lambda r: r[:3] + ["12,abc,0,0,1,0,0,0"] + r[3:], "malformed"),
-    (lambda r: r[:3] + [r[2]] + r[3:], "data.csv:5: timestamp"),                  # duplicated time
-    (lambda r: [r[1], r[0], *r[2:]], "data.csv:3: timestamp"),                    # unsorted
-    (lambda r: [*r[:2], r[2].rsplit(",", 4)[0] + ",0,0,0,0", *r[3:]], "data.csv:4: quaternion norm 0"),
-    (lambda r: [x.rsplit(",", 2)[0] for x in r], "6 columns"),
-    (lambda r: [*r[:1], r[1].replace(",0,0,1,", ",nan,0,1,"), *r[2:]], "data.csv:3: NaN"),
-])
+@pytest.mark.parametrize(
+    ("damage", "named"),
+    [
+        (lambda r: r[:3] + ["12,abc,0,0,1,0,0,0"] + r[3:], "malformed"),
+        (lambda r: r[:3] + [r[2]] + r[3:], "data.csv:5: timestamp"),  # duplicated time
+        (lambda r: [r[1], r[0], *r[2:]], "data.csv:3: timestamp"),  # unsorted
+        (lambda r: [*r[:2], r[2].rsplit(",", 4)[0] + ",0,0,0,0", *r[3:]], "data.csv:4: quaternion norm 0"),
+        (lambda r: [x.rsplit(",", 2)[0] for x in r], "6 columns"),
+        (lambda r: [*r[:1], r[1].replace(",0,0,1,", ",nan,0,1,"), *r[2:]], "data.csv:3: NaN"),
+    ],
+)
 def test_euroc_malformed_ground_truth_refused_at_open(euroc, damage, named):
     gt = _ground_truth(euroc, damage(_gt_rows(euroc)))
     with pytest.raises(DataError) as err:
-        open_source(euroc.parent)                # not after the whole run
+        open_source(euroc.parent)  # not after the whole run
     _one_line(err, str(gt.relative_to(euroc.parent.parent)), named)
 
 
@@ -113,16 +116,19 @@ def test_euroc_binary_ground_truth_refused(euroc):
 
 
 def test_euroc_identical_camera_poses_refused(euroc):
-    shutil.copy(euroc / "cam0" / "sensor.yaml", euroc / "cam1" / "sensor.yaml")   # was a cv2 traceback
+    shutil.copy(euroc / "cam0" / "sensor.yaml", euroc / "cam1" / "sensor.yaml")  # was a cv2 traceback
     with pytest.raises(CalibrationError) as err:
         open_source(euroc.parent)
     _one_line(err, "cam0/sensor.yaml", "cam1/sensor.yaml", "no stereo baseline")
 
 
-@pytest.mark.parametrize(("old", "new", "named"), [
-    ("intrinsics: [", "intrinsics: [.nan, ", "cam1/sensor.yaml: NaN or infinite"),
-    ("resolution: [752, 480]", "resolution: [0, 0]", "cam1/sensor.yaml: resolution 0x0 is empty"),
-])
+@pytest.mark.parametrize(
+    ("old", "new", "named"),
+    [
+        ("intrinsics: [", "intrinsics: [.nan, ", "cam1/sensor.yaml: NaN or infinite"),
+        ("resolution: [752, 480]", "resolution: [0, 0]", "cam1/sensor.yaml: resolution 0x0 is empty"),
+    ],
+)
 def test_euroc_unusable_intrinsics_refused(euroc, old, new, named):
     y = euroc / "cam1" / "sensor.yaml"
     text = y.read_text()
@@ -185,21 +191,28 @@ def test_kitti_time_that_is_not_a_time_is_named_by_line(tmp_path, value):
 
 def _frames(n: int = 3) -> list[StereoImages]:
     rng = np.random.default_rng(0)
-    return [StereoImages(10**9 + i * 10**8, i, rng.integers(0, 255, (48, 64), dtype=np.uint8),
-                         rng.integers(0, 255, (48, 64), dtype=np.uint8)) for i in range(n)]
+    return [
+        StereoImages(
+            10**9 + i * 10**8,
+            i,
+            rng.integers(0, 255, (48, 64), dtype=np.uint8),
+            rng.integers(0, 255, (48, 64), dtype=np.uint8),
+        )
+        for i in range(n)
+    ]
 
 
 def test_damaged_mcap_data_end_is_one_line(tmp_path):
     write_bag(tmp_path / "b", _frames(), SMALL, kind="mcap")
     f = tmp_path / "b" / "b.mcap"
     data = bytearray(f.read_bytes())
-    data_end = data.rfind(b"\x0f" + (4).to_bytes(8, "little"))     # DataEnd: opcode, length 4, crc
-    footer = len(data) - 8 - 29                                       # Footer record before the end magic
+    data_end = data.rfind(b"\x0f" + (4).to_bytes(8, "little"))  # DataEnd: opcode, length 4, crc
+    footer = len(data) - 8 - 29  # Footer record before the end magic
     assert data_end > 0 and data[footer] == 0x02
-    data[data_end + 1: data_end + 9] = (2**62).to_bytes(8, "little")   # absurd record length
-    struct.pack_into("<Q", data, footer + 9, data_end)                 # summary starts at the damaged record
+    data[data_end + 1 : data_end + 9] = (2**62).to_bytes(8, "little")  # absurd record length
+    struct.pack_into("<Q", data, footer + 9, data_end)  # summary starts at the damaged record
     f.write_bytes(bytes(data))
-    with pytest.raises(DataError) as err:                               # was a MemoryError traceback
+    with pytest.raises(DataError) as err:  # was a MemoryError traceback
         open_source(tmp_path / "b")
     _one_line(err, str(tmp_path / "b"), "damaged")
 
@@ -216,8 +229,9 @@ def test_source_options_reach_the_bag_reader(tmp_path):
     with open_source(tmp_path / "x.bag", opts) as src:
         assert len(src) == 3 and src.left_info_topic == "/front/camera_info"
         np.testing.assert_array_equal(src[1].left, frames[1].left)
-    with open_source(tmp_path / "x.bag", SourceOptions(format="rosbag", left_topic="/front/image",
-                                                       right_topic="/rear/image")) as src:
+    with open_source(
+        tmp_path / "x.bag", SourceOptions(format="rosbag", left_topic="/front/image", right_topic="/rear/image")
+    ) as src:
         assert len(src) == 3
 
 

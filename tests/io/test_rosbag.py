@@ -103,11 +103,21 @@ def _euroc_raw_infos(euroc: EurocSource):
     left = read_sensor_yaml(euroc.root / "cam0" / "sensor.yaml")
     right = read_sensor_yaml(euroc.root / "cam1" / "sensor.yaml")
     T_rl = np.linalg.inv(right.T_body_cam) @ left.T_body_cam
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(left.K, left.dist, right.K, right.dist, (left.width, left.height),
-                                           T_rl[:3, :3].copy(), T_rl[:3, 3].reshape(3, 1).copy(),
-                                           flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0)
-    infos = tuple(CameraInfoData(width=c.width, height=c.height, K=c.K, D=c.dist, R=R, P=P, frame_id=name)
-                  for c, R, P, name in ((left, R1, P1, "cam0"), (right, R2, P2, "cam1")))
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(
+        left.K,
+        left.dist,
+        right.K,
+        right.dist,
+        (left.width, left.height),
+        T_rl[:3, :3].copy(),
+        T_rl[:3, 3].reshape(3, 1).copy(),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=0.0,
+    )
+    infos = tuple(
+        CameraInfoData(width=c.width, height=c.height, K=c.K, D=c.dist, R=R, P=P, frame_id=name)
+        for c, R, P, name in ((left, R1, P1, "cam0"), (right, R2, P2, "cam1"))
+    )
     return infos, left.T_body_cam
 
 
@@ -115,8 +125,7 @@ def test_euroc_raw_bag_is_rectified_from_camera_info(tmp_path):
     euroc = EurocSource(EUROC)
     infos, T_body_cam0 = _euroc_raw_infos(euroc)
     topics = BagTopics("/cam0/image_raw", "/cam1/image_raw", "/cam0/camera_info", "/cam1/camera_info")
-    with RosbagWriter(tmp_path / "raw.bag", euroc.camera, topics=topics, infos=infos,
-                      T_base_left=T_body_cam0) as w:
+    with RosbagWriter(tmp_path / "raw.bag", euroc.camera, topics=topics, infos=infos, T_base_left=T_body_cam0) as w:
         for i, t in enumerate(euroc.timestamps()[:4]):
             w.add(t, *(cv2.imread(str(f[i]), cv2.IMREAD_GRAYSCALE) for f in (euroc._left, euroc._right)))
     with open_source(tmp_path / "raw.bag") as src:  # cam0/cam1 topics detected
@@ -127,8 +136,16 @@ def test_euroc_raw_bag_is_rectified_from_camera_info(tmp_path):
         assert_same_frames(list(src), [euroc[i] for i in range(4)])
 
 
-@pytest.mark.parametrize("D", [[-50.0, 0.0, 0.0, 0.0, 0.0], [0.0, -40.0, 0.0, 0.0, 0.0], [0.3, 0.1, 0.0, 0.0, 1e9],
-                               [-0.28, 0.07, 0.0, 0.0, float("nan")], [-0.28, 0.07, 0.0]])
+@pytest.mark.parametrize(
+    "D",
+    [
+        [-50.0, 0.0, 0.0, 0.0, 0.0],
+        [0.0, -40.0, 0.0, 0.0, 0.0],
+        [0.3, 0.1, 0.0, 0.0, 1e9],
+        [-0.28, 0.07, 0.0, 0.0, float("nan")],
+        [-0.28, 0.07, 0.0],
+    ],
+)
 def test_absurd_camera_info_distortion_is_refused(tmp_path, D):
     """Coefficients that fold the image over (or a wrong count, NaN) are a CalibrationError when the bag is opened
     (were: accepted, and the 'rectified' images were garbage)."""
@@ -140,8 +157,7 @@ def test_absurd_camera_info_distortion_is_refused(tmp_path, D):
     infos, T_body_cam0 = _euroc_raw_infos(euroc)
     infos = (replace(infos[0], D=np.array(D)), infos[1])
     topics = BagTopics("/cam0/image_raw", "/cam1/image_raw", "/cam0/camera_info", "/cam1/camera_info")
-    with RosbagWriter(tmp_path / "raw.bag", euroc.camera, topics=topics, infos=infos,
-                      T_base_left=T_body_cam0) as w:
+    with RosbagWriter(tmp_path / "raw.bag", euroc.camera, topics=topics, infos=infos, T_base_left=T_body_cam0) as w:
         for i, t in enumerate(euroc.timestamps()[:2]):
             w.add(t, *(cv2.imread(str(f[i]), cv2.IMREAD_GRAYSCALE) for f in (euroc._left, euroc._right)))
     with pytest.raises(CalibrationError, match="distortion|not finite"):
@@ -213,8 +229,7 @@ def test_topic_detection_and_explicit_topics(tmp_path):
 
 def test_truncated_bags_fail_naming_the_file(tmp_path):
     camera, frames = kitti_frames(3)
-    for kind, name, storage in (("rosbag1", "t.bag", "t.bag"), ("mcap", "m", "m/m.mcap"),
-                                ("rosbag2", "s", "s/s.db3")):
+    for kind, name, storage in (("rosbag1", "t.bag", "t.bag"), ("mcap", "m", "m/m.mcap"), ("rosbag2", "s", "s/s.db3")):
         write_bag(tmp_path / name, frames, camera, kind=kind)
         f = tmp_path / storage
         f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
@@ -258,8 +273,11 @@ def test_mismatched_left_right_counts(tmp_path):
         for f in frames:
             w.add(f.t_ns, f.left, f.right)
         w.add_image("left", frames[-1].t_ns + DT_NS, frames[0].left)  # a left image without partner
-    with pytest.raises(DataError, match=r"left topic /stereo/left/image_raw has 4 images and right topic "
-                                        r"/stereo/right/image_raw has 3; only 3 pairs"):
+    with pytest.raises(
+        DataError,
+        match=r"left topic /stereo/left/image_raw has 4 images and right topic "
+        r"/stereo/right/image_raw has 3; only 3 pairs",
+    ):
         open_source(tmp_path / "m.bag")
     with RosbagSource(tmp_path / "m.bag", allow_unpaired=True) as src:
         assert src.unpaired == (1, 0)
@@ -331,8 +349,11 @@ def test_odometry_on_bag_matches_folder(tmp_path, kind):
     write_bag(bag, frames, src.camera, kind=kind)
     runs = {}
     for name, source, extra in (("folder", KITTI, ["--frames", f"0:{n}"]), ("bag", bag, [])):
-        r = subprocess.run([sys.executable, "-m", "vtr", "odometry", str(source), "--out", str(tmp_path / name),
-                            *extra], capture_output=True, text=True)
+        r = subprocess.run(
+            [sys.executable, "-m", "vtr", "odometry", str(source), "--out", str(tmp_path / name), *extra],
+            capture_output=True,
+            text=True,
+        )
         assert r.returncode == 0, r.stderr
         runs[name] = read_tum(tmp_path / name / "trajectory_tum.txt")
     np.testing.assert_array_equal(runs["bag"][0], runs["folder"][0])
@@ -351,10 +372,10 @@ def test_mcap_chunks_carry_crcs_and_a_damaged_one_is_refused(tmp_path):
     f = tmp_path / "m" / "m.mcap"
     data = bytearray(f.read_bytes())
     assert data.startswith(MCAP_MAGIC)
-    chunk = data.index(b"\x06", len(MCAP_MAGIC))          # the first record after the header is a chunk here
+    chunk = data.index(b"\x06", len(MCAP_MAGIC))  # the first record after the header is a chunk here
     pos = len(MCAP_MAGIC)
     crcs = []
-    while data[pos] != 0x0F:                                # up to DataEnd
+    while data[pos] != 0x0F:  # up to DataEnd
         (length,) = struct.unpack_from("<Q", data, pos + 1)
         if data[pos] == 0x06:
             crcs.append(struct.unpack_from("<I", data, pos + 9 + 24)[0])
@@ -365,14 +386,15 @@ def test_mcap_chunks_carry_crcs_and_a_damaged_one_is_refused(tmp_path):
 
     # the data section's CRC (leading magic up to DataEnd), as the MCAP libraries check it
     assert struct.unpack_from("<I", data, pos + 9)[0] == crc32(data[:pos]) != 0
-    with open_source(tmp_path / "m") as src:                # intact: read whole
+    with open_source(tmp_path / "m") as src:  # intact: read whole
         assert len([src[i] for i in range(len(src))]) == 3
     bad = bytearray(data)
     flip = chunk + 9 + 200 + (struct.unpack_from("<Q", data, chunk + 1)[0] - 200) // 2
-    bad[flip:flip + 4096] = bytes(4096)                     # 4 KB zeroed inside a chunk's image bytes
+    bad[flip : flip + 4096] = bytes(4096)  # 4 KB zeroed inside a chunk's image bytes
     (tmp_path / "b").mkdir()
-    (tmp_path / "b" / "metadata.yaml").write_text((tmp_path / "m" / "metadata.yaml").read_text()
-                                                  .replace("m.mcap", "b.mcap"))
+    (tmp_path / "b" / "metadata.yaml").write_text(
+        (tmp_path / "m" / "metadata.yaml").read_text().replace("m.mcap", "b.mcap")
+    )
     (tmp_path / "b" / "b.mcap").write_bytes(bytes(bad))
     with pytest.raises(DataError, match="checksum"), open_source(tmp_path / "b") as src:
         [src[i] for i in range(len(src))]

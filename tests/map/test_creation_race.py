@@ -15,7 +15,7 @@ from vtr.errors import MapError
 from vtr.map import Map
 
 TRIALS = 20
-VERTICES = 3          # the winner writes these after creating, while the loser fails and cleans up
+VERTICES = 3  # the winner writes these after creating, while the loser fails and cleans up
 JOIN_TIMEOUT_S = 60
 
 
@@ -56,12 +56,15 @@ def test_racing_creators_one_wins_map_survives(tmp_path, writers):
         for _, message in lost:
             assert message.startswith(f"{path} already exists: refusing to overwrite a map")
             assert "\n" not in message
-        with Map.open(path) as m:      # the winner's map survived, complete
+        with Map.open(path) as m:  # the winner's map survived, complete
             [info] = m.runs()
             assert (info.state, info.n_vertices, info.source) == ("finished", VERTICES, f"pid {won[0][1]}")
         # nothing left beside it: no -wal/-shm, no temporary files of the losers
-        assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(f"race{trial}.") or
-                      p.name.startswith(f".race{trial}.")) == [path.name]
+        assert sorted(
+            p.name
+            for p in tmp_path.iterdir()
+            if p.name.startswith(f"race{trial}.") or p.name.startswith(f".race{trial}.")
+        ) == [path.name]
     assert len(outcomes) == (TRIALS if writers == 2 else TRIALS // 2)
 
 

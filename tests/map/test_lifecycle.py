@@ -59,22 +59,27 @@ def test_orderly_close_finishes_and_exception_aborts_with_reason(tmp_path):
     with pytest.raises(Terminated), Map.open(path, "a") as m:
         m.begin_run("repeat")
         raise Terminated
-    assert states(path) == [("teach", "finished", 3, ""),
-                            ("repeat", "aborted", 2, "RuntimeError: camera unplugged second line"),
-                            ("repeat", "aborted", 1, "interrupted by Ctrl-C (SIGINT)"),
-                            ("repeat", "aborted", 0, "terminated by SIGTERM")]
-    with Map.open(path, "a") as m:   # an aborted run is final
+    assert states(path) == [
+        ("teach", "finished", 3, ""),
+        ("repeat", "aborted", 2, "RuntimeError: camera unplugged second line"),
+        ("repeat", "aborted", 1, "interrupted by Ctrl-C (SIGINT)"),
+        ("repeat", "aborted", 0, "terminated by SIGTERM"),
+    ]
+    with Map.open(path, "a") as m:  # an aborted run is final
         with pytest.raises(MapError, match="no open run"):
             add_vertices(m, 1, 1)
         with pytest.raises(sqlite3.IntegrityError, match="cannot be reopened"):
             m.file.conn.execute("UPDATE runs SET state = 'finished', reason = '' WHERE id = 1")
         with pytest.raises(sqlite3.IntegrityError, match="finished or aborted run"):
-            m.file.conn.execute("INSERT INTO vertices VALUES ((1 << 32) | 9, 1, 9, 0, zeroblob(128), zeroblob(128), "
-                            "0, 0, 0)")
-        with pytest.raises(sqlite3.IntegrityError):   # aborted needs a reason, finished has none
-            m.file.conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) "
-                            "VALUES (9, 'teach', 1, '', '', 'aborted')")
-        m.abort_run("x" * 2000)   # no open run: nothing happens
+            m.file.conn.execute(
+                "INSERT INTO vertices VALUES ((1 << 32) | 9, 1, 9, 0, zeroblob(128), zeroblob(128), 0, 0, 0)"
+            )
+        with pytest.raises(sqlite3.IntegrityError):  # aborted needs a reason, finished has none
+            m.file.conn.execute(
+                "INSERT INTO runs(id, kind, privileged, source, created, state) "
+                "VALUES (9, 'teach', 1, '', '', 'aborted')"
+            )
+        m.abort_run("x" * 2000)  # no open run: nothing happens
     assert len(states(path)) == 4
 
 
@@ -94,7 +99,7 @@ def test_created_map_without_vertex_is_removed_on_abort_only(tmp_path):
     with pytest.raises(ValueError), Map.create(aborted, CAMERA) as m:
         m.begin_run("teach")
         raise ValueError("first frame unreadable")
-    assert list(tmp_path.iterdir()) == []            # no map, no -wal/-shm, no temporary file
+    assert list(tmp_path.iterdir()) == []  # no map, no -wal/-shm, no temporary file
     Map.create(tmp_path / "empty.vtrmap", CAMERA).close()  # an explicitly empty map stays
     assert [p.name for p in tmp_path.iterdir()] == ["empty.vtrmap"]
     # a map this process did not create is never removed, even with nothing in it
@@ -125,8 +130,13 @@ KILLED_WRITER = textwrap.dedent("""
 
 
 def _start_writer(path):
-    proc = subprocess.Popen([sys.executable, "-c", KILLED_WRITER, str(path), os.path.dirname(__file__)],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KILLED_WRITER, str(path), os.path.dirname(__file__)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
     while (line := proc.stdout.readline()) != "writing\n":
         assert line, f"writer died: {proc.stderr.read()}"
@@ -138,7 +148,7 @@ def test_live_writer_is_running_killed_writer_is_interrupted_and_never_finished(
     path = tmp_path / "killed.vtrmap"
     proc = _start_writer(path)
     try:
-        with Map.open(path) as m:   # a reader while the writer holds the lock
+        with Map.open(path) as m:  # a reader while the writer holds the lock
             [info] = m.runs()
             assert (info.state, info.n_vertices) == ("running", 5)
         with pytest.raises(MapError, match=r"killed.vtrmap: another process is writing this map"):
@@ -183,9 +193,9 @@ def test_second_writer_gets_one_clear_line(tmp_path):
         add_vertices(m, m.begin_run("teach"), 2)
         with pytest.raises(MapError, match=r"^\S*route.vtrmap: another process is writing this map"):
             Map.open(path, "a")
-        with Map.open(path) as reader:   # readers are welcome
+        with Map.open(path) as reader:  # readers are welcome
             assert reader.runs()[0].state == "running" and reader.runs()[0].n_vertices == 2
-    with Map.open(path, "a") as m:       # the lock went with the first writer
+    with Map.open(path, "a") as m:  # the lock went with the first writer
         add_vertices(m, m.begin_run("repeat"), 1)
     assert [s[:3] for s in states(path)] == [("teach", "finished", 2), ("repeat", "finished", 1)]
 
@@ -195,16 +205,16 @@ def test_closed_map_is_one_self_contained_file(tmp_path):
     umask = os.umask(0o022)
     os.umask(umask)
     with Map.create(path, CAMERA) as m:
-        assert path.stat().st_mode & 0o777 == 0o666 & ~umask   # an ordinary file, not a private temporary
+        assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # an ordinary file, not a private temporary
         add_vertices(m, m.begin_run("teach"), 4)
-        assert os.path.exists(f"{path}-wal")   # written through the write-ahead log ...
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]   # ... folded back on close
+        assert os.path.exists(f"{path}-wal")  # written through the write-ahead log ...
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]  # ... folded back on close
     with Map.open(path, "a") as m:
         add_vertices(m, m.begin_run("repeat"), 3, seed=2)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]
     copy_dir = tmp_path / "copy"
     copy_dir.mkdir()
-    shutil.copyfile(path, copy_dir / "alone.vtrmap")   # the file alone, no side files
+    shutil.copyfile(path, copy_dir / "alone.vtrmap")  # the file alone, no side files
     assert [s[:3] for s in states(copy_dir / "alone.vtrmap")] == [("teach", "finished", 4), ("repeat", "finished", 3)]
     con = sqlite3.connect(path)
     assert con.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
@@ -242,9 +252,10 @@ def test_opens_read_only_from_read_only_folder_and_media(tmp_path):
         path.chmod(0o644)
 
 
-@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,
-                    reason="root ignores file permissions (the read-only open is checked above and through the "
-                           "immutable URI directly)")
+@pytest.mark.skipif(
+    hasattr(os, "geteuid") and os.geteuid() == 0,
+    reason="root ignores file permissions (the read-only open is checked above and through the immutable URI directly)",
+)
 def test_read_only_folder_refuses_writing_but_reads(tmp_path):
     path = tmp_path / "route.vtrmap"
     with Map.create(path, CAMERA) as m:
@@ -311,14 +322,17 @@ def test_sigkill_writer_left_running_then_reader_sees_interrupted_in_new_process
     path = tmp_path / "killed.vtrmap"
     _kill_writer(_start_writer(path))
     code = "import sys; from vtr.map import Map; m = Map.open(sys.argv[1]); print(m.runs()[0].state); m.close()"
-    r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
-                       timeout=SUBPROCESS_TIMEOUT_S)
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "interrupted"
 
 
-JOURNAL_PROBE = ("import sqlite3, sys; c = sqlite3.connect(sys.argv[1], timeout=0); "
-                 "print(c.execute('PRAGMA journal_mode = DELETE').fetchone()[0])")
+JOURNAL_PROBE = (
+    "import sqlite3, sys; c = sqlite3.connect(sys.argv[1], timeout=0); "
+    "print(c.execute('PRAGMA journal_mode = DELETE').fetchone()[0])"
+)
 
 
 def test_reader_in_the_same_process_keeps_the_writers_sqlite_locks(tmp_path):
@@ -328,8 +342,12 @@ def test_reader_in_the_same_process_keeps_the_writers_sqlite_locks(tmp_path):
     path = tmp_path / "route.vtrmap"
 
     def other_process_switches_journal() -> bool:
-        r = subprocess.run([sys.executable, "-c", JOURNAL_PROBE, str(path)], capture_output=True, text=True,
-                           timeout=SUBPROCESS_TIMEOUT_S)
+        r = subprocess.run(
+            [sys.executable, "-c", JOURNAL_PROBE, str(path)],
+            capture_output=True,
+            text=True,
+            timeout=SUBPROCESS_TIMEOUT_S,
+        )
         assert r.returncode == 0 or "database is locked" in r.stderr, r.stderr
         return r.returncode == 0
 
@@ -368,7 +386,7 @@ def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_pa
     alone = tmp_path / "alone"
     alone.mkdir()
     shutil.copyfile(path, alone / "copy.vtrmap")
-    assert states(alone / "copy.vtrmap") == []            # the file alone: the run is only in the log
+    assert states(alone / "copy.vtrmap") == []  # the file alone: the run is only in the log
     info = CliRunner().invoke(main, ["map", "info", str(path)])
     assert info.exit_code == 0, info.output
     assert "warning: not closed:" in info.output and "vtr map check --repair" in info.output
@@ -378,7 +396,7 @@ def test_killed_writers_log_is_reported_by_readers_and_folded_by_a_writer(tmp_pa
     assert repaired.exit_code == 0, repaired.output
     assert "folded" in repaired.output and ": ok (" in repaired.output
     shutil.copyfile(path, alone / "after.vtrmap")
-    [(kind, state, n, _)] = states(alone / "after.vtrmap")   # now the file alone holds the killed run
+    [(kind, state, n, _)] = states(alone / "after.vtrmap")  # now the file alone holds the killed run
     assert (kind, state) == ("teach", "interrupted") and n >= 5
     assert "not closed" not in CliRunner().invoke(main, ["map", "info", str(path)]).output
 
@@ -389,9 +407,9 @@ def test_a_writer_folds_a_killed_writers_log_on_open(tmp_path):
     with Map.open(path) as m:
         assert m.not_closed() is not None and m.file.unfolded_pages() > 0
     with Map.open(path, "a") as m:
-        assert m.file.unfolded_pages() == 0                 # folded before anything else happens
+        assert m.file.unfolded_pages() == 0  # folded before anything else happens
         copy = tmp_path / "copy.vtrmap"
-        shutil.copyfile(path, copy)                          # while the writer holds it: the file alone is whole
+        shutil.copyfile(path, copy)  # while the writer holds it: the file alone is whole
     assert [s[:2] for s in states(copy)] == [("teach", "interrupted")]
     with Map.open(path) as m:
         assert m.not_closed() is None
@@ -404,7 +422,7 @@ def test_not_closed_reads_the_log_as_sqlite_does(tmp_path):
     proc = _start_writer(path)
     try:
         with Map.open(path) as m:
-            assert m.runs()[0].state == "running" and m.not_closed() is None   # its writer holds it
+            assert m.runs()[0].state == "running" and m.not_closed() is None  # its writer holds it
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -415,13 +433,13 @@ def test_not_closed_reads_the_log_as_sqlite_does(tmp_path):
         pages = m.file.unfolded_pages()
         assert pages > 0
     data = bytearray(wal.read_bytes())
-    data[-1] ^= 0x01                                    # the last frame's page: its commit is not valid
+    data[-1] ^= 0x01  # the last frame's page: its commit is not valid
     wal.write_bytes(bytes(data))
-    Path(f"{path}-shm").unlink()                        # SQLite rebuilds its index of the log from the log
+    Path(f"{path}-shm").unlink()  # SQLite rebuilds its index of the log from the log
     with Map.open(path) as m:
         fewer = m.file.unfolded_pages()
-        assert 0 < fewer < pages and m.runs()[0].n_vertices == 4   # the fifth vertex's commit dropped
-    data[16] ^= 0x01                                    # salt-1 in the header: SQLite ignores the whole log
+        assert 0 < fewer < pages and m.runs()[0].n_vertices == 4  # the fifth vertex's commit dropped
+    data[16] ^= 0x01  # salt-1 in the header: SQLite ignores the whole log
     wal.write_bytes(bytes(data))
     Path(f"{path}-shm").unlink()
     with Map.open(path) as m:

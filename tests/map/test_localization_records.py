@@ -24,10 +24,16 @@ CAMERA = StereoCamera(fx=718.856, fy=718.856, cx=607.19, cy=185.22, baseline=0.5
 def make_frame(rng: np.random.Generator, n: int, index: int) -> StereoFrame:
     uv = np.column_stack([rng.uniform(0, CAMERA.width, n), rng.uniform(0, CAMERA.height, n)])
     disparity = rng.uniform(1.0, 60.0, n)
-    feats = Features(uv, rng.integers(0, 8, n).astype(np.int32), rng.random(n),
-                     rng.integers(0, 256, (n, 32), dtype=np.uint8))
-    return StereoFrame(t_ns=index * 100_000_000, index=index, features=feats, u_right=uv[:, 0] - disparity,
-                       points=CAMERA.triangulate(uv[:, 0], uv[:, 1], disparity))
+    feats = Features(
+        uv, rng.integers(0, 8, n).astype(np.int32), rng.random(n), rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    )
+    return StereoFrame(
+        t_ns=index * 100_000_000,
+        index=index,
+        features=feats,
+        u_right=uv[:, 0] - disparity,
+        points=CAMERA.triangulate(uv[:, 0], uv[:, 1], disparity),
+    )
 
 
 def pose(x: float, yaw: float = 0.0) -> np.ndarray:
@@ -59,12 +65,24 @@ def _keyframe(i: int) -> Keyframe:
 
 
 def _record(leaf_id: int, trunk_id: int, success: bool, i: int) -> LocalizationRecord:
-    C = cov(1e-4) if success else np.full((6, 6), np.inf)   # a failure's covariance may be infinite
-    return LocalizationRecord(t_ns=1000 + i, leaf_id=leaf_id, trunk_id=trunk_id, twig_id=-1 if i == 0 else trunk_id,
-                              branch_id=-1, success=success, matches=50 + i, inliers=40 + i if success else 3,
-                              T_leaf_trunk=pose(0.1 * i, 0.01), covariance=C, consecutive_failures=0 if success else 1,
-                              distance_since_success_m=0.25 * i, status="localized" if success else "too_few_inliers",
-                              direction=1, experiences=(3, 5) if success else ())
+    C = cov(1e-4) if success else np.full((6, 6), np.inf)  # a failure's covariance may be infinite
+    return LocalizationRecord(
+        t_ns=1000 + i,
+        leaf_id=leaf_id,
+        trunk_id=trunk_id,
+        twig_id=-1 if i == 0 else trunk_id,
+        branch_id=-1,
+        success=success,
+        matches=50 + i,
+        inliers=40 + i if success else 3,
+        T_leaf_trunk=pose(0.1 * i, 0.01),
+        covariance=C,
+        consecutive_failures=0 if success else 1,
+        distance_since_success_m=0.25 * i,
+        status="localized" if success else "too_few_inliers",
+        direction=1,
+        experiences=(3, 5) if success else (),
+    )
 
 
 def _leaf(m: Map, run: int, i: int, success: bool = True, trunk: int | None = None) -> Leaf:
@@ -95,19 +113,36 @@ def test_a_leaf_is_written_whole_and_reads_back(tmp_path):
         assert [r.leaf_id for r in records] == ids == [leaf.record.leaf_id for leaf in leaves]
         for got, leaf in zip(records, leaves, strict=True):
             want = leaf.record
-            assert (got.t_ns, got.trunk_id, got.success, got.matches, got.inliers, got.status, got.experiences,
-                    got.distance_since_success_m) == (want.t_ns, want.trunk_id, want.success, want.matches,
-                                                      want.inliers, want.status, want.experiences,
-                                                      want.distance_since_success_m)
+            assert (
+                got.t_ns,
+                got.trunk_id,
+                got.success,
+                got.matches,
+                got.inliers,
+                got.status,
+                got.experiences,
+                got.distance_since_success_m,
+            ) == (
+                want.t_ns,
+                want.trunk_id,
+                want.success,
+                want.matches,
+                want.inliers,
+                want.status,
+                want.experiences,
+                want.distance_since_success_m,
+            )
             assert np.array_equal(got.T_leaf_trunk, want.T_leaf_trunk)
-            assert np.array_equal(got.covariance, want.covariance)      # infinite on the failure too
+            assert np.array_equal(got.covariance, want.covariance)  # infinite on the failure too
         assert [(e.from_id, e.to_id) for e in m.edges(run, "temporal")] == list(zip(ids[:-1], ids[1:], strict=True))
-        assert [(e.from_id, e.to_id) for e in m.edges(run, "spatial")] == \
-            [(ids[0], records[0].trunk_id), (ids[2], records[2].trunk_id)]
+        assert [(e.from_id, e.to_id) for e in m.edges(run, "spatial")] == [
+            (ids[0], records[0].trunk_id),
+            (ids[2], records[2].trunk_id),
+        ]
         assert m.localization_count(run) == 3
-    with Map.open(path) as m:                       # closed and reopened read-only
+    with Map.open(path) as m:  # closed and reopened read-only
         assert len(m.localization_records(run)) == 3
-        assert m.localization_count(0) == 0       # a teach has none
+        assert m.localization_count(0) == 0  # a teach has none
 
 
 @pytest.mark.parametrize("problem", ["missing trunk", "wrong leaf id", "covariance shape"])
@@ -119,7 +154,7 @@ def test_a_leaf_that_cannot_be_written_leaves_nothing(tmp_path, problem):
         m.add_leaf(run, _keyframe(0), _leaf(m, run, 0))
         before = {t: _count(m, t) for t in ("vertices", "vertex_data", "edges", "localizations", "experience_use")}
         leaf = _leaf(m, run, 1)
-        if problem == "missing trunk":         # only the insert of the spatial edge, inside the transaction, fails
+        if problem == "missing trunk":  # only the insert of the spatial edge, inside the transaction, fails
             leaf = Leaf(leaf.record, SpatialEdge(123456, pose(0.0), cov(), 10), leaf.experience_use)
         elif problem == "wrong leaf id":
             leaf = Leaf(_record(m.next_vertex_id(run) + 1, leaf.record.trunk_id, True, 1), leaf.spatial)
@@ -128,7 +163,7 @@ def test_a_leaf_that_cannot_be_written_leaves_nothing(tmp_path, problem):
         with pytest.raises(MapError):
             m.add_leaf(run, _keyframe(1), leaf)
         assert {t: _count(m, t) for t in before} == before
-        m.add_leaf(run, _keyframe(1), _leaf(m, run, 1))        # the next write goes on as if nothing happened
+        m.add_leaf(run, _keyframe(1), _leaf(m, run, 1))  # the next write goes on as if nothing happened
         assert len(m.localization_records(run)) == 2
 
 
@@ -149,8 +184,12 @@ def test_records_are_append_only_and_pruned_with_their_run(tmp_path):
         assert prune(m, [run]) == 3
         with m.file.connection() as conn:
             assert conn.execute("SELECT COUNT(*) FROM localizations").fetchone()[0] == 0
-            assert conn.execute("SELECT COUNT(*) FROM sqlite_master WHERE name = 'localizations_append_only_delete'"
-                                ).fetchone()[0] == 1          # the trigger is back after the prune
+            assert (
+                conn.execute(
+                    "SELECT COUNT(*) FROM sqlite_master WHERE name = 'localizations_append_only_delete'"
+                ).fetchone()[0]
+                == 1
+            )  # the trigger is back after the prune
 
 
 def test_the_writer_thread_commits_in_order_and_stops_after_a_failure(tmp_path):
@@ -161,15 +200,17 @@ def test_the_writer_thread_commits_in_order_and_stops_after_a_failure(tmp_path):
         first = m.next_vertex_id(run)
         ids = [first + i for i in range(4)]
         taught = m.taught_path().ids
-        leaves = [Leaf(_record(ids[i], int(taught[i]), True, i), SpatialEdge(int(taught[i]), pose(0.0), cov(), 9))
-                  for i in range(4)]
-        leaves[2] = Leaf(leaves[2].record, SpatialEdge(999999, pose(0.0), cov(), 9))     # fails inside its commit
+        leaves = [
+            Leaf(_record(ids[i], int(taught[i]), True, i), SpatialEdge(int(taught[i]), pose(0.0), cov(), 9))
+            for i in range(4)
+        ]
+        leaves[2] = Leaf(leaves[2].record, SpatialEdge(999999, pose(0.0), cov(), 9))  # fails inside its commit
         with LeafWriter(m) as writer:
             futures = [writer.submit(run, _keyframe(i), leaves[i]) for i in range(4)]
             writer.prefetch([int(t) for t in taught[:2]])
             assert [f.result().id for f in futures[:2]] == ids[:2]
             with pytest.raises(MapError):
                 futures[2].result()
-            assert futures[3].exception() is not None          # never written after the failure
+            assert futures[3].exception() is not None  # never written after the failure
         assert [int(v) for v in m.vertex_ids(run)] == ids[:2]
         assert [r.leaf_id for r in m.localization_records(run)] == ids[:2]

@@ -26,10 +26,18 @@ from vtr.map import MAP_FORMAT_VERSION, EdgeRecord, Map, RunInfo, VertexRecord, 
 from vtr.map.placement import landmarks_in_map_frame, poses_in_map_frame
 from vtr.types import Features, StereoFrame
 
-CAMERA = StereoCamera(fx=718.856, fy=718.856, cx=607.19, cy=185.22, baseline=0.537, width=1226, height=370,
-                      T_vehicle_sensor=np.array([[0, 0, 1, 0.2], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1.0]]))
+CAMERA = StereoCamera(
+    fx=718.856,
+    fy=718.856,
+    cx=607.19,
+    cy=185.22,
+    baseline=0.537,
+    width=1226,
+    height=370,
+    T_vehicle_sensor=np.array([[0, 0, 1, 0.2], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1.0]]),
+)
 ARRAYS = ("uv", "octave", "descriptors", "u_right", "points")
-KILL_AFTER = 12          # vertices the killed writer must have committed before SIGKILL
+KILL_AFTER = 12  # vertices the killed writer must have committed before SIGKILL
 SUBPROCESS_TIMEOUT_S = 60
 
 
@@ -41,8 +49,9 @@ def make_frame(rng: np.random.Generator, n: int, index: int = 0) -> StereoFrame:
     u_right = uv[:, 0] - disparity
     u_right[::3] = np.nan
     points[::3] = np.nan
-    feats = Features(uv, rng.integers(0, 8, n).astype(np.int32), rng.random(n),
-                     rng.integers(0, 256, (n, 32), dtype=np.uint8))
+    feats = Features(
+        uv, rng.integers(0, 8, n).astype(np.int32), rng.random(n), rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    )
     return StereoFrame(t_ns=index * 100_000_000, index=index, features=feats, u_right=u_right, points=points)
 
 
@@ -85,8 +94,13 @@ def write_teach(path, n: int = 6, n_features=(40, 0, 25, 40, 40, 40), seed: int 
 
 def frame_of(frame: StereoFrame) -> dict[str, np.ndarray]:
     f = frame.features
-    return {"uv": f.uv, "octave": f.octave, "descriptors": f.descriptors, "u_right": frame.u_right,
-            "points": frame.points}
+    return {
+        "uv": f.uv,
+        "octave": f.octave,
+        "descriptors": f.descriptors,
+        "u_right": frame.u_right,
+        "points": frame.points,
+    }
 
 
 def digest(rec: VertexRecord) -> str:
@@ -105,10 +119,12 @@ def run_rows_digest(path, run: int) -> str:
     lo, hi = run << 32, (run << 32) | 0xFFFFFFFF
     con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
     h = hashlib.sha256()
-    for sql in ("SELECT id, kind, privileged, source, created FROM runs WHERE id = ?",
-                "SELECT * FROM vertices WHERE run = ? ORDER BY id",
-                "SELECT * FROM vertex_data WHERE id >> 32 = ? ORDER BY id",
-                "SELECT * FROM edges WHERE kind = 'temporal' AND from_id >> 32 = ? ORDER BY from_id"):
+    for sql in (
+        "SELECT id, kind, privileged, source, created FROM runs WHERE id = ?",
+        "SELECT * FROM vertices WHERE run = ? ORDER BY id",
+        "SELECT * FROM vertex_data WHERE id >> 32 = ? ORDER BY id",
+        "SELECT * FROM edges WHERE kind = 'temporal' AND from_id >> 32 = ? ORDER BY from_id",
+    ):
         for row in con.execute(sql, (run,)):
             h.update(repr(row).encode())
     n = con.execute("SELECT COUNT(*) FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi)).fetchone()[0]
@@ -167,7 +183,12 @@ def test_round_trip_is_byte_exact(tmp_path):
         n_feat = sum(len(f.features) for f in frames)
         n_lm = sum(int(np.isfinite(f.points).all(axis=1).sum()) for f in frames)
         assert (s["runs"], s["vertices"], s["edges"], s["features"], s["landmarks"]) == (
-            1, len(frames), len(frames) - 1, n_feat, n_lm)
+            1,
+            len(frames),
+            len(frames) - 1,
+            n_feat,
+            n_lm,
+        )
         assert s["bytes"] == path.stat().st_size > 0
 
 
@@ -185,8 +206,9 @@ def test_reopened_in_a_new_process(tmp_path):
             for v in m.taught_path().ids:
                 print(digest(m.vertex(int(v))))
     """)
-    r = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
-                       timeout=SUBPROCESS_TIMEOUT_S)
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == expected
 
@@ -213,8 +235,12 @@ WRITER = textwrap.dedent("""
 
 def test_sigkill_mid_teach_keeps_every_committed_vertex(tmp_path):
     path = tmp_path / "killed.vtrmap"
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path), os.path.dirname(__file__)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, str(path), os.path.dirname(__file__)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     printed = []
     deadline = time.monotonic() + SUBPROCESS_TIMEOUT_S
     try:
@@ -306,7 +332,7 @@ def test_create_refuses_to_overwrite(tmp_path):
     with pytest.raises(MapError, match="already exists"):
         Map.create(path, CAMERA)
     assert path.read_bytes() == before
-    with pytest.raises(ConfigError, match="map.compress_level"):   # an invalid section cannot even be built
+    with pytest.raises(ConfigError, match="map.compress_level"):  # an invalid section cannot even be built
         Map.create(tmp_path / "x.vtrmap", CAMERA, MapConfig(compress_level=12))
     assert not (tmp_path / "x.vtrmap").exists()
     with pytest.raises(MapError, match="is a directory: a vtr map is one SQLite file"):
@@ -347,10 +373,12 @@ def test_read_only_refuses_every_write(tmp_path):
     before = path.read_bytes()
     with Map.open(path, "r") as m:
         ids = m.vertex_ids(0)
-        for attempt in (lambda: m.begin_run("repeat"),
-                        lambda: m.add_vertex(0, 0, np.eye(4), frames[0]),
-                        lambda: m.add_edge(int(ids[0]), int(ids[2]), np.eye(4), np.eye(6), "spatial"),
-                        m.finish_run):
+        for attempt in (
+            lambda: m.begin_run("repeat"),
+            lambda: m.add_vertex(0, 0, np.eye(4), frames[0]),
+            lambda: m.add_edge(int(ids[0]), int(ids[2]), np.eye(4), np.eye(6), "spatial"),
+            m.finish_run,
+        ):
             with pytest.raises(MapError, match="read-only"):
                 attempt()
         with pytest.raises(sqlite3.OperationalError):  # even raw SQL on its connection is refused
@@ -412,23 +440,39 @@ def test_bad_edges_and_vertices_write_nothing(tmp_path):
         short = make_frame(rng, 10)
         short = StereoFrame(0, 0, short.features, short.u_right[:5], short.points)
         fractional = make_frame(rng, 4)
-        fractional = StereoFrame(0, 0, Features(fractional.features.uv, np.array([0.5, 1, 2, 3]),
-                                                fractional.features.response, fractional.features.descriptors),
-                                 fractional.u_right, fractional.points)
-        for args, message in [((run, 3, nan_T, make_frame(rng, 3)), "NaN"),
-                              ((run, 3, scaled_T, make_frame(rng, 3)), "orthonormal"),
-                              ((run, 3.5, pose(3.0), make_frame(rng, 3)), "t_ns"),
-                              ((run, 3, pose(3.0), short), "u_right"),
-                              ((run, 3, pose(3.0), fractional), "octave"),
-                              ((run, 3, pose(3.0), "not a frame"), "StereoFrame"),
-                              ((run + 1, 3, pose(3.0), make_frame(rng, 3)), "run")]:
+        fractional = StereoFrame(
+            0,
+            0,
+            Features(
+                fractional.features.uv,
+                np.array([0.5, 1, 2, 3]),
+                fractional.features.response,
+                fractional.features.descriptors,
+            ),
+            fractional.u_right,
+            fractional.points,
+        )
+        for args, message in [
+            ((run, 3, nan_T, make_frame(rng, 3)), "NaN"),
+            ((run, 3, scaled_T, make_frame(rng, 3)), "orthonormal"),
+            ((run, 3.5, pose(3.0), make_frame(rng, 3)), "t_ns"),
+            ((run, 3, pose(3.0), short), "u_right"),
+            ((run, 3, pose(3.0), fractional), "octave"),
+            ((run, 3, pose(3.0), "not a frame"), "StereoFrame"),
+            ((run + 1, 3, pose(3.0), make_frame(rng, 3)), "run"),
+        ]:
             with pytest.raises(MapError, match=message):
                 m.add_vertex(*args)
         assert m.vertex_ids(run).tolist() == [a.id, b.id, c.id]
         # an int64 octave converts losslessly and is stored as int32
         f = make_frame(rng, 4)
-        f64 = StereoFrame(5, 5, Features(f.features.uv, f.features.octave.astype(np.int64), f.features.response,
-                                         f.features.descriptors), f.u_right, f.points)
+        f64 = StereoFrame(
+            5,
+            5,
+            Features(f.features.uv, f.features.octave.astype(np.int64), f.features.response, f.features.descriptors),
+            f.u_right,
+            f.points,
+        )
         assert m.add_vertex(run, 3, pose(3.0), f64).frame.features.octave.dtype == np.int32
     with Map.open(path) as m:
         assert m.stats()["vertices"] == 4 and m.stats()["edges"] == 1
@@ -451,8 +495,9 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
             v = m.add_vertex(rep, 10**10 + i, pose(i + 0.1, y=0.3), make_frame(rng, 20, index=i))
             if prev is not None:
                 m.add_edge(prev.id, v.id, inv(pose(i - 0.9, y=0.3)) @ pose(i + 0.1, y=0.3), cov(), "temporal", 40)
-            m.add_edge(v.id, int(teach_ids[i]), inv(pose(i + 0.1, y=0.3)) @ pose(float(i), 0.05 * i), cov(),
-                       "spatial", 25)
+            m.add_edge(
+                v.id, int(teach_ids[i]), inv(pose(i + 0.1, y=0.3)) @ pose(float(i), 0.05 * i), cov(), "spatial", 25
+            )
             prev = v
         # the taught run cannot grow or change, by the API ...
         with pytest.raises(MapError, match="run 0 is not the open run"):
@@ -463,9 +508,13 @@ def test_repeat_never_modifies_the_taught_run(tmp_path):
             m.add_edge(int(teach_ids[0]), int(teach_ids[3]), pose(3.0), cov(), "spatial")
         assert m.open_run == rep
         # ... nor by raw SQL on the file (triggers)
-        for sql in ("UPDATE vertices SET t_ns = 0 WHERE run = 0", "DELETE FROM vertex_data WHERE id = 0",
-                    "UPDATE edges SET inliers = 0", "UPDATE runs SET state = 'running' WHERE id = 0",
-                    "INSERT INTO vertices VALUES (7, 0, 7, 0, zeroblob(128), zeroblob(128), 0, 0, 0)"):
+        for sql in (
+            "UPDATE vertices SET t_ns = 0 WHERE run = 0",
+            "DELETE FROM vertex_data WHERE id = 0",
+            "UPDATE edges SET inliers = 0",
+            "UPDATE runs SET state = 'running' WHERE id = 0",
+            "INSERT INTO vertices VALUES (7, 0, 7, 0, zeroblob(128), zeroblob(128), 0, 0, 0)",
+        ):
             with pytest.raises(sqlite3.IntegrityError):
                 m.file.conn.execute(sql)
         assert len(m.edges(run=rep, kind="spatial")) == 4 and len(m.edges(run=0, kind="spatial")) == 4
@@ -632,12 +681,14 @@ def test_add_keyframe_writes_vertex_and_edge_together(tmp_path):
         with pytest.raises(MapError, match="NaN"):
             m.add_keyframe(run, unknown)
         usable = dataclasses.replace(unknown, edge_covariance=usable_covariance(unknown.edge_covariance, 100.0))
-        assert m.add_keyframe(run, usable).index == 4   # not estimated: odometry makes it unknown
+        assert m.add_keyframe(run, usable).index == 4  # not estimated: odometry makes it unknown
     with Map.open(path) as m:
         edges = m.edges(run=0)
-        assert [(e.from_id, e.to_id, e.kind, e.inliers) for e in edges] == [(0, 1, "temporal", 61),
-                                                                              (1, 2, "temporal", 62),
-                                                                              (3, 4, "temporal", 0)]
-        for e in edges:   # the edge is the relative pose of the two stored vertices
+        assert [(e.from_id, e.to_id, e.kind, e.inliers) for e in edges] == [
+            (0, 1, "temporal", 61),
+            (1, 2, "temporal", 62),
+            (3, 4, "temporal", 0),
+        ]
+        for e in edges:  # the edge is the relative pose of the two stored vertices
             assert np.allclose(m.vertex(e.from_id).T_world_vertex @ e.T_from_to, m.vertex(e.to_id).T_world_vertex)
         assert np.array_equal(edges[2].covariance, np.eye(6) * 100.0)

@@ -38,8 +38,9 @@ def make_map(path: Path) -> Path:
 def without_checksums(path: Path) -> Path:
     """The map as a vtr from before checksums wrote it (no table, no meta key)."""
     with sqlite3.connect(path) as c:
-        c.executescript(f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; "
-                        f"DROP TABLE {TABLE};")
+        c.executescript(
+            f"DROP TRIGGER {TABLE}_append_only_update; DROP TRIGGER {TABLE}_append_only_delete; DROP TABLE {TABLE};"
+        )
         c.execute("DELETE FROM meta WHERE key = ?", (META_KEY,))
     return path
 
@@ -87,7 +88,7 @@ def test_an_intact_map_checks_ok(tmp_path):
     assert r.exit_code == 0 and "ok (1 runs, 6 vertices, 5 edges checked; checksums verified)" in r.output
 
 
-@pytest.mark.parametrize("byte", [0, 7, 3 * 8 + 6, 11 * 8 + 7])    # mantissa, sign/exponent of R, of t_x
+@pytest.mark.parametrize("byte", [0, 7, 3 * 8 + 6, 11 * 8 + 7])  # mantissa, sign/exponent of R, of t_x
 def test_a_flipped_byte_in_a_taught_pose(tmp_path, byte):
     path = make_map(tmp_path / "m.vtrmap")
     flip(path, column(path, "SELECT T_world_vertex FROM vertices WHERE id = ?", V2), byte)
@@ -104,25 +105,25 @@ def test_a_flipped_byte_in_vertex_data(tmp_path, where):
     blob = column(path, "SELECT data FROM vertex_data WHERE id = ?", V2)
     n = struct.unpack_from("<I", blob, len(BLOB_MAGIC))[0]
     head = len(BLOB_MAGIC) + 4
-    at = head + 5 if where == "descriptors" else head + n * 32 + 20     # raw descriptors / zlib stream
+    at = head + 5 if where == "descriptors" else head + n * 32 + 20  # raw descriptors / zlib stream
     lo = max(at - 16, len(BLOB_MAGIC))
-    flip(path, blob[lo:lo + 32], at - lo, 0x01)
+    flip(path, blob[lo : lo + 32], at - lo, 0x01)
     with Map.open(path) as m:
-        assert len(m.taught_path()) == N                                   # the pose index is intact
+        assert len(m.taught_path()) == N  # the pose index is intact
         with pytest.raises(MapError, match=f"vertex {V2}"):
             m.vertex(V2)
-        m.vertex(vertex_id(0, 1))                                          # the others still read
+        m.vertex(vertex_id(0, 1))  # the others still read
     one_line(invoke("map", "check", path), f"vertex {V2}")
 
 
 def test_a_damaged_runs_table_is_one_line_in_map_info(tmp_path):
     path = make_map(tmp_path / "m.vtrmap")
     created = column(path, "SELECT created FROM runs WHERE id = 0").encode()
-    flip(path, created + b"finished", len(created), 0x01)                # state 'finished' -> 'ginished'
+    flip(path, created + b"finished", len(created), 0x01)  # state 'finished' -> 'ginished'
     one_line(invoke("map", "info", path), "runs table is damaged", "state")
     one_line(invoke("map", "check", path), "runs table is damaged")
     path = make_map(tmp_path / "m2.vtrmap")
-    flip(path, b"synthetic", 3, 0xC0)                                     # invalid UTF-8 in the source
+    flip(path, b"synthetic", 3, 0xC0)  # invalid UTF-8 in the source
     one_line(invoke("map", "info", path), str(path))
 
 
@@ -131,10 +132,18 @@ def test_edits_no_vtr_makes(tmp_path, checksums):
     """A vertex moved 1 km, times out of order, a vertex of a run that does not exist: refused with or without
     checksums (without: the path checks and the temporal edges find them)."""
     cases = [
-        ("moved", "UPDATE vertices SET T_world_vertex = ? WHERE id = ?",
-         lambda p: (translation(1000.0).astype("<f8").tobytes(), V2), "temporal edge" if not checksums else "damaged"),
-        ("times", "UPDATE vertices SET t_ns = 1 WHERE id = ?", lambda p: (V2,), "not after" if not checksums
-         else "damaged"),
+        (
+            "moved",
+            "UPDATE vertices SET T_world_vertex = ? WHERE id = ?",
+            lambda p: (translation(1000.0).astype("<f8").tobytes(), V2),
+            "temporal edge" if not checksums else "damaged",
+        ),
+        (
+            "times",
+            "UPDATE vertices SET t_ns = 1 WHERE id = ?",
+            lambda p: (V2,),
+            "not after" if not checksums else "damaged",
+        ),
         ("no run", "UPDATE vertices SET run = 7 WHERE id = ?", lambda p: (V2,), "runs table does not hold"),
     ]
     for name, sql, args, msg in cases:
@@ -156,7 +165,7 @@ def test_a_map_without_checksums_still_opens_and_appends(tmp_path):
     with Map.open(path, "a") as m:
         run = m.begin_run("repeat", source="rep")
         m.add_keyframe(run, Keyframe(0, frame(rng, 0), translation(0.5), np.eye(6) * 1e-4, 50))
-    with sqlite3.connect(path) as c:                                        # appending adds no checksum table
+    with sqlite3.connect(path) as c:  # appending adds no checksum table
         assert c.execute("SELECT COUNT(*) FROM sqlite_master WHERE name = ?", (TABLE,)).fetchone()[0] == 0
     r = invoke("map", "check", path)
     assert r.exit_code == 0 and "no checksums" in r.output, r.output
@@ -167,8 +176,12 @@ def test_infinite_or_absurd_landmarks_are_refused():
 
     rng = np.random.default_rng(2)
     f = frame(rng, 0)
-    base = {"uv": f.features.uv, "octave": f.features.octave, "descriptors": f.features.descriptors,
-            "u_right": f.u_right}
+    base = {
+        "uv": f.features.uv,
+        "octave": f.features.octave,
+        "descriptors": f.features.descriptors,
+        "u_right": f.u_right,
+    }
     for bad, msg in ((np.inf, "infinite"), (1e9, "m away")):
         pts = np.array(f.points, float)
         pts[1, 2] = bad
@@ -197,13 +210,13 @@ def test_damaged_checksum_metadata_is_damage_not_an_old_map(tmp_path, damage):
     elif damage == "value":
         edit(path, "UPDATE meta SET value = 'none' WHERE key = ?", META_KEY)
     else:
-        flip(path, b"checksumsblake2b", 0, 0x01)        # 'checksums' -> 'bhecksums' in the meta row
+        flip(path, b"checksumsblake2b", 0, 0x01)  # 'checksums' -> 'bhecksums' in the meta row
     r = invoke("map", "check", path)
     text = one_line(r, "checksum")
     assert "no checksums" not in text
     with pytest.raises(MapError, match="checksum"):
         Map.open(path).close()
     edit(path, f"UPDATE {TABLE} SET row_sum = zeroblob(8)", drop=f"{TABLE}_append_only_update")
-    with pytest.raises(MapError, match="checksum"):     # never served without verification
+    with pytest.raises(MapError, match="checksum"):  # never served without verification
         with Map.open(path) as m:
             m.poses(0)

@@ -79,8 +79,8 @@ def test_re_entry_after_a_gap_is_at_once(ramp_map, kitti_ramp_clip, tmp_path, ba
     n = len(list((kitti_ramp_clip / "image_0").glob("*.png")))
     order = list(range(n - 1, -1, -1)) if backward else list(range(n))
     a = n // 2 - GAP // 2
-    clip = write_reordered_clip(kitti_ramp_clip, tmp_path / "gapped", order[:a] + order[a + GAP:])
-    first = 0 if order[0] % 2 else 1                       # the frames the teach did not use
+    clip = write_reordered_clip(kitti_ramp_clip, tmp_path / "gapped", order[:a] + order[a + GAP :])
+    first = 0 if order[0] % 2 else 1  # the frames the teach did not use
     _, locs, integrity = _repeat(ramp_map, kitti_ramp_clip, clip, f"{first}::2", tmp_path)
     _available(integrity)
     t_gap = int(round(np.loadtxt(clip / "times.txt")[a] * 1e9))
@@ -104,14 +104,16 @@ def test_a_jump_along_the_route_is_not_vouched_for_by_the_chain(ramp_map, kitti_
     n = len(list((kitti_ramp_clip / "image_0").glob("*.png")))
     a, skip = n // 3, 2 * ((n // 3) // 2)
     clip = write_reordered_clip(kitti_ramp_clip, tmp_path / "jump", list(range(a)) + list(range(a + skip, n)))
-    np.savetxt(clip / "times.txt", np.loadtxt(kitti_ramp_clip / "times.txt")[:n - skip], fmt="%.6e")
+    np.savetxt(clip / "times.txt", np.loadtxt(kitti_ramp_clip / "times.txt")[: n - skip], fmt="%.6e")
     summary, locs, integrity = _repeat(ramp_map, kitti_ramp_clip, clip, "1::2", tmp_path)
     assert integrity.wrong == 0, integrity
     from vtr.cli.summaries import repeat_lines
 
     unconfirmed = sum(loc.status.value == "unconfirmed" for loc in locs)
-    assert any(line.startswith("localization attempts: ") and f"unconfirmed {unconfirmed}" in line
-               for line in repeat_lines(summary))               # the summary counts the refusals by reason
+    assert any(
+        line.startswith("localization attempts: ") and f"unconfirmed {unconfirmed}" in line
+        for line in repeat_lines(summary)
+    )  # the summary counts the refusals by reason
     t_jump = int(round(np.loadtxt(clip / "times.txt")[a] * 1e9))
     after = [loc for loc in locs if loc.t_ns >= t_jump]
     assert after[0].status.value == "unconfirmed" and after[1].success, [loc.status.value for loc in after]
@@ -144,7 +146,7 @@ def test_the_odometry_error_is_longest_along_the_motion():
     chain = _chain()
     c = chain.config
     P = chain.drift_covariance(np.array([0.0, 0.0, -4.0]))
-    sideways = (Config().smoothing.odometry_translation_sigma_per_m * 4.0) ** 2 + c.prior_floor_translation_m ** 2
+    sideways = (Config().smoothing.odometry_translation_sigma_per_m * 4.0) ** 2 + c.prior_floor_translation_m**2
     assert P[3, 3] == pytest.approx(sideways) and P[4, 4] == pytest.approx(sideways)
     assert P[5, 5] == pytest.approx(sideways + (c.odometry_scale_sigma * 4.0) ** 2)
     np.testing.assert_allclose(P, P.T)
@@ -161,10 +163,10 @@ def test_a_break_in_odometry_widens_the_prediction_by_the_motion_prior():
     after = chain.chain_prediction(T_w_leaf, 3)
     assert after is not None
     q = Config().smoothing
-    widened = np.r_[[q.qc_rotation / 3] * 3, [q.qc_translation / 3] * 3]      # Qc tau^3 / 3 at tau = 1 s
+    widened = np.r_[[q.qc_rotation / 3] * 3, [q.qc_translation / 3] * 3]  # Qc tau^3 / 3 at tau = 1 s
     np.testing.assert_allclose(np.diag(after[1] - before[1]), widened)
     chain.succeeded(int(IDS[3]), T_w_leaf, 3, np.eye(4), np.eye(6) * 1e-6)
-    assert chain.state.coast_s == 0.0                       # a success starts the count again
+    assert chain.state.coast_s == 0.0  # a success starts the count again
 
 
 def test_the_chain_predicts_nothing_before_its_first_success_or_once_doubted():
@@ -212,15 +214,32 @@ def test_the_case_runner_judges_as_the_integrity_check_does():
     G = np.tile(np.eye(4), (5, 1, 1))
     G[:, 0, 3] = np.arange(5.0)
     off = np.eye(4)
-    off[0, 3] = 0.5                                          # half a metre off: a wrong success
+    off[0, 3] = 0.5  # half a metre off: a wrong success
 
     def loc(k, status, T):
-        return Localization(t_ns=int(t[k]), leaf_id=k, trunk_id=k, twig_id=-1, branch_id=-1,
-                            success=status == S.LOCALIZED, matches=100, inliers=90 + k, T_leaf_trunk=T,
-                            covariance=np.eye(6), consecutive_failures=0, distance_since_success_m=0.0, status=status)
+        return Localization(
+            t_ns=int(t[k]),
+            leaf_id=k,
+            trunk_id=k,
+            twig_id=-1,
+            branch_id=-1,
+            success=status == S.LOCALIZED,
+            matches=100,
+            inliers=90 + k,
+            T_leaf_trunk=T,
+            covariance=np.eye(6),
+            consecutive_failures=0,
+            distance_since_success_m=0.0,
+            status=status,
+        )
 
-    locs = [loc(0, S.UNCONFIRMED, np.eye(4)), loc(1, S.LOCALIZED, np.eye(4)), loc(2, S.LOCALIZED, off),
-            loc(3, S.TOO_FEW_INLIERS, np.eye(4)), loc(4, S.LOCALIZED, np.eye(4))]
+    locs = [
+        loc(0, S.UNCONFIRMED, np.eye(4)),
+        loc(1, S.LOCALIZED, np.eye(4)),
+        loc(2, S.LOCALIZED, off),
+        loc(3, S.TOO_FEW_INLIERS, np.eye(4)),
+        loc(4, S.LOCALIZED, np.eye(4)),
+    ]
     r = judge("case", locs, t, (t, G), (t, G), gap_t_ns=int(t[3]))
     assert (r.attempts, r.successes, r.correct, r.wrong, r.first_correct) == (5, 3, 2, 1, 1)
     assert r.availability == pytest.approx(0.5) and r.reentry == 2 and not r.passes

@@ -1,4 +1,4 @@
-"""Every decision of :class:`vtr.navigation.chain.ChainLocalizer`, one row of a table each, in milliseconds.
+"""Every decision of :class:`vtr.navigation.chain_localizer.ChainLocalizer`, one row of a table each, in milliseconds.
 
 No images: the taught route is a straight line of ``N`` vertices one metre apart (camera z along it), the repeat
 runs in the teach frame, and the localizer and the place index are scripted. The scripted localizer answers with
@@ -23,19 +23,20 @@ import pytest
 
 from vtr.config import Config
 from vtr.map import TaughtPath, vertex_id
-from vtr.navigation.chain import CLEAR_VERIFICATION, ChainLocalizer, LocalizationChain
+from vtr.navigation.chain import LocalizationChain
+from vtr.navigation.chain_localizer import CLEAR_VERIFICATION, ChainLocalizer
 from vtr.navigation.localization import LocalizationEstimate
 from vtr.navigation.localization import LocalizationStatus as S
 from vtr.types import Features, Keyframe, StereoFrame
 
-N = 60                          # taught vertices, 1 m apart along camera z
-VISIBLE_M = 4.0                 # the scripted localizer verifies vertices this close to the leaf
+N = 60  # taught vertices, 1 m apart along camera z
+VISIBLE_M = 4.0  # the scripted localizer verifies vertices this close to the leaf
 COV = np.diag([np.radians(0.5) ** 2] * 3 + [0.05**2] * 3)
 CFG = Config()
 LOC = CFG.localization
-CLEAR = CLEAR_VERIFICATION * LOC.min_inliers_unlocalized          # a place verified beyond doubt (120)
-PLAIN = LOC.min_inliers_unlocalized + 10                           # verified, not beyond doubt (70)
-CHECK_DUE = LOC.place_check_every - 1                             # the next success runs the periodic check
+CLEAR = CLEAR_VERIFICATION * LOC.min_inliers_unlocalized  # a place verified beyond doubt (120)
+PLAIN = LOC.min_inliers_unlocalized + 10  # verified, not beyond doubt (70)
+CHECK_DUE = LOC.place_check_every - 1  # the next success runs the periodic check
 
 
 def T_at(s: float) -> np.ndarray:
@@ -46,8 +47,11 @@ def T_at(s: float) -> np.ndarray:
 
 
 def _path() -> TaughtPath:
-    return TaughtPath(np.array([vertex_id(0, i) for i in range(N)]), np.stack([T_at(i) for i in range(N)]),
-                      np.arange(N, dtype=np.int64) * 10**8)
+    return TaughtPath(
+        np.array([vertex_id(0, i) for i in range(N)]),
+        np.stack([T_at(i) for i in range(N)]),
+        np.arange(N, dtype=np.int64) * 10**8,
+    )
 
 
 @dataclass(frozen=True)
@@ -78,13 +82,13 @@ class Leaf:
 @dataclass(frozen=True)
 class Expect:
     status: S
-    tracking: bool                              # the chain tracks after the leaf (the next leaf is not a search)
-    localized: bool | None = None               # the chain's verdict after the leaf (default: == tracking)
-    candidate: bool = False                     # a place candidate waits for the next keyframe
-    trunk: int | None = None                    # the attempt's trunk (path index)
-    calls: list[tuple[int, bool, bool]] | None = None   # (vertex, guided, trusted prior) matched, in order
+    tracking: bool  # the chain tracks after the leaf (the next leaf is not a search)
+    localized: bool | None = None  # the chain's verdict after the leaf (default: == tracking)
+    candidate: bool = False  # a place candidate waits for the next keyframe
+    trunk: int | None = None  # the attempt's trunk (path index)
+    calls: list[tuple[int, bool, bool]] | None = None  # (vertex, guided, trusted prior) matched, in order
     doubted: bool = False
-    failures: int | None = None                 # consecutive failures after the leaf
+    failures: int | None = None  # consecutive failures after the leaf
 
 
 class ScriptedLocalizer:
@@ -95,8 +99,15 @@ class ScriptedLocalizer:
         self.replies: dict[int, Reply] = {}
         self.calls: list[tuple[int, bool, bool]] = []
 
-    def localize(self, frame: StereoFrame, submap: int, T_prior: np.ndarray | None, seed: int = 0,
-                 trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:
+    def localize(
+        self,
+        frame: StereoFrame,
+        submap: int,
+        T_prior: np.ndarray | None,
+        seed: int = 0,
+        trusted_prior: bool = True,
+        consecutive_failures: int = 0,
+    ) -> LocalizationEstimate:
         trunk = int(submap)
         self.calls.append((trunk, T_prior is not None, trusted_prior))
         r = self.replies.get(trunk)
@@ -126,9 +137,15 @@ class Run:
         self.chain = LocalizationChain(_path(), CFG.localization, CFG.smoothing, start_index)
         self.localizer = ScriptedLocalizer()
         self.places = ScriptedPlaces()
-        self.chain_localizer = ChainLocalizer(self.chain, self.localizer, self.places,  # type: ignore[arg-type]
-                                              lambda trunk: trunk,                     # type: ignore[arg-type,return-value]
-                                              CFG.localization, CFG.place, CFG.run.seed)
+        self.chain_localizer = ChainLocalizer(
+            self.chain,
+            self.localizer,
+            self.places,  # type: ignore[arg-type]
+            lambda trunk: trunk,  # type: ignore[arg-type,return-value]
+            CFG.localization,
+            CFG.place,
+            CFG.run.seed,
+        )
         self.t_ns = 0
         self.leaves = 0
 
@@ -160,11 +177,12 @@ LOST_AFTER_10 = [*TRACKING_AT_10, *(Leaf(s, replies=REFUSED) for s in (10.4, 11.
 PENDING_AT_10 = [Leaf(10)]
 #: tracking at the route's last vertex
 TRACKING_AT_END = [Leaf(N - 2, replies={N - 2: Reply(inliers=CLEAR)}), Leaf(N - 1)]
-FAR = 50                         # a vertex outside the trunk window of vertices 10-12
+FAR = 50  # a vertex outside the trunk window of vertices 10-12
 TRUNK_WINDOW_11 = (max(0, 11 - LOC.trunk_window_back), 11 + LOC.trunk_window_forward + 1)
 assert not TRUNK_WINDOW_11[0] <= FAR < TRUNK_WINDOW_11[1] and FAR < N
 
 
+# fmt: off
 ROWS: list[tuple[str, list[Leaf], Leaf, Expect, int | None]] = [
     # name, leaves before, the leaf, what the chain decides, start hint
     # -- tracking: localized through the chain, prior trusted
@@ -258,6 +276,8 @@ ROWS: list[tuple[str, list[Leaf], Leaf, Expect, int | None]] = [
      Expect(S.UNCONFIRMED, False, candidate=True, trunk=12, doubted=True), None),
 ]
 
+# fmt: on
+
 
 @pytest.mark.parametrize("before, leaf, expect, start", [r[1:] for r in ROWS], ids=[r[0] for r in ROWS])
 def test_chain_decision(before: list[Leaf], leaf: Leaf, expect: Expect, start: int | None) -> None:
@@ -285,8 +305,9 @@ def test_chain_decision(before: list[Leaf], leaf: Leaf, expect: Expect, start: i
         assert state.branch == attempt.trunk and chain.twig_id == vertex_id(1, run.leaves)
         np.testing.assert_allclose(attempt.T_report, attempt.estimate.T_leaf_trunk)
         # the estimate is the truth here: the leaf's teach-frame pose is where it really is
-        np.testing.assert_allclose(chain.T_teach_localized(int(chain.path.ids[attempt.trunk]), attempt.T_report),
-                                   T_at(leaf.s), atol=1e-9)
+        np.testing.assert_allclose(
+            chain.T_teach_localized(int(chain.path.ids[attempt.trunk]), attempt.T_report), T_at(leaf.s), atol=1e-9
+        )
 
 
 def test_the_table_covers_every_status() -> None:

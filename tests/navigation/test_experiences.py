@@ -28,8 +28,9 @@ MIN_RATE_AFTER, MAX_FIRST_CORRECT = 0.95, 3
 
 def _fails_alone(flight) -> bool:
     i = flight.integrity
-    return (i.wrong > 0 or i.first_correct is None or i.first_correct > MAX_FIRST_CORRECT
-            or i.rate_after < MIN_RATE_AFTER)
+    return (
+        i.wrong > 0 or i.first_correct is None or i.first_correct > MAX_FIRST_CORRECT or i.rate_after < MIN_RATE_AFTER
+    )
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +42,7 @@ def forward(tmp_path_factory):
 
 def _check_drifting(multi, alone):
     failing = [k for k, a in enumerate(alone) if _fails_alone(a)]
-    assert failing, [str(a.integrity) for a in alone]          # the case is a real failure for the teach alone
+    assert failing, [str(a.integrity) for a in alone]  # the case is a real failure for the teach alone
     for k, (m, a) in enumerate(zip(multi, alone, strict=True)):
         i = m.integrity
         assert i.wrong == 0, (m.change, str(i))
@@ -49,7 +50,7 @@ def _check_drifting(multi, alone):
             assert a.integrity.correct == 0 or _fails_alone(a)
             assert i.first_correct is not None and i.first_correct <= MAX_FIRST_CORRECT, (m.change, str(i))
             assert i.rate_after >= MIN_RATE_AFTER, (m.change, str(i))
-            assert m.with_experience >= i.correct - 1, (m.change, m.with_experience)   # through experiences
+            assert m.with_experience >= i.correct - 1, (m.change, m.with_experience)  # through experiences
     return failing[0]
 
 
@@ -57,12 +58,12 @@ def test_drifting_appearance_localizes_through_experiences(forward):
     _, multi, alone = forward
     first_failing = _check_drifting(multi, alone)
     assert CHANGES[first_failing] >= 0.5
-    assert multi[0].experiences_used == ()                         # the first flight has only the teach
+    assert multi[0].experiences_used == ()  # the first flight has only the teach
 
 
 def test_drifting_appearance_flown_backward(tmp_path_factory, forward):
     root = tmp_path_factory.mktemp("drift_back")
-    shutil.copyfile(forward[0] / "teach.vtrmap", root / "teach.vtrmap")    # the same teach
+    shutil.copyfile(forward[0] / "teach.vtrmap", root / "teach.vtrmap")  # the same teach
     shutil.copytree(forward[0] / "teach", root / "teach")
     multi, alone = drifting_flights(root, BACKWARD_CHANGES, LENGTH_M, backward=True)
     _check_drifting(multi, alone)
@@ -104,14 +105,14 @@ def test_another_place_never_localizes_against_ten_experiences(tmp_path_factory,
     grown = work / "grown.vtrmap"
     shutil.copyfile(root / "teach.vtrmap", grown)
     taught = render_flight(root / "teach", 0, route(LENGTH_M), 0.0)
-    for k in range(10):                                   # the drifting flights again and again, in order
+    for k in range(10):  # the drifting flights again and again, in order
         change = CHANGES[k % len(CHANGES)]
         folder = root / f"fwd_{change:.2f}"
         truth = render_flight(folder, 0, repeat_route(LENGTH_M, False), change)
         fly(grown, folder, truth, taught, change, False, Config())
     with Map.open(grown) as m:
         assert sum(e.trusted for e in experiences(m, Config().experiences.min_localized_share)) == 10
-    other = render_flight(work / "other", 7, route(LENGTH_M - 4.0), 0.0)         # another scene
+    other = render_flight(work / "other", 7, route(LENGTH_M - 4.0), 0.0)  # another scene
     flight = fly(grown, work / "other", other, taught, 0.0, False, Config())
     assert flight.integrity.successes == 0, [loc.status.value for loc in flight.localizations]
     # and that flight, localized nowhere, is no experience
@@ -131,15 +132,16 @@ def test_aborted_and_untrusted_repeats_are_not_experiences(tmp_path_factory, for
         for k, images in enumerate(src):
             rp.process(images)
             if k == 10:
-                raise KeyboardInterrupt           # Ctrl-C mid-flight: the run is aborted
+                raise KeyboardInterrupt  # Ctrl-C mid-flight: the run is aborted
     strict = dataclasses.replace(Config().experiences, min_localized_share=1.0)
     with Map.open(path, "a") as m:
         infos = {e.run: e for e in experiences(m, Config().experiences.min_localized_share)}
         aborted = max(infos)
         assert infos[aborted].state == "aborted" and not infos[aborted].trusted
         cfg = Config()
-        sub = ExperienceSubmaps(m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera,
-                                Repeat(m, cfg).place, ())
+        sub = ExperienceSubmaps(
+            m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera, Repeat(m, cfg).place, ()
+        )
         assert aborted not in sub.trusted and set(sub.trusted) == {f.run for f in multi}
         # a share no flight reaches (each misses its first keyframe): none is trusted
         assert not any(e.trusted for e in experiences(m, strict.min_localized_share))
@@ -159,7 +161,7 @@ def test_prune_keeps_newest_and_most_used_and_the_map_stays_whole(tmp_path_facto
         assert set(plan.keep) == {multi[-1].run, most_used} and plan.remove
         expected = sum(r.n_vertices for r in m.runs() if r.id in plan.remove)
         words = {r: f"{WORDS_KEY}/{r}/digest" for r in [*plan.remove, *plan.keep]}
-        for key in words.values():                      # an experience's stored words (derived data)
+        for key in words.values():  # an experience's stored words (derived data)
             m.put_derived(key, b"words")
         assert prune(m, plan.remove) == expected
         # a pruned run's words go with it: the next run may take its id, and must not read them as its own
@@ -179,11 +181,11 @@ def test_recommender_prefers_recent_matches_then_place_similarity():
     r = Recommender(cfg)
     available = np.array([1, 2, 3, 4, 5])
     similarity = lambda runs: np.array([{1: 0.1, 2: 0.9, 3: 0.5, 4: 0.2, 5: 0.8}[int(e)] for e in runs])  # noqa: E731
-    assert r.choose(available, similarity) == [2, 5, 3]                 # no history: place similarity
+    assert r.choose(available, similarity) == [2, 5, 3]  # no history: place similarity
     r.observe({4: 50, 1: 80})
-    assert r.choose(available, similarity) == [1, 4, 2]                 # recent inliers first, one place explores
+    assert r.choose(available, similarity) == [1, 4, 2]  # recent inliers first, one place explores
     r.observe({})
-    r.observe({})                                                       # forgotten after history_keyframes
+    r.observe({})  # forgotten after history_keyframes
     assert r.choose(available, similarity) == [2, 5, 3]
     assert Recommender(dataclasses.replace(cfg, max_per_keyframe=0)).choose(available, similarity) == []
 
@@ -217,7 +219,7 @@ def test_read_only_map_repeat_uses_experiences_and_adds_none(tmp_path_factory, f
     info = _vtr("map", "info", path)
     assert info.exit_code == 0, info.output
     lines = info.output.splitlines()
-    rows = lines[lines.index(next(x for x in lines if x.startswith("experiences"))) + 2:]
+    rows = lines[lines.index(next(x for x in lines if x.startswith("experiences"))) + 2 :]
     with Map.open(path) as m:
         use = use_counts(m)
     for f in multi:
@@ -274,12 +276,27 @@ def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
     from vtr.state.trajectory import adjoint
 
     taught, exp_a, exp_b = 5, (3 << 32) | 7, (4 << 32) | 2
-    T_x_trunk = np.stack([np.eye(4), exp_se3(np.array([0.01, 0.02, 0.0, 0.3, -0.1, 0.2])),
-                          exp_se3(np.array([0.0, -0.02, 0.01, -0.2, 0.1, 0.1]))])
+    T_x_trunk = np.stack(
+        [
+            np.eye(4),
+            exp_se3(np.array([0.01, 0.02, 0.0, 0.3, -0.1, 0.2])),
+            exp_se3(np.array([0.0, -0.02, 0.01, -0.2, 0.1, 0.1])),
+        ]
+    )
     slot = np.array([0, 0, 1, 1, 2])
     n = len(slot)
-    sub = TaughtSubmap(np.array([taught, exp_a, exp_b]), T_x_trunk, 0, np.zeros((n, 3)), np.zeros((n, 32), np.uint8),
-                       slot, np.zeros((n, 3)), np.arange(n), np.ones(n), np.zeros(n, bool))
+    sub = TaughtSubmap(
+        np.array([taught, exp_a, exp_b]),
+        T_x_trunk,
+        0,
+        np.zeros((n, 3)),
+        np.zeros((n, 32), np.uint8),
+        slot,
+        np.zeros((n, 3)),
+        np.arange(n),
+        np.ones(n),
+        np.zeros(n, bool),
+    )
     np.testing.assert_array_equal(sub.experience, [0, 0, 3, 3, 4])
     P = {exp_a: np.diag([1e-6] * 3 + [1e-4] * 3), exp_b: np.diag([4e-6] * 3 + [9e-4] * 3)}
     T = exp_se3(np.array([0.02, 0.0, -0.01, 0.5, 0.0, 1.0]))
@@ -300,18 +317,35 @@ def test_taught_covariance_adds_each_taught_vertex_s_edge_moved_to_the_leaf():
     from vtr.state.trajectory import adjoint
 
     trunk, before, experience = (1 << 32) | 5, (1 << 32) | 4, (3 << 32) | 7
-    T_x_trunk = np.stack([np.eye(4), exp_se3(np.array([0.0, 0.01, 0.0, 0.0, 0.0, 2.0])),
-                          exp_se3(np.array([0.01, 0.0, 0.0, 0.3, 0.0, 0.1]))])
+    T_x_trunk = np.stack(
+        [
+            np.eye(4),
+            exp_se3(np.array([0.0, 0.01, 0.0, 0.0, 0.0, 2.0])),
+            exp_se3(np.array([0.01, 0.0, 0.0, 0.3, 0.0, 0.1])),
+        ]
+    )
     slot = np.array([0, 0, 1, 2, 2])
     n = len(slot)
-    sub = TaughtSubmap(np.array([trunk, before, experience]), T_x_trunk, 0, np.zeros((n, 3)),
-                       np.zeros((n, 32), np.uint8), slot, np.zeros((n, 3)), np.arange(n), np.ones(n), np.zeros(n, bool))
+    sub = TaughtSubmap(
+        np.array([trunk, before, experience]),
+        T_x_trunk,
+        0,
+        np.zeros((n, 3)),
+        np.zeros((n, 32), np.uint8),
+        slot,
+        np.zeros((n, 3)),
+        np.arange(n),
+        np.ones(n),
+        np.zeros(n, bool),
+    )
     P = {trunk: np.diag([1e-6] * 3 + [4e-5, 2e-5, 1e-4]), before: np.diag([2e-6] * 3 + [1e-5, 1e-5, 9e-5])}
     T = exp_se3(np.array([0.0, 0.02, 0.0, 0.5, 0.0, 1.0]))
     matched = np.arange(n)
     est = LocalizationEstimate(T, np.eye(6) * 1e-6, n, matched, np.array([True, True, True, True, False]))
-    expected = sum(adjoint(T @ np.linalg.inv(T_x_trunk[s])) @ P[v] @ adjoint(T @ np.linalg.inv(T_x_trunk[s])).T
-                   for s, v in ((0, trunk), (1, before)))
+    expected = sum(
+        adjoint(T @ np.linalg.inv(T_x_trunk[s])) @ P[v] @ adjoint(T @ np.linalg.inv(T_x_trunk[s])).T
+        for s, v in ((0, trunk), (1, before))
+    )
     got = taught_covariance(sub, est, P.get)
     np.testing.assert_allclose(got, expected, atol=1e-15)
     assert np.all(np.linalg.eigvalsh(got) > 0)
@@ -331,11 +365,12 @@ def test_experience_place_words_are_stored_and_give_the_place_vectors(forward):
     cfg = Config()
     with Map.open(root / "experiences.vtrmap") as m:
         place = route_place_index(m, cfg.place, cfg.run.seed)
-        sub = ExperienceSubmaps(m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera,
-                                place)
+        sub = ExperienceSubmaps(
+            m, m.taught_path(), cfg.experiences, cfg.localization.neighbour_vertices, m.camera, place
+        )
         digest = sub._vocabulary_digest()
         stored = [r for r in sub.trusted if m.derived(f"{WORDS_KEY}/{r}/{digest}") is not None]
-        assert set(stored) == {f.run for f in multi[:-1]}          # scored by the flights after them
+        assert set(stored) == {f.run for f in multi[:-1]}  # scored by the flights after them
         vid = int(sub.links.vertex_id[sub.links.run == multi[0].run][3])
         d = m.vertex(vid).frame.features.descriptors
         np.testing.assert_allclose(sub.vector(vid), place.vector(d), atol=1e-12)

@@ -46,7 +46,7 @@ def test_teach_frame_pose_after_a_success(xi_world, xi_lt, trunk):
 def test_prior_finds_the_trunk_and_the_path_is_owned():
     path = _path()
     chain = LocalizationChain(path, Config().localization, Config().smoothing, start_index=2)
-    assert chain.branch_id == -1                       # before the first success
+    assert chain.branch_id == -1  # before the first success
     chain.succeeded(int(IDS[2]), np.eye(4), 2, np.eye(4), np.eye(6) * 1e-6)
     # localized at taught vertex 2; a leaf 3 m further along is nearest to vertex 5
     T_w_leaf = inv_T(path.T_world_vertex[2]) @ path.T_world_vertex[5]
@@ -80,12 +80,12 @@ def test_off_the_route_beyond_either_end():
     last, first = N - 1, 0
     # 4 m beyond the last vertex along the path (camera z is the path direction here)
     ahead = np.eye(4)
-    ahead[2, 3] = -4.0                     # T_leaf_trunk: the trunk 4 m behind the leaf
+    ahead[2, 3] = -4.0  # T_leaf_trunk: the trunk 4 m behind the leaf
     assert chain.beyond_end_m(last, ahead) == pytest.approx(4.0, abs=0.1)
     behind = np.eye(4)
     behind[2, 3] = 4.0
     assert chain.beyond_end_m(first, behind) == pytest.approx(4.0, abs=0.1)
-    assert chain.beyond_end_m(N // 2, ahead) < 0          # inside the route
+    assert chain.beyond_end_m(N // 2, ahead) < 0  # inside the route
 
 
 @settings(max_examples=30, deadline=None)

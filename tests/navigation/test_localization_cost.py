@@ -54,8 +54,7 @@ def _tracking_flag(monkeypatch) -> dict[str, bool]:
     return flag
 
 
-def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kitti_clip, taught, tmp_path,
-                                                                          monkeypatch):
+def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kitti_clip, taught, tmp_path, monkeypatch):
     """Every leaf localized while tracking is matched by projecting the submap with the chain's prior (the broad
     all-against-all search never runs for it); on the kitti clip that finds at least as many inliers in all as the
     broad search on the same leaves, and never 3 % fewer on one."""
@@ -92,8 +91,9 @@ def test_a_tracked_leaf_is_matched_guided_and_keeps_the_broad_search_inliers(kit
 
 
 @pytest.mark.parametrize("check_every", [1000, 4])
-def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_check(kitti_clip, taught, tmp_path,
-                                                                                    monkeypatch, check_every):
+def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_check(
+    kitti_clip, taught, tmp_path, monkeypatch, check_every
+):
     """Place recognition is asked only while searching (the start, a loss) and, while tracking, once every
     ``localization.place_check_every`` leaves: a tracked leaf costs no place query of its own."""
     config = Config().replace("features", threads=1)
@@ -108,15 +108,15 @@ def test_place_recognition_is_not_queried_while_tracking_but_for_the_periodic_ch
             calls["tracking" if in_track["on"] else "searching"] += 1
             return real_scores(descriptors, also=also)
 
-        object.__setattr__(rp.place, "scores", scores)        # this repeat's index only
+        object.__setattr__(rp.place, "scores", scores)  # this repeat's index only
 
     locs = _repeat(kitti_clip, taught, tmp_path, config, monkeypatch, record)
     localized = sum(loc.success for loc in locs)
     assert localized >= len(locs) - 1
-    assert calls["searching"] >= 1                           # the first leaf is found by place recognition
+    assert calls["searching"] >= 1  # the first leaf is found by place recognition
     if check_every > len(locs):
-        assert calls["tracking"] == 0                        # no periodic check due: no query while tracking
-    else:                                                    # the periodic check (counted from the last check)
+        assert calls["tracking"] == 0  # no periodic check due: no query while tracking
+    else:  # the periodic check (counted from the last check)
         assert 1 <= calls["tracking"] <= -(-localized // (check_every - 1))
 
 

@@ -27,8 +27,11 @@ RATE_AFTER = 0.90
 def maps(kitti_clip, kitti_ramp_clip, tmp_path_factory):
     root = tmp_path_factory.mktemp("integrity")
     out = {}
-    for name, clip, frames in (("kitti06", kitti_clip, "0::2"), ("ramp", kitti_ramp_clip, "0::2"),
-                               ("kitti06_first_half", kitti_clip, "0:26:2")):
+    for name, clip, frames in (
+        ("kitti06", kitti_clip, "0::2"),
+        ("ramp", kitti_ramp_clip, "0::2"),
+        ("kitti06_first_half", kitti_clip, "0:26:2"),
+    ):
         out[name] = root / f"{name}.vtrmap"
         teach_command(clip, out[name], frames, Config())
     return out
@@ -58,7 +61,7 @@ def test_started_part_way_along_the_route(maps, kitti_clip, kitti_ramp_clip, tmp
     clip = kitti_clip if clip_name == "kitti06" else kitti_ramp_clip
     _, rows, integrity = _repeat(maps[clip_name], clip, clip, f"{start}::2", tmp_path)
     _judge(integrity)
-    assert rows[0]["status"] == "unconfirmed"                 # a place candidate until the next keyframe agrees
+    assert rows[0]["status"] == "unconfirmed"  # a place candidate until the next keyframe agrees
 
 
 @pytest.mark.parametrize("clip_name", ["kitti06", "ramp"])
@@ -69,7 +72,7 @@ def test_flown_backward(maps, kitti_clip, kitti_ramp_clip, tmp_path, clip_name):
     _, rows, integrity = _repeat(maps[clip_name], clip, reversed_clip, "1::2", tmp_path)
     _judge(integrity)
     localized = [r for r in rows if r["status"] == "localized"]
-    assert all(r["direction"] == "-1" for r in localized)     # travelling against the taught direction
+    assert all(r["direction"] == "-1" for r in localized)  # travelling against the taught direction
 
 
 @pytest.mark.parametrize("clip_name, gap", [("kitti06", (20, 30)), ("ramp", (10, 15))])
@@ -88,8 +91,8 @@ def test_a_repeat_longer_than_the_teach_is_off_the_route_past_its_end(maps, kitt
     status = [r["status"] for r in rows]
     assert "off_route" in status
     last_on = max(i for i, s in enumerate(status) if s == "localized")
-    assert all(s != "localized" for s in status[last_on + 1:])
-    assert status[-1] == "off_route"                          # said so, to the end
+    assert all(s != "localized" for s in status[last_on + 1 :])
+    assert status[-1] == "off_route"  # said so, to the end
     assert summary.localized < summary.vertices
 
 

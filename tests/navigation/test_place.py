@@ -86,7 +86,7 @@ def test_the_route_index_is_stored_at_teach_and_rebuilt_when_missing_or_damaged(
     with Map.open(path, "a") as m, pytest.warns(RuntimeWarning, match="it is damaged; rebuilt"):
         rebuilt = route_place_index(m, Config().place)
         np.testing.assert_array_equal(rebuilt.word, reference.word)
-        assert PlaceIndex.from_bytes(m.derived(key)).indptr.tolist() == reference.indptr.tolist()   # stored again
+        assert PlaceIndex.from_bytes(m.derived(key)).indptr.tolist() == reference.indptr.tolist()  # stored again
 
 
 def test_an_index_copied_from_another_map_of_the_same_length_is_rebuilt_with_a_warning(kitti_clip, tmp_path):
@@ -105,18 +105,18 @@ def test_an_index_copied_from_another_map_of_the_same_length_is_rebuilt_with_a_w
         n = len(m.taught_path())
     with Map.open(other) as m:
         foreign = m.derived(place_key(m.reference_run()))
-        assert len(PlaceIndex.from_bytes(foreign)) == n          # same length: a length check cannot tell
+        assert len(PlaceIndex.from_bytes(foreign)) == n  # same length: a length check cannot tell
     with Map.open(ours, "a") as m:
         m.put_derived(key, foreign)
     told: list[str] = []
     with Map.open(ours, "a") as m:
         assert route_place_index(m, Config().place, warn=told.append).digest == reference.digest
         assert len(told) == 1 and "does not match the taught vertices" in told[0] and "rebuilt" in told[0]
-        np.testing.assert_array_equal(PlaceIndex.from_bytes(m.derived(key)).word, reference.word)   # stored again
+        np.testing.assert_array_equal(PlaceIndex.from_bytes(m.derived(key)).word, reference.word)  # stored again
     told.clear()
     with Map.open(ours) as m:
         route_place_index(m, Config().place, warn=told.append)
-    assert told == []                                             # the stored one matches now
+    assert told == []  # the stored one matches now
 
 
 def test_map_check_names_a_foreign_place_index_and_repair_rebuilds_it(kitti_clip, tmp_path):
@@ -149,7 +149,7 @@ def test_map_check_names_a_foreign_place_index_and_repair_rebuilds_it(kitti_clip
     fixed = runner.invoke(main, ["map", "check", str(ours), "--repair"])
     assert fixed.exit_code == 0 and "rebuilt" in fixed.output, fixed.output
     with Map.open(ours) as m:
-        assert m.derived(key) == reference                     # the same index the teach stored
+        assert m.derived(key) == reference  # the same index the teach stored
     assert "place index matches" in runner.invoke(main, ["map", "check", str(ours)]).output
 
 
@@ -166,10 +166,11 @@ def _route_views(pool: np.ndarray, n: int, seed: int = 0):
     def view(x: float, salt: int) -> np.ndarray:
         r = np.random.default_rng([seed, salt, int(1000 * x)])
         first = max(int(round((x - 9) * 100)), 0)
-        d = world[first:first + 1000].copy()
+        d = world[first : first + 1000].copy()
         noise = np.zeros((len(d), 256), np.uint8)
         noise[np.arange(len(d))[:, None], r.integers(0, 256, (len(d), 12))] = 1
         return d ^ np.packbits(noise, axis=1)
+
     return view
 
 
@@ -191,16 +192,16 @@ def test_a_long_route_is_queried_in_two_passes_and_finds_the_place(long_route):
 
     index, view = long_route
     exact = dataclasses.replace(index, shortlist=len(index))
-    for x in np.arange(12.5, 596, 37.0):           # (the first 10 vertices all see the same landmarks)
+    for x in np.arange(12.5, 596, 37.0):  # (the first 10 vertices all see the same landmarks)
         d = view(x, 1)
         s, all_s = index.scores(d), exact.scores(d)
         rows = np.flatnonzero(s)
         assert 0 < len(rows) <= index.shortlist
-        np.testing.assert_allclose(s[rows], all_s[rows], rtol=1e-9, atol=1e-12)   # the shortlist scored exactly
+        np.testing.assert_allclose(s[rows], all_s[rows], rtol=1e-9, atol=1e-12)  # the shortlist scored exactly
         best = index.query(d, 3).indices
         assert abs(int(best[0]) - x) <= 1.5, (x, best)
         assert best[0] == exact.query(d, 3).indices[0]
-        far = slice(int(x + 200) % 600, int(x + 200) % 600 + 20)   # a window elsewhere: scored on request
+        far = slice(int(x + 200) % 600, int(x + 200) % 600 + 20)  # a window elsewhere: scored on request
         np.testing.assert_allclose(index.scores(d, also=far)[far], all_s[far], rtol=1e-9, atol=1e-12)
 
 

@@ -37,8 +37,12 @@ def _copy(path, tmp_path, name="route.vtrmap"):
 
 def _key(step):
     loc = step.localization
-    return (step.vertex_id, step.T_teach_frame.tobytes(), step.odometry.T_world_frame.tobytes(),
-            None if loc is None else (loc.trunk_id, loc.inliers, loc.T_leaf_trunk.tobytes(), loc.covariance.tobytes()))
+    return (
+        step.vertex_id,
+        step.T_teach_frame.tobytes(),
+        step.odometry.T_world_frame.tobytes(),
+        None if loc is None else (loc.trunk_id, loc.inliers, loc.T_leaf_trunk.tobytes(), loc.covariance.tobytes()),
+    )
 
 
 def _repeat_vertices_whole(m: Map, run: int) -> list[int]:
@@ -61,7 +65,7 @@ def test_steps_on_two_threads_equal_process_frame(kitti_clip, taught, tmp_path):
             rp = Repeat(m, _config(threads), "test")
             frames = rp.odometry.stereo.frames(src.iter_frames(FRAMES))
             if threads == 1:
-                steps = [rp.process_frame(f) for f in frames]          # the one-frame-at-a-time API
+                steps = [rp.process_frame(f) for f in frames]  # the one-frame-at-a-time API
             else:
                 steps = list(rp.steps(frames))
             keys[threads] = [_key(s) for s in steps]
@@ -86,7 +90,7 @@ def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_pat
     def add_leaf(self, *args, **kwargs):
         calls.append(threading.current_thread().name)
         if len(calls) == 4:
-            time.sleep(0.5)           # the odometry runs ahead meanwhile: the next vertices wait in the queue
+            time.sleep(0.5)  # the odometry runs ahead meanwhile: the next vertices wait in the queue
             raise MapError("disk full (injected)")
         return real(self, *args, **kwargs)
 
@@ -99,13 +103,13 @@ def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_pat
                 got.append(step.vertex_id)
                 if step.localization is not None and step.localization.success:
                     localized.append(step.vertex_id)
-        assert len(got) == 3 and len(calls) == 4           # nothing attempted after the failure
-        assert all(name.startswith("vtr-map-write") for name in calls)     # committed off the frame's thread
+        assert len(got) == 3 and len(calls) == 4  # nothing attempted after the failure
+        assert all(name.startswith("vtr-map-write") for name in calls)  # committed off the frame's thread
         assert _repeat_vertices_whole(m, rp.run) == got
         # the first leaf is an unconfirmed place candidate, the next ones are localized
         assert localized == got[1:]
         assert [e.from_id for e in m.edges(rp.run, "spatial")] == localized
-        assert [r.leaf_id for r in m.localization_records(rp.run)] == got     # one record per vertex, no more
+        assert [r.leaf_id for r in m.localization_records(rp.run)] == got  # one record per vertex, no more
     assert not _threads("vtr-localize") and not _threads("vtr-map-write")
 
 
@@ -114,12 +118,12 @@ def test_closing_the_stream_early_leaves_whole_vertices(kitti_clip, taught, tmp_
         rp = Repeat(m, _config(2), "test")
         stream = rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES)))
         got = [next(stream).vertex_id for _ in range(3)]
-        stream.close()                               # as an error or Ctrl-C in the consumer does
+        stream.close()  # as an error or Ctrl-C in the consumer does
         assert not _threads("vtr-localize") and not _threads("vtr-map-write")
         ids = _repeat_vertices_whole(m, rp.run)
-        assert ids[:3] == got and len(ids) <= 3 + 2 + 1     # at most the look-ahead beyond the last step
+        assert ids[:3] == got and len(ids) <= 3 + 2 + 1  # at most the look-ahead beyond the last step
         spatial = [e.from_id for e in m.edges(rp.run, "spatial")]
-        assert spatial == ids[1:]                    # every written vertex localized but the first (unconfirmed)
+        assert spatial == ids[1:]  # every written vertex localized but the first (unconfirmed)
     assert np.all(np.diff(got) == 1)
 
 
@@ -139,7 +143,7 @@ def test_ctrl_c_anywhere_leaves_one_report_row_per_vertex(kitti_clip, taught, tm
     def localize(self, *args, **kwargs):
         calls.append(1)
         if where == "localization" and len(calls) == 5:
-            signal.raise_signal(signal.SIGINT)   # handled by Python at the next bytecode: inside the step
+            signal.raise_signal(signal.SIGINT)  # handled by Python at the next bytecode: inside the step
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(Repeat, "_localize", localize)
@@ -153,9 +157,9 @@ def test_ctrl_c_anywhere_leaves_one_report_row_per_vertex(kitti_clip, taught, tm
 
     with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path), "a") as m:
         rp = Repeat(m, _config(threads), "test")
-        with pytest.raises(BaseException) as err:    # KeyboardInterrupt, or what it interrupted (vtr's CLI: both)
+        with pytest.raises(BaseException) as err:  # KeyboardInterrupt, or what it interrupted (vtr's CLI: both)
             run_repeat(rp, rp.odometry.stereo.frames(src.iter_frames(FRAMES)), on_step=on_step)
         assert interruption(err.value) is not None, err.value
         ids = _repeat_vertices_whole(m, rp.run)
-    assert len(rows) >= 5 and rows == ids          # each written vertex reported once, in order
+    assert len(rows) >= 5 and rows == ids  # each written vertex reported once, in order
     assert not _threads("vtr-localize")

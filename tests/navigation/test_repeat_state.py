@@ -26,10 +26,10 @@ from vtr.navigation.repeat import RepeatStep
 from vtr.navigation.repeat_state import RepeatStateEstimator, output_times
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
-SECTIONS = (Config().smoothing, Config().localization)   # RepeatStateEstimator.for_route's defaults
+SECTIONS = (Config().smoothing, Config().localization)  # RepeatStateEstimator.for_route's defaults
 
 RATE_HZ = 50.0
-MAX_VERTEX_OFFSET_M = 0.08          # smoothed position at a localized vertex vs the chain's pose
+MAX_VERTEX_OFFSET_M = 0.08  # smoothed position at a localized vertex vs the chain's pose
 MAX_MEDIAN_VERTEX_OFFSET_M = 0.03
 SPEED_TOLERANCE = 0.05
 MAX_MEDIAN_LATERAL_M = 0.1
@@ -70,11 +70,13 @@ def test_state_csv_layout(kitti_run):
     with Map.open(d / "route.vtrmap") as m:
         ids = m.taught_path().ids
     assert set(s.trunk_id) <= set(ids.tolist())
-    assert np.all(np.diff(s.along_track) > 0)        # the car drives forward along the taught path
+    assert np.all(np.diff(s.along_track) > 0)  # the car drives forward along the taught path
     state = json.loads((out / "run.json").read_text())["summary"]["state"]
     assert state["rows"] == len(s) and state["rate_hz"] == RATE_HZ
-    print(f"smoother + state output: {state['smoother_ms_per_frame']:.2f} ms/frame "
-          f"(repeat {1000 * summary.seconds / summary.frames:.0f} ms/frame)")
+    print(
+        f"smoother + state output: {state['smoother_ms_per_frame']:.2f} ms/frame "
+        f"(repeat {1000 * summary.seconds / summary.frames:.0f} ms/frame)"
+    )
 
 
 def test_state_matches_localized_poses(kitti_run):
@@ -101,8 +103,10 @@ def test_state_matches_localized_poses(kitti_run):
         p_state = np.array([np.interp(t, s.t_ns[rows], s.position[rows, i]) for i in range(3)])
         offsets.append(np.linalg.norm(p_state - p_chain))
     assert len(offsets) >= 0.9 * len(loc)
-    print(f"smoothed vs chain at localized vertices: median {1000 * np.median(offsets):.1f} mm, "
-          f"max {1000 * np.max(offsets):.1f} mm")
+    print(
+        f"smoothed vs chain at localized vertices: median {1000 * np.median(offsets):.1f} mm, "
+        f"max {1000 * np.max(offsets):.1f} mm"
+    )
     assert np.max(offsets) < MAX_VERTEX_OFFSET_M
     assert np.median(offsets) < MAX_MEDIAN_VERTEX_OFFSET_M
 
@@ -114,13 +118,15 @@ def test_speed_and_path_error(kitti_run, kitti_clip):
     times = np.loadtxt(kitti_clip / "times.txt")[1:30:2]
     gt_speed = np.median(np.linalg.norm(np.diff(gt, axis=0), axis=1) / np.diff(times))
     speed = np.linalg.norm(s.velocity, axis=1)
-    print(f"speed: state median {np.median(speed):.3f} m/s, ground truth {gt_speed:.3f} m/s; lateral error median "
-          f"{1000 * np.nanmedian(np.abs(s.lateral)):.1f} mm, vertical {1000 * np.nanmedian(np.abs(s.vertical)):.1f} mm")
+    print(
+        f"speed: state median {np.median(speed):.3f} m/s, ground truth {gt_speed:.3f} m/s; lateral error median "
+        f"{1000 * np.nanmedian(np.abs(s.lateral)):.1f} mm, vertical {1000 * np.nanmedian(np.abs(s.vertical)):.1f} mm"
+    )
     assert abs(np.median(speed) / gt_speed - 1) < SPEED_TOLERANCE
     assert np.all(np.abs(speed / gt_speed - 1) < 2 * SPEED_TOLERANCE)
     assert np.nanmedian(np.abs(s.lateral)) < MAX_MEDIAN_LATERAL_M
     assert np.nanmedian(np.abs(s.vertical)) < MAX_MEDIAN_LATERAL_M
-    assert np.all(np.abs(s.velocity[:, 0]) > 0.95 * speed)    # along o's x: the trunk's heading
+    assert np.all(np.abs(s.velocity[:, 0]) > 0.95 * speed)  # along o's x: the trunk's heading
     assert np.all(np.abs(s.yaw) < 0.05)
 
 
@@ -137,7 +143,7 @@ def test_bad_rate_is_one_line_error(kitti_run, kitti_clip, tmp_path, rate):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("vtr: error:") and "rate" in lines[0]
     with Map.open(path) as m:
-        assert [r.kind for r in m.runs()] == runs      # nothing appended
+        assert [r.kind for r in m.runs()] == runs  # nothing appended
     with pytest.raises(ConfigError, match="rate"):
         repeat_command(kitti_clip, path, tmp_path / "o", "1:5:2", Config(), rate_hz=float("nan"))
 
@@ -152,15 +158,16 @@ def test_output_times():
 
 def _chain(ids: np.ndarray, T_priv: np.ndarray) -> LocalizationChain:
     """A chain on a taught path of these ids and poses (times one second apart)."""
-    return LocalizationChain(TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config().localization,
-                             Config().smoothing)
+    return LocalizationChain(
+        TaughtPath(ids, T_priv, np.arange(len(ids)) * 10**9), Config().localization, Config().smoothing
+    )
 
 
 def test_level_camera_frame_o():
     """Identity T_vehicle_sensor: o has z up = -y of the first camera, x along the trunk camera's z."""
     yaw = np.radians(30.0)
     c, s = np.cos(yaw), np.sin(yaw)
-    R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])          # turn about the camera's y (vertical) axis
+    R_turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # turn about the camera's y (vertical) axis
     T_priv = np.stack([np.eye(4), make_T(R_turn, [1.0, 0.0, 2.0])])
     state_estimator = RepeatStateEstimator.for_route(_chain(np.array([0, 1]), T_priv).path, *SECTIONS, np.eye(4))
     for k in range(2):
@@ -172,9 +179,9 @@ def test_level_camera_frame_o():
 
 # ------------------------------------------------------------------------------ synthetic chains
 
-SPEED = 10.0            # m/s along the camera's z (forward)
-DT_NS = 50_000_000      # one repeat vertex every 0.05 s
-OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])   # repeat world in the teach world: 0.3 m right, 0.5 m ahead
+SPEED = 10.0  # m/s along the camera's z (forward)
+DT_NS = 50_000_000  # one repeat vertex every 0.05 s
+OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])  # repeat world in the teach world: 0.3 m right, 0.5 m ahead
 
 
 def _synthetic_steps(n: int, failed: set[int]):
@@ -188,17 +195,36 @@ def _synthetic_steps(n: int, failed: set[int]):
         trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
         kf = Keyframe(j, None, T_w, cov, 100)
-        odo = OdometryResult(t_ns=t, index=j, kind=FrameKind.CREATE_VERTEX, matches=100, inliers=100,
-                             keyframe_id=max(j - 1, 0), T_keyframe_frame=np.eye(4), T_world_frame=T_w,
-                             covariance=cov if j else np.zeros((6, 6)), new_keyframe=kf)
+        odo = OdometryResult(
+            t_ns=t,
+            index=j,
+            kind=FrameKind.CREATE_VERTEX,
+            matches=100,
+            inliers=100,
+            keyframe_id=max(j - 1, 0),
+            T_keyframe_frame=np.eye(4),
+            T_world_frame=T_w,
+            covariance=cov if j else np.zeros((6, 6)),
+            new_keyframe=kf,
+        )
         ok = j not in failed
         T_l_t = inv_T(T_teach) @ T_priv[trunk]
-        loc = Localization(t_ns=t, leaf_id=1000 + j, trunk_id=trunk, twig_id=-1, branch_id=-1, success=ok, matches=50,
-                           inliers=50 if ok else 0, T_leaf_trunk=T_l_t,
-                           covariance=np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan),
-                           consecutive_failures=0, distance_since_success_m=0.0)
+        loc = Localization(
+            t_ns=t,
+            leaf_id=1000 + j,
+            trunk_id=trunk,
+            twig_id=-1,
+            branch_id=-1,
+            success=ok,
+            matches=50,
+            inliers=50 if ok else 0,
+            T_leaf_trunk=T_l_t,
+            covariance=np.diag([1e-6] * 3 + [1e-4] * 3) if ok else np.full((6, 6), np.nan),
+            consecutive_failures=0,
+            distance_since_success_m=0.0,
+        )
         ever = not failed.issuperset(range(j + 1))
-        T_chain = T_teach if ever else T_w     # the chain's assumption until then
+        T_chain = T_teach if ever else T_w  # the chain's assumption until then
         # the chain's verdict: localized from the first success on (failures later are fewer than lost_after)
         steps.append(RepeatStep(odo, loc, 1000 + j, T_chain, localized=ever, direction=1 if ever else 0))
     return np.arange(n), T_priv, steps
@@ -219,7 +245,7 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
     first = s.t_ns >= 3 * DT_NS
     assert np.all(s.localized == first) and set(s.status[~first]) == {"unknown"}
     assert np.all(np.isnan(s.lateral[~first]))
-    assert np.allclose(s.lateral[first], -0.3, atol=1e-3)      # camera 0.3 m right of the taught path
+    assert np.allclose(s.lateral[first], -0.3, atol=1e-3)  # camera 0.3 m right of the taught path
     assert np.allclose(s.vertical[first], 0.0, atol=1e-3)
     assert np.allclose(np.linalg.norm(s.velocity, axis=1), SPEED, rtol=1e-3)
     assert np.allclose(s.along_track, 0.5 + SPEED * (s.t_ns - s.t_ns[0]) * 1e-9, atol=1e-3)

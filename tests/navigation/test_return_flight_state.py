@@ -28,7 +28,7 @@ from vtr.sim import synthetic as syn
 from vtr.state.controller import StateStatus
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
-SECTIONS = (Config().smoothing, Config().localization)   # RepeatStateEstimator.for_route's defaults
+SECTIONS = (Config().smoothing, Config().localization)  # RepeatStateEstimator.for_route's defaults
 
 # the issue's bounds (what a controller needs of the return flight)
 MIN_DIRECTION_RIGHT = 0.95
@@ -37,9 +37,9 @@ MAX_MEDIAN_VERTICAL_M = 0.10
 MAX_P95_VERTICAL_M = 0.30
 MAX_MEDIAN_VZ_MPS = 0.20
 
-MAX_STRAIGHT_ACCEL_MPS2 = 0.3       # constant speed on a straight: truth 0
-MAX_ARC_ACCEL_ERROR_MPS2 = 0.3      # on the arc: v^2 / r
-MAX_ACCEL_STEP_MPS2 = 0.2           # continuous: no jump at a knot
+MAX_STRAIGHT_ACCEL_MPS2 = 0.3  # constant speed on a straight: truth 0
+MAX_ARC_ACCEL_ERROR_MPS2 = 0.3  # on the arc: v^2 / r
+MAX_ACCEL_STEP_MPS2 = 0.2  # continuous: no jump at a knot
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +77,7 @@ def test_nothing_localized_past_the_taught_start(flights):
 
 # ---------------------------------------------------------------------------------------------- the gravity frame
 
+
 @settings(max_examples=50, deadline=None)
 @given(pitch=st.floats(-1.3, 1.3), heading=st.floats(-math.pi, math.pi))
 def test_a_camera_on_a_level_vehicle_from_its_up(pitch, heading):
@@ -101,7 +102,7 @@ def test_the_map_keeps_its_gravity(tmp_path):
     up = np.array([0.0, -math.cos(math.radians(50)), -math.sin(math.radians(50))])
     with Map.create(tmp_path / "a.vtrmap", _camera(), gravity_up=2.0 * up) as m:
         assert np.allclose(m.gravity_up, up)
-    with Map.open(tmp_path / "a.vtrmap") as m:        # reopened: stored, unit length
+    with Map.open(tmp_path / "a.vtrmap") as m:  # reopened: stored, unit length
         assert np.allclose(m.gravity_up, up)
     with Map.create(tmp_path / "b.vtrmap", _camera()) as m:
         assert m.gravity_up is None
@@ -127,14 +128,16 @@ def test_a_damaged_gravity_is_a_map_error(tmp_path):
 
 def test_teach_up_is_kept_and_shown(kitti_clip, tmp_path):
     path = tmp_path / "route.vtrmap"
-    r = CliRunner().invoke(main, ["teach", str(kitti_clip), "--map", str(path), "--frames", "0:6:2",
-                                  "--up", "0,-0.6428,-0.766"])
+    r = CliRunner().invoke(
+        main, ["teach", str(kitti_clip), "--map", str(path), "--frames", "0:6:2", "--up", "0,-0.6428,-0.766"]
+    )
     assert r.exit_code == 0, r.output
     assert "gravity: up 0.0000,-0.6428,-0.7660" in r.output
     info = CliRunner().invoke(main, ["map", "info", str(path)])
     assert "gravity: up 0.0000,-0.6428,-0.7660 in the first teach camera" in info.output
-    bad = CliRunner().invoke(main, ["teach", str(kitti_clip), "--map", str(tmp_path / "x.vtrmap"),
-                                    "--frames", "0:6:2", "--up", "0,0,0"])
+    bad = CliRunner().invoke(
+        main, ["teach", str(kitti_clip), "--map", str(tmp_path / "x.vtrmap"), "--frames", "0:6:2", "--up", "0,0,0"]
+    )
     assert bad.exit_code == 1 and "--up" in bad.output and "zero length" in bad.output
     assert len(bad.output.strip().splitlines()) == 1 and not (tmp_path / "x.vtrmap").exists()
     plain = tmp_path / "plain.vtrmap"
@@ -197,25 +200,42 @@ def test_an_explicit_up_overrides_the_map_with_a_warning(kitti_clip, tmp_path):
     path = tmp_path / "route.vtrmap"
     teach_command(kitti_clip, path, "0:12:2", Config(), gravity_up=np.array(LEVEL_CAMERA_UP))
     said: list[str] = []
-    repeat_command(kitti_clip, path, tmp_path / "o", "1:12:2", Config(), gravity_up=np.array([0.0, -0.6428, -0.766]),
-                   warn=said.append, read_only_map=True)
+    repeat_command(
+        kitti_clip,
+        path,
+        tmp_path / "o",
+        "1:12:2",
+        Config(),
+        gravity_up=np.array([0.0, -0.6428, -0.766]),
+        warn=said.append,
+        read_only_map=True,
+    )
     assert len(said) == 1 and "differs from the map's gravity" in said[0] and "50.0 deg" in said[0]
 
 
 # ---------------------------------------------------------------------------------------------- status and direction
 
-DT_NS = 50_000_000        # a vertex every 0.05 s
-SPEED = 10.0              # m/s
+DT_NS = 50_000_000  # a vertex every 0.05 s
+SPEED = 10.0  # m/s
 
 
 def _path(n: int) -> TaughtPath:
     """A straight taught path along the camera z axis, a vertex every metre (level camera: z forward)."""
-    return TaughtPath(np.arange(n), np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)]),
-                      np.arange(n) * 10**9)
+    return TaughtPath(
+        np.arange(n), np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)]), np.arange(n) * 10**9
+    )
 
 
-def _steps(path: TaughtPath, s_m: np.ndarray, t_ns: np.ndarray, *, right_m: float, heading_back: bool = False,
-           localized=None, direction: int = 1) -> list[RepeatStep]:
+def _steps(
+    path: TaughtPath,
+    s_m: np.ndarray,
+    t_ns: np.ndarray,
+    *,
+    right_m: float,
+    heading_back: bool = False,
+    localized=None,
+    direction: int = 1,
+) -> list[RepeatStep]:
     """Repeat steps at arc lengths ``s_m`` and times ``t_ns`` on :func:`_path`, ``right_m`` right of the taught
     path (camera x), every vertex localized (``localized``: the chain's verdict per step, default all)."""
     steps = []
@@ -223,18 +243,37 @@ def _steps(path: TaughtPath, s_m: np.ndarray, t_ns: np.ndarray, *, right_m: floa
     R = np.diag([-1.0, 1.0, -1.0]) if heading_back else np.eye(3)
     for j, (s, t) in enumerate(zip(s_m, t_ns, strict=True)):
         T_teach = make_T(R, [right_m, 0.0, float(s)])
-        T_w = T_teach                       # the repeat world is the teach world here
+        T_w = T_teach  # the repeat world is the teach world here
         trunk = int(np.clip(np.round(s), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
         kf = Keyframe(j, None, T_w, cov, 100)
-        odo = OdometryResult(t_ns=int(t), index=j, kind=FrameKind.CREATE_VERTEX, matches=100, inliers=100,
-                             keyframe_id=max(j - 1, 0), T_keyframe_frame=np.eye(4), T_world_frame=T_w,
-                             covariance=cov if j else np.zeros((6, 6)), new_keyframe=kf)
+        odo = OdometryResult(
+            t_ns=int(t),
+            index=j,
+            kind=FrameKind.CREATE_VERTEX,
+            matches=100,
+            inliers=100,
+            keyframe_id=max(j - 1, 0),
+            T_keyframe_frame=np.eye(4),
+            T_world_frame=T_w,
+            covariance=cov if j else np.zeros((6, 6)),
+            new_keyframe=kf,
+        )
         ok = True if localized is None else bool(localized[j])
-        loc = Localization(t_ns=int(t), leaf_id=1000 + j, trunk_id=trunk, twig_id=-1, branch_id=-1, success=ok,
-                           matches=50, inliers=50, T_leaf_trunk=inv_T(T_teach) @ path.T_world_vertex[trunk],
-                           covariance=np.diag([1e-6] * 3 + [1e-4] * 3), consecutive_failures=0,
-                           distance_since_success_m=0.0)
+        loc = Localization(
+            t_ns=int(t),
+            leaf_id=1000 + j,
+            trunk_id=trunk,
+            twig_id=-1,
+            branch_id=-1,
+            success=ok,
+            matches=50,
+            inliers=50,
+            T_leaf_trunk=inv_T(T_teach) @ path.T_world_vertex[trunk],
+            covariance=np.diag([1e-6] * 3 + [1e-4] * 3),
+            consecutive_failures=0,
+            distance_since_success_m=0.0,
+        )
         steps.append(RepeatStep(odo, loc, 1000 + j, T_teach, localized=ok, direction=direction))
     return steps
 
@@ -255,11 +294,12 @@ def test_backward_lateral_is_left_of_travel():
     table = est.output(50.0)
     assert table.direction is not None and np.all(table.direction == -1)
     assert np.allclose(table.lateral, 0.3, atol=1e-3)
-    assert np.allclose(table.along_track, 25.0 - SPEED * table.t_ns * 1e-9, atol=1e-3)   # the taught arc length
+    assert np.allclose(table.along_track, 25.0 - SPEED * table.t_ns * 1e-9, atol=1e-3)  # the taught arc length
     cs = est.controller_state_at(int(table.t_ns[10]))
     assert cs.direction == -1 and cs.status == StateStatus.LOCALIZED and cs.localized
-    fwd = _estimator(path, _steps(path, 5.0 + SPEED * np.arange(30) * DT_NS * 1e-9, np.arange(30) * DT_NS,
-                                  right_m=0.3)).output(50.0)
+    fwd = _estimator(
+        path, _steps(path, 5.0 + SPEED * np.arange(30) * DT_NS * 1e-9, np.arange(30) * DT_NS, right_m=0.3)
+    ).output(50.0)
     assert np.allclose(fwd.lateral, -0.3, atol=1e-3)
 
 
@@ -272,7 +312,7 @@ def test_a_pause_is_not_localized():
     table = est.states(np.array([5 * DT_NS, 30 * 10**9, 60 * 10**9 + 5 * DT_NS]))
     assert table.status is not None and table.status.tolist() == ["localized", "unknown", "localized"]
     assert np.isnan(table.lateral[1]) and not table.localized[1]
-    assert est.pauses_s == [pytest.approx(60.0 - 19 * DT_NS * 1e-9)]      # a new smoother segment after it
+    assert est.pauses_s == [pytest.approx(60.0 - 19 * DT_NS * 1e-9)]  # a new smoother segment after it
     rows = est.output(50.0)
     assert rows.status is not None and not rows.localized[(rows.t_ns > 2 * 10**9) & (rows.t_ns < 59 * 10**9)].any()
 
@@ -290,8 +330,8 @@ def test_a_pause_longer_than_any_prior_can_bridge():
 
 def test_past_the_end_is_off_route():
     """A repeat that flies on 8 m past the taught end: localized on the route, off_route beyond 3 m past the end."""
-    path = _path(10)                          # ends at 9 m
-    s = 4.0 + SPEED * np.arange(26) * DT_NS * 1e-9    # 4 m .. 16.5 m
+    path = _path(10)  # ends at 9 m
+    s = 4.0 + SPEED * np.arange(26) * DT_NS * 1e-9  # 4 m .. 16.5 m
     est = _estimator(path, _steps(path, s, np.arange(26) * DT_NS, right_m=0.0))
     table = est.output(50.0)
     s_rows = 4.0 + SPEED * table.t_ns * 1e-9
@@ -316,7 +356,7 @@ def test_before_the_first_localization_a_typed_error():
         est.controller_state_at(0)
     for step in _steps(path, np.arange(3) * 0.5, np.arange(3) * DT_NS, right_m=0.0, localized=[False] * 3):
         est.add(step)
-    with pytest.raises(NotLocalizedError) as err:       # the vertices wait for a localization: no state yet
+    with pytest.raises(NotLocalizedError) as err:  # the vertices wait for a localization: no state yet
         est.controller_state_at(DT_NS)
     assert isinstance(err.value, EstimationError) and isinstance(err.value, VtrError)
     assert est.states(np.zeros(0, np.int64)).status is not None
@@ -333,8 +373,9 @@ def test_the_state_in_the_map_gravity_frame():
     # level first camera: g has x = camera z, y = -camera x, z = -camera y, so the vertex at 7 m is at (7, 0, 0)
     assert np.allclose(p_g, [7.0, 0.0, 0.0], atol=1e-3) and abs(psi_g) < 1e-6
     with pytest.raises(EstimationError):
-        type(cs)(t_ns=0, position=np.zeros(3), velocity=np.zeros(3), acceleration=np.zeros(3), yaw=0.0,
-                 T_o_a=np.eye(4)).in_map_gravity_frame()
+        type(cs)(
+            t_ns=0, position=np.zeros(3), velocity=np.zeros(3), acceleration=np.zeros(3), yaw=0.0, T_o_a=np.eye(4)
+        ).in_map_gravity_frame()
 
 
 def test_the_chain_decides_the_direction_with_its_first_candidate():
@@ -344,7 +385,7 @@ def test_the_chain_decides_the_direction_with_its_first_candidate():
     path = _path(20)
     chain = LocalizationChain(path, Config().localization, Config().smoothing)
     assert chain.state.direction == 0
-    for j, s in enumerate((12.0, 11.0)):          # flown backward, camera as taught
+    for j, s in enumerate((12.0, 11.0)):  # flown backward, camera as taught
         T = make_T(np.eye(3), [0.0, 0.0, s])
         cand = Candidate(j, T, int(s), inv_T(T) @ path.T_world_vertex[int(s)], np.eye(6) * 1e-4)
         chain.failed(T, int(s), lost=True, candidate=cand)

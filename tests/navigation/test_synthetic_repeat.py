@@ -16,7 +16,7 @@ from vtr.sim import synthetic as syn
 
 LENGTH_M = 16.0
 RAMP_M = 5.0
-OFFSET_TOLERANCE = 0.05       # estimated lateral offset within 5 % of the true one
+OFFSET_TOLERANCE = 0.05  # estimated lateral offset within 5 % of the true one
 ZERO_OFFSET_TOLERANCE_M = 0.05
 
 
@@ -38,8 +38,7 @@ def taught(tmp_path_factory):
 def test_repeat_recovers_lateral_offset(taught, lateral):
     root, scene, cam, T_teach = taught
     T_rep = syn.drifting_aerial_route(LENGTH_M - 1.0, 1.0, lateral, 0.0, RAMP_M, start_offset_m=0.5)
-    rep_dir = syn.write_sequence(root / f"rep{lateral:g}", scene, cam, T_rep, syn.route_times(T_rep, 4.0),
-                                 noise_seed=1)
+    rep_dir = syn.write_sequence(root / f"rep{lateral:g}", scene, cam, T_rep, syn.route_times(T_rep, 4.0), noise_seed=1)
     path = root / f"map{lateral:g}.vtrmap"
     path.write_bytes((root / "route.vtrmap").read_bytes())
     with open_source(rep_dir) as src, Map.open(path, "a") as m:
@@ -53,7 +52,7 @@ def test_repeat_recovers_lateral_offset(taught, lateral):
     for loc in settled:
         k = int(np.searchsorted(teach_t_ns, teach_t[loc.trunk_id]))
         p_world = (T_teach[k] @ inv_T(loc.T_leaf_trunk))[:3, 3]
-        est.append(p_world[1] - T_teach[0, 1, 3])        # route heads along +x: left is +y
+        est.append(p_world[1] - T_teach[0, 1, 3])  # route heads along +x: left is +y
     est = np.array(est)
     tol = max(OFFSET_TOLERANCE * lateral, ZERO_OFFSET_TOLERANCE_M)
     assert np.all(np.abs(est - lateral) <= tol), est
@@ -84,8 +83,9 @@ def _repeat_integrity(taught, name: str, scene, T_rep: np.ndarray):
 def test_synthetic_repeat_started_part_way(taught):
     """Started 7.5 m along the route, 1 m to the left: found by place recognition, no wrong success."""
     _, scene, _, _ = taught
-    locs, integrity = _repeat_integrity(taught, "partway", scene,
-                                        syn.aerial_route(LENGTH_M - 0.5, 1.0, start_offset_m=7.5, lateral_offset_m=1.0))
+    locs, integrity = _repeat_integrity(
+        taught, "partway", scene, syn.aerial_route(LENGTH_M - 0.5, 1.0, start_offset_m=7.5, lateral_offset_m=1.0)
+    )
     assert integrity.wrong == 0 and integrity.first_correct is not None and integrity.first_correct < 3, integrity
     assert integrity.rate_after >= 0.9, integrity
 

@@ -26,7 +26,7 @@ from vtr.types import StereoImages
 SUCCESS_RATE = 0.95
 MAX_MEDIAN_ERROR_M = 0.05
 MAX_MEDIAN_ERROR_DEG = 0.5
-KITTI06_MAX_MEDIAN_ERROR_M = 0.020      # teach even / repeat odd on kitti06_clip (was 14.4 mm)
+KITTI06_MAX_MEDIAN_ERROR_M = 0.020  # teach even / repeat odd on kitti06_clip (was 14.4 mm)
 # teach even / repeat odd on kitti00_ramp_clip: 76 mm before the far-structure estimator; about 10-25 mm of
 # any estimate can be the clip's own 1-2 % scale against its ground truth over ~1 m (tools/scale_check.py)
 RAMP_MAX_MEDIAN_ERROR_M = 0.040
@@ -60,7 +60,7 @@ def test_far_structure_ramp_teach_even_repeat_odd(kitti_ramp_clip, tmp_path):
     path = tmp_path / "ramp.vtrmap"
     teach_command(kitti_ramp_clip, path, "0::2", Config())
     summary = repeat_command(kitti_ramp_clip, path, tmp_path / "r", "1::2", Config())
-    assert summary.vertices == 13 and summary.localized == summary.vertices - 1   # the first: a place candidate
+    assert summary.vertices == 13 and summary.localized == summary.vertices - 1  # the first: a place candidate
     assert summary.errors is not None and summary.errors.median_translation_m <= RAMP_MAX_MEDIAN_ERROR_M
 
 
@@ -68,13 +68,12 @@ def test_far_structure_ramp_teach_even_repeat_odd(kitti_ramp_clip, tmp_path):
 def test_kitti_repeat_localizes_against_ground_truth(kitti_clip, kitti_map, tmp_path, frames):
     out = tmp_path / "repeat"
     summary = repeat_command(kitti_clip, _copy(kitti_map, tmp_path), out, frames, Config())
-    assert summary.localized >= SUCCESS_RATE * (summary.vertices - 1)     # after the first (a place candidate)
+    assert summary.localized >= SUCCESS_RATE * (summary.vertices - 1)  # after the first (a place candidate)
     assert summary.errors is not None
     assert summary.errors.median_translation_m <= MAX_MEDIAN_ERROR_M
     assert summary.errors.median_rotation_deg <= MAX_MEDIAN_ERROR_DEG
     header = (out / "landmarks.csv").read_text().splitlines()[0].split(",")
-    assert header[:8] == ["t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg",
-                          "range_m"]
+    assert header[:8] == ["t_ns", "leaf_id", "trunk_id", "landmark_id", "inlier", "parallax_deg", "view_deg", "range_m"]
     # every second frame fits; every third leaves c2 unidentifiable on this short clip: refused, not printed
     _check_landmarks_file_and_fit(out, tmp_path, must_fit=frames == "1::2")
     loc_rows = (out / "localization.csv").read_text().splitlines()
@@ -98,14 +97,16 @@ def _check_landmarks_file_and_fit(out, tmp_path, must_fit: bool = True):
     with open(out / "localization.csv", newline="") as fh:
         ok = [r for r in csv.DictReader(fh) if r["success"] == "1"]
     assert {(int(r["t_ns"]), int(r["leaf_id"]), int(r["trunk_id"])) for r in ok} == set(
-        zip(obs.t_ns.tolist(), obs.leaf_id.tolist(), obs.trunk_id.tolist(), strict=True))
+        zip(obs.t_ns.tolist(), obs.leaf_id.tolist(), obs.trunk_id.tolist(), strict=True)
+    )
     assert obs.matched is not None and not (obs.inlier & ~obs.matched).any()
     for r in ok:  # the inliers of a localization that lie in the leaf's view
         assert 0 < obs.inlier[obs.t_ns == int(r["t_ns"])].sum() <= int(r["inliers"])
     assert (obs.alpha >= 0).all() and (obs.theta < np.pi / 2).all() and (obs.range_m > 0).all()
     model = tmp_path / "model.json"
-    res = CliRunner().invoke(pm_main, ["fit", str(out / "landmarks.csv"), "--out", str(model), "--holdout", "0",
-                                       "--min-bin-count", "3"])
+    res = CliRunner().invoke(
+        pm_main, ["fit", str(out / "landmarks.csv"), "--out", str(model), "--holdout", "0", "--min-bin-count", "3"]
+    )
     if not must_fit and res.exit_code == 1:
         assert "cannot identify" in res.output and "Traceback" not in res.output and not model.exists(), res.output
         return
@@ -121,8 +122,9 @@ def test_map_reopens_in_new_process_and_teach_run_is_untouched(kitti_clip, kitti
     def teach_rows():
         with sqlite3.connect(path) as con:
             rows = con.execute("SELECT * FROM vertices WHERE run = 0 ORDER BY id").fetchall()
-            rows += con.execute("SELECT * FROM edges WHERE kind = 'temporal' AND from_id < 4294967296 "
-                                "ORDER BY from_id").fetchall()
+            rows += con.execute(
+                "SELECT * FROM edges WHERE kind = 'temporal' AND from_id < 4294967296 ORDER BY from_id"
+            ).fetchall()
         return hashlib.sha256(repr(rows).encode()).hexdigest()
 
     before = teach_rows()
@@ -149,8 +151,11 @@ def euroc_localized(euroc_pairs):
             f_taught, f_revisit = sp.process(src[taught]), sp.process(src[revisit])
             est = loc.localize(f_revisit, TaughtSubmap.of_frame(f_taught, src.camera), None, trusted_prior=False)
             T, inlier = est.T_leaf_trunk, est.inlier
-            e = None if T is None else localization_errors(T[None], gt.t_ns[[revisit]], gt.t_ns[[taught]], gt.t_ns,
-                                                           gt.T_world_cam)
+            e = (
+                None
+                if T is None
+                else localization_errors(T[None], gt.t_ns[[revisit]], gt.t_ns[[taught]], gt.t_ns, gt.T_world_cam)
+            )
             stated = inv_T(gt.T_world_cam[revisit]) @ gt.T_world_cam[taught]
             out[(taught, revisit)] = (f_taught, f_revisit, T, int(inlier.sum()), e, stated, src.camera)
     return out
@@ -225,11 +230,11 @@ def test_localization_failure_is_reported_and_recovers(kitti_clip, kitti_map, tm
     idx = {loc.t_ns: k for k, loc in enumerate(locs)}
     foreign_t = {int(base_t) for base_t in src.timestamps()[list(foreign)]}
     in_foreign = np.array([loc.t_ns in foreign_t for loc in locs])
-    assert ok[~in_foreign][1:4].all()                      # localized before (the first confirms at the second)
-    assert not ok[in_foreign].any()                        # failures while elsewhere, reported
+    assert ok[~in_foreign][1:4].all()  # localized before (the first confirms at the second)
+    assert not ok[in_foreign].any()  # failures while elsewhere, reported
     assert max(loc.consecutive_failures for loc in locs) >= len(foreign) - 1
     after = np.flatnonzero(~in_foreign & (np.arange(len(locs)) > max(idx[t] for t in foreign_t if t in idx)))
-    assert ok[after[2:]].all()                             # recovered once the route is back in view
+    assert ok[after[2:]].all()  # recovered once the route is back in view
     assert ok[after[:3]].any()
 
 
@@ -248,11 +253,13 @@ def _one_line_error(r, *needles):
 def test_repeat_bad_input(kitti_clip, euroc_micro, kitti_map, tmp_path):
     path = _copy(kitti_map, tmp_path)
     size = path.stat().st_size
-    _one_line_error(_vtr("repeat", kitti_clip, "--map", tmp_path / "missing.vtrmap", "--out", tmp_path / "o"),
-                    "missing.vtrmap")
+    _one_line_error(
+        _vtr("repeat", kitti_clip, "--map", tmp_path / "missing.vtrmap", "--out", tmp_path / "o"), "missing.vtrmap"
+    )
     _one_line_error(_vtr("repeat", euroc_micro, "--map", path, "--out", tmp_path / "o"), "camera")
-    _one_line_error(_vtr("repeat", kitti_clip, "--map", path, "--out", tmp_path / "o", "--frames", "60:70"),
-                    "frames '60:70'")
+    _one_line_error(
+        _vtr("repeat", kitti_clip, "--map", path, "--out", tmp_path / "o", "--frames", "60:70"), "frames '60:70'"
+    )
     with Map.open(path) as m:
         assert [r.kind for r in m.runs()] == ["teach"]
     assert path.stat().st_size == size
@@ -282,7 +289,7 @@ def test_a_repeat_can_leave_the_map_untouched(kitti_clip, kitti_map, tmp_path):
         assert [run.kind for run in m.runs()] == ["teach", "repeat"]
     ro = (tmp_path / "ro" / "localization.csv").read_text()
     rw = (tmp_path / "rw" / "localization.csv").read_text()
-    assert ro == rw                                   # the same repeat, whether the map keeps it or not
+    assert ro == rw  # the same repeat, whether the map keeps it or not
 
 
 def test_a_repeat_not_judged_against_ground_truth_says_why(kitti_clip, tmp_path):

@@ -152,9 +152,7 @@ def test_angle_gradient_matches_finite_differences():
         u, v = rng.normal(size=3), rng.normal(size=3) * 5
         g = angle_gradient(u, v)
         h = 1e-6
-        fd = np.array(
-            [(angle_between(u, v + h * e) - angle_between(u, v - h * e)) / (2 * h) for e in np.eye(3)]
-        )
+        fd = np.array([(angle_between(u, v + h * e) - angle_between(u, v - h * e)) / (2 * h) for e in np.eye(3)])
         assert np.allclose(g, fd, rtol=1e-6, atol=1e-9)
     # cone point: zero subgradient; zero-length input: NaN
     assert np.all(angle_gradient([1.0, 0, 0], [2.0, 0, 0]) == 0.0)

@@ -130,9 +130,7 @@ def test_errors_are_one_line_with_exit_code_1(data, tmp_path):
         + "".join(f"{i},1,1,{i},0,{i * 0.1},{i * 0.3},10\n" for i in range(100))
     )
     _assert_one_line_error(_run(["fit", zeros, "--out", tmp_path / "m.json"]), "outliers")
-    _assert_one_line_error(
-        _run(["fit", tmp_path / "missing.csv", "--out", tmp_path / "m.json"]), "missing.csv"
-    )
+    _assert_one_line_error(_run(["fit", tmp_path / "missing.csv", "--out", tmp_path / "m.json"]), "missing.csv")
     model = tmp_path / "nan_model.json"
     model.write_text('{"c1": NaN, "c2": 0.028, "c3": -0.145, "angle_unit": "deg"}')
     _assert_one_line_error(_run(["evaluate", model, data / "run2.csv"]), "nan_model.json")
@@ -141,8 +139,10 @@ def test_errors_are_one_line_with_exit_code_1(data, tmp_path):
     from vtr.cli.perception_model import main as with_map  # --map lives in the script installed with vtr
 
     _assert_one_line_error(
-        CliRunner().invoke(with_map, [str(a) for a in ["constraint", good, "--map", tmp_path, "--positions",
-                                                       data / "pos.csv"]]), "is a directory"
+        CliRunner().invoke(
+            with_map, [str(a) for a in ["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]]
+        ),
+        "is a directory",
     )
     _assert_one_line_error(  # the package's command knows no maps
         _run(["constraint", good, "--map", tmp_path, "--positions", data / "pos.csv"]), "No such option '--map'"

@@ -73,10 +73,7 @@ def _fd(con, pos, yaw, attr, axes=None):
 
 def _rel_err(analytic, fd):
     return float(
-        np.max(
-            np.linalg.norm(np.atleast_2d(fd - analytic), axis=-1)
-            / np.linalg.norm(np.atleast_2d(analytic), axis=-1)
-        )
+        np.max(np.linalg.norm(np.atleast_2d(fd - analytic), axis=-1) / np.linalg.norm(np.atleast_2d(analytic), axis=-1))
     )
 
 
@@ -111,9 +108,7 @@ def test_analytic_gradients_match_central_differences(scene, model):
     rng = np.random.default_rng(2)
     con = PerceptionConstraint(model, scene.landmarks, l_min=30.0, c_bar=3.0)
     pos, yaw = _horizon(rng, 15)
-    keep = [
-        i for i in range(15) if _away_from_boundaries(model, scene.landmarks, pos[i : i + 1], yaw[i : i + 1])
-    ]
+    keep = [i for i in range(15) if _away_from_boundaries(model, scene.landmarks, pos[i : i + 1], yaw[i : i + 1])]
     assert len(keep) >= 10
     pos, yaw = pos[keep], yaw[keep]
     ev = con.evaluate(pos, yaw)

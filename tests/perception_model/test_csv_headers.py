@@ -17,7 +17,7 @@ DATA = Path(__file__).parent / "data" / "landmarks_vtr_repeat.csv"
 
 def test_a_bom_is_not_part_of_the_header(tmp_path):
     bom = tmp_path / "bom.csv"
-    bom.write_bytes(b"\xef\xbb\xbf" + DATA.read_bytes())        # was: "missing column(s) t_ns"-like refusal
+    bom.write_bytes(b"\xef\xbb\xbf" + DATA.read_bytes())  # was: "missing column(s) t_ns"-like refusal
     a, b = read_landmarks(DATA), read_landmarks(bom)
     assert len(a.alpha) == len(b.alpha) > 0 and np.array_equal(a.alpha, b.alpha)
     pts = tmp_path / "points.csv"

@@ -100,8 +100,9 @@ def test_constraint_on_a_taught_map(kitti_map, tmp_path):
 
     # CSV on stdout; with a yaw column: 180 deg looks back along -z, away from every trunk landmark
     yawed = tmp_path / "pos_yaw.csv"
-    np.savetxt(yawed, np.column_stack([pos, np.full(len(pos), 180.0)]), delimiter=",", header="x,y,z,yaw_deg",
-               comments="")
+    np.savetxt(
+        yawed, np.column_stack([pos, np.full(len(pos), 180.0)]), delimiter=",", header="x,y,z,yaw_deg", comments=""
+    )
     r = _run(["constraint", model, "--map", kitti_map, "--positions", yawed, "--out", "-", "--no-exact"])
     assert r.exit_code == 0, r.output
     back = _rows(r.stdout)
@@ -111,8 +112,9 @@ def test_constraint_on_a_taught_map(kitti_map, tmp_path):
     assert r.exit_code == 0, r.output
     every = _rows(r.stdout)
     assert len(every) == len(rows)
-    assert all(e["n_in_view"] == e["n_landmarks"] and e["mu"] >= row["mu"] - 1e-9
-               for e, row in zip(every, rows, strict=True))
+    assert all(
+        e["n_in_view"] == e["n_landmarks"] and e["mu"] >= row["mu"] - 1e-9 for e, row in zip(every, rows, strict=True)
+    )
 
 
 def test_constraint_map_errors_are_one_line(kitti_map, tmp_path):
@@ -161,14 +163,17 @@ def test_map_commands_live_on_the_vtr_side(kitti_map, tmp_path):
     assert r.stdout.splitlines()[0].startswith("index,x,y,z,yaw_deg,pitch_deg,trunk_id")
 
 
-@pytest.mark.parametrize("args, msg", [
-    (["--step", "1e-4"], "grid cells a side"),           # was: grew to 24 GB, killed by the kernel
-    (["--step", "1e-6"], "grid cells a side"),           # was: an allocation traceback
-    (["--max", "1e9"], "--max 1e+09 m: at most"),        # was: an allocation traceback
-    (["--max", "inf"], "--max"),
-    (["--step", "5", "--max", "1"], "at most --max"),
-    (["--l-min", "-5"], "l_min must be"),
-])
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["--step", "1e-4"], "grid cells a side"),  # was: grew to 24 GB, killed by the kernel
+        (["--step", "1e-6"], "grid cells a side"),  # was: an allocation traceback
+        (["--max", "1e9"], "--max 1e+09 m: at most"),  # was: an allocation traceback
+        (["--max", "inf"], "--max"),
+        (["--step", "5", "--max", "1"], "at most --max"),
+        (["--l-min", "-5"], "l_min must be"),
+    ],
+)
 def test_envelope_grid_and_bounds_have_a_domain(kitti_map, tmp_path, args, msg):
     model = tmp_path / "thesis.json"
     PerceptionModel.thesis().save(model)
@@ -251,15 +256,14 @@ def test_envelope_work_is_bounded_before_it_starts_and_reports_progress(kitti_ma
     model = tmp_path / "thesis.json"
     PerceptionModel.thesis().save(model)
     n = len(perception._read(kitti_map)[0])
-    monkeypatch.setattr(perception, "ENVELOPE_MAX_EVALUATIONS", n * 4 * 100)     # 100 cells per direction
+    monkeypatch.setattr(perception, "ENVELOPE_MAX_EVALUATIONS", n * 4 * 100)  # 100 cells per direction
     r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", "--step", "0.01", "--max", "2"])
     assert r.exit_code == 1, r.output
     line = r.stderr.strip()
     assert len(line.splitlines()) == 1 and "--step 0.01 m" in line and f"on {n} vertices" in line, line
     suggested = float(line.split("use --step ")[1].split(" m")[0])
-    perception.check_envelope_work(n, suggested, 2.0)                           # the advice passes
+    perception.check_envelope_work(n, suggested, 2.0)  # the advice passes
     assert not (tmp_path / "env" / "envelope.csv").exists()
-    r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", "--step", str(suggested),
-              "--max", "2"])
+    r = _run(["envelope", model, "--map", kitti_map, "--out", tmp_path / "env", "--step", str(suggested), "--max", "2"])
     assert r.exit_code == 0, r.output
     assert f"envelope: {n}/{n} vertices" in r.stderr

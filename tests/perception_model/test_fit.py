@@ -174,8 +174,6 @@ def test_fit_warns_when_the_fitted_surface_is_cut_inside_the_data_range():
     a, t = sample_angles(40_000, rng)
     y = simulate_labels(narrow, a, t, rng)
     for fitter in (fit_binned, fit_mle):
-        with pytest.warns(
-            PerceptionModelWarning, match=r"synthetic\.csv: fitted model: cos\(c2\*theta\) reaches 0"
-        ):
+        with pytest.warns(PerceptionModelWarning, match=r"synthetic\.csv: fitted model: cos\(c2\*theta\) reaches 0"):
             r = fitter(Samples(a, t, y, source="synthetic.csv"))
         assert r.model.c2 == pytest.approx(0.05, rel=0.05)

@@ -50,7 +50,7 @@ def test_streamed_fit_equals_the_fit_of_everything(data):
 def test_accumulator_bins_like_bin_observations(data):
     alpha, theta, y = data
     acc = BinAccumulator(BinSpec())
-    acc.add(Samples(alpha[:100], theta[:100], y[:100]))     # a small first chunk: the grid grows afterwards
+    acc.add(Samples(alpha[:100], theta[:100], y[:100]))  # a small first chunk: the grid grows afterwards
     acc.add(Samples(alpha[100:], theta[100:], y[100:]))
     got, want = acc.binned(), bin_observations(Samples(alpha, theta, y), BinSpec())
     assert np.array_equal(got.count_grid, want.count_grid) and np.array_equal(got.inlier_grid, want.inlier_grid)

@@ -81,4 +81,4 @@ def test_the_level_camera_convention_is_one_statement():
     np.testing.assert_array_equal(R.T @ [0.0, 0.0, 1.0], frames.LEVEL_CAMERA_UP)
     np.testing.assert_array_equal(R @ [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
     T_g_map = frames.T_g_map_from_up(frames.LEVEL_CAMERA_UP)
-    np.testing.assert_allclose(T_g_map[:3, :3], R, atol=1e-15)   # g is the level vehicle's frame
+    np.testing.assert_allclose(T_g_map[:3, :3], R, atol=1e-15)  # g is the level vehicle's frame

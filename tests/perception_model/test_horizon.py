@@ -26,8 +26,16 @@ def _trunks(rng, t=6, m=300):
     out = []
     for i in range(t):
         lm = rng.uniform([8.0, -10.0, -14.0], [25.0, 10.0, -9.0], (m - 20 * i, 3))
-        out.append(TrunkLandmarks(i, np.array([1.5 * i, 0.3 * i, 12.0]), 0.2 * i - 0.5, np.array([0.1, 0.0, 0.05]),
-                                  lm, math.radians(45.0 + i)))
+        out.append(
+            TrunkLandmarks(
+                i,
+                np.array([1.5 * i, 0.3 * i, 12.0]),
+                0.2 * i - 0.5,
+                np.array([0.1, 0.0, 0.05]),
+                lm,
+                math.radians(45.0 + i),
+            )
+        )
     return out
 
 
@@ -68,8 +76,10 @@ def test_axis_gradient_by_finite_differences():
             zp, zm = z0.copy(), z0.copy()
             zp[k, j] += h
             zm[k, j] -= h
-            fd = (ev.evaluate(pos, tr, axes_g=zp, gradient=False).g[k]
-                  - ev.evaluate(pos, tr, axes_g=zm, gradient=False).g[k]) / (2 * h)
+            fd = (
+                ev.evaluate(pos, tr, axes_g=zp, gradient=False).g[k]
+                - ev.evaluate(pos, tr, axes_g=zm, gradient=False).g[k]
+            ) / (2 * h)
             # the evaluator normalizes the axis: compare the tangential part
             an = out.dg_daxis[k] - (out.dg_daxis[k] @ z0[k]) * z0[k]
             assert fd == pytest.approx(an[j], abs=1e-5 * max(1.0, abs(an[j])))
@@ -82,8 +92,7 @@ def test_empty_and_out_of_view_trunks_are_flagged_not_errors():
     ev = HorizonEvaluator(MODEL, trunks, l_min=30.0)
     pos = ev.camera_centres_g()[[0, 1, 2]]
     # step 1 looks straight up-back, away from every landmark
-    axes = np.array([frames.optical_axis(ev.yaw_g[0], math.radians(50.0)), [0.0, 0.0, 1.0],
-                     [1.0, 0.0, 0.0]])
+    axes = np.array([frames.optical_axis(ev.yaw_g[0], math.radians(50.0)), [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
     out = ev.evaluate(pos, [0, 1, 2], axes_g=axes)
     assert out.flag.tolist() == [OK, NO_LANDMARK_IN_VIEW, EMPTY_TRUNK]
     assert out.mu[1] == out.mu[2] == 0.0 and out.g[2] == pytest.approx(-30.0)
@@ -110,8 +119,9 @@ def test_mu_gradients_and_distances():
         zp, zm = z0.copy(), z0.copy()
         zp[:, j] += h
         zm[:, j] -= h
-        fd = (ev.evaluate(pos, tr, axes_g=zp, gradient=False).mu - ev.evaluate(pos, tr, axes_g=zm, gradient=False).mu) \
-            / (2 * h)
+        fd = (
+            ev.evaluate(pos, tr, axes_g=zp, gradient=False).mu - ev.evaluate(pos, tr, axes_g=zm, gradient=False).mu
+        ) / (2 * h)
         tangential = ax.dmu_daxis - np.einsum("nk,nk->n", ax.dmu_daxis, z0)[:, None] * z0
         assert np.allclose(fd, tangential[:, j], rtol=1e-5, atol=1e-6)
     assert len({OK, NO_LANDMARK_IN_VIEW, EMPTY_TRUNK, OFF_ROUTE}) == 4

@@ -70,12 +70,15 @@ def _landmarks(path, rng, n=600, alpha=None, theta=None, p=0.5):
             f.write(f"{i // 20},{i // 20},{i // 20},{i},{y[i]},{a[i]:.4f},{t[i]:.4f},10.0,{y[i]}\n")
 
 
-@pytest.mark.parametrize(("alpha", "theta", "p", "match"), [
-    (1.0, 1.0, 0.5, "same parallax angle"),      # one bin: was a NaN in model.json and a traceback
-    (None, 5.0, 0.5, "same view angle"),
-    (None, None, 1.0, "all 600 observations are inliers"),
-    (None, None, 0.0, "all 600 observations are outliers"),
-])
+@pytest.mark.parametrize(
+    ("alpha", "theta", "p", "match"),
+    [
+        (1.0, 1.0, 0.5, "same parallax angle"),  # one bin: was a NaN in model.json and a traceback
+        (None, 5.0, 0.5, "same view angle"),
+        (None, None, 1.0, "all 600 observations are inliers"),
+        (None, None, 0.0, "all 600 observations are outliers"),
+    ],
+)
 def test_mle_on_degenerate_data(tmp_path, alpha, theta, p, match):
     f = tmp_path / "lm.csv"
     _landmarks(f, np.random.default_rng(0), alpha=alpha, theta=theta, p=p)

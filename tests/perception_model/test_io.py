@@ -55,9 +55,7 @@ def test_column_order_extra_columns_and_large_timestamps(tmp_path):
     )
     obs = read_landmarks_csv(path)
     assert obs.t_ns[0] == t_ns and obs.inlier[0] and math.isnan(obs.range_m[0])
-    assert obs.theta[0] == pytest.approx(math.radians(30.5)) and obs.alpha[0] == pytest.approx(
-        math.radians(2.5)
-    )
+    assert obs.theta[0] == pytest.approx(math.radians(30.5)) and obs.alpha[0] == pytest.approx(math.radians(2.5))
 
 
 @pytest.mark.parametrize(

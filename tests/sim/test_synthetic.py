@@ -104,7 +104,7 @@ def test_box_and_tree_geometry(zed):
     # camera south of the box at x=-12, looking east and 20 deg down
     T = syn.camera_pose((-12.0, 0.0, 6.0), heading_rad=0.0, pitch_down_rad=math.radians(20))
     img, depth = syn.render(scene, zed, T, return_depth=True)
-    vv, uu = np.mgrid[0:zed.height, 0:zed.width]
+    vv, uu = np.mgrid[0 : zed.height, 0 : zed.width]
     p = syn.backproject(zed, T, depth, uu.ravel(), vv.ravel())
     finite = np.isfinite(p).all(axis=1)
     on_roof = finite & (np.abs(p[:, 2] - box.height) < 1e-3)
@@ -116,8 +116,12 @@ def test_box_and_tree_geometry(zed):
     assert np.all(p[on_wall, 2] <= box.height + 1e-3)
     # every hit point lies on the ground, the box or the tree's surfaces
     on_ground = np.abs(p[finite, 2]) < 1e-3
-    in_box = ((p[finite, 0] >= box.x_min - 1e-3) & (p[finite, 0] <= box.x_max + 1e-3)
-              & (np.abs(p[finite, 1]) <= box.y_max + 1e-3) & (p[finite, 2] <= box.height + 1e-3))
+    in_box = (
+        (p[finite, 0] >= box.x_min - 1e-3)
+        & (p[finite, 0] <= box.x_max + 1e-3)
+        & (np.abs(p[finite, 1]) <= box.y_max + 1e-3)
+        & (p[finite, 2] <= box.height + 1e-3)
+    )
     rho = np.hypot(p[finite, 0] - tree.x, p[finite, 1] - tree.y)
     z = p[finite, 2]
     on_trunk = (np.abs(rho - tree.trunk_radius) < 1e-3) & (z <= tree.trunk_height + 1e-3)
@@ -139,8 +143,9 @@ def test_left_right_depth_maps_agree(aerial_pair, zed):
     z = aerial_pair.depth_left[vv, uu]
     ur = uu - zed.fb / z
     ok = np.isfinite(z) & (ur > 1) & (ur < W - 2)
-    zr = cv2.remap(aerial_pair.depth_right, ur[ok].astype(np.float32)[None], vv[ok].astype(np.float32)[None],
-                   cv2.INTER_LINEAR)[0]
+    zr = cv2.remap(
+        aerial_pair.depth_right, ur[ok].astype(np.float32)[None], vv[ok].astype(np.float32)[None], cv2.INTER_LINEAR
+    )[0]
     rel = np.abs(zr - z[ok]) / z[ok]
     assert np.mean(rel < 1e-3) > 0.98  # the rest straddle depth edges
 
@@ -198,8 +203,7 @@ def test_routes_geometry():
     assert math.isclose(math.atan2(z_axis[1], z_axis[0]), 0.5, abs_tol=1e-9)
     assert abs(T[0, 2, 0]) < 1e-12
     left = np.array([-math.sin(0.5), math.cos(0.5), 0.0])
-    np.testing.assert_allclose(R[:, :3, 3] - T[:, :3, 3], np.tile(3.0 * left - [0, 0, 1.0], (len(T), 1)),
-                               atol=1e-9)
+    np.testing.assert_allclose(R[:, :3, 3] - T[:, :3, 3], np.tile(3.0 * left - [0, 0, 1.0], (len(T), 1)), atol=1e-9)
     # turning route: heading changes by the turn angle, camera height constant, forward looking
     G = syn.turning_route(0.25, turn_angle_rad=math.pi / 2, turn_radius_m=5.0)
     h0 = math.atan2(G[0, 1, 2], G[0, 0, 2])

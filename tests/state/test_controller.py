@@ -21,8 +21,8 @@ from vtr.state.controller import (
 )
 from vtr.state.smoothing import TrajectorySmoother, TrajectoryState
 
-FD_T = 1e-5       # s, time step of finite differences along a trajectory
-FD_X = 1e-6       # perturbation step for Jacobians
+FD_T = 1e-5  # s, time step of finite differences along a trajectory
+FD_X = 1e-6  # perturbation step for Jacobians
 
 
 def _T_world_sensor(t: float) -> np.ndarray:
@@ -53,9 +53,9 @@ def _truth_in_o(t: float, T_o_t: np.ndarray) -> np.ndarray:
 def test_gravity_aligned_frame():
     T_o_t = gravity_aligned_T_o_t(T_WORLD_TRUNK[:3, :3])
     C_world_o = T_WORLD_TRUNK[:3, :3] @ T_o_t[:3, :3].T
-    np.testing.assert_allclose(C_world_o[:, 2], [0, 0, 1], atol=1e-12)    # z of o is up
-    assert abs(yaw_of(T_o_t[:3, :3])) < 1e-12                                # o has the trunk's yaw
-    np.testing.assert_allclose(T_o_t[:3, 3], 0.0)                            # origin at the trunk
+    np.testing.assert_allclose(C_world_o[:, 2], [0, 0, 1], atol=1e-12)  # z of o is up
+    assert abs(yaw_of(T_o_t[:3, :3])) < 1e-12  # o has the trunk's yaw
+    np.testing.assert_allclose(T_o_t[:3, 3], 0.0)  # origin at the trunk
     np.testing.assert_allclose(yaw_of(C_world_o), 1.0, atol=1e-12)
 
 
@@ -88,8 +88,14 @@ def test_controller_covariance_jacobians_numerical():
     cs = controller_state(base, T_WORLD_TRUNK, T_o_t, T_SENSOR_VEHICLE)
 
     def outputs(delta):
-        s = TrajectoryState(base.t_ns, base.pose @ exp_se3(delta[:6]), base.velocity + delta[6:],
-                            base.acceleration, None, "interpolated")
+        s = TrajectoryState(
+            base.t_ns,
+            base.pose @ exp_se3(delta[:6]),
+            base.velocity + delta[6:],
+            base.acceleration,
+            None,
+            "interpolated",
+        )
         c = controller_state(s, T_WORLD_TRUNK, T_o_t, T_SENSOR_VEHICLE)
         return np.r_[c.position, c.velocity, c.yaw]
 
@@ -114,7 +120,7 @@ def test_trunk_in_world_and_from_world_path():
     path_w = ReferencePath.from_world(verts, T_world_trunk, T_o_t)
     path_t = ReferencePath.from_vertices(np.stack([inv_T(T_world_trunk) @ T for T in verts]), T_o_t)
     np.testing.assert_allclose(path_w.points, path_t.points, atol=1e-12)
-    np.testing.assert_allclose(path_w.points[0], 0.0, atol=1e-12)          # trunk at the origin of o
+    np.testing.assert_allclose(path_w.points[0], 0.0, atol=1e-12)  # trunk at the origin of o
     # p_o^{nt} = C_o_t p_t^{nt}
     p_t = (inv_T(T_world_trunk) @ verts[2])[:3, 3]
     np.testing.assert_allclose(path_w.points[2], T_o_t[:3, :3] @ p_t, atol=1e-12)
@@ -126,7 +132,7 @@ def test_trunk_in_world_and_from_world_path():
 def test_path_error_straight_line():
     path = ReferencePath(np.array([[0.0, 0, 0], [10.0, 0, 0]]))
     e = path.error(np.array([3.0, 2.0, 1.0]))
-    assert e.lateral == pytest.approx(2.0)        # left of +x travel is +y
+    assert e.lateral == pytest.approx(2.0)  # left of +x travel is +y
     assert e.vertical == pytest.approx(1.0)
     assert e.along_track == pytest.approx(3.0)
     assert e.segment == 0
@@ -143,7 +149,7 @@ def test_path_error_l_shape_and_slope():
     path = ReferencePath(np.array([[0.0, 0, 10], [10.0, 0, 10], [10.0, 10, 10]]))
     e = path.error(np.array([[9.0, 5.0, 10.0], [5.0, 0.5, 10.0]]))
     np.testing.assert_array_equal(e.segment, [1, 0])
-    np.testing.assert_allclose(e.lateral, [1.0, 0.5])        # left of +y travel is -x
+    np.testing.assert_allclose(e.lateral, [1.0, 0.5])  # left of +y travel is -x
     np.testing.assert_allclose(e.along_track, [15.0, 5.0])
     assert path.length == pytest.approx(20.0)
     # climbing segment: vertical is measured perpendicular to it in its vertical plane
@@ -185,8 +191,9 @@ def test_path_error_vectorized_equals_single(seed):
         k = one.segment
         a = path.points[k]
         off = (p - a) - np.dot(p - a, path.directions[k]) * path.directions[k]
-        np.testing.assert_allclose(off, one.lateral * path.left_normals[k] + one.vertical * path.up_normals[k],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            off, one.lateral * path.left_normals[k] + one.vertical * path.up_normals[k], atol=1e-9
+        )
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ FALLBACK = np.ones(6)
 def _steps(qc: float, noise_m: float, dt_s: float, n: int, seed: int) -> list[np.ndarray]:
     """Translation-only keyframe steps of a WNOA motion (per axis PSD qc) with position noise."""
     rng = np.random.default_rng(seed)
-    fine = 20                                       # substeps per keyframe for the simulation
+    fine = 20  # substeps per keyframe for the simulation
     h = dt_s / fine
     v = np.array([5.0, 0.0, 0.0])
     p = np.zeros(3)
@@ -32,8 +32,7 @@ def _steps(qc: float, noise_m: float, dt_s: float, n: int, seed: int) -> list[np
 
 
 @settings(max_examples=10, deadline=None)
-@given(qc=st.sampled_from([0.01, 0.1, 1.0]), noise_m=st.sampled_from([0.0, 0.002, 0.005]),
-       seed=st.integers(0, 1000))
+@given(qc=st.sampled_from([0.01, 0.1, 1.0]), noise_m=st.sampled_from([0.0, 0.002, 0.005]), seed=st.integers(0, 1000))
 def test_the_estimate_finds_the_motion_s_psd_under_noise(qc, noise_m, seed):
     est = MotionPsd(FALLBACK, window_s=1e9, min_samples=5, floor_share=1e-6, long_steps=4)
     for xi in _steps(qc, noise_m, 0.1, 3000, seed):
@@ -48,12 +47,12 @@ def test_the_fallback_holds_until_enough_samples_and_after_a_break():
     step = np.r_[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]
     for _ in range(8):
         est.add(step, 0.1)
-    assert np.array_equal(est.qc, FALLBACK)          # one long-span sample so far
+    assert np.array_equal(est.qc, FALLBACK)  # one long-span sample so far
     for _ in range(10):
         est.add(step, 0.1)
-    assert np.allclose(est.qc, 1e-3)                 # a constant twist: no acceleration, the floor
+    assert np.allclose(est.qc, 1e-3)  # a constant twist: no acceleration, the floor
     est.broken()
-    est.add(step * 3, 0.1)                           # no sample across the break
+    est.add(step * 3, 0.1)  # no sample across the break
     assert np.allclose(est.qc, 1e-3)
 
 
@@ -62,6 +61,6 @@ def test_a_taught_path_gives_the_prior_and_a_disabled_estimate_the_configured_qc
     T = np.array([make_T(np.eye(3), [0.0, 0.0, 0.5 * k]) for k in range(50)])
     est = MotionPsd(FALLBACK, window_s=10.0, min_samples=5, floor_share=1e-3, long_steps=4)
     assert np.allclose(est.of_poses(t, T, max_step_s=1.0), 1e-3)
-    assert np.array_equal(est.of_poses(t[:5], T[:5], max_step_s=1.0), FALLBACK)    # too short to say
+    assert np.array_equal(est.of_poses(t[:5], T[:5], max_step_s=1.0), FALLBACK)  # too short to say
     off = MotionPsd(FALLBACK, window_s=0.0, min_samples=5, floor_share=1e-3, long_steps=4)
     assert np.array_equal(off.of_poses(t, T, max_step_s=1.0), FALLBACK)

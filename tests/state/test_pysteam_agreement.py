@@ -44,10 +44,10 @@ from vtr.geometry import exp_se3, log_se3  # noqa: E402
 from vtr.state.smoothing import TrajectorySmoother  # noqa: E402
 
 N_KNOTS = 20
-PERIOD_NS = 100_000_000            # 10 Hz keyframes
-QC_ROT, QC_TRANS = 0.2, 2.0        # rad²/s³, m²/s³
+PERIOD_NS = 100_000_000  # 10 Hz keyframes
+QC_ROT, QC_TRANS = 0.2, 2.0  # rad²/s³, m²/s³
 SIGMA_ROT, SIGMA_TRANS = 0.01, 0.05
-VEL_SIGMA_ROT, VEL_SIGMA_TRANS = 10.0, 100.0   # the smoother's weak prior on the first twist
+VEL_SIGMA_ROT, VEL_SIGMA_TRANS = 10.0, 100.0  # the smoother's weak prior on the first twist
 REFINE_ITERATIONS = 10
 FD_STEP = 1e-6
 COST_RTOL = 1e-9
@@ -209,8 +209,10 @@ def test_cost_and_prior_errors_agree(setup, which):
         e_g = f.unwhitenedError(values)
         e_p = term._error_func.evaluate().reshape(12)
         worst = max(worst, np.linalg.norm(e_p + P12 @ e_g) / np.linalg.norm(e_g))
-    print(f"\n[{which}] cost gtsam {ours:.12g} pysteam {theirs:.12g} "
-          f"rel diff {abs(ours - theirs) / theirs:.2e}; worst prior error rel diff {worst:.2e}")
+    print(
+        f"\n[{which}] cost gtsam {ours:.12g} pysteam {theirs:.12g} "
+        f"rel diff {abs(ours - theirs) / theirs:.2e}; worst prior error rel diff {worst:.2e}"
+    )
     assert worst <= ERROR_RTOL
 
 
@@ -231,9 +233,11 @@ def test_optimum_against_pysteam(setup):
     g_theirs = np.linalg.norm(_gtsam_gradient(graph, their_poses, their_vels))
     pose_diff = max(np.abs(log_se3(np.linalg.inv(a) @ b)).max() for a, b in zip(s["poses"], their_poses, strict=True))
     vel_diff = max(np.abs(a - b).max() for a, b in zip(s["vels"], their_vels, strict=True))
-    print(f"\ncost ours {our_cost:.12g} pysteam optimum {pysteam_cost:.12g}; "
-          f"|grad| ours {g_ours:.2e} pysteam {g_theirs:.2e}; "
-          f"max state diff pose {pose_diff:.2e} twist {vel_diff:.2e}")
+    print(
+        f"\ncost ours {our_cost:.12g} pysteam optimum {pysteam_cost:.12g}; "
+        f"|grad| ours {g_ours:.2e} pysteam {g_theirs:.2e}; "
+        f"max state diff pose {pose_diff:.2e} twist {vel_diff:.2e}"
+    )
     assert our_cost <= pysteam_cost
     assert g_ours * GRADIENT_RATIO <= g_theirs
     assert pose_diff <= STATE_ATOL and vel_diff <= STATE_ATOL

@@ -43,15 +43,15 @@ JACOBIAN_ATOL = 1e-6
 
 # Helix: radius, yaw rate, climb rate, roll wobble amplitude and frequency.
 HELIX_RADIUS_M = 5.0
-HELIX_RATE = 0.5            # rad/s  (speed 2.5 m/s, centripetal 1.25 m/s²)
-HELIX_CLIMB = 0.5           # m/s
-HELIX_WOBBLE = 0.1          # rad
-HELIX_WOBBLE_RATE = 2.0     # rad/s
-HELIX_KEYFRAME_NS = 100_000_000     # 10 Hz
-HELIX_QUERY_NS = 20_000_000         # 50 Hz
+HELIX_RATE = 0.5  # rad/s  (speed 2.5 m/s, centripetal 1.25 m/s²)
+HELIX_CLIMB = 0.5  # m/s
+HELIX_WOBBLE = 0.1  # rad
+HELIX_WOBBLE_RATE = 2.0  # rad/s
+HELIX_KEYFRAME_NS = 100_000_000  # 10 Hz
+HELIX_QUERY_NS = 20_000_000  # 50 Hz
 HELIX_KEYFRAMES = 150
-HELIX_WARMUP = 10                   # keyframes before extrapolation is scored
-NOISE_ROT, NOISE_TRANS = 0.002, 0.01   # rad, m (per axis)
+HELIX_WARMUP = 10  # keyframes before extrapolation is scored
+NOISE_ROT, NOISE_TRANS = 0.002, 0.01  # rad, m (per axis)
 
 
 def helix(t: float) -> np.ndarray:
@@ -175,6 +175,7 @@ def test_interpolation_jacobian_numerical(frac):
     E_xi, Jr = expmap(xi)
     A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr)
     T0, w0 = _interp_state(T1, v1, T2, v2, dt, tau)
+
     def perturbed(j, d):
         a = [T1, v1, T2, v2]
         a[j // 6] = a[j // 6] @ exp_se3(d) if j // 6 in (0, 2) else a[j // 6] + d
@@ -189,6 +190,7 @@ def test_extrapolation_jacobian_numerical(dt):
     T, v = exp_se3(rng.normal(size=6)), rng.normal(size=6)
     F = extrapolation_jacobian(dt, v)
     T0 = T @ exp_se3(dt * v)
+
     def perturbed(j, d):
         Tp, vp = (T @ exp_se3(d), v) if j < 6 else (T, v + d)
         return _state_diff(T0, v, Tp @ exp_se3(dt * vp), vp)
@@ -202,9 +204,7 @@ def test_jr_derivatives_numerical():
     xi, w = rng.normal(size=6), rng.normal(size=6)
     h = 1e-4
     for fn, jac in ((jr, d_jr_times), (jr_inv, d_jr_inv_times)):
-        num = np.stack(
-            [(fn(xi + h * e) @ w - fn(xi - h * e) @ w) / (2 * h) for e in np.eye(6)], axis=1
-        )
+        num = np.stack([(fn(xi + h * e) @ w - fn(xi - h * e) @ w) / (2 * h) for e in np.eye(6)], axis=1)
         np.testing.assert_allclose(jac(xi, w), num, atol=1e-7)
 
 
@@ -281,8 +281,10 @@ def test_helix_acceleration_world(helix_run):
         sm_clean.add_pose(k * HELIX_KEYFRAME_NS, helix(k * HELIX_KEYFRAME_NS / NS), cov)
     clean = _world_acceleration_errors(sm_clean)
     noisy = _world_acceleration_errors(helix_run[0])
-    print(f"\nhelix world acceleration error rms: noiseless {rms(clean):.4f} m/s², with 1 cm noise "
-          f"{rms(noisy):.2f} m/s² (true magnitude 1.25 m/s²)")
+    print(
+        f"\nhelix world acceleration error rms: noiseless {rms(clean):.4f} m/s², with 1 cm noise "
+        f"{rms(noisy):.2f} m/s² (true magnitude 1.25 m/s²)"
+    )
     # measured: noiseless 0.0097, noisy 2.25 (the second derivative of the GP mean amplifies noise)
     assert rms(clean) < 0.03
     assert rms(noisy) < 3.5
@@ -314,9 +316,11 @@ def _batch_marginal(times, meas, cov, qc, vel_sig, t_query):
         if i == 0:
             g.add(gtsam.PriorFactorVector6(V(0), np.zeros(6), gtsam.noiseModel.Diagonal.Sigmas(vel_sig)))
         else:
-            g.add(gtsam.WnoaMotionFactorPose3(
-                gtsam.StateData(X(i - 1), V(i - 1), all_t[i - 1] / NS), gtsam.StateData(X(i), V(i), t / NS), qc
-            ))
+            g.add(
+                gtsam.WnoaMotionFactorPose3(
+                    gtsam.StateData(X(i - 1), V(i - 1), all_t[i - 1] / NS), gtsam.StateData(X(i), V(i), t / NS), qc
+                )
+            )
         near = meas[min(mi.get(t, len(times) - 1), len(times) - 1)]
         v.insert(X(i), gtsam.Pose3(near))
         v.insert(V(i), np.zeros(6))
@@ -339,19 +343,24 @@ def test_covariance_matches_batch_marginals():
     sm.refine(5)
     vel_sig = sm.velocity_prior_sigmas
     worst = {}
-    for t_q, kind in ((times[-2] + 37_000_000, "interpolated"), (times[-1], "knot"),
-                      (times[-1] + 300_000_000, "extrapolated")):
+    for t_q, kind in (
+        (times[-2] + 37_000_000, "interpolated"),
+        (times[-1], "knot"),
+        (times[-1] + 300_000_000, "extrapolated"),
+    ):
         s = sm.state_at(t_q)
         assert s.kind == kind
         J, T_b, v_b = _batch_marginal(times, meas, cov, sm.q_psd, vel_sig, t_q)
         np.testing.assert_allclose(s.pose, T_b, atol=1e-5)
         np.testing.assert_allclose(s.velocity, v_b, atol=1e-4)
         sd = np.sqrt(np.diag(J))
-        rel = np.abs(s.covariance - J) / np.outer(sd, sd)   # correlation-scale difference
+        rel = np.abs(s.covariance - J) / np.outer(sd, sd)  # correlation-scale difference
         worst[kind] = rel.max()
         assert rel.max() < 0.02, (kind, rel.max())
-    print("\ncovariance vs batch marginals, max |diff| / (sigma_i sigma_j): "
-          + ", ".join(f"{k} {v:.1e}" for k, v in worst.items()))
+    print(
+        "\ncovariance vs batch marginals, max |diff| / (sigma_i sigma_j): "
+        + ", ".join(f"{k} {v:.1e}" for k, v in worst.items())
+    )
 
 
 # ---- measurements of both kinds, fixed lag ---------------------------------------------------
@@ -367,9 +376,10 @@ def test_relative_measurements_and_fixed_lag():
     sm.add_pose(0, truth[0], cov)
     for k in range(1, n):
         rel = np.linalg.inv(truth[k - 1]) @ truth[k] @ exp_se3(rng.normal(0, 1e-3, 6))
-        if k % 10 == 0:   # a localization every second, odometry in between
-            sm.add_knot(k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov,
-                        T_prev_cur=rel, relative_covariance=cov)
+        if k % 10 == 0:  # a localization every second, odometry in between
+            sm.add_knot(
+                k * HELIX_KEYFRAME_NS, T_world_sensor=truth[k], covariance=cov, T_prev_cur=rel, relative_covariance=cov
+            )
         else:
             sm.add_relative_pose(k * HELIX_KEYFRAME_NS, rel, cov)
     knots = sm.knots()

@@ -43,8 +43,9 @@ def _bad_images(f: StereoImages) -> dict[str, tuple[StereoImages, str]]:
     }
 
 
-@pytest.mark.parametrize("case", ["cropped 100 px", "right only cropped", "float", "uint16", "rgb", "0x0", "list",
-                                  "float time"])
+@pytest.mark.parametrize(
+    "case", ["cropped 100 px", "right only cropped", "float", "uint16", "rgb", "0x0", "list", "float time"]
+)
 def test_odometry_refuses_unusable_images(kitti, case):
     camera, frames = kitti
     vo = StereoOdometry(camera, OdometrySettings.of(Config()))
@@ -61,10 +62,10 @@ def test_a_section_outside_its_domain_cannot_be_built():
     from vtr.config import FeatureConfig, OdometryConfig
 
     with pytest.raises(ConfigError, match=r"^config: features\.n_levels must be an integer in \[1, 16\], got 0$"):
-        FeatureConfig(n_levels=0)          # segfaulted inside OpenCV's ORB
+        FeatureConfig(n_levels=0)  # segfaulted inside OpenCV's ORB
     with pytest.raises(ConfigError, match=r"odometry\.keyframe_translation_m"):
-        OdometryConfig(keyframe_translation_m=float("nan"))   # was accepted: no keyframe after the first
-    with pytest.raises(ConfigError, match=r"features\.grid_rows"):   # a changed copy is checked too
+        OdometryConfig(keyframe_translation_m=float("nan"))  # was accepted: no keyframe after the first
+    with pytest.raises(ConfigError, match=r"features\.grid_rows"):  # a changed copy is checked too
         Config().replace("features", grid_rows=0)
 
 
@@ -80,12 +81,15 @@ def _smoother(n: int = 5) -> TrajectorySmoother:
     return sm
 
 
-@pytest.mark.parametrize(("T", "named"), [
-    (np.full((4, 4), np.nan), "NaN"),
-    (np.diag([2.0, 1, 1, 1]), "orthonormal"),
-    (np.eye(3), "4x4"),
-    (np.diag([1.0, 1, 1, 0]), "last row"),
-])
+@pytest.mark.parametrize(
+    ("T", "named"),
+    [
+        (np.full((4, 4), np.nan), "NaN"),
+        (np.diag([2.0, 1, 1, 1]), "orthonormal"),
+        (np.eye(3), "4x4"),
+        (np.diag([1.0, 1, 1, 0]), "last row"),
+    ],
+)
 def test_smoother_refuses_non_se3_poses(T, named):
     sm = _smoother(2)
     with pytest.raises(EstimationError, match=named):
@@ -93,12 +97,15 @@ def test_smoother_refuses_non_se3_poses(T, named):
     assert sm.num_keyframes == 2
 
 
-@pytest.mark.parametrize(("cov", "named"), [
-    (np.full((6, 6), np.nan), "NaN"),
-    (-np.eye(6), "positive definite"),
-    (np.eye(5), "6x6"),
-    (np.zeros((6, 6)), "non-zero"),
-])
+@pytest.mark.parametrize(
+    ("cov", "named"),
+    [
+        (np.full((6, 6), np.nan), "NaN"),
+        (-np.eye(6), "positive definite"),
+        (np.eye(5), "6x6"),
+        (np.zeros((6, 6)), "non-zero"),
+    ],
+)
 def test_smoother_refuses_bad_covariances(cov, named):
     sm = _smoother(2)
     with pytest.raises(EstimationError, match=named):
@@ -109,7 +116,7 @@ def test_state_at_refuses_far_extrapolation():
     sm = _smoother()
     last = sm.last_time_ns
     horizon_ns = int(SmoothingConfig().max_extrapolation_s * 1e9)
-    assert sm.state_at(last + horizon_ns).kind == "extrapolated"      # up to the horizon: answered
+    assert sm.state_at(last + horizon_ns).kind == "extrapolated"  # up to the horizon: answered
     thirty_years = 30 * 365 * 24 * 3600 * 10**9
     for t in (last + horizon_ns + 1, last + thirty_years):
         with pytest.raises(EstimationError, match=r"after the newest keyframe.*smoothing\.max_extrapolation_s"):

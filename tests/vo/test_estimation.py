@@ -39,9 +39,19 @@ def refine_two_view(T_q_r, X, zr, zq, sigma_px, huber_px, iterations, outlier_px
     """Two-view stereo bundle adjustment (reference view fixed, landmarks free, every measured row counted)."""
     n = len(X)
     z = np.concatenate([zr, zq])
-    res = bundle_adjust(np.stack([np.eye(4), T_q_r]), np.array([True, False]), X,
-                        np.r_[np.zeros(n, int), np.ones(n, int)], np.r_[np.arange(n), np.arange(n)], np.nan_to_num(z),
-                        np.isfinite(z).astype(float), CAM, sigma_px, huber_px, iterations)
+    res = bundle_adjust(
+        np.stack([np.eye(4), T_q_r]),
+        np.array([True, False]),
+        X,
+        np.r_[np.zeros(n, int), np.ones(n, int)],
+        np.r_[np.arange(n), np.arange(n)],
+        np.nan_to_num(z),
+        np.isfinite(z).astype(float),
+        CAM,
+        sigma_px,
+        huber_px,
+        iterations,
+    )
     inlier = np.maximum(res.error_sq[:n], res.error_sq[n:]) <= outlier_px**2
     return TwoView(res.T_cam_world[1], res.pose_covariance[1], inlier)
 

@@ -27,7 +27,7 @@ from vtr.vo.stereo import StereoProcessor
 FAR_BASELINES = 40.0
 SCALE_ERROR_BOUND = 0.01
 T_ERR_BOUND_PCT = 1.5
-RIGHT_CX_OFFSET_PX = 1.1        # measured on kitti00_ramp_clip: disparities 1.16 px below the motion's
+RIGHT_CX_OFFSET_PX = 1.1  # measured on kitti00_ramp_clip: disparities 1.16 px below the motion's
 BLUR_SIGMA_PX = 0.7
 REALISTIC_T_ERR_BOUND_PCT = 4.0
 REALISTIC_PATH_LENGTH_RANGE = (1.00, 1.04)
@@ -49,8 +49,9 @@ def far_run(tmp_path_factory):
     cam = syn.kitti_like_camera()
     T = _turn()
     scene = syn.far_structure_scene(3, T[:, :2, 3])
-    out = syn.write_sequence(tmp_path_factory.mktemp("far") / "turn", scene, cam, T, syn.route_times(T, 10.0),
-                             noise_sigma=1.0, noise_seed=1)
+    out = syn.write_sequence(
+        tmp_path_factory.mktemp("far") / "turn", scene, cam, T, syn.route_times(T, 10.0), noise_sigma=1.0, noise_seed=1
+    )
     cfg = Config()
     with open_source(out) as src:
         sp = StereoProcessor(src.camera, cfg.features, cfg.stereo)
@@ -62,9 +63,17 @@ def far_run(tmp_path_factory):
 def realistic_sequence(tmp_path_factory):
     T = _turn()
     scene = syn.far_structure_scene(3, T[:, :2, 3], ground_contrast=1.0, near_clearance_m=3.0)
-    return syn.write_sequence(tmp_path_factory.mktemp("far_real") / "turn", scene, syn.kitti_like_camera(), T,
-                              syn.route_times(T, 10.0), noise_sigma=1.0, noise_seed=1, blur_sigma_px=BLUR_SIGMA_PX,
-                              right_cx_offset_px=RIGHT_CX_OFFSET_PX)
+    return syn.write_sequence(
+        tmp_path_factory.mktemp("far_real") / "turn",
+        scene,
+        syn.kitti_like_camera(),
+        T,
+        syn.route_times(T, 10.0),
+        noise_sigma=1.0,
+        noise_seed=1,
+        blur_sigma_px=BLUR_SIGMA_PX,
+        right_cx_offset_px=RIGHT_CX_OFFSET_PX,
+    )
 
 
 def test_texture_is_mostly_far(far_run):

@@ -31,8 +31,9 @@ def test_bucket_keeps_each_cells_strongest_and_at_most_n_keep(seed, n, n_keep):
 
 
 def _cells_used(uv: np.ndarray, cfg: FeatureConfig, shape: tuple[int, ...]) -> int:
-    cells = (uv[:, 1] * cfg.grid_rows / shape[0]).astype(int) * cfg.grid_cols \
-        + (uv[:, 0] * cfg.grid_cols / shape[1]).astype(int)
+    cells = (uv[:, 1] * cfg.grid_rows / shape[0]).astype(int) * cfg.grid_cols + (
+        uv[:, 0] * cfg.grid_cols / shape[1]
+    ).astype(int)
     return len(np.unique(cells))
 
 

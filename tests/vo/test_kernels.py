@@ -45,17 +45,31 @@ def _descriptors(rng, n, pool):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n_q=st.integers(0, 40), n_t=st.integers(0, 40),
-       radius=st.sampled_from([3.0, 10.0, 40.0]), ratio=st.sampled_from([0.8, 1.0]), mutual=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n_q=st.integers(0, 40),
+    n_t=st.integers(0, 40),
+    radius=st.sampled_from([3.0, 10.0, 40.0]),
+    ratio=st.sampled_from([0.8, 1.0]),
+    mutual=st.booleans(),
+)
 def test_radius_match_follows_the_documented_rule(seed, n_q, n_t, radius, ratio, mutual):
     rng = np.random.default_rng(seed)
-    pred = rng.uniform(0, 60, (n_q, 2)).round()          # integer positions: equal gaps happen too
+    pred = rng.uniform(0, 60, (n_q, 2)).round()  # integer positions: equal gaps happen too
     uv = rng.uniform(0, 60, (n_t, 2)).round()
     dq, dt = _descriptors(rng, n_q, 6), _descriptors(rng, n_t, 6)
     qi, tj = match_within_radius(pred, dq, uv, dt, radius, 40, ratio=ratio, mutual=mutual)
     gap2 = lambda q, j: float(((pred[q] - uv[j]) ** 2).sum())  # noqa: E731
-    expected = _reference_match(lambda q: [j for j in range(n_t) if gap2(q, j) <= radius**2], n_q, n_t,
-                                lambda q, j: _hamming(dq[q], dt[j]), gap2, 40, ratio, mutual)
+    expected = _reference_match(
+        lambda q: [j for j in range(n_t) if gap2(q, j) <= radius**2],
+        n_q,
+        n_t,
+        lambda q, j: _hamming(dq[q], dt[j]),
+        gap2,
+        40,
+        ratio,
+        mutual,
+    )
     assert sorted(zip(qi.tolist(), tj.tolist(), strict=True)) == expected
 
 
@@ -65,8 +79,9 @@ def test_all_pairs_match_follows_the_documented_rule(seed, n_q, n_t):
     rng = np.random.default_rng(seed)
     dq, dt = _descriptors(rng, n_q, 5), _descriptors(rng, n_t, 5)
     qi, tj = match_all(dq, dt, 50, ratio=0.9)
-    expected = _reference_match(lambda q: range(n_t), n_q, n_t, lambda q, j: _hamming(dq[q], dt[j]),
-                                lambda q, j: 0.0, 50, 0.9, True)
+    expected = _reference_match(
+        lambda q: range(n_t), n_q, n_t, lambda q, j: _hamming(dq[q], dt[j]), lambda q, j: 0.0, 50, 0.9, True
+    )
     assert sorted(zip(qi.tolist(), tj.tolist(), strict=True)) == expected
 
 
@@ -81,12 +96,25 @@ def test_row_band_match_follows_the_documented_rule(seed, n_l, n_r):
     row_tol = 1.5 * 1.2 ** np.arange(4)
 
     def candidates(i):
-        return [j for j in range(n_r) if abs(uv_l[i, 1] - uv_r[j, 1]) <= row_tol[oct_l[i]]
-                and 0.0 <= uv_l[i, 0] - uv_r[j, 0] <= 60.0 and abs(oct_l[i] - oct_r[j]) <= 1]
+        return [
+            j
+            for j in range(n_r)
+            if abs(uv_l[i, 1] - uv_r[j, 1]) <= row_tol[oct_l[i]]
+            and 0.0 <= uv_l[i, 0] - uv_r[j, 0] <= 60.0
+            and abs(oct_l[i] - oct_r[j]) <= 1
+        ]
 
     qi, tj, _ = km.row_band_match(uv_l, oct_l, km_words(dl), uv_r, oct_r, km_words(dr), row_tol, 0.0, 60.0, 1, 64)
-    expected = _reference_match(candidates, n_l, n_r, lambda i, j: _hamming(dl[i], dr[j]),
-                                lambda i, j: abs(uv_l[i, 1] - uv_r[j, 1]) + abs(oct_l[i] - oct_r[j]), 64, 1.0, True)
+    expected = _reference_match(
+        candidates,
+        n_l,
+        n_r,
+        lambda i, j: _hamming(dl[i], dr[j]),
+        lambda i, j: abs(uv_l[i, 1] - uv_r[j, 1]) + abs(oct_l[i] - oct_r[j]),
+        64,
+        1.0,
+        True,
+    )
     assert sorted(zip(qi.tolist(), tj.tolist(), strict=True)) == expected
 
 
@@ -113,11 +141,11 @@ def test_refine_disparity_recovers_known_subpixel_shifts(kitti_clip):
 
 def test_refine_disparity_marks_border_minima_and_image_edges_unmatched():
     rng = np.random.default_rng(0)
-    smooth = cv2.GaussianBlur(rng.uniform(0, 255, (40, 80)), (0, 0), 4)   # SSD falls steadily toward the match
+    smooth = cv2.GaussianBlur(rng.uniform(0, 255, (40, 80)), (0, 0), 4)  # SSD falls steadily toward the match
     left = cv2.normalize(smooth, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    right = np.roll(left, -5, axis=1)                     # true disparity 5 px
+    right = np.roll(left, -5, axis=1)  # true disparity 5 px
     u = np.array([30.0, 30.0, 2.0])
     ul, ur = refine_disparity(left, right, u, np.array([20.0, 20.0, 20.0]), np.array([25.0, 29.0, 0.0]), 3, 2)
-    assert abs((ul - ur)[0] - 5.0) < 0.25                 # found inside the search window
-    assert np.isnan(ur[1])                                # true match 4 px away: beyond +-2 px
-    assert np.isnan(ur[2])                                # patch leaves the image
+    assert abs((ul - ur)[0] - 5.0) < 0.25  # found inside the search window
+    assert np.isnan(ur[1])  # true match 4 px away: beyond +-2 px
+    assert np.isnan(ur[2])  # patch leaves the image

@@ -61,11 +61,11 @@ def test_without_history_the_odometry_keeps_only_its_window(kitti_clip, kitti_ru
         for images in src.iter_frames(range(len(src))):
             finalized += vo.process(images).finalized
         finalized += vo.flush()
-        assert len(vo._keyframe_poses) == 0      # every keyframe's pose was handed out and dropped
+        assert len(vo._keyframe_poses) == 0  # every keyframe's pose was handed out and dropped
     with pytest.raises(ConfigError, match="keep_history"):
         vo.final_poses()
     poses = kitti_run[1]
-    assert len(finalized) == len(poses)                    # every KITTI frame is a keyframe
+    assert len(finalized) == len(poses)  # every KITTI frame is a keyframe
     assert np.allclose(np.array([kf.T_world_kf for kf in finalized]), poses, atol=1e-9)
 
 

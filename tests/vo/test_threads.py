@@ -40,7 +40,7 @@ def test_stereo_frame_identical_with_threads(kitti_clip):
         one = StereoProcessor(src.camera, _config(1).features, Config().stereo).process(images)
         two = StereoProcessor(src.camera, _config(2).features, Config().stereo)
         assert two._pool is not None
-        for _ in range(2):          # the pool is reused frame after frame
+        for _ in range(2):  # the pool is reused frame after frame
             frame = two.process(images)
             assert np.array_equal(frame.features.uv, one.features.uv)
             assert np.array_equal(frame.features.descriptors, one.features.descriptors)
@@ -104,8 +104,10 @@ def test_teach_and_repeat_identical_with_one_and_two_threads(kitti_clip, tmp_pat
         folder = tmp_path / f"t{threads}"
         teach_command(kitti_clip, folder / "route.vtrmap", "0:24:2", _config(threads))
         repeat_command(kitti_clip, folder / "route.vtrmap", folder / "repeat", "1:24:2", _config(threads))
-        outputs[threads] = [(folder / "repeat" / name).read_bytes()
-                            for name in ("localization.csv", "landmarks.csv", "trajectory_tum.txt")]
+        outputs[threads] = [
+            (folder / "repeat" / name).read_bytes()
+            for name in ("localization.csv", "landmarks.csv", "trajectory_tum.txt")
+        ]
     assert outputs[1] == outputs[2]
 
 
@@ -126,7 +128,7 @@ def test_frames_on_the_pool_equal_one_thread_in_order(kitti_clip):
             workers.add(threading.current_thread().name)
             return original(images)
 
-        two._process_on_worker = spy            # type: ignore[method-assign]
+        two._process_on_worker = spy  # type: ignore[method-assign]
         got = list(two.frames(src.iter_frames(idx)))
     assert [f.index for f in got] == idx
     assert len(workers) == 2 and all(name.startswith("vtr-stereo") for name in workers)
@@ -144,6 +146,7 @@ def test_frames_on_the_pool_raise_a_bad_frame_at_its_place(kitti_clip):
     from vtr.types import StereoImages
 
     with open_source(kitti_clip) as src:
+
         def images():
             for i in range(8):
                 im = src[i]
@@ -170,9 +173,9 @@ def test_frames_on_the_pool_stop_when_the_consumer_stops(kitti_clip):
 
         stream = processor.frames(images())
         assert next(stream).index == 0
-        stream.close()                                  # type: ignore[attr-defined]
+        stream.close()  # type: ignore[attr-defined]
     assert not _threads_named("vtr-stereo") and not _threads_named("vtr-prefetch")
-    assert len(read) < 10                               # bounded look-ahead: the clip has 51 frames
+    assert len(read) < 10  # bounded look-ahead: the clip has 51 frames
 
 
 @pytest.mark.skipif(not hasattr(os, "setpriority") or sys.platform != "linux", reason="per-thread niceness is Linux's")
@@ -198,4 +201,4 @@ def test_background_threads_run_at_the_configured_niceness():
     assert seen[0, 7] == (caller, min(caller + 7, 19))
     base, after = seen[15, 7]
     assert after == min(base + 7, 19) and after >= base
-    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == caller    # the caller is untouched
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == caller  # the caller is untouched

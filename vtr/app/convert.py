@@ -63,8 +63,13 @@ def _gt_poses(source: FrameSource, indices: Sequence[int]) -> np.ndarray | None:
     return gt.T_world_cam[np.asarray(indices)]
 
 
-def convert(source: FrameSource, out: str | Path, to: str | None = None, indices: Sequence[int] | None = None,
-            progress: Callable[[int], None] | None = None) -> ConvertSummary:
+def convert(
+    source: FrameSource,
+    out: str | Path,
+    to: str | None = None,
+    indices: Sequence[int] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> ConvertSummary:
     """Write ``source`` (the frames at ``indices``, default all) to ``out`` as ``to`` (see ``TARGETS``).
 
     ``out`` must not exist (an empty folder is accepted for ``kitti``). ``progress(n)`` is called after
@@ -127,6 +132,15 @@ def convert(source: FrameSource, out: str | Path, to: str | None = None, indices
         elif tmp.exists():
             tmp.unlink()
         raise
-    return ConvertSummary(source=Path(source.path), source_format=source.format_name, out=out, target=to,
-                          frames=len(times), first_t_ns=int(times[0]), last_t_ns=int(times[-1]),
-                          bytes_written=_size(out), seconds=time.perf_counter() - start, wrote_poses=wrote_poses)
+    return ConvertSummary(
+        source=Path(source.path),
+        source_format=source.format_name,
+        out=out,
+        target=to,
+        frames=len(times),
+        first_t_ns=int(times[0]),
+        last_t_ns=int(times[-1]),
+        bytes_written=_size(out),
+        seconds=time.perf_counter() - start,
+        wrote_poses=wrote_poses,
+    )

@@ -26,10 +26,10 @@ from ..sim import synthetic as syn
 from ..sim.drifting import write_drifted_sequence
 from .evaluation import Integrity, integrity_of
 
-SPEED_MPS = 4.0            # flight speed (frame times from the 1 m frame spacing)
-SPACING_M = 1.0            # between frames
-REPEAT_PHASE_M = 0.5       # repeat frames fall between the taught ones
-LATERAL_M = 0.5            # repeats fly this far to the side
+SPEED_MPS = 4.0  # flight speed (frame times from the 1 m frame spacing)
+SPACING_M = 1.0  # between frames
+REPEAT_PHASE_M = 0.5  # repeat frames fall between the taught ones
+LATERAL_M = 0.5  # repeats fly this far to the side
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class Flight:
     seconds_per_keyframe: float
     run: int
     localizations: tuple[Localization, ...] = ()
-    keyframe_seconds: tuple[float, ...] = ()     # localization seconds of each keyframe, in order
+    keyframe_seconds: tuple[float, ...] = ()  # localization seconds of each keyframe, in order
 
 
 def route(length_m: float) -> np.ndarray:
@@ -56,8 +56,9 @@ def route(length_m: float) -> np.ndarray:
 
 def repeat_route(length_m: float, backward: bool) -> np.ndarray:
     """A repeat's camera poses: between the taught frames, ``LATERAL_M`` to the side, optionally from the end."""
-    T = syn.aerial_route(length_m - 2 * REPEAT_PHASE_M, SPACING_M, start_offset_m=REPEAT_PHASE_M,
-                         lateral_offset_m=LATERAL_M)
+    T = syn.aerial_route(
+        length_m - 2 * REPEAT_PHASE_M, SPACING_M, start_offset_m=REPEAT_PHASE_M, lateral_offset_m=LATERAL_M
+    )
     return T[::-1].copy() if backward else T
 
 
@@ -71,8 +72,9 @@ def render_flight(folder: Path, scene_seed: int, T: np.ndarray, change: float) -
     return GroundTruth(t, T)
 
 
-def teach_flight(folder: Path, map_path: Path, length_m: float, scene_seed: int = 0,
-          config: Config | None = None) -> GroundTruth:
+def teach_flight(
+    folder: Path, map_path: Path, length_m: float, scene_seed: int = 0, config: Config | None = None
+) -> GroundTruth:
     """Teach the route (unchanged appearance) into a new map at ``map_path``."""
     truth = render_flight(folder, scene_seed, route(length_m), 0.0)
     with open_source(folder) as src, Map.create(map_path, src.camera) as m:
@@ -83,8 +85,9 @@ def teach_flight(folder: Path, map_path: Path, length_m: float, scene_seed: int 
     return truth
 
 
-def fly(map_path: Path, folder: Path, truth: GroundTruth, taught: GroundTruth, change: float, backward: bool,
-        config: Config) -> Flight:
+def fly(
+    map_path: Path, folder: Path, truth: GroundTruth, taught: GroundTruth, change: float, backward: bool, config: Config
+) -> Flight:
     """Repeat the flight in ``folder`` against the map (its run is appended to it) and judge it."""
     with open_source(folder) as src, Map.open(map_path, "a") as m:
         rp = Repeat(m, config, str(folder))
@@ -96,12 +99,28 @@ def fly(map_path: Path, folder: Path, truth: GroundTruth, taught: GroundTruth, c
         run = rp.run
     integrity = integrity_of(locs, trunk_t, truth, taught)
     used = sorted({e for loc in locs for e in loc.experiences})
-    return Flight(change, backward, integrity, sum(1 for loc in locs if loc.experiences), tuple(used),
-                  seconds / max(len(locs), 1), run, tuple(locs), per_keyframe)
+    return Flight(
+        change,
+        backward,
+        integrity,
+        sum(1 for loc in locs if loc.experiences),
+        tuple(used),
+        seconds / max(len(locs), 1),
+        run,
+        tuple(locs),
+        per_keyframe,
+    )
 
 
-def drifting_flights(root: Path, changes: Sequence[float], length_m: float, *, backward: bool = False,
-                     config: Config | None = None, scene_seed: int = 0) -> tuple[list[Flight], list[Flight]]:
+def drifting_flights(
+    root: Path,
+    changes: Sequence[float],
+    length_m: float,
+    *,
+    backward: bool = False,
+    config: Config | None = None,
+    scene_seed: int = 0,
+) -> tuple[list[Flight], list[Flight]]:
     """Teach, then fly ``changes`` in order twice: appended one after another to one map (multi-experience), and
     each against a copy of the teach-only map (``experiences.max_per_keyframe`` 0: single experience). Returns
     (with experiences, teach alone). The grown map is ``root/experiences.vtrmap``."""

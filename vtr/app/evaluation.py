@@ -34,7 +34,7 @@ class DriftMetrics:
     t_err_pct: float
     r_err_deg_per_m: float
     end_pct: float
-    length_ratio: float    # estimated path length / true path length
+    length_ratio: float  # estimated path length / true path length
     distance_m: float
     segments: int
     segment_lengths_m: tuple[float, ...] = SEGMENT_LENGTHS_M
@@ -52,14 +52,21 @@ class DriftMetrics:
 
     def __str__(self) -> str:
         if self.segments:
-            relative = (f"t_err {self.t_err_pct:.3f} %  r_err {self.r_err_deg_per_m:.4f} deg/m over "
-                        f"{self.segments} sub-segments of {self.segments_text} (KITTI's benchmark averages "
-                        f"{KITTI_BENCHMARK_SEGMENTS}: not comparable)")
+            relative = (
+                f"t_err {self.t_err_pct:.3f} %  r_err {self.r_err_deg_per_m:.4f} deg/m over "
+                f"{self.segments} sub-segments of {self.segments_text} (KITTI's benchmark averages "
+                f"{KITTI_BENCHMARK_SEGMENTS}: not comparable)"
+            )
         else:
-            relative = (f"t_err, r_err not measured: the ground-truth path ({self.distance_m:.1f} m) holds no "
-                        f"sub-segment of {self.segments_text}")
-        end = (f"end {self.end_pct:.3f} % of {self.distance_m:.1f} m  path length x{self.length_ratio:.4f}"
-               if self.distance_m > 0 else "end error and path length not measured: the ground truth does not move")
+            relative = (
+                f"t_err, r_err not measured: the ground-truth path ({self.distance_m:.1f} m) holds no "
+                f"sub-segment of {self.segments_text}"
+            )
+        end = (
+            f"end {self.end_pct:.3f} % of {self.distance_m:.1f} m  path length x{self.length_ratio:.4f}"
+            if self.distance_m > 0
+            else "end error and path length not measured: the ground truth does not move"
+        )
         return f"{relative}; {end}"
 
 
@@ -67,8 +74,7 @@ def path_length(T: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
 
 
-def drift_metrics(T_est: np.ndarray, T_gt: np.ndarray,
-                  lengths: tuple[float, ...] = SEGMENT_LENGTHS_M) -> DriftMetrics:
+def drift_metrics(T_est: np.ndarray, T_gt: np.ndarray, lengths: tuple[float, ...] = SEGMENT_LENGTHS_M) -> DriftMetrics:
     """KITTI-style drift of an estimated trajectory against ground truth (same frames, same order).
 
     Both are re-expressed relative to their first pose first.
@@ -126,14 +132,21 @@ class LocalizationErrors:
         return float(np.median(self.rotation_deg)) if len(self.rotation_deg) else float("nan")
 
     def __str__(self) -> str:
-        return (f"T_leaf_trunk error vs ground truth: median {1000 * self.median_translation_m:.1f} mm, "
-                f"{self.median_rotation_deg:.3f} deg (max {1000 * np.max(self.translation_m, initial=0):.1f} mm, "
-                f"{np.max(self.rotation_deg, initial=0):.3f} deg; {len(self.translation_m)} localizations)")
+        return (
+            f"T_leaf_trunk error vs ground truth: median {1000 * self.median_translation_m:.1f} mm, "
+            f"{self.median_rotation_deg:.3f} deg (max {1000 * np.max(self.translation_m, initial=0):.1f} mm, "
+            f"{np.max(self.rotation_deg, initial=0):.3f} deg; {len(self.translation_m)} localizations)"
+        )
 
 
-def localization_errors(T_leaf_trunk: np.ndarray, leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray,
-                        gt_t_ns: np.ndarray, gt_T_world_cam: np.ndarray,
-                        tolerance_ns: int = 20_000_000) -> LocalizationErrors:
+def localization_errors(
+    T_leaf_trunk: np.ndarray,
+    leaf_t_ns: np.ndarray,
+    trunk_t_ns: np.ndarray,
+    gt_t_ns: np.ndarray,
+    gt_T_world_cam: np.ndarray,
+    tolerance_ns: int = 20_000_000,
+) -> LocalizationErrors:
     """Compare estimates with ground truth ``inv(G_leaf) @ G_trunk`` (teach and repeat sharing one world,
     as when both come from one source). Leaves or trunks without ground truth within tolerance are skipped."""
     il, gl = associate(np.asarray(leaf_t_ns), gt_t_ns, tolerance_ns)
@@ -173,7 +186,7 @@ class Integrity:
     median_error_m: float
     covered: float
     median_nees: float
-    refused_off_route: int = 0      # attempts refused as off the route (beyond an end): counted apart from misses
+    refused_off_route: int = 0  # attempts refused as off the route (beyond an end): counted apart from misses
 
     @property
     def missed(self) -> int:
@@ -186,18 +199,31 @@ class Integrity:
     def __str__(self) -> str:
         first = "none" if self.first_correct is None else f"attempt {self.first_correct}"
         judged = self.attempts - self.refused_off_route
-        refused = (f", {self.refused_off_route} refused as off the route (counted apart, not as misses)"
-                   if self.refused_off_route else "")
+        refused = (
+            f", {self.refused_off_route} refused as off the route (counted apart, not as misses)"
+            if self.refused_off_route
+            else ""
+        )
         after = f", {100 * self.rate_after:.0f} % correct after it" if self.first_correct is not None else ""
-        cover = (f"reported sigma covers {100 * self.covered:.0f} % of errors (3 sigma)" if math.isfinite(self.covered)
-                 else "reported sigma not judged (no correct success)")
-        return (f"against ground truth: {self.correct} of {judged} attempts on the route correct{refused}, "
-                f"{self.missed} missed, {self.wrong} wrong successes (> {100 * WRONG_SUCCESS_M:.0f} cm or "
-                f"{WRONG_SUCCESS_DEG:g} deg); first correct {first}{after}; {cover}")
+        cover = (
+            f"reported sigma covers {100 * self.covered:.0f} % of errors (3 sigma)"
+            if math.isfinite(self.covered)
+            else "reported sigma not judged (no correct success)"
+        )
+        return (
+            f"against ground truth: {self.correct} of {judged} attempts on the route correct{refused}, "
+            f"{self.missed} missed, {self.wrong} wrong successes (> {100 * WRONG_SUCCESS_M:.0f} cm or "
+            f"{WRONG_SUCCESS_DEG:g} deg); first correct {first}{after}; {cover}"
+        )
 
 
-def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covariance: np.ndarray,
-                           T_true: np.ndarray, off_route: np.ndarray | None = None) -> Integrity:
+def localization_integrity(
+    success: np.ndarray,
+    T_leaf_trunk: np.ndarray,
+    covariance: np.ndarray,
+    T_true: np.ndarray,
+    off_route: np.ndarray | None = None,
+) -> Integrity:
     """Judge attempts (``success`` (N,), estimates and covariances (N, 4, 4), (N, 6, 6) [rot, trans] left
     perturbation) against the true ``T_leaf_trunk`` (N, 4, 4; NaN where unknown: such a success is wrong).
     ``off_route`` (N,) marks the attempts refused as off the route: counted apart, neither correct nor missed,
@@ -212,8 +238,10 @@ def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covari
             continue
         E = T_leaf_trunk[k] @ inv_T(T_true[k])
         xi = log_se3(E)
-        e_t, e_r = float(np.linalg.norm((inv_T(T_true[k]) @ T_leaf_trunk[k])[:3, 3])), \
-            float(np.degrees(np.linalg.norm(xi[:3])))
+        e_t, e_r = (
+            float(np.linalg.norm((inv_T(T_true[k]) @ T_leaf_trunk[k])[:3, 3])),
+            float(np.degrees(np.linalg.norm(xi[:3]))),
+        )
         if e_t <= WRONG_SUCCESS_M and e_r <= WRONG_SUCCESS_DEG:
             correct[k] = True
             errors.append(e_t)
@@ -226,17 +254,29 @@ def localization_integrity(success: np.ndarray, T_leaf_trunk: np.ndarray, covari
     judged_after = ~refused[first:] if first is not None else np.zeros(0, bool)
     after = float(correct[first:][judged_after].mean()) if judged_after.any() else 0.0
     nees_a = np.array(nees)
-    return Integrity(attempts=n, successes=int(success.sum()), correct=int(correct.sum()),
-                     wrong=int(success.sum() - correct.sum()), first_correct=first, rate_after=after,
-                     refused_off_route=int(refused.sum()),
-                     median_error_m=float(np.median(errors)) if errors else float("nan"),
-                     covered=float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
-                     median_nees=float(np.median(nees_a)) if len(nees_a) else float("nan"))
+    return Integrity(
+        attempts=n,
+        successes=int(success.sum()),
+        correct=int(correct.sum()),
+        wrong=int(success.sum() - correct.sum()),
+        first_correct=first,
+        rate_after=after,
+        refused_off_route=int(refused.sum()),
+        median_error_m=float(np.median(errors)) if errors else float("nan"),
+        covered=float(np.mean(nees_a <= COVERAGE_CHI2_3DOF)) if len(nees_a) else float("nan"),
+        median_nees=float(np.median(nees_a)) if len(nees_a) else float("nan"),
+    )
 
 
-def true_leaf_trunk(leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray, gt_repeat_t_ns: np.ndarray,
-                    gt_repeat_T: np.ndarray, gt_teach_t_ns: np.ndarray, gt_teach_T: np.ndarray,
-                    tolerance_ns: int = 20_000_000) -> np.ndarray:
+def true_leaf_trunk(
+    leaf_t_ns: np.ndarray,
+    trunk_t_ns: np.ndarray,
+    gt_repeat_t_ns: np.ndarray,
+    gt_repeat_T: np.ndarray,
+    gt_teach_t_ns: np.ndarray,
+    gt_teach_T: np.ndarray,
+    tolerance_ns: int = 20_000_000,
+) -> np.ndarray:
     """True ``T_leaf_trunk`` (N, 4, 4) = ``inv(G_leaf) @ G_trunk`` from the repeat's and the teach's ground truth
     (one world); NaN where either time has no ground truth within tolerance."""
     out = np.full((len(leaf_t_ns), 4, 4), np.nan)
@@ -249,13 +289,23 @@ def true_leaf_trunk(leaf_t_ns: np.ndarray, trunk_t_ns: np.ndarray, gt_repeat_t_n
     return out
 
 
-def integrity_of(locs: Sequence[Localization], trunk_t_ns: np.ndarray, gt_repeat: GroundTruth,
-                 gt_teach: GroundTruth) -> Integrity:
+def integrity_of(
+    locs: Sequence[Localization], trunk_t_ns: np.ndarray, gt_repeat: GroundTruth, gt_teach: GroundTruth
+) -> Integrity:
     """:func:`localization_integrity` of ``Localization`` records whose trunks were taught at ``trunk_t_ns``, with
     the repeat's and the teach's ground truth (``GroundTruth``: ``t_ns``, ``T_world_cam``, one world)."""
-    T_true = true_leaf_trunk(np.array([loc.t_ns for loc in locs], np.int64), trunk_t_ns, gt_repeat.t_ns,
-                             gt_repeat.T_world_cam, gt_teach.t_ns, gt_teach.T_world_cam)
-    return localization_integrity(np.array([loc.success for loc in locs], bool),
-                                  np.array([loc.T_leaf_trunk for loc in locs]).reshape(-1, 4, 4),
-                                  np.array([loc.covariance for loc in locs]).reshape(-1, 6, 6), T_true,
-                                  np.array([loc.status == LocalizationStatus.OFF_ROUTE for loc in locs], bool))
+    T_true = true_leaf_trunk(
+        np.array([loc.t_ns for loc in locs], np.int64),
+        trunk_t_ns,
+        gt_repeat.t_ns,
+        gt_repeat.T_world_cam,
+        gt_teach.t_ns,
+        gt_teach.T_world_cam,
+    )
+    return localization_integrity(
+        np.array([loc.success for loc in locs], bool),
+        np.array([loc.T_leaf_trunk for loc in locs]).reshape(-1, 4, 4),
+        np.array([loc.covariance for loc in locs]).reshape(-1, 6, 6),
+        T_true,
+        np.array([loc.status == LocalizationStatus.OFF_ROUTE for loc in locs], bool),
+    )

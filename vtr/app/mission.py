@@ -48,7 +48,7 @@ class MissionRepeat:
 
     name: str
     landmarks_csv: Path
-    localizations_list: tuple[Localization, ...]   # the attempts after the drift ramp, in order
+    localizations_list: tuple[Localization, ...]  # the attempts after the drift ramp, in order
 
     @property
     def localizations(self) -> int:
@@ -68,20 +68,37 @@ def up_in_map(T_world_cam0: np.ndarray) -> np.ndarray:
     return np.asarray(T_world_cam0, float)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
 
 
-def render_sequence(out_dir: Path, scene: syn.Scene, T_world_cam: np.ndarray, *, noise_seed: int = 0,
-           progress: Callable[[int, int], None] | None = None, speed_mps: float = SYNTHETIC_SPEED_MPS) -> Path:
+def render_sequence(
+    out_dir: Path,
+    scene: syn.Scene,
+    T_world_cam: np.ndarray,
+    *,
+    noise_seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
+    speed_mps: float = SYNTHETIC_SPEED_MPS,
+) -> Path:
     """Render (or reuse, when scene, poses, noise seed and speed are the same) a ZED-like stereo sequence in
     ``out_dir``, its frames timed as flown at ``speed_mps``."""
-    key = hashlib.sha1(repr(scene).encode() + np.ascontiguousarray(T_world_cam).tobytes()
-                       + str(noise_seed).encode()
-                       + (b"" if speed_mps == SYNTHETIC_SPEED_MPS else f"{speed_mps!r}".encode())).hexdigest()
+    key = hashlib.sha1(
+        repr(scene).encode()
+        + np.ascontiguousarray(T_world_cam).tobytes()
+        + str(noise_seed).encode()
+        + (b"" if speed_mps == SYNTHETIC_SPEED_MPS else f"{speed_mps!r}".encode())
+    ).hexdigest()
     stamp = out_dir / "render.key"
     if stamp.is_file() and stamp.read_text().strip() == key and (out_dir / "image_0").is_dir():
         return out_dir
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    syn.write_sequence(out_dir, scene, syn.zed_camera(), T_world_cam, syn.route_times(T_world_cam, speed_mps),
-                       noise_seed=noise_seed, progress=progress)
+    syn.write_sequence(
+        out_dir,
+        scene,
+        syn.zed_camera(),
+        T_world_cam,
+        syn.route_times(T_world_cam, speed_mps),
+        noise_seed=noise_seed,
+        progress=progress,
+    )
     stamp.write_text(key + "\n")
     return out_dir
 
@@ -97,8 +114,9 @@ def teach_sequence(seq_dir: Path, map_path: Path, config: Config, gravity_up: np
     return map_path
 
 
-def repeat_sequence(seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0,
-           spacing_m: float = 1.0) -> MissionRepeat:
+def repeat_sequence(
+    seq_dir: Path, map_path: Path, out_dir: Path, config: Config, *, skip_first_m: float = 0.0, spacing_m: float = 1.0
+) -> MissionRepeat:
     """Repeat ``seq_dir`` against the map; ``out_dir/landmarks.csv`` holds the localizations after ``skip_first_m``."""
     with open_source(seq_dir) as src, Map.open(map_path, "a") as m:
         # against the teach alone: the model is fitted on taught landmarks, and the other offsets' repeats appended
@@ -143,7 +161,7 @@ class EnvelopeCheck:
     them did not localize, and the median inliers."""
 
     lateral_m: float
-    fitted: str                       # "yes" or "held out"
+    fitted: str  # "yes" or "held out"
     localizations: int
     successes: int
     envelope_holds: int
@@ -162,20 +180,35 @@ class MissionReport:
     model_path: Path
     envelope_csv: Path
     report_html: Path
-    rows: tuple[EnvelopeCheck, ...]   # one per repeat, in the order flown
+    rows: tuple[EnvelopeCheck, ...]  # one per repeat, in the order flown
 
 
-def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSION_LENGTH_M,
-                       lateral_m: tuple[float, ...] = MISSION_LATERAL_M,
-                       held_out_m: tuple[float, ...] = MISSION_HELD_OUT_M, ramp_m: float = MISSION_RAMP_M,
-                       l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR,
-                       progress: Callable[[str], Callable[[int, int], None] | None] | None = None) -> MissionReport:
+def run_aerial_mission(
+    out_dir: Path,
+    config: Config,
+    *,
+    length_m: float = MISSION_LENGTH_M,
+    lateral_m: tuple[float, ...] = MISSION_LATERAL_M,
+    held_out_m: tuple[float, ...] = MISSION_HELD_OUT_M,
+    ramp_m: float = MISSION_RAMP_M,
+    l_min: float = THESIS_L_MIN,
+    c_bar: float = THESIS_C_BAR,
+    progress: Callable[[str], Callable[[int, int], None] | None] | None = None,
+) -> MissionReport:
     """Teach a straight aerial route, repeat it at lateral offsets (left), fit the model on the repeats'
     landmarks, compute the localization envelope and compare it with where the repeats localized."""
 
-    own = OutputFolder.prepare(out_dir)      # the mission rewrites only the entries it made (see OutputFolder)
-    own.claim_entries(["teach", "route.vtrmap", "model.json", "envelope", "report.html",
-                       *(f"repeat_{dy:g}m" for dy in (*lateral_m, *held_out_m))])
+    own = OutputFolder.prepare(out_dir)  # the mission rewrites only the entries it made (see OutputFolder)
+    own.claim_entries(
+        [
+            "teach",
+            "route.vtrmap",
+            "model.json",
+            "envelope",
+            "report.html",
+            *(f"repeat_{dy:g}m" for dy in (*lateral_m, *held_out_m)),
+        ]
+    )
     scene = syn.aerial_scene(MISSION_SCENE_SEED)
     T_teach = syn.aerial_route(length_m, 1.0)
     seq = render_sequence(out_dir / "teach", scene, T_teach, progress=progress("teach") if progress else None)
@@ -183,10 +216,15 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     reps = []
     for dy in (*lateral_m, *held_out_m):
         T_rep = syn.drifting_aerial_route(length_m - 1.0, 1.0, dy, 0.0, ramp_m, 0.5)
-        rseq = render_sequence(out_dir / f"repeat_{dy:g}m" / "images", scene, T_rep, noise_seed=1,
-                      progress=progress(f"repeat {dy:g} m") if progress else None)
+        rseq = render_sequence(
+            out_dir / f"repeat_{dy:g}m" / "images",
+            scene,
+            T_rep,
+            noise_seed=1,
+            progress=progress(f"repeat {dy:g} m") if progress else None,
+        )
         reps.append((dy, repeat_sequence(rseq, map_path, out_dir / f"repeat_{dy:g}m", config, skip_first_m=ramp_m)))
-    model = fit_model([r.landmarks_csv for dy, r in reps if dy in lateral_m])   # the held-out repeats are not fitted
+    model = fit_model([r.landmarks_csv for dy, r in reps if dy in lateral_m])  # the held-out repeats are not fitted
     model_path = out_dir / "model.json"
     model.save(model_path)
     env = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, max_m=MISSION_ENVELOPE_MAX_M)
@@ -196,32 +234,64 @@ def run_aerial_mission(out_dir: Path, config: Config, *, length_m: float = MISSI
     for dy, rs in reps:
         side = "left" if dy >= 0 else "right"
         # a capped envelope is at least as wide as the scan: beyond it nothing is predicted
-        judged = [loc for loc in rs.localizations_list if loc.trunk_id in by_id
-                  and not (by_id[loc.trunk_id].capped[side] and abs(dy) > by_id[loc.trunk_id].distance_m[side])]
+        judged = [
+            loc
+            for loc in rs.localizations_list
+            if loc.trunk_id in by_id
+            and not (by_id[loc.trunk_id].capped[side] and abs(dy) > by_id[loc.trunk_id].distance_m[side])
+        ]
         holds = [loc for loc in judged if by_id[loc.trunk_id].distance_m[side] >= abs(dy)]
         fails = [loc for loc in judged if loc not in holds]
-        rows.append(EnvelopeCheck(
-            lateral_m=dy, fitted="yes" if dy in lateral_m else "held out", localizations=rs.localizations,
-            successes=rs.successes, envelope_holds=len(holds), holds_and_localized=sum(loc.success for loc in holds),
-            envelope_fails=len(fails), fails_and_not_localized=sum(not loc.success for loc in fails),
-            median_inliers=float(np.median([loc.inliers for loc in rs.localizations_list]))
-            if rs.localizations_list else 0.0))
+        rows.append(
+            EnvelopeCheck(
+                lateral_m=dy,
+                fitted="yes" if dy in lateral_m else "held out",
+                localizations=rs.localizations,
+                successes=rs.successes,
+                envelope_holds=len(holds),
+                holds_and_localized=sum(loc.success for loc in holds),
+                envelope_fails=len(fails),
+                fails_and_not_localized=sum(not loc.success for loc in fails),
+                median_inliers=float(np.median([loc.inliers for loc in rs.localizations_list]))
+                if rs.localizations_list
+                else 0.0,
+            )
+        )
     html = out_dir / "report.html"
     _write_report(html, rows, env, env_png, model, l_min, c_bar)
-    return MissionReport(out_dir=out_dir, map_path=map_path, model_path=model_path, envelope_csv=env_csv,
-                         report_html=html, rows=tuple(rows))
+    return MissionReport(
+        out_dir=out_dir,
+        map_path=map_path,
+        model_path=model_path,
+        envelope_csv=env_csv,
+        report_html=html,
+        rows=tuple(rows),
+    )
 
 
-def _write_report(path: Path, checks: list[EnvelopeCheck], env: list, env_png: Path, model: PerceptionModel,
-                  l_min: float, c_bar: float) -> None:
+def _write_report(
+    path: Path,
+    checks: list[EnvelopeCheck],
+    env: list,
+    env_png: Path,
+    model: PerceptionModel,
+    l_min: float,
+    c_bar: float,
+) -> None:
     rows = [dataclasses.asdict(c) for c in checks]
     left = [e.distance_m["left"] for e in env]
     n_capped = sum(e.capped["left"] for e in env)
-    capped_note = (f" ({n_capped} of {len(env)} vertices capped at the scan limit {max(left):g} m: there the "
-                   "envelope is at least that wide, the number is the scan's limit, not a result)" if n_capped else "")
+    capped_note = (
+        f" ({n_capped} of {len(env)} vertices capped at the scan limit {max(left):g} m: there the "
+        "envelope is at least that wide, the number is the scan's limit, not a result)"
+        if n_capped
+        else ""
+    )
     head = "".join(f"<th>{k}</th>" for k in rows[0])
-    body = "".join("<tr>" + "".join(f"<td>{v:g}</td>" if isinstance(v, float) else f"<td>{v}</td>"
-                                    for v in r.values()) + "</tr>" for r in rows)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{v:g}</td>" if isinstance(v, float) else f"<td>{v}</td>" for v in r.values()) + "</tr>"
+        for r in rows
+    )
     path.write_text(f"""<!doctype html><html><head><meta charset="utf-8"><title>vtr: aerial mission</title></head>
 <body style="font-family: sans-serif; max-width: 1100px">
 <h1>Synthetic aerial mission: teach, repeats, model, envelope</h1>

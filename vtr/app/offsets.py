@@ -24,9 +24,9 @@ from .mission import teach_sequence
 from .pipeline import write_landmarks_csv
 from .repeat_run import run_repeat
 
-SPEED_MPS = 4.0          # flight speed used for timestamps
-REPEAT_PHASE_M = 0.5     # repeat frames sit half a spacing along from the taught ones
-RAMP_M = 6.0             # the repeat leaves the taught path and reaches its offset over this distance
+SPEED_MPS = 4.0  # flight speed used for timestamps
+REPEAT_PHASE_M = 0.5  # repeat frames sit half a spacing along from the taught ones
+RAMP_M = 6.0  # the repeat leaves the taught path and reaches its offset over this distance
 
 
 def lateral_offsets(T_world_teach: np.ndarray, T_world_repeat: np.ndarray, heading_rad: float) -> np.ndarray:
@@ -40,9 +40,15 @@ def repeat_name(lateral_m: float, vertical_m: float) -> str:
     return f"repeat_lat{lateral_m:g}_up{vertical_m:g}"
 
 
-def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], length: float, seed: int = 0,
-                       ramp_m: float = RAMP_M,
-                       offsets: list[tuple[float, float]] | None = None) -> list[dict[str, float]]:
+def run_offset_repeats(
+    out: Path,
+    lateral: list[float],
+    vertical: list[float],
+    length: float,
+    seed: int = 0,
+    ramp_m: float = RAMP_M,
+    offsets: list[tuple[float, float]] | None = None,
+) -> list[dict[str, float]]:
     """Teach ``length`` m, then one repeat per (vertical, lateral) offset reaching it over ``ramp_m`` m;
     localizations before the offset is reached are left out of the statistics and landmarks.csv.
     ``offsets`` (lateral, vertical) pairs replace the grid ``lateral`` x ``vertical`` when given."""
@@ -57,8 +63,7 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
     for dy, dz in pairs:
         name = repeat_name(dy, dz)
         T_rep = syn.drifting_aerial_route(length - 1.0, 1.0, dy, dz, ramp_m, REPEAT_PHASE_M)
-        rep_dir = syn.write_sequence(out / name, scene, cam, T_rep, syn.route_times(T_rep, SPEED_MPS),
-                                     noise_seed=1)
+        rep_dir = syn.write_sequence(out / name, scene, cam, T_rep, syn.route_times(T_rep, SPEED_MPS), noise_seed=1)
         with open_source(rep_dir) as src, Map.open(map_path, "a") as m:
             teach_world = np.loadtxt(teach_dir / "poses_world.txt").reshape(-1, 3, 4)
             T_w_teach = np.tile(np.eye(4), (len(teach_world), 1, 1))
@@ -80,12 +85,17 @@ def run_offset_repeats(out: Path, lateral: list[float], vertical: list[float], l
             est.append(lateral_offsets(T_w_teach, T_w_leaf[None], 0.0)[0])
         ok = [loc for loc in locs if loc.success]
         write_landmarks_csv(out / name / "landmarks.csv", locs)
-        row = {"lateral_m": dy, "vertical_m": dz, "vertices": len(locs), "localized": len(ok),
-               "success_rate": len(ok) / max(len(locs), 1),
-               "median_inliers": float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-               "median_est_lateral_m": float(np.median(est)) if est else float("nan"),
-               "max_abs_lateral_error_m": float(np.max(np.abs(np.array(est) - dy))) if est else float("nan"),
-               "fps": len(src) / seconds}
+        row = {
+            "lateral_m": dy,
+            "vertical_m": dz,
+            "vertices": len(locs),
+            "localized": len(ok),
+            "success_rate": len(ok) / max(len(locs), 1),
+            "median_inliers": float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
+            "median_est_lateral_m": float(np.median(est)) if est else float("nan"),
+            "max_abs_lateral_error_m": float(np.max(np.abs(np.array(est) - dy))) if est else float("nan"),
+            "fps": len(src) / seconds,
+        }
         rows.append(row)
         shutil.rmtree(rep_dir / "image_0")
         shutil.rmtree(rep_dir / "image_1")

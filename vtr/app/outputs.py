@@ -33,7 +33,7 @@ from ..errors import OutputError
 from ..io.outputs import check_apart
 from ..map.database import SIDE_FILES
 
-RECORD = ".vtr-outputs"            # the names this folder's commands made, one a line
+RECORD = ".vtr-outputs"  # the names this folder's commands made, one a line
 __all__ = ["RECORD", "TMP_TAG", "OutputFolder"]
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
@@ -54,8 +54,9 @@ class OutputFolder:
     # ------------------------------------------------------------------ opening
 
     @classmethod
-    def prepare(cls, path: Path, inputs: Iterable[Path | None] = (), names: Iterable[str] = (),
-                option: str = "--out") -> OutputFolder:
+    def prepare(
+        cls, path: Path, inputs: Iterable[Path | None] = (), names: Iterable[str] = (), option: str = "--out"
+    ) -> OutputFolder:
         """The folder ``path`` (created if needed) after checking it is apart from ``inputs`` and that
         every output ``names`` can be written without touching what vtr did not make there."""
         path = Path(path)
@@ -78,8 +79,10 @@ class OutputFolder:
         except FileNotFoundError:
             return set()
         except OSError as err:
-            raise OutputError(f"{p}: cannot read the record of vtr's outputs ({err.strerror or err}; a symbolic "
-                              "link?); remove it or choose another folder") from None
+            raise OutputError(
+                f"{p}: cannot read the record of vtr's outputs ({err.strerror or err}; a symbolic "
+                "link?); remove it or choose another folder"
+            ) from None
         with os.fdopen(fd, "rb") as f:
             text = f.read(1 << 20).decode("utf-8", "replace")
         return {line for line in text.splitlines() if _is_safe_name(line)}
@@ -91,8 +94,9 @@ class OutputFolder:
         try:
             fd = os.open(p, os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW | _CLOEXEC, 0o644)
         except OSError as err:
-            raise OutputError(f"{p}: cannot write the record of vtr's outputs ({err.strerror or err}; a symbolic "
-                              "link?)") from None
+            raise OutputError(
+                f"{p}: cannot write the record of vtr's outputs ({err.strerror or err}; a symbolic link?)"
+            ) from None
         with os.fdopen(fd, "ab") as f:
             f.write(f"{name}\n".encode())
         self.made.add(name)
@@ -108,13 +112,12 @@ class OutputFolder:
             st = os.lstat(p)
         except FileNotFoundError:
             return
-        what = entry_problem(p)      # the rule's own words: a link, a folder, not a regular file
+        what = entry_problem(p)  # the rule's own words: a link, a folder, not a regular file
         if what is None:
             if name in self.made:
-                return                # vtr's own earlier output: replaced by a rename, never written through
+                return  # vtr's own earlier output: replaced by a rename, never written through
             what = "has other hard links" if st.st_nlink > 1 else f"was not made by vtr here (not in {RECORD})"
-        raise OutputError(f"{p}: {what}; not writing through or over it (remove it or choose another "
-                          f"{self.option})")
+        raise OutputError(f"{p}: {what}; not writing through or over it (remove it or choose another {self.option})")
 
     # ------------------------------------------------------------------ reading back
 
@@ -134,8 +137,9 @@ class OutputFolder:
         if what is None and name not in self.made:
             what = f"was not made by vtr here (not in {RECORD})"
         if what is not None:
-            raise OutputError(f"{p}: {what}; vtr reads back only the files it made (not reading it: remove it "
-                              "to run this again)")
+            raise OutputError(
+                f"{p}: {what}; vtr reads back only the files it made (not reading it: remove it to run this again)"
+            )
         return p
 
     def read_own(self, name: str, limit: int = 1 << 26) -> bytes | None:
@@ -208,8 +212,7 @@ class OutputFolder:
         try:
             return create_exclusive(p)
         except FileExistsError:
-            raise OutputError(f"{p}: appeared while vtr was writing (another process?); not writing over it") \
-                from None
+            raise OutputError(f"{p}: appeared while vtr was writing (another process?); not writing over it") from None
         except OSError as err:
             raise OutputError(f"{p}: cannot create it ({err.strerror or err})") from None
 
@@ -227,8 +230,11 @@ class OutputFolder:
             p = self.path / name
             if not p.exists() and not p.is_symlink():
                 continue
-            what = "is a symbolic link" if p.is_symlink() else (
-                None if name in self.made else f"was not made by vtr here (not in {RECORD})")
+            what = (
+                "is a symbolic link"
+                if p.is_symlink()
+                else (None if name in self.made else f"was not made by vtr here (not in {RECORD})")
+            )
             if what is not None:
                 raise OutputError(f"{p}: {what}; not replacing it (move it away or choose another {self.option})")
         for name in names:
@@ -256,7 +262,7 @@ class OutputFolder:
         make here are kept, and a link or a file vtr did not make at an incoming name stops the move
         (``OutputError``) before anything is replaced."""
 
-        staged.made, self.made = staged._read_record(), self._read_record()   # other writers recorded files too
+        staged.made, self.made = staged._read_record(), self._read_record()  # other writers recorded files too
         last = [n for n in last if n in staged.made]
         incoming = sorted(n for n in staged.made if not n.startswith(TMP_TAG) and n not in last) + last
         incoming = [n for n in incoming if staged.own_file(n) is not None]
@@ -264,7 +270,7 @@ class OutputFolder:
             self.check_writable(name)
         for name in incoming:
             self._record(name)
-            for side in SIDE_FILES:                          # an old map's SQLite files never meet the new map
+            for side in SIDE_FILES:  # an old map's SQLite files never meet the new map
                 self._unlink_regular(self.path / (name + side))
             os.replace(staged.path / name, self.path / name)
         for name in sorted(self.made - set(incoming)):
@@ -275,7 +281,7 @@ class OutputFolder:
         self._write_record(set(incoming))
         staged.clear()
         with contextlib.suppress(OSError):
-            staged.path.rmdir()                            # kept when something else is in it
+            staged.path.rmdir()  # kept when something else is in it
 
     def _write_record(self, names: set[str]) -> None:
         replace_text(self.path / RECORD, "".join(f"{n}\n" for n in sorted(names)))

@@ -79,8 +79,17 @@ def _read(path: str | Path) -> tuple[list[TaughtVertex], StereoCamera, np.ndarra
             raise InputDataError(str(err)) from None
 
 
-def moments_at(model: PerceptionModel, vertex: TaughtVertex, positions_map: np.ndarray, R_map_cam: np.ndarray,
-               camera: StereoCamera, *, l_min: float, c_bar: float, in_view_only: bool = True) -> list[np.ndarray]:
+def moments_at(
+    model: PerceptionModel,
+    vertex: TaughtVertex,
+    positions_map: np.ndarray,
+    R_map_cam: np.ndarray,
+    camera: StereoCamera,
+    *,
+    l_min: float,
+    c_bar: float,
+    in_view_only: bool = True,
+) -> list[np.ndarray]:
     """Inlier probabilities (one array per position) of ``vertex``'s landmarks from cameras at
     ``positions_map`` (K, 3) with rotations ``R_map_cam`` (K, 3, 3); in-view landmarks only by default."""
     pos = np.asarray(positions_map, float)
@@ -98,9 +107,18 @@ def moments_at(model: PerceptionModel, vertex: TaughtVertex, positions_map: np.n
     return [p[k][camera.in_view((vertex.points_map - pos[k]) @ R_map_cam[k])] for k in range(len(pos))]
 
 
-def evaluate_on_map(model: PerceptionModel, map_path: str | Path, positions: np.ndarray,
-                    yaw: np.ndarray | float | None = None, *, pitch_down: float | None = None, l_min: float,
-                    c_bar: float, in_view: bool = True, exact: bool = True) -> MapConstraintTable:
+def evaluate_on_map(
+    model: PerceptionModel,
+    map_path: str | Path,
+    positions: np.ndarray,
+    yaw: np.ndarray | float | None = None,
+    *,
+    pitch_down: float | None = None,
+    l_min: float,
+    c_bar: float,
+    in_view: bool = True,
+    exact: bool = True,
+) -> MapConstraintTable:
     """``mu``, ``sigma``, margins and failure probabilities at camera centres ``positions`` (N, 3), map frame.
 
     ``yaw`` (N,) radians (``perception_model.map_landmarks`` convention) or ``None`` (each trunk's
@@ -135,22 +153,28 @@ def evaluate_on_map(model: PerceptionModel, map_path: str | Path, positions: np.
     p_rows: list[np.ndarray] = [np.zeros(0)] * n
     for t in np.unique(trunk_idx):
         sel = np.flatnonzero(trunk_idx == t)
-        rows = moments_at(model, vertices[t], pos[sel], R[sel], camera, l_min=l_min, c_bar=c_bar,
-                          in_view_only=in_view)
+        rows = moments_at(model, vertices[t], pos[sel], R[sel], camera, l_min=l_min, c_bar=c_bar, in_view_only=in_view)
         for i, p in zip(sel.tolist(), rows, strict=True):
             p_rows[i] = p
     mu = np.array([float(inlier_moments(p)[0]) for p in p_rows])
     sigma = np.sqrt([float(inlier_moments(p)[1]) for p in p_rows])
     used = {int(t) for t in trunk_idx}
     return MapConstraintTable(
-        positions=pos, yaw=yaw_used, pitch_down=pitch_used, yaw_given=psi_in is not None,
+        positions=pos,
+        yaw=yaw_used,
+        pitch_down=pitch_used,
+        yaw_given=psi_in is not None,
         trunk_id=np.array([vertices[t].vertex_id for t in trunk_idx], dtype=np.int64),
         trunk_distance_m=np.linalg.norm(pos - np.stack([vertices[t].T_map_camera[:3, 3] for t in trunk_idx]), axis=1),
         n_landmarks=np.array([vertices[t].points_map.shape[0] for t in trunk_idx], dtype=np.int64),
         n_in_view=np.array([p.size for p in p_rows], dtype=np.int64),
-        mu=mu, sigma=sigma, g=mu - c_bar * sigma - l_min, g_conservative=mu - c_bar * np.sqrt(mu) - l_min,
-        p_fail_normal=np.array([normal_tail(float(m), float(s), l_min, lower=True) for m, s in zip(mu, sigma,
-                                                                                                    strict=True)]),
+        mu=mu,
+        sigma=sigma,
+        g=mu - c_bar * sigma - l_min,
+        g_conservative=mu - c_bar * np.sqrt(mu) - l_min,
+        p_fail_normal=np.array(
+            [normal_tail(float(m), float(s), l_min, lower=True) for m, s in zip(mu, sigma, strict=True)]
+        ),
         p_fail_exact=np.array([poisson_binomial_tail(p, l_min, lower=True) for p in p_rows]) if exact else None,
         n_map_landmarks=int(sum(vertices[t].points_map.shape[0] for t in used)),
     )
@@ -181,8 +205,14 @@ class EnvelopeRow:
 EXTRAPOLATED_SHARE = 0.5
 
 
-def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_map: np.ndarray,
-                       camera: StereoCamera, l_min: float, c_bar: float) -> float:
+def extrapolated_share(
+    model: PerceptionModel,
+    vertex: TaughtVertex,
+    position_map: np.ndarray,
+    camera: StereoCamera,
+    l_min: float,
+    c_bar: float,
+) -> float:
     """Share of the expected inliers (sum of p over the in-view landmarks) of ``vertex`` seen from a camera at
     ``position_map`` (taught attitude) that come from landmarks outside the model's valid range of parallax and
     view angles."""
@@ -200,17 +230,30 @@ def extrapolated_share(model: PerceptionModel, vertex: TaughtVertex, position_ma
     return float(p[outside].sum() / p.sum())
 
 
-def _bound(model: PerceptionModel, vertex: TaughtVertex, camera: StereoCamera, centres_map: np.ndarray, l_min: float,
-           c_bar: float) -> np.ndarray:
+def _bound(
+    model: PerceptionModel,
+    vertex: TaughtVertex,
+    camera: StereoCamera,
+    centres_map: np.ndarray,
+    l_min: float,
+    c_bar: float,
+) -> np.ndarray:
     R = np.broadcast_to(vertex.T_map_camera[:3, :3], (len(centres_map), 3, 3))
     rows = moments_at(model, vertex, centres_map, R, camera, l_min=l_min, c_bar=c_bar)
     return np.array([float(inlier_moments(p)[0]) - c_bar * float(np.sqrt(inlier_moments(p)[1])) for p in rows])
 
 
-def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min: float, c_bar: float,
-                          up_map: np.ndarray | None = None, step_m: float = ENVELOPE_STEP_M,
-                          max_m: float = ENVELOPE_MAX_M,
-                          progress: Callable[[int, int], None] | None = None) -> list[EnvelopeRow]:
+def localization_envelope(
+    model: PerceptionModel,
+    map_path: str | Path,
+    *,
+    l_min: float,
+    c_bar: float,
+    up_map: np.ndarray | None = None,
+    step_m: float = ENVELOPE_STEP_M,
+    max_m: float = ENVELOPE_MAX_M,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[EnvelopeRow]:
     """The localization envelope of every taught vertex (see the module docstring); ``up_map`` overrides the
     map's gravity (default: the map's stored up, else a level first camera). ``progress(i, n)`` is called after each
     vertex; the work is bounded (:func:`check_envelope_work`, before any is done)."""
@@ -237,8 +280,8 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
                 dist[name], capped[name] = 0.0, False
                 continue
             first = None
-            for k in range(0, len(grid), ENVELOPE_CHUNK):      # chunks: memory bounded, stops at the crossing
-                g = grid[k:k + ENVELOPE_CHUNK]
+            for k in range(0, len(grid), ENVELOPE_CHUNK):  # chunks: memory bounded, stops at the crossing
+                g = grid[k : k + ENVELOPE_CHUNK]
                 bad = np.flatnonzero(_bound(model, v, camera, centre + g[:, None] * d_map, l_min, c_bar) < l_min)
                 if bad.size:
                     first = float(g[bad[0]])
@@ -255,11 +298,15 @@ def localization_envelope(model: PerceptionModel, map_path: str | Path, *, l_min
                 else:
                     lo = mid
             dist[name], capped[name] = lo, False
-        extrapolated = {name: dist[name] > 0 and extrapolated_share(model, v, centre + dist[name] * (R_map_g @ d_g),
-                                                                    camera, l_min, c_bar) > EXTRAPOLATED_SHARE
-                        for name, d_g in dirs_g.items()}
-        rows.append(EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped,
-                                extrapolated))
+        extrapolated = {
+            name: dist[name] > 0
+            and extrapolated_share(model, v, centre + dist[name] * (R_map_g @ d_g), camera, l_min, c_bar)
+            > EXTRAPOLATED_SHARE
+            for name, d_g in dirs_g.items()
+        }
+        rows.append(
+            EnvelopeRow(v.vertex_id, T_g_map[:3, :3] @ centre, float(heading), base, dist, capped, extrapolated)
+        )
     if progress is not None:
         progress(len(vertices), len(vertices))
     return rows
@@ -276,7 +323,8 @@ def check_envelope_work(n_vertices: int, step_m: float, max_m: float) -> None:
             f"envelope --step {step_m:g} m with --max {max_m:g} m on {n_vertices} vertices is up to "
             f"{evaluations:.3g} evaluations of the bound (at most {ENVELOPE_MAX_EVALUATIONS:.0e}, a few minutes); use "
             f"--step {math.ceil(finest * 1e4) / 1e4:g} m or more (each crossing is refined by bisection to step/"
-            f"{2 ** ENVELOPE_BISECTIONS} anyway) or a smaller --max")
+            f"{2**ENVELOPE_BISECTIONS} anyway) or a smaller --max"
+        )
 
 
 def check_envelope_grid(step_m: float, max_m: float) -> None:
@@ -291,9 +339,11 @@ def check_envelope_grid(step_m: float, max_m: float) -> None:
         raise InputDataError(f"envelope --step {step_m:g} m must be at most --max {max_m:g} m")
     cells = max_m / step_m
     if cells > ENVELOPE_MAX_CELLS:
-        raise InputDataError(f"envelope --max {max_m:g} / --step {step_m:g} is {cells:.3g} grid cells a side; at "
-                             f"most {ENVELOPE_MAX_CELLS} (raise --step to {max_m / ENVELOPE_MAX_CELLS:.3g} m or more: "
-                             "each crossing is refined by bisection anyway)")
+        raise InputDataError(
+            f"envelope --max {max_m:g} / --step {step_m:g} is {cells:.3g} grid cells a side; at "
+            f"most {ENVELOPE_MAX_CELLS} (raise --step to {max_m / ENVELOPE_MAX_CELLS:.3g} m or more: "
+            "each crossing is refined by bisection anyway)"
+        )
 
 
 def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, title: str = "") -> tuple[Path, Path]:
@@ -301,8 +351,13 @@ def write_envelope(rows: list[EnvelopeRow], out_dir: Path, *, l_min: float, titl
 
     folder = OutputFolder.prepare(out_dir, names=["envelope.csv", "envelope.png"])  # never through a link
     with folder.open("envelope.csv") as fh:
-        write_envelope_rows(fh, [envelope_row(r.vertex_id, r.position_g, r.yaw_g, r.bound_taught, r.distance_m,
-                                              r.capped, r.extrapolated) for r in rows])
+        write_envelope_rows(
+            fh,
+            [
+                envelope_row(r.vertex_id, r.position_g, r.yaw_g, r.bound_taught, r.distance_m, r.capped, r.extrapolated)
+                for r in rows
+            ],
+        )
     png = folder.write("envelope.png", lambda p: plot_envelope(rows, p, l_min=l_min, title=title))
     return out_dir / "envelope.csv", png
 
@@ -324,20 +379,41 @@ def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: s
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5.5))
     lb = p[:, :2] + lm[:, None] * left
     rb = p[:, :2] - rm[:, None] * left
-    ax.fill(np.r_[lb[:, 0], rb[::-1, 0]], np.r_[lb[:, 1], rb[::-1, 1]], color="tab:green", alpha=0.25,
-            label="envelope (left/right)")
+    ax.fill(
+        np.r_[lb[:, 0], rb[::-1, 0]],
+        np.r_[lb[:, 1], rb[::-1, 1]],
+        color="tab:green",
+        alpha=0.25,
+        label="envelope (left/right)",
+    )
     ax.plot(p[:, 0], p[:, 1], "k.-", ms=3, label="taught path (vehicle)")
     for edge, d in ((lb, "left"), (rb, "right")):
         capped = np.array([r.capped[d] for r in rows])
         if capped.any():
-            ax.plot(edge[capped, 0], edge[capped, 1], "x", color="tab:gray", ms=4,
-                    label="capped at the scan limit" if d == "left" else None)
+            ax.plot(
+                edge[capped, 0],
+                edge[capped, 1],
+                "x",
+                color="tab:gray",
+                ms=4,
+                label="capped at the scan limit" if d == "left" else None,
+            )
     extent = float(np.ptp(np.r_[lb, rb], axis=0).max()) or 1.0
     every = max(1, len(rows) // 12)
-    arrow = 0.1 * extent                         # arrows in data units, long enough to see on any route
-    ax.quiver(p[::every, 0], p[::every, 1], arrow * np.cos(h[::every]), arrow * np.sin(h[::every]),
-              angles="xy", scale_units="xy", scale=1.0, width=0.008, color="tab:blue", zorder=3,
-              label=f"heading (every {every} vertices)" if every > 1 else "heading")
+    arrow = 0.1 * extent  # arrows in data units, long enough to see on any route
+    ax.quiver(
+        p[::every, 0],
+        p[::every, 1],
+        arrow * np.cos(h[::every]),
+        arrow * np.sin(h[::every]),
+        angles="xy",
+        scale_units="xy",
+        scale=1.0,
+        width=0.008,
+        color="tab:blue",
+        zorder=3,
+        label=f"heading (every {every} vertices)" if every > 1 else "heading",
+    )
     ax.set_aspect("equal")
     ax.set_xlabel("x_g [m] (first taught heading)")
     ax.set_ylabel("y_g [m] (to its left)")
@@ -349,8 +425,15 @@ def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: s
         capped = np.array([r.capped[d] for r in rows])
         (line,) = ax2.plot(s, np.where(capped, np.nan, vals), label=d)
         if capped.any():
-            ax2.plot(s[capped], vals[capped], "^", mfc="none", color=line.get_color(), ms=5,
-                     label=f"{d}: capped ({int(capped.sum())} of {len(rows)})")
+            ax2.plot(
+                s[capped],
+                vals[capped],
+                "^",
+                mfc="none",
+                color=line.get_color(),
+                ms=5,
+                label=f"{d}: capped ({int(capped.sum())} of {len(rows)})",
+            )
     ax2.set_xlabel("taught vertex [index along the path]")
     ax2.set_ylabel("allowed offset [m]")
     ax2.set_title("allowed offset per direction (open triangles: no crossing within the scan limit)", fontsize=10)
@@ -362,5 +445,12 @@ def plot_envelope(rows: list[EnvelopeRow], path: Path, *, l_min: float, title: s
     plt.close(fig)
 
 
-__all__ = ["EnvelopeRow", "evaluate_on_map", "localization_envelope", "moments_at", "open_map", "plot_envelope",
-           "write_envelope"]
+__all__ = [
+    "EnvelopeRow",
+    "evaluate_on_map",
+    "localization_envelope",
+    "moments_at",
+    "open_map",
+    "plot_envelope",
+    "write_envelope",
+]

@@ -43,10 +43,32 @@ from .runfiles import ODOMETRY_OUTPUTS, TEACH_OUTPUTS
 from .runfiles.frames_csv import write_frames_csv
 
 __all__ = [  # the runs of every command (the repeat's from repeat_pipeline), what callers import from here
-    "GRAVITY_AGREEMENT_DEG", "OdometryRun", "OdometrySummary", "OpenRepeat", "OpenSource", "Progress",
-    "RepeatEvaluation", "RepeatOptions", "RepeatRun", "RepeatSummary", "RunInputs", "StateSummary", "TeachRun",
-    "TeachSummary", "append_landmarks", "chain_errors", "frames_of", "iterate", "keyframe_note", "odometry_command",
-    "open_inputs", "repeat_command", "run_odometry", "teach_command", "trunk_times", "write_landmarks_csv",
+    "GRAVITY_AGREEMENT_DEG",
+    "OdometryRun",
+    "OdometrySummary",
+    "OpenRepeat",
+    "OpenSource",
+    "Progress",
+    "RepeatEvaluation",
+    "RepeatOptions",
+    "RepeatRun",
+    "RepeatSummary",
+    "RunInputs",
+    "StateSummary",
+    "TeachRun",
+    "TeachSummary",
+    "append_landmarks",
+    "chain_errors",
+    "frames_of",
+    "iterate",
+    "keyframe_note",
+    "odometry_command",
+    "open_inputs",
+    "repeat_command",
+    "run_odometry",
+    "teach_command",
+    "trunk_times",
+    "write_landmarks_csv",
 ]
 
 
@@ -57,29 +79,35 @@ class OdometrySummary:
     failures: int
     seconds: float
     drift: DriftMetrics | None
-    note: str | None = None            # why the counts look odd (e.g. a camera that never moved enough)
+    note: str | None = None  # why the counts look odd (e.g. a camera that never moved enough)
 
     @property
     def fps(self) -> float:
         return self.frames / self.seconds if self.seconds > 0 else float("nan")
 
     def to_dict(self) -> dict:
-        d: dict[str, object] = {"frames": self.frames, "keyframes": self.keyframes, "failures": self.failures,
-                                "seconds": self.seconds, "fps": self.fps}
+        d: dict[str, object] = {
+            "frames": self.frames,
+            "keyframes": self.keyframes,
+            "failures": self.failures,
+            "seconds": self.seconds,
+            "fps": self.fps,
+        }
         if self.drift is not None:
             d["drift"] = self.drift.to_dict()
         return d
 
 
-def run_odometry(source: FrameSource, indices: list[int], config: Config,
-                 progress: Progress | None = None) -> tuple[list[FrameRecord], np.ndarray, float]:
+def run_odometry(
+    source: FrameSource, indices: list[int], config: Config, progress: Progress | None = None
+) -> tuple[list[FrameRecord], np.ndarray, float]:
     """Odometry over the selected frames; returns per-frame records, final poses in the first
     camera frame (N, 4, 4; keyframes as refined by the window) and the elapsed seconds."""
     vo = StereoOdometry(source.camera, OdometrySettings.of(config))
     records = []
     t0 = time.perf_counter()
     for frame in frames_of(source, indices, vo.stereo, progress, "odometry"):
-        with held_signals():                    # Ctrl-C lands between frames
+        with held_signals():  # Ctrl-C lands between frames
             records.append(vo.process_frame(frame).record())
     return records, vo.final_poses(), time.perf_counter() - t0
 
@@ -154,25 +182,40 @@ class OdometryRun:
         assert folder is not None
         folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.poses)
         folder.write("frames.csv", write_frames_csv, loop.records)
-        folder.write("trajectory.png", plot_trajectory, loop.poses, evaluation.T_first_gt, self._failures(loop),
-                     title=f"{self.inputs.source_path.name}: {len(loop.records)} frames")
+        folder.write(
+            "trajectory.png",
+            plot_trajectory,
+            loop.poses,
+            evaluation.T_first_gt,
+            self._failures(loop),
+            title=f"{self.inputs.source_path.name}: {len(loop.records)} frames",
+        )
 
     def summarize(self, loop: OdometryLoop, evaluation: OdometryEvaluation) -> OdometrySummary:
         """The run's record (run.json's summary; the command line prints it)."""
         keyframes = sum(r.new_vertex for r in loop.records)
-        return OdometrySummary(frames=len(loop.records), keyframes=keyframes,
-                               failures=int(self._failures(loop).sum()), seconds=loop.seconds,
-                               drift=evaluation.drift,
-                               note=keyframe_note(keyframes, len(loop.records), loop.poses, self.inputs.config))
+        return OdometrySummary(
+            frames=len(loop.records),
+            keyframes=keyframes,
+            failures=int(self._failures(loop).sum()),
+            seconds=loop.seconds,
+            drift=evaluation.drift,
+            note=keyframe_note(keyframes, len(loop.records), loop.poses, self.inputs.config),
+        )
 
     @staticmethod
     def _failures(loop: OdometryLoop) -> np.ndarray:
         return np.array([r.kind == FrameKind.FAILURE for r in loop.records])
 
 
-def odometry_command(source_path: Path, out: Path, frames: str | None, config: Config,
-                     source_options: SourceOptions | str | None = None,
-                     progress: Progress | None = None) -> OdometrySummary:
+def odometry_command(
+    source_path: Path,
+    out: Path,
+    frames: str | None,
+    config: Config,
+    source_options: SourceOptions | str | None = None,
+    progress: Progress | None = None,
+) -> OdometrySummary:
     """``vtr odometry``: trajectory_tum.txt, frames.csv, trajectory.png, run.json, config.yaml in ``out``
     (:class:`OdometryRun`'s steps)."""
     return OdometryRun(RunInputs(Path(source_path), frames, config, source_options, progress), out).run()
@@ -189,10 +232,12 @@ def keyframe_note(keyframes: int, frames: int, poses: np.ndarray, config: Config
     moved = float(np.linalg.norm(rel[:, :3, 3], axis=1).max())
     turned = float(np.degrees(rotation_angle(rel[:, :3, :3])).max())
     o = config.odometry
-    return (f"only the first frame is a keyframe: the camera moved at most {moved:.2f} m and turned "
-            f"{turned:.1f} deg from it, below the keyframe test (odometry.keyframe_translation_m "
-            f"{o.keyframe_translation_m:g} m, keyframe_rotation_deg {o.keyframe_rotation_deg:g} deg): a nearly "
-            "static log")
+    return (
+        f"only the first frame is a keyframe: the camera moved at most {moved:.2f} m and turned "
+        f"{turned:.1f} deg from it, below the keyframe test (odometry.keyframe_translation_m "
+        f"{o.keyframe_translation_m:g} m, keyframe_rotation_deg {o.keyframe_rotation_deg:g} deg): a nearly "
+        "static log"
+    )
 
 
 # ---------------------------------------------------------------------------------------- teach
@@ -205,7 +250,7 @@ class TeachSummary:
     failures: int
     seconds: float
     map_path: Path
-    gravity_up: tuple[float, float, float] | None = None   # kept in the map (None: none stored)
+    gravity_up: tuple[float, float, float] | None = None  # kept in the map (None: none stored)
 
 
 def _unit3(v: np.ndarray) -> tuple[float, float, float]:
@@ -236,8 +281,9 @@ class TeachRun:
     ends finished, or aborted with the reason on any exception (the keyframes still in the odometry window are
     written first); a teach that wrote no vertex leaves no map file."""
 
-    def __init__(self, inputs: RunInputs, map_path: Path, out: Path | None = None,
-                 gravity_up: np.ndarray | None = None):
+    def __init__(
+        self, inputs: RunInputs, map_path: Path, out: Path | None = None, gravity_up: np.ndarray | None = None
+    ):
         self.inputs, self.map_path, self.out, self.gravity_up = inputs, Path(map_path), out, gravity_up
 
     def run(self) -> TeachSummary:
@@ -247,9 +293,16 @@ class TeachRun:
             summary = self.summarize(loop)
             if opened.folder is not None and opened.log is not None:
                 self.write(opened.folder, loop)
-                opened.log.write({"frames": summary.frames, "vertices": summary.vertices,
-                                  "failures": summary.failures, "seconds": summary.seconds, "map": str(self.map_path),
-                                  "gravity_up": None if summary.gravity_up is None else list(summary.gravity_up)})
+                opened.log.write(
+                    {
+                        "frames": summary.frames,
+                        "vertices": summary.vertices,
+                        "failures": summary.failures,
+                        "seconds": summary.seconds,
+                        "map": str(self.map_path),
+                        "gravity_up": None if summary.gravity_up is None else list(summary.gravity_up),
+                    }
+                )
         return summary
 
     # -- the steps ----------------------------------------------------------------------------------------------
@@ -262,18 +315,21 @@ class TeachRun:
         source, config = opened.source, self.inputs.config
         t0 = time.perf_counter()
         records: list[FrameRecord] = []
-        up = self.gravity_up if self.gravity_up is not None or not opened.indices \
+        up = (
+            self.gravity_up
+            if self.gravity_up is not None or not opened.indices
             else source.gravity_up(opened.indices[0])
+        )
         with Map.create(self.map_path, source.camera, config.map, gravity_up=up) as taught:
             teach = Teach(taught, source.camera, config, source=str(self.inputs.source_path))
             try:
                 for frame in frames_of(source, opened.indices, teach.odometry.stereo, self.inputs.progress, "teach"):
-                    with held_signals():        # a frame's keyframes are all written or not made
+                    with held_signals():  # a frame's keyframes are all written or not made
                         records.append(teach.process_frame(frame).record())
                 with held_signals():
                     vertices = teach.finish()
             except BaseException as err:  # error, Ctrl-C, SIGTERM, full disk: keep the window, say why
-                teach.abort(err)          # (a map left without any vertex is removed when it closes)
+                teach.abort(err)  # (a map left without any vertex is removed when it closes)
                 raise
             _, t_taught_ns = taught.timestamps(teach.run)
             _, T_world_taught = taught.poses(teach.run)
@@ -287,15 +343,28 @@ class TeachRun:
     def summarize(self, loop: TeachLoop) -> TeachSummary:
         """The run's record (run.json's summary; the command line prints it)."""
         failures = sum(r.kind == FrameKind.FAILURE for r in loop.records)
-        return TeachSummary(frames=len(loop.records), vertices=loop.vertices, failures=failures,
-                            seconds=loop.seconds, map_path=self.map_path,
-                            gravity_up=None if loop.up is None else _unit3(loop.up))
+        return TeachSummary(
+            frames=len(loop.records),
+            vertices=loop.vertices,
+            failures=failures,
+            seconds=loop.seconds,
+            map_path=self.map_path,
+            gravity_up=None if loop.up is None else _unit3(loop.up),
+        )
 
 
-def teach_command(source_path: Path, map_path: Path, frames: str | None, config: Config, out: Path | None = None,
-                  source_options: SourceOptions | str | None = None,
-                  progress: Progress | None = None, gravity_up: np.ndarray | None = None) -> TeachSummary:
+def teach_command(
+    source_path: Path,
+    map_path: Path,
+    frames: str | None,
+    config: Config,
+    out: Path | None = None,
+    source_options: SourceOptions | str | None = None,
+    progress: Progress | None = None,
+    gravity_up: np.ndarray | None = None,
+) -> TeachSummary:
     """``vtr teach``: odometry over SOURCE, keyframes written to a new map (the privileged path);
     :class:`TeachRun`'s steps."""
-    return TeachRun(RunInputs(Path(source_path), frames, config, source_options, progress), map_path, out,
-                    gravity_up).run()
+    return TeachRun(
+        RunInputs(Path(source_path), frames, config, source_options, progress), map_path, out, gravity_up
+    ).run()

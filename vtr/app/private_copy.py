@@ -24,9 +24,9 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no lock, so stale copies are not recognised
     fcntl = None  # type: ignore[assignment]
 
-PREFIX = "vtr-repeat-map-copy-"    # name of a private copy's temporary folder
-LOCK_NAME = ".owner.lock"          # flocked by the process using the copy; free once it ended
-LOCK_PENDING = ".owner.lock.new"   # the lock file before it is locked (renamed to LOCK_NAME once locked)
+PREFIX = "vtr-repeat-map-copy-"  # name of a private copy's temporary folder
+LOCK_NAME = ".owner.lock"  # flocked by the process using the copy; free once it ended
+LOCK_PENDING = ".owner.lock.new"  # the lock file before it is locked (renamed to LOCK_NAME once locked)
 
 
 def _try_lock(fd: int) -> bool:
@@ -78,7 +78,7 @@ def private_copy(map_path: Path) -> Iterator[Path]:
             fd = os.open(pending, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
             if not _try_lock(fd):
                 raise MapError(f"{folder}: cannot lock the private map copy's folder")
-            os.rename(pending, folder / LOCK_NAME)   # visible to the cleaner only once locked
+            os.rename(pending, folder / LOCK_NAME)  # visible to the cleaner only once locked
         copy = folder / map_path.name
         copy_map_read_only(map_path, copy)
         yield copy

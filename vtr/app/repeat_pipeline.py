@@ -55,15 +55,23 @@ class StateSummary:
     pauses_s: list[float]
 
     @classmethod
-    def of(cls, state: StateTable, rate_hz: float, smoother_seconds: float, frames: int,
-           pauses_s: Sequence[float]) -> StateSummary:
+    def of(
+        cls, state: StateTable, rate_hz: float, smoother_seconds: float, frames: int, pauses_s: Sequence[float]
+    ) -> StateSummary:
         lateral, vertical = np.abs(state.lateral), np.abs(state.vertical)
-        return cls(rate_hz=rate_hz, rows=len(state), smoother_ms_per_frame=1000 * smoother_seconds / max(frames, 1),
-                   median_abs_lateral_m=float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
-                   median_abs_vertical_m=float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None,
-                   statuses=({str(k): int(v) for k, v in zip(*np.unique(state.status, return_counts=True),
-                                                             strict=True)} if state.status is not None else {}),
-                   pauses_s=[round(p, 3) for p in pauses_s])
+        return cls(
+            rate_hz=rate_hz,
+            rows=len(state),
+            smoother_ms_per_frame=1000 * smoother_seconds / max(frames, 1),
+            median_abs_lateral_m=float(np.nanmedian(lateral)) if np.isfinite(lateral).any() else None,
+            median_abs_vertical_m=float(np.nanmedian(vertical)) if np.isfinite(vertical).any() else None,
+            statuses=(
+                {str(k): int(v) for k, v in zip(*np.unique(state.status, return_counts=True), strict=True)}
+                if state.status is not None
+                else {}
+            ),
+            pauses_s=[round(p, 3) for p in pauses_s],
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -80,26 +88,34 @@ class RepeatSummary:
     path_error_m: float
     errors: LocalizationErrors | None = None
     state: StateSummary | None = None  # state.csv: rate, rows, smoother cost, smoothed path errors
-    statuses: dict | None = None       # attempts by localization.csv status
+    statuses: dict | None = None  # attempts by localization.csv status
     integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
-    ground_truth_note: str | None = None   # why the repeat was not judged against ground truth (None: it was)
-    experiences: dict | None = None    # trusted experiences available, successes that used one, keyframes per run
+    ground_truth_note: str | None = None  # why the repeat was not judged against ground truth (None: it was)
+    experiences: dict | None = None  # trusted experiences available, successes that used one, keyframes per run
 
     @property
     def success_rate(self) -> float:
         return self.localized / self.vertices if self.vertices else float("nan")
 
     def to_dict(self) -> dict:
-        return {"frames": self.frames, "vertices": self.vertices, "localized": self.localized,
-                "success_rate": self.success_rate, "seconds": self.seconds,
-                "fps": self.frames / self.seconds if self.seconds > 0 else None,
-                "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
-                "median_inliers": self.median_inliers, "median_path_error_m": self.path_error_m,
-                "median_error_m": self.errors.median_translation_m if self.errors else None,
-                "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
-                "state": self.state.to_dict() if self.state else None, "statuses": self.statuses,
-                "integrity": self.integrity.to_dict() if self.integrity else None,
-                "ground_truth_not_used": self.ground_truth_note, "experiences": self.experiences}
+        return {
+            "frames": self.frames,
+            "vertices": self.vertices,
+            "localized": self.localized,
+            "success_rate": self.success_rate,
+            "seconds": self.seconds,
+            "fps": self.frames / self.seconds if self.seconds > 0 else None,
+            "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
+            "median_inliers": self.median_inliers,
+            "median_path_error_m": self.path_error_m,
+            "median_error_m": self.errors.median_translation_m if self.errors else None,
+            "median_error_deg": self.errors.median_rotation_deg if self.errors else None,
+            "state": self.state.to_dict() if self.state else None,
+            "statuses": self.statuses,
+            "integrity": self.integrity.to_dict() if self.integrity else None,
+            "ground_truth_not_used": self.ground_truth_note,
+            "experiences": self.experiences,
+        }
 
 
 def write_landmarks_csv(path: Path, localizations: list[Localization]) -> None:
@@ -132,11 +148,22 @@ class RepeatOptions:
     warn: Callable[[str], None] | None = None
 
 
-def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | None, config: Config,
-                   source_options: SourceOptions | str | None = None, progress: Progress | None = None,
-                   rate_hz: float | None = None, allow_partial: bool = False, start_vertex: int | None = None,
-                   start_distance_m: float | None = None, read_only_map: bool = False,
-                   gravity_up: np.ndarray | None = None, warn: Callable[[str], None] | None = None) -> RepeatSummary:
+def repeat_command(
+    source_path: Path,
+    map_path: Path,
+    out: Path,
+    frames: str | None,
+    config: Config,
+    source_options: SourceOptions | str | None = None,
+    progress: Progress | None = None,
+    rate_hz: float | None = None,
+    allow_partial: bool = False,
+    start_vertex: int | None = None,
+    start_distance_m: float | None = None,
+    read_only_map: bool = False,
+    gravity_up: np.ndarray | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> RepeatSummary:
     """``vtr repeat``: odometry on SOURCE stored as a repeat run, each vertex localized to the taught path;
     the smoothed controller state at ``rate_hz`` (default ``config.smoothing.rate_hz``) in state.csv.
     ``start_vertex`` (path index) or ``start_distance_m`` (along the taught path) is an optional hint of where
@@ -150,10 +177,18 @@ def repeat_command(source_path: Path, map_path: Path, out: Path, frames: str | N
     :class:`RepeatRun`'s."""
     from ..navigation.repeat_state import check_rate
 
-    options = RepeatOptions(check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz), allow_partial,
-                            start_vertex, start_distance_m, read_only_map, gravity_up, warn)
-    return RepeatRun(RunInputs(Path(source_path), frames, config, source_options, progress), map_path, out,
-                     options).run()
+    options = RepeatOptions(
+        check_rate(config.smoothing.rate_hz if rate_hz is None else rate_hz),
+        allow_partial,
+        start_vertex,
+        start_distance_m,
+        read_only_map,
+        gravity_up,
+        warn,
+    )
+    return RepeatRun(
+        RunInputs(Path(source_path), frames, config, source_options, progress), map_path, out, options
+    ).run()
 
 
 @dataclass(frozen=True)
@@ -224,7 +259,7 @@ class RepeatRun:
 
         o = self.options
         work_map = self._private_copy(stack) if o.read_only_map else self.map_path
-        with _naming_the_map(work_map, self.map_path):     # what is wrong with the map names the user's file
+        with _naming_the_map(work_map, self.map_path):  # what is wrong with the map names the user's file
             source = stack.enter_context(open_source(self.inputs.source_path, self.inputs.source_options))
             route = stack.enter_context(Map.open(work_map, "a"))
             route.check_camera(source.camera)
@@ -233,8 +268,14 @@ class RepeatRun:
             log = RunLog(self.out, "repeat", self.inputs.config, [self.inputs.source_path, self.map_path])
             _check_path_to_follow(route)
             start = _start_hint(route, o.start_vertex, o.start_distance_m)
-            repeat = Repeat(route, self.inputs.config, source=str(self.inputs.source_path), start_index=start,
-                            allow_partial=o.allow_partial, warn=o.warn)
+            repeat = Repeat(
+                route,
+                self.inputs.config,
+                source=str(self.inputs.source_path),
+                start_index=start,
+                allow_partial=o.allow_partial,
+                warn=o.warn,
+            )
         return OpenRepeat(source, indices, folder, log, route, repeat)
 
     def loop(self, opened: OpenRepeat) -> RepeatLoop:
@@ -245,8 +286,10 @@ class RepeatRun:
         from .repeat_run import run_repeat
         from .runfiles.localization_csv import LocalizationWriter
 
-        with opened.folder.open("localization.csv") as loc_file, \
-                LandmarksWriter(opened.folder.create("landmarks.csv")) as lm_csv:
+        with (
+            opened.folder.open("localization.csv") as loc_file,
+            LandmarksWriter(opened.folder.create("landmarks.csv")) as lm_csv,
+        ):
             loc_csv = LocalizationWriter(loc_file)
 
             def report(step: RepeatStep) -> None:
@@ -254,8 +297,9 @@ class RepeatRun:
                     loc_csv.write(step.localization)
                     append_landmarks(lm_csv, step.localization)
 
-            frames = frames_of(opened.source, opened.indices, opened.repeat.odometry.stereo, self.inputs.progress,
-                               "repeat")
+            frames = frames_of(
+                opened.source, opened.indices, opened.repeat.odometry.stereo, self.inputs.progress, "repeat"
+            )
             return run_repeat(opened.repeat, frames, on_step=report, gravity_up=self._gravity(opened.map))
 
     def _gravity(self, route: Map) -> np.ndarray | None:
@@ -270,22 +314,24 @@ class RepeatRun:
         if stored is not None and warn is not None:
             angle = math.degrees(math.acos(float(np.clip(up @ stored, -1.0, 1.0))))
             if angle > GRAVITY_AGREEMENT_DEG:
-                warn(f"warning: --up {up.round(4).tolist()} differs from the map's gravity "
-                     f"{stored.round(4).tolist()} by {angle:.1f} deg: using --up")
+                warn(
+                    f"warning: --up {up.round(4).tolist()} differs from the map's gravity "
+                    f"{stored.round(4).tolist()} by {angle:.1f} deg: using --up"
+                )
         return up
 
     def evaluate(self, opened: OpenRepeat, loop: RepeatLoop) -> RepeatEvaluation:
         """Path-tracking errors, and errors and integrity against ground truth where the source has it."""
         chain = opened.repeat.chain
         errors = distance_to_polyline(loop.T_teach[:, :3, 3], chain.path.positions)
-        errors[~loop.localized] = np.nan          # no path error where not localized, nor beyond the route's ends
+        errors[~loop.localized] = np.nan  # no path error where not localized, nor beyond the route's ends
         errors[chain.beyond_ends_m(loop.T_teach[:, :3, 3]) > 0] = np.nan
         localizations = list(loop.localizations)
         gt_errors = integrity = None
         note = _ground_truth_note(opened.source, opened.map, localizations)
-        if note is None:                              # ground truth covers the leaves and their trunks
+        if note is None:  # ground truth covers the leaves and their trunks
             truth = opened.source.ground_truth()
-            assert truth is not None                  # a note says when there is none
+            assert truth is not None  # a note says when there is none
             trunk_t_ns = trunk_times(localizations, chain.path)
             integrity = integrity_of(localizations, trunk_t_ns, truth, truth)
             ok = np.array([loc.success for loc in localizations])
@@ -294,8 +340,9 @@ class RepeatRun:
         statuses: dict[str, int] = {}
         for loc in localizations:
             statuses[loc.status.value] = statuses.get(loc.status.value, 0) + 1
-        return RepeatEvaluation(path_errors_m=errors, errors=gt_errors, integrity=integrity, statuses=statuses,
-                                ground_truth_note=note)
+        return RepeatEvaluation(
+            path_errors_m=errors, errors=gt_errors, integrity=integrity, statuses=statuses, ground_truth_note=note
+        )
 
     def write(self, opened: OpenRepeat, loop: RepeatLoop, evaluation: RepeatEvaluation) -> StateTable:
         """``state.csv`` (the smoothed state at the output rate), ``trajectory_tum.txt``, ``report.png``."""
@@ -306,32 +353,59 @@ class RepeatRun:
         state = loop.state_estimator.output(self.options.rate_hz)
         folder.write("state.csv", write_state_csv, state)
         folder.write("trajectory_tum.txt", write_tum, loop.t_ns, loop.T_teach)
-        folder.write("report.png", plot_repeat, list(loop.localizations), opened.repeat.chain.path, loop.T_teach,
-                     loop.t_ns, evaluation.path_errors_m, state, localized=loop.localized,
-                     title=f"repeat of {opened.source.path.name}",
-                     min_inliers=self.inputs.config.localization.min_inliers)
+        folder.write(
+            "report.png",
+            plot_repeat,
+            list(loop.localizations),
+            opened.repeat.chain.path,
+            loop.T_teach,
+            loop.t_ns,
+            evaluation.path_errors_m,
+            state,
+            localized=loop.localized,
+            title=f"repeat of {opened.source.path.name}",
+            min_inliers=self.inputs.config.localization.min_inliers,
+        )
         return state
 
-    def summarize(self, opened: OpenRepeat, loop: RepeatLoop, evaluation: RepeatEvaluation, state: StateTable,
-                  seconds_after_loop: float) -> RepeatSummary:
+    def summarize(
+        self,
+        opened: OpenRepeat,
+        loop: RepeatLoop,
+        evaluation: RepeatEvaluation,
+        state: StateTable,
+        seconds_after_loop: float,
+    ) -> RepeatSummary:
         """The run's record (run.json's summary; the command line prints it)."""
         ok = [loc for loc in loop.localizations if loc.success]
-        state_summary = StateSummary.of(state, self.options.rate_hz, loop.state_estimator.seconds, len(loop.t_ns),
-                                        loop.state_estimator.pauses_s)
+        state_summary = StateSummary.of(
+            state, self.options.rate_hz, loop.state_estimator.seconds, len(loop.t_ns), loop.state_estimator.pauses_s
+        )
         errors = evaluation.path_errors_m
         used: dict[str, int] = {}
         for loc in ok:
             for e in loc.experiences:
                 used[str(e)] = used.get(str(e), 0) + 1
-        experiences = {"available": len(opened.repeat.submaps.trusted),
-                       "localized_with_experience": sum(1 for loc in ok if loc.experiences), "used": used}
-        return RepeatSummary(frames=len(loop.t_ns), vertices=len(loop.localizations), localized=len(ok),
-                             seconds=loop.seconds + seconds_after_loop, localization_seconds=loop.localization_seconds,
-                             median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
-                             path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
-                             errors=evaluation.errors, state=state_summary, statuses=evaluation.statuses,
-                             integrity=evaluation.integrity, ground_truth_note=evaluation.ground_truth_note,
-                             experiences=experiences)
+        experiences = {
+            "available": len(opened.repeat.submaps.trusted),
+            "localized_with_experience": sum(1 for loc in ok if loc.experiences),
+            "used": used,
+        }
+        return RepeatSummary(
+            frames=len(loop.t_ns),
+            vertices=len(loop.localizations),
+            localized=len(ok),
+            seconds=loop.seconds + seconds_after_loop,
+            localization_seconds=loop.localization_seconds,
+            median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
+            path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),
+            errors=evaluation.errors,
+            state=state_summary,
+            statuses=evaluation.statuses,
+            integrity=evaluation.integrity,
+            ground_truth_note=evaluation.ground_truth_note,
+            experiences=experiences,
+        )
 
     def _private_copy(self, stack: ExitStack) -> Path:
         """A whole copy of the map in a private temporary folder that ``stack`` removes (and the next start removes
@@ -342,9 +416,11 @@ class RepeatRun:
 
         stale, warn = remove_stale_copies(), self.options.warn
         if stale and warn is not None:
-            warn(f"removed {len(stale)} private map copy folder(s) left by killed --read-only-map repeats "
-                      f"({stale[0]}{', ...' if len(stale) > 1 else ''})")
-        with Map.open(self.map_path) as route:      # a map, readable, and not being written by another process
+            warn(
+                f"removed {len(stale)} private map copy folder(s) left by killed --read-only-map repeats "
+                f"({stale[0]}{', ...' if len(stale) > 1 else ''})"
+            )
+        with Map.open(self.map_path) as route:  # a map, readable, and not being written by another process
             route.check_taught_route(self.options.allow_partial)
         return stack.enter_context(private_copy(self.map_path))
 
@@ -358,14 +434,16 @@ def _start_hint(route: Map, start_vertex: int | None, start_distance_m: float | 
     taught = route.taught_path()
     if start_vertex is not None:
         if not 0 <= start_vertex < len(taught):
-            raise MapError(f"{route.path}: start vertex {start_vertex} is not on the taught path "
-                           f"(0..{len(taught) - 1})")
+            raise MapError(
+                f"{route.path}: start vertex {start_vertex} is not on the taught path (0..{len(taught) - 1})"
+            )
         return int(start_vertex)
     if start_distance_m is not None:
         arc = taught.arc_length_m()
         if not 0 <= start_distance_m <= arc[-1]:
-            raise MapError(f"{route.path}: start distance {start_distance_m:g} m is beyond the taught route "
-                           f"(0..{arc[-1]:.1f} m)")
+            raise MapError(
+                f"{route.path}: start distance {start_distance_m:g} m is beyond the taught route (0..{arc[-1]:.1f} m)"
+            )
         return int(np.argmin(np.abs(arc - start_distance_m)))
     return None
 
@@ -380,8 +458,10 @@ def _check_path_to_follow(route: Map) -> None:
     try:
         ReferencePath(taught.positions)
     except EstimationError:
-        raise MapError(f"{route.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two "
-                       "distinct positions to follow): teach a longer route") from None
+        raise MapError(
+            f"{route.path}: the taught path has {len(taught)} vertex(es) but no segment (it needs two "
+            "distinct positions to follow): teach a longer route"
+        ) from None
 
 
 def _ground_truth_note(source: FrameSource, route: Map, localizations: list[Localization]) -> str | None:
@@ -394,8 +474,10 @@ def _ground_truth_note(source: FrameSource, route: Map, localizations: list[Loca
     teach = route.reference_run()
     taught_from = route.run(teach).source if teach is not None else None
     if taught_from != str(source.path):
-        return (f"the repeat's source {source.path} is not the teach's ({taught_from or 'unknown'}): their ground "
-                "truths need not share one frame")
+        return (
+            f"the repeat's source {source.path} is not the teach's ({taught_from or 'unknown'}): their ground "
+            "truths need not share one frame"
+        )
     return None
 
 
@@ -404,10 +486,15 @@ def trunk_times(localizations: Sequence[Localization], path: TaughtPath) -> np.n
     return path.t_ns[[path.index(loc.trunk_id) for loc in localizations]].astype(np.int64)
 
 
-def chain_errors(localizations: Sequence[Localization], trunk_t_ns: np.ndarray,
-                 truth: GroundTruth) -> LocalizationErrors:
+def chain_errors(
+    localizations: Sequence[Localization], trunk_t_ns: np.ndarray, truth: GroundTruth
+) -> LocalizationErrors:
     """Errors of localizations ``T_leaf_trunk`` against ground truth ``truth`` that covers both the leaf times and
     the trunk times ``trunk_t_ns`` (:func:`trunk_times`)."""
-    return localization_errors(np.array([loc.T_leaf_trunk for loc in localizations]),
-                               np.array([loc.t_ns for loc in localizations]), np.asarray(trunk_t_ns, np.int64),
-                               truth.t_ns, truth.T_world_cam)
+    return localization_errors(
+        np.array([loc.T_leaf_trunk for loc in localizations]),
+        np.array([loc.t_ns for loc in localizations]),
+        np.asarray(trunk_t_ns, np.int64),
+        truth.t_ns,
+        truth.T_world_cam,
+    )

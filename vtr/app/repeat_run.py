@@ -39,15 +39,22 @@ class RepeatLoop:
     localization_seconds: float
 
 
-def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callable[[RepeatStep], None] | None = None,
-               keep_landmarks: bool = False, gravity_up: np.ndarray | None = None) -> RepeatLoop:
+def run_repeat(
+    repeat: Repeat,
+    frames: Iterable[StereoFrame],
+    *,
+    on_step: Callable[[RepeatStep], None] | None = None,
+    keep_landmarks: bool = False,
+    gravity_up: np.ndarray | None = None,
+) -> RepeatLoop:
     """Run the repeat over ``frames`` (stereo frames, e.g. ``repeat.odometry.stereo.frames(images)``) and finish
     its run in the map. ``on_step`` receives every step in order (e.g. writes its report rows); with
     ``keep_landmarks`` the localizations keep their per-landmark records (memory grows with the route).
     ``gravity_up`` overrides the map's stored gravity (``Map.gravity_up``) for the controller state."""
     up = repeat.map.gravity_up if gravity_up is None else gravity_up
-    state_estimator = RepeatStateEstimator.for_route(repeat.chain.path, repeat.config.smoothing,
-                                                     repeat.config.localization, repeat.camera.T_vehicle_sensor, up)
+    state_estimator = RepeatStateEstimator.for_route(
+        repeat.chain.path, repeat.config.smoothing, repeat.config.localization, repeat.camera.T_vehicle_sensor, up
+    )
     t_ns: list[int] = []
     T_teach: list[np.ndarray] = []
     localized: list[bool] = []
@@ -66,27 +73,33 @@ def run_repeat(repeat: Repeat, frames: Iterable[StereoFrame], *, on_step: Callab
         if on_step is not None:
             on_step(step)
         if step.localization is not None:
-            locs.append(step.localization if keep_landmarks else
-                        dataclasses.replace(step.localization, landmarks=None))
+            locs.append(step.localization if keep_landmarks else dataclasses.replace(step.localization, landmarks=None))
 
     t0 = time.perf_counter()
     steps = repeat.steps(frames)
     try:
         for step in steps:
-            with held_signals():                # a step's reports, all or none
+            with held_signals():  # a step's reports, all or none
                 take(step)
     except BaseException:
-        steps.close()                           # its localizations done: what the map holds but was not delivered
+        steps.close()  # its localizations done: what the map holds but was not delivered
         with held_signals():
             for step in repeat.take_undelivered():
-                if step is not last_taken:      # the newest step handed out, if the loop took it already
+                if step is not last_taken:  # the newest step handed out, if the loop took it already
                     take(step)
         raise
     with held_signals():
-        repeat.map.finish_run()                 # every frame is in the map: the run is complete
+        repeat.map.finish_run()  # every frame is in the map: the run is complete
         state_estimator.finish()
-    return RepeatLoop(np.array(t_ns, np.int64), np.array(T_teach).reshape(-1, 4, 4), np.array(localized, bool),
-                      tuple(locs), state_estimator, time.perf_counter() - t0, t_loc)
+    return RepeatLoop(
+        np.array(t_ns, np.int64),
+        np.array(T_teach).reshape(-1, 4, 4),
+        np.array(localized, bool),
+        tuple(locs),
+        state_estimator,
+        time.perf_counter() - t0,
+        t_loc,
+    )
 
 
 __all__ = ["RepeatLoop", "run_repeat"]

@@ -23,8 +23,9 @@ def _pyplot() -> Any:
     return plt
 
 
-def plot_trajectory(path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = None,
-                    failures: np.ndarray | None = None, title: str = "") -> None:
+def plot_trajectory(
+    path: Path, T_est: np.ndarray, T_gt: np.ndarray | None = None, failures: np.ndarray | None = None, title: str = ""
+) -> None:
     """Plan view (camera x-z plane: x right, z forward) of the estimated and reference trajectories."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 6))
@@ -59,10 +60,19 @@ def _spans(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2], edges[1::2], strict=True))
 
 
-def plot_repeat(path: Path, locs: Sequence[Localization], taught: TaughtPath, T_teach: np.ndarray, t_ns: np.ndarray,
-                path_error_m: np.ndarray, state: StateTable | None = None, *, localized: np.ndarray | None = None,
-                title: str = "repeat",
-                min_inliers: int | None = None) -> None:
+def plot_repeat(
+    path: Path,
+    locs: Sequence[Localization],
+    taught: TaughtPath,
+    T_teach: np.ndarray,
+    t_ns: np.ndarray,
+    path_error_m: np.ndarray,
+    state: StateTable | None = None,
+    *,
+    localized: np.ndarray | None = None,
+    title: str = "repeat",
+    min_inliers: int | None = None,
+) -> None:
     """Repeat report: localization inliers per keyframe by outcome, the error to the taught path over time and
     the taught and repeated paths in plan view (teach run's first camera frame: x right, z forward), with
     the stretches where the repeat held no localization shaded.
@@ -94,8 +104,9 @@ def plot_repeat(path: Path, locs: Sequence[Localization], taught: TaughtPath, T_
                 ax1.plot(tl[sel], inl[sel], marker, color=colour, ms=4, ls="none", label=f"{label} ({sel.sum()})")
         if (~shown).any():
             label, marker, colour = FAILURE_STYLE
-            ax1.plot(tl[~shown], inl[~shown], marker, color=colour, ms=5, ls="none",
-                     label=f"{label} ({(~shown).sum()})")
+            ax1.plot(
+                tl[~shown], inl[~shown], marker, color=colour, ms=5, ls="none", label=f"{label} ({(~shown).sum()})"
+            )
     if min_inliers is not None:
         ax1.axhline(min_inliers, color="k", lw=0.8, ls="--", label=f"inliers a success needs ({min_inliers})")
     ax1.set_ylabel("localization inliers per keyframe")
@@ -106,8 +117,12 @@ def plot_repeat(path: Path, locs: Sequence[Localization], taught: TaughtPath, T_
     finite = [a for a in (err, *(() if state is None else (state.lateral, state.vertical))) if np.isfinite(a).any()]
     peak = max((float(np.nanmax(np.abs(a))) for a in finite), default=0.0)
     scale, unit = (1000.0, "mm") if peak < 1.0 else (1.0, "m")
-    ax2.plot(tf, scale * err, color="C2",
-             label="distance to the taught polyline (chain pose: odometry since the last localization)")
+    ax2.plot(
+        tf,
+        scale * err,
+        color="C2",
+        label="distance to the taught polyline (chain pose: odometry since the last localization)",
+    )
     if state is not None and len(state.t_ns):
         ts = (np.asarray(state.t_ns) - t0) * 1e-9
         ax2.plot(ts, scale * np.asarray(state.lateral), color="C1", lw=1, label="lateral, smoothed (+ left)")
@@ -116,15 +131,17 @@ def plot_repeat(path: Path, locs: Sequence[Localization], taught: TaughtPath, T_
     ax2.legend(fontsize="x-small")
     ax2.set_ylabel(f"error to the taught path [{unit}]")
     ax2.set_xlabel("time since the first frame [s]")
-    ax2.set_title("path-tracking error (the taught path is a polyline through its vertices: corners make kinks)",
-                  fontsize="small")
+    ax2.set_title(
+        "path-tracking error (the taught path is a polyline through its vertices: corners make kinks)", fontsize="small"
+    )
     ax2.grid(True, alpha=0.3)
     ax3.plot(taught.positions[:, 0], taught.positions[:, 2], "o-", color="k", ms=3, label="taught path (teach run)")
     if len(T_teach):
         ax3.plot(T_teach[:, 0, 3], T_teach[:, 2, 3], "-", color="C0", lw=1, label="repeat (chain poses)")
         if lost.any():
-            ax3.plot(T_teach[lost, 0, 3], T_teach[lost, 2, 3], ".", color="C3", ms=3,
-                     label="not localized (odometry only)")
+            ax3.plot(
+                T_teach[lost, 0, 3], T_teach[lost, 2, 3], ".", color="C3", ms=3, label="not localized (odometry only)"
+            )
     ax3.set_xlabel("x, right of the first taught camera [m]")
     ax3.set_ylabel("z, ahead of the first taught camera [m]")
     ax3.set_title("plan view", fontsize="medium")

@@ -40,19 +40,19 @@ class FlightCheck:
     expected_lateral_m: float
     rows: int
     localized_rows: int
-    direction_right: float              # share of localized rows with the expected direction
+    direction_right: float  # share of localized rows with the expected direction
     median_lateral_m: float
     median_vertical_m: float
     p95_abs_vertical_m: float
     median_vz_mps: float
     successes: int
-    successes_past_start: int           # successes with the truth more than off_route_distance_m past the start
-    localized_rows_past_start: int      # likewise, localized state rows
+    successes_past_start: int  # successes with the truth more than off_route_distance_m past the start
+    localized_rows_past_start: int  # likewise, localized state rows
     off_route_rows: int
-    accel_straight_median_mps2: float   # |a| on the straights (truth 0), away from the arc by the fit's reach
-    accel_arc_median_mps2: float        # |a| on the arc
-    accel_arc_expected_mps2: float      # v^2 / r of the flown arc
-    accel_max_step_mps2: float          # largest change of a between consecutive localized rows
+    accel_straight_median_mps2: float  # |a| on the straights (truth 0), away from the arc by the fit's reach
+    accel_arc_median_mps2: float  # |a| on the arc
+    accel_arc_expected_mps2: float  # v^2 / r of the flown arc
+    accel_max_step_mps2: float  # largest change of a between consecutive localized rows
 
 
 def _truth_arc(t_ns: np.ndarray, t_frames: np.ndarray, s_frames: np.ndarray) -> np.ndarray:
@@ -60,9 +60,19 @@ def _truth_arc(t_ns: np.ndarray, t_frames: np.ndarray, s_frames: np.ndarray) -> 
     return np.interp(np.asarray(t_ns, float), np.asarray(t_frames, float), s_frames)
 
 
-def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarray, *, expected_direction: int,
-                 expected_lateral_m: float, past_m: float, arc_m: tuple[float, float], arc_accel_mps2: float,
-                 margin_m: float) -> FlightCheck:
+def check_flight(
+    name: str,
+    out: Path,
+    t_frames: np.ndarray,
+    s_frames: np.ndarray,
+    *,
+    expected_direction: int,
+    expected_lateral_m: float,
+    past_m: float,
+    arc_m: tuple[float, float],
+    arc_accel_mps2: float,
+    margin_m: float,
+) -> FlightCheck:
     """Judge ``out/state.csv`` and ``out/localization.csv`` of a repeat whose frames were at ``t_frames`` and
     arc lengths ``s_frames`` along the taught path; the arc spans ``arc_m`` (taught arc length) with a centripetal
     acceleration ``arc_accel_mps2``; acceleration is judged ``margin_m`` away from where the curvature changes."""
@@ -82,7 +92,10 @@ def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarra
     both = loc[1:] & loc[:-1]
     steps = np.linalg.norm(np.diff(st.acceleration, axis=0), axis=1)[both]
     return FlightCheck(
-        name=name, expected_direction=expected_direction, expected_lateral_m=expected_lateral_m, rows=len(st),
+        name=name,
+        expected_direction=expected_direction,
+        expected_lateral_m=expected_lateral_m,
+        rows=len(st),
         localized_rows=int(loc.sum()),
         direction_right=float(np.mean(st.direction[loc] == expected_direction)) if loc.any() else 0.0,
         median_lateral_m=float(np.median(st.lateral[on_route])) if on_route.any() else math.nan,
@@ -96,12 +109,20 @@ def check_flight(name: str, out: Path, t_frames: np.ndarray, s_frames: np.ndarra
         accel_straight_median_mps2=float(np.median(a[straight])) if straight.any() else math.nan,
         accel_arc_median_mps2=float(np.median(a[arc])) if arc.any() else math.nan,
         accel_arc_expected_mps2=arc_accel_mps2,
-        accel_max_step_mps2=float(steps.max()) if len(steps) else math.nan)
+        accel_max_step_mps2=float(steps.max()) if len(steps) else math.nan,
+    )
 
 
-def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.0, past_start_m: float = 10.0,
-                      segments: tuple[tuple[float, float], ...] = ROUTE_SEGMENTS, config: Config | None = None,
-                      progress: Callable[[str], None] | None = None) -> list[FlightCheck]:
+def run_return_flight(
+    out: Path,
+    *,
+    offset_m: float = 2.0,
+    speed_mps: float = 6.0,
+    past_start_m: float = 10.0,
+    segments: tuple[tuple[float, float], ...] = ROUTE_SEGMENTS,
+    config: Config | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> list[FlightCheck]:
     """Teach the route, fly it forward and back ``offset_m`` to the left of the taught heading, judge both."""
     config = config or Config()
     say = progress or (lambda line: None)
@@ -126,33 +147,46 @@ def run_return_flight(out: Path, *, offset_m: float = 2.0, speed_mps: float = 6.
     curved = [i for i, (_, kappa) in enumerate(segments) if kappa != 0.0]
     arc_m = (float(starts[curved[0]]), float(starts[curved[0] + 1])) if curved else (math.inf, math.inf)
     radius_m = 1.0 / segments[curved[0]][1] - offset_m if curved else math.inf
-    margin_m = config.smoothing.acceleration_window_s * speed_mps     # the acceleration fit's reach
+    margin_m = config.smoothing.acceleration_window_s * speed_mps  # the acceleration fit's reach
     checks = []
     for name, (direction, lateral, s) in flights.items():
         start = float(min(s[0], s[-1]))
         T = syn.segmented_aerial_route(segments, spacing, lateral_offset_m=offset_m, start_offset_m=start)
-        T = T[:len(s)] if direction > 0 else T[:len(s)][::-1].copy()
+        T = T[: len(s)] if direction > 0 else T[: len(s)][::-1].copy()
         say(f"rendering the {name} repeat ({len(T)} frames)")
         seq = render_sequence(out / name / "images", scene, T, noise_seed=1, speed_mps=speed_mps)
         t_frames = syn.route_times(T, speed_mps)
         rep_out = out / name / "repeat"
         repeat_command(seq, map_path, rep_out, None, config, read_only_map=True)
-        checks.append(check_flight(name, rep_out, t_frames, s, expected_direction=direction,
-                                   expected_lateral_m=lateral, past_m=config.localization.off_route_distance_m,
-                                   arc_m=arc_m, arc_accel_mps2=speed_mps**2 / radius_m, margin_m=margin_m))
+        checks.append(
+            check_flight(
+                name,
+                rep_out,
+                t_frames,
+                s,
+                expected_direction=direction,
+                expected_lateral_m=lateral,
+                past_m=config.localization.off_route_distance_m,
+                arc_m=arc_m,
+                arc_accel_mps2=speed_mps**2 / radius_m,
+                margin_m=margin_m,
+            )
+        )
         say(format_check(checks[-1]))
     (out / "return_flight.json").write_text(json.dumps([asdict(c) for c in checks], indent=2) + "\n")
     return checks
 
 
 def format_check(c: FlightCheck) -> str:
-    return (f"{c.name:8s} direction right {100 * c.direction_right:5.1f} % of {c.localized_rows} localized rows; "
-            f"lateral median {c.median_lateral_m:+.3f} m (truth {c.expected_lateral_m:+.1f}); vertical median "
-            f"{c.median_vertical_m:+.3f} m, p95 |.| {c.p95_abs_vertical_m:.3f} m; vz median {c.median_vz_mps:+.3f} "
-            f"m/s; successes {c.successes} ({c.successes_past_start} past the start); localized rows past the "
-            f"start {c.localized_rows_past_start}; off_route rows {c.off_route_rows}; |a| straight median "
-            f"{c.accel_straight_median_mps2:.3f}, arc median {c.accel_arc_median_mps2:.3f} (v^2/r "
-            f"{c.accel_arc_expected_mps2:.3f}) m/s^2, largest step {c.accel_max_step_mps2:.3f} m/s^2")
+    return (
+        f"{c.name:8s} direction right {100 * c.direction_right:5.1f} % of {c.localized_rows} localized rows; "
+        f"lateral median {c.median_lateral_m:+.3f} m (truth {c.expected_lateral_m:+.1f}); vertical median "
+        f"{c.median_vertical_m:+.3f} m, p95 |.| {c.p95_abs_vertical_m:.3f} m; vz median {c.median_vz_mps:+.3f} "
+        f"m/s; successes {c.successes} ({c.successes_past_start} past the start); localized rows past the "
+        f"start {c.localized_rows_past_start}; off_route rows {c.off_route_rows}; |a| straight median "
+        f"{c.accel_straight_median_mps2:.3f}, arc median {c.accel_arc_median_mps2:.3f} (v^2/r "
+        f"{c.accel_arc_expected_mps2:.3f}) m/s^2, largest step {c.accel_max_step_mps2:.3f} m/s^2"
+    )
 
 
 __all__ = ["FlightCheck", "ROUTE_SEGMENTS", "check_flight", "format_check", "run_return_flight"]

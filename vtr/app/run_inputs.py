@@ -45,8 +45,14 @@ class OpenSource:
     log: RunLog | None
 
 
-def open_inputs(stack: ExitStack, inputs: RunInputs, command: str, out: Path | None, outputs: Sequence[str],
-                extra_inputs: Sequence[Path] = ()) -> OpenSource:
+def open_inputs(
+    stack: ExitStack,
+    inputs: RunInputs,
+    command: str,
+    out: Path | None,
+    outputs: Sequence[str],
+    extra_inputs: Sequence[Path] = (),
+) -> OpenSource:
     """Open ``inputs``' source on ``stack``, select its frames and prepare ``out`` for ``outputs`` (checked before
     any work)."""
     source = stack.enter_context(open_source(inputs.source_path, inputs.source_options))
@@ -54,8 +60,7 @@ def open_inputs(stack: ExitStack, inputs: RunInputs, command: str, out: Path | N
     if out is None:
         return OpenSource(source, indices, None, None)
     folder = OutputFolder.prepare(out, [inputs.source_path], outputs)
-    return OpenSource(source, indices, folder, RunLog(out, command, inputs.config,
-                                                      [inputs.source_path, *extra_inputs]))
+    return OpenSource(source, indices, folder, RunLog(out, command, inputs.config, [inputs.source_path, *extra_inputs]))
 
 
 def iterate(items: Iterable[Any], total: int, progress: Progress | None, desc: str) -> Iterable[Any]:
@@ -63,8 +68,9 @@ def iterate(items: Iterable[Any], total: int, progress: Progress | None, desc: s
     return progress(items, total=total, desc=desc) if progress else items
 
 
-def frames_of(source: FrameSource, indices: list[int], processor: StereoProcessor, progress: Progress | None,
-              desc: str) -> Iterable[StereoFrame]:
+def frames_of(
+    source: FrameSource, indices: list[int], processor: StereoProcessor, progress: Progress | None, desc: str
+) -> Iterable[StereoFrame]:
     """The selected frames of ``source`` as stereo frames, behind the progress bar; with ``features.threads``
     of 2 or more the next ones are decoded and stereo-processed in the background
     (:meth:`StereoProcessor.frames`)."""

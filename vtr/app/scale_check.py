@@ -30,12 +30,12 @@ from ..types import StereoFrame
 from ..vo.matching import match_to_landmarks
 from ..vo.stereo import StereoProcessor
 
-MATCH_RADIUS_PX = 8.0            # matching around the ground-truth prediction
+MATCH_RADIUS_PX = 8.0  # matching around the ground-truth prediction
 MATCH_RATIO = 0.8
-MIN_PARALLAX_DEG = 1.0           # two-view triangulation needs this much angle between the rays
-MAX_REPROJECTION_PX = 0.5        # ... and rays that (nearly) meet
+MIN_PARALLAX_DEG = 1.0  # two-view triangulation needs this much angle between the rays
+MAX_REPROJECTION_PX = 0.5  # ... and rays that (nearly) meet
 MAX_IMPLIED_DISPARITY_PX = 60.0  # the line is fitted where disparities are small enough to show an offset
-HUBER_K = 1.5                    # robust fits: Huber weights at this many robust sigmas
+HUBER_K = 1.5  # robust fits: Huber weights at this many robust sigmas
 ROBUST_ITERATIONS = 10
 SCALE_THRESHOLDS_PX = (30.0, 15.0, 5.0, 1.0)
 
@@ -76,8 +76,7 @@ def _frames(source: FrameSource, config: Config) -> tuple[list[StereoFrame], np.
 
 
 def _rays(camera: StereoCamera, uv: np.ndarray) -> np.ndarray:
-    return np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy,
-                            np.ones(len(uv))])
+    return np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))])
 
 
 def disparity_samples(source: FrameSource, config: Config, steps: tuple[int, ...] = (1, 2, 3)) -> DisparitySamples:
@@ -89,22 +88,25 @@ def disparity_samples(source: FrameSource, config: Config, steps: tuple[int, ...
         for k in range(len(frames) - step):
             a, b = frames[k], frames[k + step]
             T_b_a = inv_T(T_world_cam[k + step]) @ T_world_cam[k]
-            ia, ib = match_to_landmarks(a, b, T_b_a, camera, MATCH_RADIUS_PX,
-                                        config.odometry.max_descriptor_distance, MATCH_RATIO)
+            ia, ib = match_to_landmarks(
+                a, b, T_b_a, camera, MATCH_RADIUS_PX, config.odometry.max_descriptor_distance, MATCH_RATIO
+            )
             if len(ia) == 0:
                 continue
-            ra = _rays(camera, a.features.uv[ia]) @ T_b_a[:3, :3].T     # ray of a, in b
+            ra = _rays(camera, a.features.uv[ia]) @ T_b_a[:3, :3].T  # ray of a, in b
             rb = _rays(camera, b.features.uv[ib])
             t = T_b_a[:3, 3]
             # depths (za, zb) with za * ra + t = zb * rb, least squares per feature (2x2 normal equations)
             a11, a12, a22 = (ra * ra).sum(1), -(ra * rb).sum(1), (rb * rb).sum(1)
             b1, b2 = -(ra @ t), rb @ t
             det = a11 * a22 - a12 * a12
-            with np.errstate(divide="ignore", invalid="ignore"):    # parallel rays: no depth (dropped below)
+            with np.errstate(divide="ignore", invalid="ignore"):  # parallel rays: no depth (dropped below)
                 za = (a22 * b1 - a12 * b2) / det
             P = za[:, None] * ra + t
-            reproj = np.hypot(camera.fx * P[:, 0] / P[:, 2] + camera.cx - b.features.uv[ib, 0],
-                              camera.fy * P[:, 1] / P[:, 2] + camera.cy - b.features.uv[ib, 1])
+            reproj = np.hypot(
+                camera.fx * P[:, 0] / P[:, 2] + camera.cx - b.features.uv[ib, 0],
+                camera.fy * P[:, 1] / P[:, 2] + camera.cy - b.features.uv[ib, 1],
+            )
             cos = (ra * rb).sum(1) / np.linalg.norm(ra, axis=1) / np.linalg.norm(rb, axis=1)
             parallax = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
             measured = a.features.uv[ia, 0] - a.u_right[ia]
@@ -131,16 +133,20 @@ def _robust_line(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
 
 def disparity_offset(samples: DisparitySamples) -> DisparityOffset:
     """The robust line through (implied, measured) disparities of well-triangulated features."""
-    ok = (samples.parallax_deg >= MIN_PARALLAX_DEG) & (samples.implied_px > 0) \
+    ok = (
+        (samples.parallax_deg >= MIN_PARALLAX_DEG)
+        & (samples.implied_px > 0)
         & (samples.implied_px < MAX_IMPLIED_DISPARITY_PX)
+    )
     if ok.sum() < 10:
         raise DataError(f"only {int(ok.sum())} features triangulate well enough from the motion")
     (slope, offset), sigma = _robust_line(samples.implied_px[ok], samples.measured_px[ok])
     return DisparityOffset(float(slope), float(offset), sigma, int(ok.sum()))
 
 
-def near_point_scale(source: FrameSource, config: Config,
-                     thresholds_px: tuple[float, ...] = SCALE_THRESHOLDS_PX) -> dict[float, float]:
+def near_point_scale(
+    source: FrameSource, config: Config, thresholds_px: tuple[float, ...] = SCALE_THRESHOLDS_PX
+) -> dict[float, float]:
     """For each disparity threshold, the ground-truth translation factor ``s`` that best explains frame
     ``k + 1``'s view of frame ``k``'s stereo landmarks with at least that disparity, held fixed."""
     camera = source.camera
@@ -149,9 +155,10 @@ def near_point_scale(source: FrameSource, config: Config,
     for k in range(len(frames) - 1):
         a, b = frames[k], frames[k + 1]
         T_b_a = inv_T(T_world_cam[k + 1]) @ T_world_cam[k]
-        ia, ib = match_to_landmarks(a, b, T_b_a, camera, MATCH_RADIUS_PX, config.odometry.max_descriptor_distance,
-                                    MATCH_RATIO)
-        Y = a.points[ia] @ T_b_a[:3, :3].T                  # rotated landmark, before the translation
+        ia, ib = match_to_landmarks(
+            a, b, T_b_a, camera, MATCH_RADIUS_PX, config.odometry.max_descriptor_distance, MATCH_RATIO
+        )
+        Y = a.points[ia] @ T_b_a[:3, :3].T  # rotated landmark, before the translation
         d = a.features.uv[ia, 0] - a.u_right[ia]
         rows.append(np.column_stack([Y, np.repeat(T_b_a[None, :3, 3], len(ia), 0), b.features.uv[ib], d]))
     R = np.concatenate(rows)
@@ -163,7 +170,7 @@ def near_point_scale(source: FrameSource, config: Config,
             continue
         Y, t, uv = m[:, 0:3], m[:, 3:6], m[:, 6:8]
         s = 1.0
-        for _ in range(ROBUST_ITERATIONS):      # Gauss-Newton on s with Huber weights
+        for _ in range(ROBUST_ITERATIONS):  # Gauss-Newton on s with Huber weights
             P = Y + s * t
             u = camera.fx * P[:, 0] / P[:, 2] + camera.cx
             v = camera.fy * P[:, 1] / P[:, 2] + camera.cy

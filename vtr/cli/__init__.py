@@ -21,10 +21,23 @@ from ..signals import sigterm_as_exception
 from .common import EXIT_SIGINT, EXIT_SIGTERM, OUTPUTS_KEY, error_line
 
 #: (module to import, distribution) of every dependency `vtr versions` checks; the heavy ones first
-DEPENDENCIES = (("numpy", "numpy"), ("numba", "numba"), ("scipy", "scipy"), ("cv2", "opencv-python-headless"),
-                ("gtsam", "gtsam"), ("open3d", "open3d"), ("rosbags", "rosbags"), ("pyarrow", "pyarrow"),
-                ("osqp", "osqp"), ("dask", "dask"), ("distributed", "distributed"), ("matplotlib", "matplotlib"),
-                ("click", "click"), ("tqdm", "tqdm"), ("yaml", "PyYAML"))
+DEPENDENCIES = (
+    ("numpy", "numpy"),
+    ("numba", "numba"),
+    ("scipy", "scipy"),
+    ("cv2", "opencv-python-headless"),
+    ("gtsam", "gtsam"),
+    ("open3d", "open3d"),
+    ("rosbags", "rosbags"),
+    ("pyarrow", "pyarrow"),
+    ("osqp", "osqp"),
+    ("dask", "dask"),
+    ("distributed", "distributed"),
+    ("matplotlib", "matplotlib"),
+    ("click", "click"),
+    ("tqdm", "tqdm"),
+    ("yaml", "PyYAML"),
+)
 
 
 def _versions() -> str:
@@ -47,7 +60,7 @@ class _Group(OneLineGroup):
             click.echo(f"vtr: error: {error_line(err, ctx.meta.get(OUTPUTS_KEY))}", err=True)
             sys.exit(1)
         except (KeyboardInterrupt, Terminated, SystemError) as err:
-            signal_err = interruption(err)   # a SystemError out of a numba kernel may carry the signal
+            signal_err = interruption(err)  # a SystemError out of a numba kernel may carry the signal
             if signal_err is None:
                 raise
             if isinstance(signal_err, Terminated):
@@ -84,7 +97,7 @@ def _register() -> None:
     from importlib import import_module
 
     for info in pkgutil.iter_modules(__path__):
-        if info.name == "perception_model":      # the other console script's group, not vtr's
+        if info.name == "perception_model":  # the other console script's group, not vtr's
             continue
         import_module(f"{__name__}.{info.name}")
 

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 # Nothing numerical is imported here or by any vtr.cli module at import time (a help page must start
 # fast: tests/cli/test_startup.py); commands import the library where they run.
 
-EXIT_SIGINT = 130                    # shell convention: 128 + signal number
+EXIT_SIGINT = 130  # shell convention: 128 + signal number
 EXIT_SIGTERM = 143
 
 
@@ -76,8 +76,15 @@ class _NoProgress(LineProgress):
         pass
 
 
-def make_bar(total: int | None, desc: str, unit: str = "frame", *, disable: bool = False,
-             every: int = PROGRESS_LINE_EVERY, leave: bool = False) -> Any:
+def make_bar(
+    total: int | None,
+    desc: str,
+    unit: str = "frame",
+    *,
+    disable: bool = False,
+    every: int = PROGRESS_LINE_EVERY,
+    leave: bool = False,
+) -> Any:
     """A progress bar on stderr: tqdm on a terminal, :class:`LineProgress` lines when stderr is a log or a
     pipe, nothing when ``disable``."""
     import sys
@@ -107,7 +114,7 @@ def progress_bar(unit: str = "frame") -> Callable[[Iterable[Any], int | None, st
     return bar
 
 
-OUTPUTS_KEY = "vtr.outputs"   # click context meta: the output paths a command writes
+OUTPUTS_KEY = "vtr.outputs"  # click context meta: the output paths a command writes
 
 
 def note_outputs(*paths: Path | None) -> None:
@@ -180,24 +187,38 @@ def frame_progress(desc: str) -> Callable[[int, int], None]:
 
 
 source_argument = click.argument("source", type=click.Path(path_type=Path))
-frames_option = click.option("--frames", default=None, metavar="START:STOP:STEP",
-                             help="Frames of SOURCE to use (Python slice).")
-config_option = click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
-                             help="YAML/TOML configuration (see `vtr config`).")
+frames_option = click.option(
+    "--frames", default=None, metavar="START:STOP:STEP", help="Frames of SOURCE to use (Python slice)."
+)
+config_option = click.option(
+    "--config",
+    "config_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="YAML/TOML configuration (see `vtr config`).",
+)
 
 #: ``--format`` values: the readers of ``vtr.io.FORMATS`` and, as aliases of ``rosbag``, the bag kinds
 #: ``vtr convert --to`` writes (tests/cli/test_conventions.py checks the two lists agree).
 SOURCE_FORMATS = ("kitti", "euroc", "stereo-pairs", "rosbag", "rosbag1", "rosbag2", "mcap", "cloud")
 
 _SOURCE_OPTIONS = (
-    click.option("--format", "fmt", type=click.Choice(SOURCE_FORMATS), default=None,
-                 help="Force the SOURCE format (default: detect); rosbag1, rosbag2 and mcap are read as rosbag."),
+    click.option(
+        "--format",
+        "fmt",
+        type=click.Choice(SOURCE_FORMATS),
+        default=None,
+        help="Force the SOURCE format (default: detect); rosbag1, rosbag2 and mcap are read as rosbag.",
+    ),
     click.option("--left-topic", default=None, help="ROS bag SOURCE: left image topic."),
     click.option("--right-topic", default=None, help="ROS bag SOURCE: right image topic."),
     click.option("--left-info-topic", default=None, help="ROS bag SOURCE: left CameraInfo topic."),
     click.option("--right-info-topic", default=None, help="ROS bag SOURCE: right CameraInfo topic."),
-    click.option("--allow-unpaired", is_flag=True,
-                 help="ROS bag SOURCE: keep the matched stereo pairs when some images have no partner."),
+    click.option(
+        "--allow-unpaired",
+        is_flag=True,
+        help="ROS bag SOURCE: keep the matched stereo pairs when some images have no partner.",
+    ),
 )
 
 
@@ -206,9 +227,16 @@ def source_options(command: Callable[..., Any]) -> Callable[..., Any]:
     to the command as one ``source_options: SourceOptions`` argument."""
 
     @functools.wraps(command)
-    def wrapper(*args: Any, fmt: str | None, left_topic: str | None, right_topic: str | None,
-                left_info_topic: str | None, right_info_topic: str | None, allow_unpaired: bool,
-                **kwargs: Any) -> Any:
+    def wrapper(
+        *args: Any,
+        fmt: str | None,
+        left_topic: str | None,
+        right_topic: str | None,
+        left_info_topic: str | None,
+        right_info_topic: str | None,
+        allow_unpaired: bool,
+        **kwargs: Any,
+    ) -> Any:
         from ..io.base import SourceOptions
 
         opts = SourceOptions(fmt, left_topic, right_topic, left_info_topic, right_info_topic, allow_unpaired)
@@ -230,8 +258,10 @@ def _parse_up(ctx: click.Context, param: click.Parameter, value: str | None) -> 
         parts = [float(x) for x in value.split(",")]
         return check_gravity_up(parts, "--up")
     except (ValueError, ConfigError) as err:
-        raise click.BadParameter(f"expected three numbers X,Y,Z (a non-zero up direction), got {value!r}"
-                                 + (f" ({err})" if isinstance(err, ConfigError) else "")) from None
+        raise click.BadParameter(
+            f"expected three numbers X,Y,Z (a non-zero up direction), got {value!r}"
+            + (f" ({err})" if isinstance(err, ConfigError) else "")
+        ) from None
 
 
 def up_option(help_text: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -239,6 +269,10 @@ def up_option(help_text: str) -> Callable[[Callable[..., Any]], Callable[..., An
     return click.option("--up", "gravity_up", default=None, metavar="X,Y,Z", callback=_parse_up, help=help_text)
 
 
-threads_option = click.option("--threads", type=click.IntRange(min=0), default=None,
-                              help="Threads for the per-frame work (features.threads; 0 = every core, the default). "
-                                   "Results are identical for every value.")
+threads_option = click.option(
+    "--threads",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Threads for the per-frame work (features.threads; 0 = every core, the default). "
+    "Results are identical for every value.",
+)

@@ -18,14 +18,20 @@ if TYPE_CHECKING:
 @main.command("convert")
 @source_argument
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--to", "to", type=click.Choice(["kitti", "rosbag1", "rosbag2", "mcap"]), default=None,
-              help="Output kind (default: rosbag1 when OUT ends in .bag, else a KITTI folder). "
-                   "rosbag2 (sqlite3) and mcap write a ROS 2 bag folder.")
+@click.option(
+    "--to",
+    "to",
+    type=click.Choice(["kitti", "rosbag1", "rosbag2", "mcap"]),
+    default=None,
+    help="Output kind (default: rosbag1 when OUT ends in .bag, else a KITTI folder). "
+    "rosbag2 (sqlite3) and mcap write a ROS 2 bag folder.",
+)
 @frames_option
 @source_options
 @click.option("--no-progress", is_flag=True, help="Do not show the progress bar.")
-def convert_cmd(source: Path, out: Path, to: str | None, frames: str | None, source_options: SourceOptions,
-                no_progress: bool) -> None:
+def convert_cmd(
+    source: Path, out: Path, to: str | None, frames: str | None, source_options: SourceOptions, no_progress: bool
+) -> None:
     """Convert SOURCE to OUT losslessly (PNG / mono8 images, exact ns stamps, stereo calibration)."""
     from ..app.convert import convert
     from ..io import open_source, parse_frame_range

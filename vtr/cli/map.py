@@ -52,9 +52,18 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         stats["camera"] = cam.to_dict()
         stats["gravity_up"] = None if up is None else [float(x) for x in up]
         stats["run_list"] = [
-            {"id": r.id, "kind": r.kind, "privileged": r.privileged, "state": r.state, "reason": r.reason,
-             "finished": r.finished, "vertices": r.n_vertices, "source": r.source, "created": r.created,
-             "localization_records": records.get(r.id, 0)}
+            {
+                "id": r.id,
+                "kind": r.kind,
+                "privileged": r.privileged,
+                "state": r.state,
+                "reason": r.reason,
+                "finished": r.finished,
+                "vertices": r.n_vertices,
+                "source": r.source,
+                "created": r.created,
+                "localization_records": records.get(r.id, 0),
+            }
             for r in runs
         ]
         stats["experiences"] = [dataclasses.asdict(e) for e in exps]
@@ -62,53 +71,81 @@ def map_info_cmd(map_path: Path, as_json: bool) -> None:
         return
     click.echo(f"map: {map_path}")
     click.echo(f"format version: {stats['format_version']}  created: {created}")
-    click.echo(f"camera: {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} "
-               f"cy={cam.cy:.2f} baseline={cam.baseline:.4f} m")
-    click.echo("gravity: " + ("not stored (taught without --up: readers take the first camera as level, up = its -y)"
-                              if up is None else "up " + ",".join(f"{x:.4f}" for x in up) +
-                              " in the first teach camera"))
+    click.echo(
+        f"camera: {cam.width}x{cam.height} fx={cam.fx:.2f} fy={cam.fy:.2f} cx={cam.cx:.2f} "
+        f"cy={cam.cy:.2f} baseline={cam.baseline:.4f} m"
+    )
+    click.echo(
+        "gravity: "
+        + (
+            "not stored (taught without --up: readers take the first camera as level, up = its -y)"
+            if up is None
+            else "up " + ",".join(f"{x:.4f}" for x in up) + " in the first teach camera"
+        )
+    )
     click.echo(f"size on disk: {_size(stats['bytes'])} ({stats['bytes']} bytes)")
-    click.echo(f"vertices: {stats['vertices']}  edges: {stats['edges']} (temporal {stats['temporal_edges']}, "
-               f"spatial {stats['spatial_edges']})  landmarks: {stats['landmarks']}  features: {stats['features']}")
+    click.echo(
+        f"vertices: {stats['vertices']}  edges: {stats['edges']} (temporal {stats['temporal_edges']}, "
+        f"spatial {stats['spatial_edges']})  landmarks: {stats['landmarks']}  features: {stats['features']}"
+    )
     click.echo(f"runs: {stats['runs']}")
     if runs:
         click.echo(f"  {'id':>4}  {'kind':<6}  {'privileged':<10}  {'state':<11}  {'vertices':>8}  source")
         for r in runs:
-            click.echo(f"  {r.id:>4}  {r.kind:<6}  {'yes' if r.privileged else 'no':<10}  "
-                       f"{r.state:<11}  {r.n_vertices:>8}  {r.source or '-'}")
+            click.echo(
+                f"  {r.id:>4}  {r.kind:<6}  {'yes' if r.privileged else 'no':<10}  "
+                f"{r.state:<11}  {r.n_vertices:>8}  {r.source or '-'}"
+            )
         for r in runs:
             if r.reason:
                 click.echo(f"  run {r.id} {r.state}: {r.reason}")
         for r in runs:
             if r.kind == "repeat" and not r.finished and records.get(r.id):
-                click.echo(f"  run {r.id} {r.state}: its localization.csv may lack the last of its "
-                           f"{records[r.id]} localization records (a killed repeat); `vtr map localizations "
-                           f"{map_path} {r.id} --out DIR` writes them all")
+                click.echo(
+                    f"  run {r.id} {r.state}: its localization.csv may lack the last of its "
+                    f"{records[r.id]} localization records (a killed repeat); `vtr map localizations "
+                    f"{map_path} {r.id} --out DIR` writes them all"
+                )
         partial = [r.id for r in runs if r.privileged and not r.finished]
         if partial:
-            click.echo(f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
-                       "this map unless --allow-partial")
+            click.echo(
+                f"warning: teach run(s) {', '.join(map(str, partial))} not finished: `vtr repeat` refuses "
+                "this map unless --allow-partial"
+            )
     if exps:
-        click.echo(f"experiences (repeats a later repeat may localize against; trusted: finished and at least "
-                   f"{Config().experiences.min_localized_share:.0%} of its keyframes localized):")
+        click.echo(
+            f"experiences (repeats a later repeat may localize against; trusted: finished and at least "
+            f"{Config().experiences.min_localized_share:.0%} of its keyframes localized):"
+        )
         click.echo(f"  {'run':>4}  {'localized':>13}  {'trusted':<7}  {'used':>9}  {'by':>3}")
         for e in exps:
-            click.echo(f"  {e.run:>4}  {e.localized:>5} / {e.n_vertices:<5}  {'yes' if e.trusted else 'no':<7}  "
-                       f"{e.used_keyframes:>9}  {e.used_by:>3}" + ("" if e.trusted else f"  ({e.why_not})"))
+            click.echo(
+                f"  {e.run:>4}  {e.localized:>5} / {e.n_vertices:<5}  {'yes' if e.trusted else 'no':<7}  "
+                f"{e.used_keyframes:>9}  {e.used_by:>3}" + ("" if e.trusted else f"  ({e.why_not})")
+            )
     if unclosed:
         click.echo(f"warning: {unclosed}")
 
 
 @map_group.command("prune")
 @map_argument
-@click.option("--keep-last", type=int, default=None,
-              help="Keep the newest this many experiences at each taught vertex (default: experiences.keep_last).")
-@click.option("--keep-most-used", type=int, default=None,
-              help="... plus this many most used (default: experiences.keep_most_used).")
+@click.option(
+    "--keep-last",
+    type=int,
+    default=None,
+    help="Keep the newest this many experiences at each taught vertex (default: experiences.keep_last).",
+)
+@click.option(
+    "--keep-most-used",
+    type=int,
+    default=None,
+    help="... plus this many most used (default: experiences.keep_most_used).",
+)
 @config_option
 @click.option("--dry-run", is_flag=True, help="Say what would be removed; change nothing.")
-def map_prune_cmd(map_path: Path, keep_last: int | None, keep_most_used: int | None, config_path: Path | None,
-                  dry_run: bool) -> None:
+def map_prune_cmd(
+    map_path: Path, keep_last: int | None, keep_most_used: int | None, config_path: Path | None, dry_run: bool
+) -> None:
     """Remove the repeat runs of MAP the retention rule does not keep: of the trusted experiences the newest
     KEEP_LAST localized at each taught vertex plus the KEEP_MOST_USED most used stay; older experiences and
     untrusted repeats (aborted, interrupted, localized too little) go. Taught runs are never removed."""
@@ -133,14 +170,20 @@ def map_prune_cmd(map_path: Path, keep_last: int | None, keep_most_used: int | N
             return
         vertices = prune(m, plan.remove)
     after = map_path.stat().st_size
-    click.echo(f"removed {len(plan.remove)} run(s)" + (f" {plan.remove}" if plan.remove else "")
-               + f", {vertices} vertices; the map is {_size(after)} (was {_size(before)})")
+    click.echo(
+        f"removed {len(plan.remove)} run(s)"
+        + (f" {plan.remove}" if plan.remove else "")
+        + f", {vertices} vertices; the map is {_size(after)} (was {_size(before)})"
+    )
 
 
 @map_group.command("check")
 @map_argument
-@click.option("--repair", is_flag=True,
-              help="Fold data a killed writer left in the map's -wal into the map file first (opens it for writing).")
+@click.option(
+    "--repair",
+    is_flag=True,
+    help="Fold data a killed writer left in the map's -wal into the map file first (opens it for writing).",
+)
 def map_check_cmd(map_path: Path, repair: bool) -> None:
     """Check MAP for damage: SQLite's integrity check, the runs table, every vertex's checksums (maps made by
     this vtr) and data, the taught path (finite rigid poses, increasing times, existing runs) and every
@@ -157,7 +200,7 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
         with Map.open(map_path, "r") as m:
             pages = m.file.unfolded_pages() if m.not_closed() else 0
         with Map.open(map_path, "a"):
-            pass   # a writer folds the log on open; closing returns the file to one self-contained file
+            pass  # a writer folds the log on open; closing returns the file to one self-contained file
         if pages:
             click.echo(f"{map_path}: folded {pages} page(s) of its -wal into the map file")
     with Map.open(map_path, "r") as m:
@@ -169,12 +212,16 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
         raise MapError(f"{map_path}: {unclosed}")
     place = "no taught route"
     if stored is not None:
-        place = "place index matches the taught vertices" if stored.index is not None else \
-            "no place index stored (the first repeat builds it)"
+        place = (
+            "place index matches the taught vertices"
+            if stored.index is not None
+            else "no place index stored (the first repeat builds it)"
+        )
         if stored.problem is not None:
             if not repair:
-                raise MapError(f"{map_path}: place index {stored.key}: {stored.problem}; `vtr map check --repair` "
-                               "rebuilds it")
+                raise MapError(
+                    f"{map_path}: place index {stored.key}: {stored.problem}; `vtr map check --repair` rebuilds it"
+                )
             defaults = Config()
             with Map.open(map_path, "a") as m:
                 rebuild_place_index(m, defaults.place, defaults.run.seed)
@@ -186,8 +233,12 @@ def map_check_cmd(map_path: Path, repair: bool) -> None:
 @map_group.command("localizations")
 @map_argument
 @click.argument("run", type=int)
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Folder for localization.csv (a killed repeat's own --out, with --force, makes it whole again).")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Folder for localization.csv (a killed repeat's own --out, with --force, makes it whole again).",
+)
 @force_out_option
 def map_localizations_cmd(map_path: Path, run: int, out: Path, force: bool) -> None:
     """Write repeat RUN's localization.csv from MAP: one row per vertex of the run, from the localization record
@@ -207,26 +258,38 @@ def map_localizations_cmd(map_path: Path, run: int, out: Path, force: bool) -> N
             raise MapError(f"{map_path}: run {run} is a {info.kind} run: only repeats have localizations")
         records = m.localization_records(run)
     if info.n_vertices and not records:
-        raise MapError(f"{map_path}: repeat run {run} has {info.n_vertices} vertices but no localization records "
-                       "(written by a vtr before the map kept them)")
+        raise MapError(
+            f"{map_path}: repeat run {run} has {info.n_vertices} vertices but no localization records "
+            "(written by a vtr before the map kept them)"
+        )
     folder = OutputFolder.prepare(out, [map_path], ["localization.csv"])
     with folder.open("localization.csv") as f:
         writer = LocalizationWriter(f)
         for record in records:
             writer.write(localization_of_record(record))
     ok = sum(r.success for r in records)
-    click.echo(f"wrote {out}/localization.csv: {len(records)} rows ({ok} localized) of repeat run {run} "
-               f"({info.state}, {info.n_vertices} vertices)")
+    click.echo(
+        f"wrote {out}/localization.csv: {len(records)} rows ({ok} localized) of repeat run {run} "
+        f"({info.state}, {info.n_vertices} vertices)"
+    )
 
 
 @main.command("export-map")
 @map_argument
-@click.option("--ply", "ply_path", type=click.Path(path_type=Path), required=True,
-              help="Output point cloud (.ply): landmarks of every run, coloured by run.")
+@click.option(
+    "--ply",
+    "ply_path",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Output point cloud (.ply): landmarks of every run, coloured by run.",
+)
 @click.option("--force", is_flag=True, help="Replace the .ply file if it exists.")
-@click.option("--gravity-aligned", is_flag=True,
-              help="Points in the map's gravity frame (z up; the map's stored gravity, else a level first camera) "
-                   "instead of the first teach camera's frame.")
+@click.option(
+    "--gravity-aligned",
+    is_flag=True,
+    help="Points in the map's gravity frame (z up; the map's stored gravity, else a level first camera) "
+    "instead of the first teach camera's frame.",
+)
 def export_map_cmd(map_path: Path, ply_path: Path, force: bool, gravity_aligned: bool) -> None:
     """Export the landmarks of MAP as a PLY point cloud in the first teach run's world frame.
 

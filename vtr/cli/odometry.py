@@ -51,8 +51,15 @@ def _find_datasets() -> Path:
 @config_option
 @source_options
 @threads_option
-def odometry_cmd(source: Path, out: Path, force: bool, frames: str | None, config_path: Path | None,
-                 source_options: SourceOptions, threads: int | None) -> None:
+def odometry_cmd(
+    source: Path,
+    out: Path,
+    force: bool,
+    frames: str | None,
+    config_path: Path | None,
+    source_options: SourceOptions,
+    threads: int | None,
+) -> None:
     """Stereo visual odometry over SOURCE (KITTI or EuRoC folder, bag...)."""
     from ..app.pipeline import odometry_command
 
@@ -89,8 +96,12 @@ DEMO_ENTRIES = ("route.vtrmap", "odometry", "teach", "repeat", "aerial")
 
 @main.command("demo")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
-@click.option("--aerial/--no-aerial", default=True, show_default=True,
-              help="Step 4: the synthetic aerial mission (renders ~150 frames, about a minute).")
+@click.option(
+    "--aerial/--no-aerial",
+    default=True,
+    show_default=True,
+    help="Step 4: the synthetic aerial mission (renders ~150 frames, about a minute).",
+)
 def demo_cmd(out: Path, aerial: bool) -> None:
     """Teach and repeat on the shipped KITTI clip (teach even frames, repeat odd ones) with a short report,
     then the whole perception mission on a synthetic aerial scene (teach, offset repeats, model, envelope).
@@ -103,9 +114,9 @@ def demo_cmd(out: Path, aerial: bool) -> None:
 
     clip = _find_datasets() / DEMO_CLIP
     config = Config()
-    check_out_dir(out, force=True)        # the documented exception: the demo rewrites its own folder...
+    check_out_dir(out, force=True)  # the documented exception: the demo rewrites its own folder...
     own = OutputFolder.prepare(out)
-    own.claim_entries(DEMO_ENTRIES)       # ...and only what its record says it made there (not a user's map)
+    own.claim_entries(DEMO_ENTRIES)  # ...and only what its record says it made there (not a user's map)
     map_path = out / "route.vtrmap"
     own.remove_entry("route.vtrmap")
     click.echo(f"vtr demo on {clip}")
@@ -119,15 +130,21 @@ def demo_cmd(out: Path, aerial: bool) -> None:
     for line in repeat_lines(repeat_command(clip, map_path, out / "repeat", "1::2", config, None, progress_bar())):
         click.echo("    " + line)
     if not aerial:
-        click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
-                   f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")
+        click.echo(
+            f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png; "
+            f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}"
+        )
         return
-    click.echo("4/4 synthetic aerial mission: teach, repeats at 0/1/2/4/8 m to the left (and 16/24 m held out), "
-               "model fitted on their landmarks, localization envelope")
+    click.echo(
+        "4/4 synthetic aerial mission: teach, repeats at 0/1/2/4/8 m to the left (and 16/24 m held out), "
+        "model fitted on their landmarks, localization envelope"
+    )
     from ..app.mission import run_aerial_mission
 
     mission = run_aerial_mission(out / "aerial", config, progress=lambda name: frame_progress(f"render {name}"))
     for line in mission_lines(mission):
         click.echo("    " + line)
-    click.echo(f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png, {mission.report_html}; "
-               f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}")
+    click.echo(
+        f"report: {out}/repeat/report.png, {out}/odometry/trajectory.png, {mission.report_html}; "
+        f"records: {out}/repeat/localization.csv, landmarks.csv; map: {map_path}"
+    )

@@ -155,8 +155,9 @@ def constraint_cmd(
         table = _constraint_on_map(model, map_path, path, l_min, cbar, pitch_deg, yaw_deg, in_view, exact)
     else:
         assert landmarks_path is not None
-        table = constraint_on_landmarks(model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera,
-                                        exact)
+        table = constraint_on_landmarks(
+            model, landmarks_path, path, l_min, cbar, pitch_deg, yaw_deg, taught_camera, exact
+        )
     report_constraint(table, l_min, cbar, to_stdout, csv_path)
 
 
@@ -188,8 +189,23 @@ def _constraint_on_map(
         in_view=in_view,
         exact=exact,
     )
-    header = ["index", "x", "y", "z", "yaw_deg", "pitch_deg", "trunk_id", "trunk_distance_m", "n_landmarks",
-              "n_in_view", "mu", "sigma", "g", "g_conservative", "p_fail_normal"]
+    header = [
+        "index",
+        "x",
+        "y",
+        "z",
+        "yaw_deg",
+        "pitch_deg",
+        "trunk_id",
+        "trunk_distance_m",
+        "n_landmarks",
+        "n_in_view",
+        "mu",
+        "sigma",
+        "g",
+        "g_conservative",
+        "p_fail_normal",
+    ]
     if exact:
         header.append("p_fail_exact")
     rows = []
@@ -212,8 +228,16 @@ def _constraint_on_map(
         if t.p_fail_exact is not None:
             row.append(float(t.p_fail_exact[i]))
         rows.append(row)
-    fmt = [("index", 4, "d"), ("x", 8, ".2f"), ("y", 8, ".2f"), ("z", 8, ".2f"), ("yaw_deg", 7, ".1f"),
-           ("trunk_id", 12, "d"), ("trunk_distance_m", 6, ".2f"), ("n_in_view", 6, "d")]
+    fmt = [
+        ("index", 4, "d"),
+        ("x", 8, ".2f"),
+        ("y", 8, ".2f"),
+        ("z", 8, ".2f"),
+        ("yaw_deg", 7, ".1f"),
+        ("trunk_id", 12, "d"),
+        ("trunk_distance_m", 6, ".2f"),
+        ("n_in_view", 6, "d"),
+    ]
     fmt += COMMON_FMT + ([("p_fail_exact", 10, ".3e")] if exact else [])
     orientation = "yaw given" if t.yaw_given else "trunk orientation"
     intro = (
@@ -226,19 +250,50 @@ def _constraint_on_map(
 @main.command("envelope")
 @click.argument("model_path", metavar="MODEL.json", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--map", "map_path", required=True, type=click.Path(path_type=Path), help="A taught vtr map.")
-@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Output folder: envelope.csv and envelope.png.")
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder: envelope.csv and envelope.png.",
+)
 @force_option("envelope.csv and envelope.png")
-@click.option("--up", default=None, metavar="X,Y,Z",
-              help="Gravity up in the map frame (the teach run's first camera frame). Default: the map's stored "
-                   "gravity (vtr teach --up), else the map's -y, as for a level first camera.")
+@click.option(
+    "--up",
+    default=None,
+    metavar="X,Y,Z",
+    help="Gravity up in the map frame (the teach run's first camera frame). Default: the map's stored "
+    "gravity (vtr teach --up), else the map's -y, as for a level first camera.",
+)
 @confidence_options
-@click.option("--step", "step_m", type=click.FloatRange(min=0.0, min_open=True), default=0.25, show_default=True,
-              help="Offset grid step (m).")
-@click.option("--max", "max_m", type=click.FloatRange(min=0.0, min_open=True), default=20.0, show_default=True,
-              help="Largest offset scanned (m).")
-def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: str | None, l_min: float,
-                 c_bar: float | None, delta: float | None, step_m: float, max_m: float) -> None:
+@click.option(
+    "--step",
+    "step_m",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.25,
+    show_default=True,
+    help="Offset grid step (m).",
+)
+@click.option(
+    "--max",
+    "max_m",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=20.0,
+    show_default=True,
+    help="Largest offset scanned (m).",
+)
+def envelope_cmd(
+    model_path: Path,
+    map_path: Path,
+    out: Path,
+    force: bool,
+    up: str | None,
+    l_min: float,
+    c_bar: float | None,
+    delta: float | None,
+    step_m: float,
+    max_m: float,
+) -> None:
     """For every taught vertex: how far left/right/up/down the vehicle may move (camera as taught)
     before mu - c_bar sigma < L_min."""
     from perception_model.model import PerceptionModel
@@ -251,28 +306,33 @@ def envelope_cmd(model_path: Path, map_path: Path, out: Path, force: bool, up: s
     up_map = None if up is None else _parse_vector(up, "--up")
     bars: list[Any] = []
 
-    def progress(done: int, total: int) -> None:     # a bar on a terminal, a line every 10 vertices in a log
+    def progress(done: int, total: int) -> None:  # a bar on a terminal, a line every 10 vertices in a log
         if not bars:
             bars.append(make_bar(total, "envelope", "vertex", every=10))
         bars[0].update(done - bars[0].n)
         if done == total:
             bars[0].close()
 
-    rows = localization_envelope(model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m,
-                                 max_m=max_m, progress=progress)
+    rows = localization_envelope(
+        model, map_path, l_min=l_min, c_bar=c_bar, up_map=up_map, step_m=step_m, max_m=max_m, progress=progress
+    )
     csv_path, png = write_envelope(rows, out, l_min=l_min, title=f"{map_path.name}: localization envelope")
     for d in DIRECTIONS:
         vals = [r.distance_m[d] for r in rows]
-        click.echo(f"{d:>5s}: min {min(vals):6.2f} m, median {sorted(vals)[len(vals) // 2]:6.2f} m, "
-                   f"{sum(r.capped[d] for r in rows)} of {len(rows)} vertices beyond {max_m:g} m "
-                   "(capped: not a result)")
+        click.echo(
+            f"{d:>5s}: min {min(vals):6.2f} m, median {sorted(vals)[len(vals) // 2]:6.2f} m, "
+            f"{sum(r.capped[d] for r in rows)} of {len(rows)} vertices beyond {max_m:g} m "
+            "(capped: not a result)"
+        )
     n_extra = sum(r.any_extrapolated for r in rows)
     if n_extra:
-        click.echo(f"warning: at {n_extra} of {len(rows)} vertices the envelope rests on landmarks seen at angles "
-                   f"beyond the model's valid range (parallax <= {math.degrees(model.alpha_max):.1f} deg, view <= "
-                   f"{math.degrees(model.theta_max):.1f} deg): extrapolated (see the *_extrapolated columns of "
-                   "envelope.csv)",
-                   err=True)
+        click.echo(
+            f"warning: at {n_extra} of {len(rows)} vertices the envelope rests on landmarks seen at angles "
+            f"beyond the model's valid range (parallax <= {math.degrees(model.alpha_max):.1f} deg, view <= "
+            f"{math.degrees(model.theta_max):.1f} deg): extrapolated (see the *_extrapolated columns of "
+            "envelope.csv)",
+            err=True,
+        )
     click.echo(f"wrote {csv_path} and {png}")
 
 

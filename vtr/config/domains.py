@@ -94,7 +94,7 @@ class Section:
     becomes ``1500``), then the section's cross-field :meth:`rules`; an invalid section cannot exist. A changed
     copy is ``dataclasses.replace(section, key=value)`` (checked the same way)."""
 
-    SECTION: ClassVar[str] = ""     # the section's key in a config file (``features``): errors name it
+    SECTION: ClassVar[str] = ""  # the section's key in a config file (``features``): errors name it
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

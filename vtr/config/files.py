@@ -25,7 +25,7 @@ class UniqueKeyLoader(yaml.SafeLoader):
             line = key_node.start_mark.line + 1
             try:
                 first = seen.get(key)
-            except TypeError:                 # an unhashable key: the base class reports it
+            except TypeError:  # an unhashable key: the base class reports it
                 continue
             if first is not None:
                 raise DuplicateKeyError(f"key {key!r} given twice (lines {first} and {line}); keep one")
@@ -42,7 +42,7 @@ def toml_duplicate_key(text: str) -> str | None:
         if not line or line.startswith("#") or line.startswith("[["):
             continue
         if line.startswith("["):
-            table = line[1:line.find("]")].strip() if "]" in line else line[1:]
+            table = line[1 : line.find("]")].strip() if "]" in line else line[1:]
             name, what = f"[{table}]", "table"
         elif "=" in line:
             key = line.split("=", 1)[0].strip().strip('"').strip("'")

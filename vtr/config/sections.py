@@ -11,11 +11,11 @@ from perception_model.settings import THESIS_C_BAR, THESIS_L_MIN
 
 from .domains import Choice, Range, Section, setting
 
-DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)   # Hamming distance between 256-bit ORB descriptors
+DESCRIPTOR_DISTANCE = Range(0, 256, integer=True)  # Hamming distance between 256-bit ORB descriptors
 RADIUS_PX = Range(0.0, 10_000.0, lo_open=True)
 
 
-MAX_PYRAMID_SCALE = 64.0   # largest scale_factor ** (n_levels - 1) (FeatureConfig.rules)
+MAX_PYRAMID_SCALE = 64.0  # largest scale_factor ** (n_levels - 1) (FeatureConfig.rules)
 
 
 @dataclass(frozen=True)
@@ -59,10 +59,14 @@ class FeatureConfig(Section):
         # the top pyramid level is the image shrunk by scale_factor ** (n_levels - 1): beyond 64 it is a few
         # pixels of a KITTI image and OpenCV fails to build it (4 ** 5 = 1024: a raw cv2.error)
         top = self.scale_factor ** (self.n_levels - 1)
-        return [(top <= MAX_PYRAMID_SCALE,
-                 f"features.scale_factor ** (features.n_levels - 1) = {self.scale_factor:g} ** {self.n_levels - 1} = "
-                 f"{top:.4g} must be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few "
-                 f"pixels)")]
+        return [
+            (
+                top <= MAX_PYRAMID_SCALE,
+                f"features.scale_factor ** (features.n_levels - 1) = {self.scale_factor:g} ** {self.n_levels - 1} = "
+                f"{top:.4g} must be at most {MAX_PYRAMID_SCALE} (the top pyramid level would be smaller than a few "
+                f"pixels)",
+            )
+        ]
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,12 @@ class StereoConfig(Section):
     pixel_sigma: float = setting(1.0, Range(0.0, 100.0, lo_open=True))
 
     def rules(self) -> list[tuple[bool, str]]:
-        return [(self.min_disparity_px < self.max_disparity_px,
-                 "stereo.min_disparity_px must be below stereo.max_disparity_px")]
+        return [
+            (
+                self.min_disparity_px < self.max_disparity_px,
+                "stereo.min_disparity_px must be below stereo.max_disparity_px",
+            )
+        ]
 
 
 @dataclass(frozen=True)
@@ -137,10 +145,16 @@ class OdometryConfig(Section):
     teach_max_failed_fraction: float = setting(0.5, Range(0.0, 1.0))
 
     def rules(self) -> list[tuple[bool, str]]:
-        return [(self.keyframe_min_inliers >= self.min_inliers,
-                 "odometry.keyframe_min_inliers must be >= odometry.min_inliers"),
-                (self.match_radius_no_prior_px >= self.match_radius_px,
-                 "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px")]
+        return [
+            (
+                self.keyframe_min_inliers >= self.min_inliers,
+                "odometry.keyframe_min_inliers must be >= odometry.min_inliers",
+            ),
+            (
+                self.match_radius_no_prior_px >= self.match_radius_px,
+                "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px",
+            ),
+        ]
 
 
 @dataclass(frozen=True)
@@ -248,9 +262,13 @@ class LocalizationConfig(Section):
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
 
     def rules(self) -> list[tuple[bool, str]]:
-        return [(self.min_matches >= self.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
-                (self.max_match_radius_px >= self.match_radius_px,
-                 "localization.max_match_radius_px must be >= localization.match_radius_px")]
+        return [
+            (self.min_matches >= self.min_inliers, "localization.min_matches must be >= localization.min_inliers"),
+            (
+                self.max_match_radius_px >= self.match_radius_px,
+                "localization.max_match_radius_px must be >= localization.match_radius_px",
+            ),
+        ]
 
 
 @dataclass(frozen=True)

@@ -55,8 +55,11 @@ class Config:
         :mod:`vtr.config.sections` (units, measurements) and its domain (what ``vtr config`` prints; still loadable)."""
         if not comments:
             return yaml.safe_dump(self.to_dict(), sort_keys=False)
-        lines = ["# vtr configuration: every key with its default, its comment (vtr/config/sections.py), its domain.",
-                 "# Keep only the keys you change; load with --config FILE.", ""]
+        lines = [
+            "# vtr configuration: every key with its default, its comment (vtr/config/sections.py), its domain.",
+            "# Keep only the keys you change; load with --config FILE.",
+            "",
+        ]
         for section in dataclasses.fields(self):
             part = getattr(self, section.name)
             doc = (type(part).__doc__ or "").strip().splitlines()[0]
@@ -88,13 +91,14 @@ class Config:
         for section, values in data.items():
             if section not in types:
                 hint = _did_you_mean(cls, None, section)
-                raise ConfigError(f"{where}: unknown section {section!r}{hint or ''} "
-                                  f"(sections: {', '.join(sorted(types))})")
+                raise ConfigError(
+                    f"{where}: unknown section {section!r}{hint or ''} (sections: {', '.join(sorted(types))})"
+                )
             if not isinstance(values, dict):
                 raise ConfigError(f"{where}: section {section!r} must be a mapping of keys")
             kind = cast(type[Section], types[section])
             known = {f.name: f for f in dataclasses.fields(kind)}
-            for key, value in values.items():      # in the file's order: the first bad key is the one named
+            for key, value in values.items():  # in the file's order: the first bad key is the one named
                 if key not in known:
                     raise ConfigError(f"{where}: unknown key {section}.{key}{_did_you_mean(cls, section, key)}")
                 try:
@@ -103,7 +107,7 @@ class Config:
                     raise ConfigError(f"{where}: {section}.{key} {err}") from None
             try:
                 sections[section] = kind(**values)
-            except SectionError as err:            # a cross-field rule of the section
+            except SectionError as err:  # a cross-field rule of the section
                 raise ConfigError(f"{where}: {err.detail}") from None
         return cls(**sections)  # type: ignore[arg-type]
 
@@ -115,7 +119,7 @@ class Config:
         path = Path(path)
         if not path.exists():
             raise ConfigError(f"{path}: no such config file")
-        problem = input_problem(path)            # a folder, a named pipe or a device: never opened
+        problem = input_problem(path)  # a folder, a named pipe or a device: never opened
         if problem is not None:
             raise ConfigError(f"{path}: {problem}")
         try:
@@ -146,9 +150,18 @@ class Config:
 #: line naming the new key; both given is an error). The estimation settings odometry and localization share left
 #: ``odometry`` for ``estimation``; the run's seed is ``run.seed``.
 MOVED_KEYS: dict[str, str] = {
-    **{f"odometry.{key}": f"estimation.{key}" for key in (
-        "ratio_test", "ransac_confidence", "refine_iterations", "huber_px", "far_point_baselines",
-        "far_disparity_weight", "min_near_observations")},
+    **{
+        f"odometry.{key}": f"estimation.{key}"
+        for key in (
+            "ratio_test",
+            "ransac_confidence",
+            "refine_iterations",
+            "huber_px",
+            "far_point_baselines",
+            "far_disparity_weight",
+            "min_near_observations",
+        )
+    },
     "odometry.seed": "run.seed",
 }
 
@@ -163,7 +176,7 @@ def _moved_keys(data: dict[Any, Any], where: str, warn: Callable[[str], None] | 
             continue
         target = out.setdefault(new_section, {})
         if not isinstance(target, dict):
-            continue                     # the malformed section is named when it is read
+            continue  # the malformed section is named when it is read
         if new_key in target:
             raise ConfigError(f"{where}: {old} and {new} both given; {old} is the old name of {new}: keep {new}")
         target[new_key] = values.pop(key)
@@ -188,9 +201,11 @@ def check_setting(section: str, key: str, value: Any, where: str = "config") -> 
 
 def config_keys() -> list[tuple[str, str, Range | Choice]]:
     """Every ``(section, key, domain)`` of the configuration, in declaration order."""
-    return [(section.name, f.name, domain_of(f))
-            for section in dataclasses.fields(Config)
-            for f in dataclasses.fields(section.default_factory)]  # type: ignore[arg-type]
+    return [
+        (section.name, f.name, domain_of(f))
+        for section in dataclasses.fields(Config)
+        for f in dataclasses.fields(section.default_factory)  # type: ignore[arg-type]
+    ]
 
 
 def _did_you_mean(cls: type, section: str | None, key: str) -> str:
@@ -203,7 +218,7 @@ def _did_you_mean(cls: type, section: str | None, key: str) -> str:
     if section is None:
         close = difflib.get_close_matches(key, list(sections), n=1, cutoff=0.6)
     else:
-        close = [k for k, name in keys.items() if name == key][:1]     # the right key in the wrong section
+        close = [k for k, name in keys.items() if name == key][:1]  # the right key in the wrong section
         if not close:
             close = difflib.get_close_matches(f"{section}.{key}", list(keys), n=1, cutoff=0.75)
     return f" (did you mean {close[0]}?)" if close else ""
@@ -235,7 +250,10 @@ def field_comments(section_cls: type) -> dict[str, list[str]]:
             while n >= 1 and lines[n - 1].strip().startswith("#"):
                 above.insert(0, comments.get(n, ""))
                 n -= 1
-            trailing = [comments[k] for k in range(item.lineno, (item.end_lineno or item.lineno) + 1)
-                        if k in comments and not lines[k - 1].strip().startswith("#")]
+            trailing = [
+                comments[k]
+                for k in range(item.lineno, (item.end_lineno or item.lineno) + 1)
+                if k in comments and not lines[k - 1].strip().startswith("#")
+            ]
             out[item.target.id] = [t for t in above + trailing if t]
     return out

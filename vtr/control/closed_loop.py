@@ -68,8 +68,14 @@ def initial_state(field: TaughtPathField, index: int = 0) -> np.ndarray:
     return z
 
 
-def simulate(field: TaughtPathField, mpc: PerceptionAwareMPC, z0: np.ndarray, config: ControlConfig | None = None,
-             *, time_limit_s: float | None = None) -> ClosedLoopResult:
+def simulate(
+    field: TaughtPathField,
+    mpc: PerceptionAwareMPC,
+    z0: np.ndarray,
+    config: ControlConfig | None = None,
+    *,
+    time_limit_s: float | None = None,
+) -> ClosedLoopResult:
     """Fly the taught path from flat state ``z0`` with ``mpc`` until its end in the direction of travel (see
     the module docstring)."""
     c = config or mpc.cfg
@@ -106,11 +112,22 @@ def simulate(field: TaughtPathField, mpc: PerceptionAwareMPC, z0: np.ndarray, co
     Z = np.array(rows_z)
     err = ref.path.error(Z[:, :3])
     return ClosedLoopResult(
-        t_s=np.array(rows_t), z=Z, trunk=np.array(rows_tr, dtype=np.int64), mu=np.array(rows_mu),
-        sigma=np.array(rows_sig), bound=np.array(rows_g), lateral_m=np.asarray(err.lateral),
-        vertical_m=np.asarray(err.vertical), max_slack_m=np.array(slack_m), max_slack_inliers=np.array(slack_in),
-        flag=np.array(rows_f, dtype=np.int8), tick_ms=np.array(tick), completed=completed,
-        duration_s=float(rows_t[-1]), path_length_m=ref.length, direction=mpc.direction,
+        t_s=np.array(rows_t),
+        z=Z,
+        trunk=np.array(rows_tr, dtype=np.int64),
+        mu=np.array(rows_mu),
+        sigma=np.array(rows_sig),
+        bound=np.array(rows_g),
+        lateral_m=np.asarray(err.lateral),
+        vertical_m=np.asarray(err.vertical),
+        max_slack_m=np.array(slack_m),
+        max_slack_inliers=np.array(slack_in),
+        flag=np.array(rows_f, dtype=np.int8),
+        tick_ms=np.array(tick),
+        completed=completed,
+        duration_s=float(rows_t[-1]),
+        path_length_m=ref.length,
+        direction=mpc.direction,
     )
 
 

@@ -72,8 +72,7 @@ class PDController(_Controller):
         r, dr, ddr, dddr = self.reference.derivatives(np.array(self.t_s(self.tick(t_ns))))
         a = ddr + self.s.pd_kp * (r - p) + self.s.pd_kd * (dr - v)
         dtheta_ref = (dddr / GRAVITY_MPS2) / (1.0 + (ddr / GRAVITY_MPS2) ** 2)
-        return self.clip((np.arctan(a / GRAVITY_MPS2) + self.s.time_constant_s * dtheta_ref)
-                         / self.s.attitude_gain)
+        return self.clip((np.arctan(a / GRAVITY_MPS2) + self.s.time_constant_s * dtheta_ref) / self.s.attitude_gain)
 
 
 def _triple_integrator(dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -89,7 +88,7 @@ def _mpc_gains(horizon: int, dt: float, q: float, r: float, tau: float, gain: fl
     the pitch command of the flat state and input, linearized about hover)."""
     N = horizon
     A, B = _triple_integrator(dt)
-    P = np.zeros((N + 1, 3, 3))         # z_i = P_i z0 + H_i j  (i = 0..N)
+    P = np.zeros((N + 1, 3, 3))  # z_i = P_i z0 + H_i j  (i = 0..N)
     H = np.zeros((N + 1, 3, N))
     P[0] = np.eye(3)
     for i in range(N):
@@ -131,8 +130,13 @@ class FlatnessMPC(_Controller):
     def __init__(self, settings: DiscreteFlatnessSettings, t_start_ns: int) -> None:
         super().__init__(settings, t_start_ns)
         self.gain_reference, self.gain_state = _mpc_gains(
-            settings.horizon, self.dt, settings.q_position, settings.r_command_flatness_mpc,
-            settings.time_constant_s, settings.attitude_gain)
+            settings.horizon,
+            self.dt,
+            settings.q_position,
+            settings.r_command_flatness_mpc,
+            settings.time_constant_s,
+            settings.attitude_gain,
+        )
         self.offsets = np.arange(1, settings.horizon + 1)
 
     def command(self, t_ns: int, source: OutputSource) -> np.ndarray:
@@ -144,8 +148,9 @@ class FlatnessMPC(_Controller):
         return self.clip((tau * jerk * np.cos(theta) ** 2 / GRAVITY_MPS2 + theta) / k)
 
 
-def fit_window(measured: np.ndarray, sent: np.ndarray, dt: float, tau: float, gain: float,
-               iterations: int = FIT_ITERATIONS) -> np.ndarray:
+def fit_window(
+    measured: np.ndarray, sent: np.ndarray, dt: float, tau: float, gain: float, iterations: int = FIT_ITERATIONS
+) -> np.ndarray:
     """Outputs (B, L + 3) at ticks ``0 .. L + 2`` of the Euler model at the control step under the inputs ``sent``
     (B, L) at ticks ``0 .. L - 1``, whose first M = ``measured.shape[1]`` (L >= M - 3) are the least-squares fit to
     ``measured`` (B, M) (Gauss-Newton). The model's free parameters are the window's first state ``(y_0, y_1,
@@ -159,13 +164,13 @@ def fit_window(measured: np.ndarray, sent: np.ndarray, dt: float, tau: float, ga
         raise EstimationError(f"fit_window: {u.shape} inputs cannot span a window of {M} outputs")
     alpha, beta, c2 = 1.0 - dt / tau, dt * gain / tau, GRAVITY_MPS2 * dt * dt
     n_theta = L + 1
-    drive = np.zeros((B, n_theta))          # theta_i = alpha^i theta_0 + drive_i
+    drive = np.zeros((B, n_theta))  # theta_i = alpha^i theta_0 + drive_i
     for i in range(L):
         drive[:, i + 1] = alpha * drive[:, i] + beta * u[:, i]
     decay = alpha ** np.arange(n_theta)
     j = np.arange(L + 3)
-    T = np.clip(j[:, None] - 1 - np.arange(n_theta)[None, :], 0, None).astype(float)   # y_j's weights on tan
-    E = np.stack([1.0 - j, j.astype(float)], axis=1)                                  # y_j's on (y_0, y_1)
+    T = np.clip(j[:, None] - 1 - np.arange(n_theta)[None, :], 0, None).astype(float)  # y_j's weights on tan
+    E = np.stack([1.0 - j, j.astype(float)], axis=1)  # y_j's on (y_0, y_1)
     Tm, Em = T[:M], E[:M]
     # start: tan(theta) ~ theta (a linear least squares shared by the batch)
     lin = np.column_stack([Em, c2 * Tm @ decay])
@@ -202,7 +207,8 @@ class DiscreteFlatnessController(_Controller):
     def __init__(self, settings: DiscreteFlatnessSettings, t_start_ns: int) -> None:
         super().__init__(settings, t_start_ns)
         self.gain_reference, self.gain_fixed = _discrete_flatness_gains(
-            settings.horizon, self.dt, settings.q_position, settings.r_jerk_discrete_flatness)
+            settings.horizon, self.dt, settings.q_position, settings.r_jerk_discrete_flatness
+        )
         self.offsets = np.arange(WINDOW, settings.horizon + 1)
         self.inputs: dict[int, np.ndarray] = {}
 
@@ -227,8 +233,8 @@ class DiscreteFlatnessController(_Controller):
         """``y_k, y_{k+1}, y_{k+2}`` (B, 3) from the source's window and the inputs sent (8.15)."""
         M = self.s.window_length
         j = (source.measured_until_ns(self.t_start_ns + k * self.dt_ns) - self.t_start_ns) // self.dt_ns
-        measured = source.window(self.t_start_ns + j * self.dt_ns, M, self.dt)       # ticks j-M+1 .. j
-        if M == WINDOW:        # (8.15) as printed: the three measured outputs carried forward one input at a time
+        measured = source.window(self.t_start_ns + j * self.dt_ns, M, self.dt)  # ticks j-M+1 .. j
+        if M == WINDOW:  # (8.15) as printed: the three measured outputs carried forward one input at a time
             ys = list(measured.T)
             for i in range(j - WINDOW + 1, k):
                 ys.append(self.forward(ys[-3], ys[-2], ys[-1], self._sent(i, ys[-1])))
@@ -247,7 +253,16 @@ class DiscreteFlatnessController(_Controller):
 
 
 CONTROLLER_TYPES: dict[ControllerName, type[_Controller]] = {
-    "pd": PDController, "flatness_mpc": FlatnessMPC, "discrete_flatness": DiscreteFlatnessController}
+    "pd": PDController,
+    "flatness_mpc": FlatnessMPC,
+    "discrete_flatness": DiscreteFlatnessController,
+}
 
-__all__ = ["CONTROLLER_TYPES", "FIT_ITERATIONS", "DiscreteFlatnessController", "FlatnessMPC", "PDController",
-           "fit_window"]
+__all__ = [
+    "CONTROLLER_TYPES",
+    "FIT_ITERATIONS",
+    "DiscreteFlatnessController",
+    "FlatnessMPC",
+    "PDController",
+    "fit_window",
+]

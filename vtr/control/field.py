@@ -75,6 +75,7 @@ def perception_errors() -> Iterator[None]:
 
 def translating(method: F) -> F:
     """``method`` with :func:`perception_errors` around its body (the field's public methods)."""
+
     @functools.wraps(method)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         with perception_errors():
@@ -86,8 +87,9 @@ def translating(method: F) -> F:
 def check_direction(direction: object) -> int:
     """``direction`` as +1 (taught order) or -1 (the route flown backward); EstimationError otherwise."""
     if isinstance(direction, bool) or direction not in (FORWARD, BACKWARD):
-        raise EstimationError(f"direction: expected {FORWARD} (taught order) or {BACKWARD} (reversed), "
-                              f"got {direction!r}")
+        raise EstimationError(
+            f"direction: expected {FORWARD} (taught order) or {BACKWARD} (reversed), got {direction!r}"
+        )
     return int(direction)
 
 
@@ -159,11 +161,19 @@ class TaughtPathField:
     """The perception chance constraint over the whole taught path (value and gradient for a horizon)."""
 
     @translating
-    def __init__(self, model: PerceptionModel, vertices: list[TaughtVertex], *,
-                 T_g_map: np.ndarray, mount: CameraMount | None = None,
-                 config: LocalizationConfig | None = None, l_min: float = THESIS_L_MIN,
-                 c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
-                 form: str = "normal") -> None:
+    def __init__(
+        self,
+        model: PerceptionModel,
+        vertices: list[TaughtVertex],
+        *,
+        T_g_map: np.ndarray,
+        mount: CameraMount | None = None,
+        config: LocalizationConfig | None = None,
+        l_min: float = THESIS_L_MIN,
+        c_bar: float = THESIS_C_BAR,
+        control: ControlConfig | None = None,
+        form: str = "normal",
+    ) -> None:
         if not vertices:
             raise MapError("the taught path is empty")
         _check_bounds(l_min, c_bar)
@@ -184,8 +194,9 @@ class TaughtPathField:
         for i, v in enumerate(vertices):
             pts_g = v.points_map @ self.T_g_map[:3, :3].T + self.T_g_map[:3, 3]
             p_is_o, _ = frames.to_trunk_frame(pts_g, 0.0, centres[i], yaw[i])
-            trunks.append(TrunkLandmarks(v.vertex_id, positions[i], float(yaw[i]), lever.copy(), p_is_o,
-                                         float(pitch[i])))
+            trunks.append(
+                TrunkLandmarks(v.vertex_id, positions[i], float(yaw[i]), lever.copy(), p_is_o, float(pitch[i]))
+            )
         self.vertex_ids = np.array([v.vertex_id for v in vertices], dtype=np.int64)
         self.T_g_camera = T_g_cam
         self.vehicle_position_g = positions
@@ -196,18 +207,36 @@ class TaughtPathField:
 
     @classmethod
     @translating
-    def from_map(cls, vtr_map: Map, model: PerceptionModel, *, up_map: ArrayLike | None = None,
-                 mount: CameraMount | None = None, config: LocalizationConfig | None = None,
-                 l_min: float = THESIS_L_MIN, c_bar: float = THESIS_C_BAR, control: ControlConfig | None = None,
-                 form: str = "normal") -> TaughtPathField:
+    def from_map(
+        cls,
+        vtr_map: Map,
+        model: PerceptionModel,
+        *,
+        up_map: ArrayLike | None = None,
+        mount: CameraMount | None = None,
+        config: LocalizationConfig | None = None,
+        l_min: float = THESIS_L_MIN,
+        c_bar: float = THESIS_C_BAR,
+        control: ControlConfig | None = None,
+        form: str = "normal",
+    ) -> TaughtPathField:
         """Read every taught vertex of ``vtr_map`` (open) once. g is the map's gravity frame: up is ``up_map`` when
         given (an override), else the map's stored gravity (``Map.gravity_up``), else a level first camera's."""
         if up_map is None:
             stored = vtr_map.gravity_up
             up_map = frames.LEVEL_CAMERA_UP if stored is None else stored
         T_g_map = frames.T_g_map_from_up(up_map)
-        return cls(model, read_taught_vertices(vtr_map), T_g_map=T_g_map, mount=mount,
-                   config=config, l_min=l_min, c_bar=c_bar, control=control, form=form)
+        return cls(
+            model,
+            read_taught_vertices(vtr_map),
+            T_g_map=T_g_map,
+            mount=mount,
+            config=config,
+            l_min=l_min,
+            c_bar=c_bar,
+            control=control,
+            form=form,
+        )
 
     def __len__(self) -> int:
         return len(self.vertex_ids)
@@ -220,8 +249,9 @@ class TaughtPathField:
     def c_bar(self) -> float:
         return self.evaluator.c_bar
 
-    def with_bounds(self, l_min: float, c_bar: float, form: str | None = None,
-                    control: ControlConfig | None = None) -> TaughtPathField:
+    def with_bounds(
+        self, l_min: float, c_bar: float, form: str | None = None, control: ControlConfig | None = None
+    ) -> TaughtPathField:
         """The same field (landmarks shared, not copied) with the constraint ``mu - c_bar sigma - l_min``
         (or ``form``, and the off-route limits of ``control`` when given); the MPC uses it so that its
         ``ControlConfig`` owns ``l_min``, ``c_bar``, the form and the limits."""
@@ -241,8 +271,9 @@ class TaughtPathField:
             raise EstimationError(f"{what}: {value!r} is not a trunk index (0 to {len(self) - 1})")
         return int(value)
 
-    def _horizon(self, positions: ArrayLike, yaw: ArrayLike, axes: ArrayLike | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _horizon(
+        self, positions: ArrayLike, yaw: ArrayLike, axes: ArrayLike | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Positions (N, 3), yaw (N,) and axes (N, 3) checked: finite, shapes that fit, N >= 1."""
         pos = np.asarray(positions, float) if not isinstance(positions, str) else np.array(np.nan)
         if pos.ndim == 1:
@@ -290,9 +321,16 @@ class TaughtPathField:
         return int(np.argmin(np.linalg.norm(self.vehicle_position_g - p, axis=1)))
 
     @translating
-    def select_trunks(self, positions: np.ndarray, yaw: np.ndarray, previous: int,
-                      axes: np.ndarray | None = None, direction: int = FORWARD, *,
-                      taught_axes: bool = False) -> np.ndarray:
+    def select_trunks(
+        self,
+        positions: np.ndarray,
+        yaw: np.ndarray,
+        previous: int,
+        axes: np.ndarray | None = None,
+        direction: int = FORWARD,
+        *,
+        taught_axes: bool = False,
+    ) -> np.ndarray:
         """Trunk index (N,) of each predicted vehicle pose by the localizer's rule (:mod:`vtr.navigation.trunk`),
         starting from ``previous``; ``direction`` -1 for a route flown backward (the window mirrors).
 
@@ -342,11 +380,11 @@ class TaughtPathField:
                 nlo = max(0, lo - reach) if lo < blo else blo
                 nhi = min(len(self), hi + reach) if hi > bhi else bhi
                 parts = [costs(nlo, blo, k)] if nlo < blo else []
-                parts.append(block[k - first:])
+                parts.append(block[k - first :])
                 if nhi > bhi:
                     parts.append(costs(bhi, nhi, k))
                 block, first, blo, bhi = np.hstack(parts), k, nlo, nhi
-            prev = lo + int(np.argmin(block[k - first, lo - blo:hi - blo]))
+            prev = lo + int(np.argmin(block[k - first, lo - blo : hi - blo]))
             out[k] = prev
         return out
 
@@ -358,9 +396,18 @@ class TaughtPathField:
 
     # ----------------------------------------------------------------- evaluation
     @translating
-    def evaluate(self, positions: np.ndarray, yaw: np.ndarray, *, trunk: np.ndarray | None = None,
-                 previous: int | None = None, axes: np.ndarray | None = None, taught_axes: bool = False,
-                 direction: int = FORWARD, gradient: bool = True) -> FieldEvaluation:
+    def evaluate(
+        self,
+        positions: np.ndarray,
+        yaw: np.ndarray,
+        *,
+        trunk: np.ndarray | None = None,
+        previous: int | None = None,
+        axes: np.ndarray | None = None,
+        taught_axes: bool = False,
+        direction: int = FORWARD,
+        gradient: bool = True,
+    ) -> FieldEvaluation:
         """Constraint at vehicle outputs ``positions`` (N, 3), ``yaw`` (N,) in g.
 
         Each step's trunk is ``trunk`` (N,) when given, else selected from ``previous`` (default: the
@@ -377,16 +424,20 @@ class TaughtPathField:
             start = self.nearest_trunk(pos[0]) if previous is None else self._index(previous, "previous trunk")
             trunk = self.select_trunks(pos, psi, start, axes=axes, direction=direction, taught_axes=taught_axes)
         t = np.asarray(trunk)
-        if t.dtype.kind not in "iu" or t.shape not in ((), (len(pos),)) or t.size == 0 \
-                or t.min() < 0 or t.max() >= len(self):
+        if (
+            t.dtype.kind not in "iu"
+            or t.shape not in ((), (len(pos),))
+            or t.size == 0
+            or t.min() < 0
+            or t.max() >= len(self)
+        ):
             raise EstimationError(f"trunk: expected {len(pos)} trunk indices from 0 to {len(self) - 1}")
         trunk = np.broadcast_to(t.astype(np.int64), (len(pos),))
         if taught_axes:
             axes = self.T_g_camera[trunk, :3, 2]
         cam = self.camera_centres(pos, psi)
         if axes is None:
-            ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad),
-                                         gradient=gradient)
+            ev = self.evaluator.evaluate(cam, trunk, frames.axis_yaw(psi, self.mount.mount_yaw_rad), gradient=gradient)
         else:
             ev = self.evaluator.evaluate(cam, trunk, axes_g=axes, gradient=gradient)
         conservative = self.form == "conservative"
@@ -400,8 +451,9 @@ class TaughtPathField:
             dax = np.where(guarded[:, None], ev.dmu_daxis, ev.dgc_daxis if conservative else ev.dg_daxis)
             lever = np.asarray(self.mount.lever_arm_m, float)
             s, c = np.sin(psi), np.cos(psi)
-            dcam_dyaw = np.stack([-s * lever[0] - c * lever[1], c * lever[0] - s * lever[1], np.zeros_like(psi)],
-                                 axis=1)
+            dcam_dyaw = np.stack(
+                [-s * lever[0] - c * lever[1], c * lever[0] - s * lever[1], np.zeros_like(psi)], axis=1
+            )
             dyaw = np.einsum("nk,nk->n", dpos, dcam_dyaw)
             if ev.dg_dyaw is not None:
                 assert ev.dgc_dyaw is not None and ev.dmu_dyaw is not None
@@ -409,11 +461,23 @@ class TaughtPathField:
         path_distance, past_end = self.route_distances(pos)
         flag = ev.flag.copy()
         flag[(path_distance > self.off_route_distance_m) | (past_end > self.off_route_past_end_m)] = OFF_ROUTE
-        return FieldEvaluation(trunk=trunk, vertex_id=self.vertex_ids[trunk], mu=ev.mu, sigma=ev.sigma, g=g,
-                               flag=flag, dg_dpos=dpos, dg_dyaw=dyaw, dg_daxis=dax, raw=ev,
-                               trunk_distance_m=np.linalg.norm(pos - self.vehicle_position_g[trunk], axis=1),
-                               path_distance_m=path_distance, past_end_m=past_end, guarded=guarded,
-                               form=self.form)
+        return FieldEvaluation(
+            trunk=trunk,
+            vertex_id=self.vertex_ids[trunk],
+            mu=ev.mu,
+            sigma=ev.sigma,
+            g=g,
+            flag=flag,
+            dg_dpos=dpos,
+            dg_dyaw=dyaw,
+            dg_daxis=dax,
+            raw=ev,
+            trunk_distance_m=np.linalg.norm(pos - self.vehicle_position_g[trunk], axis=1),
+            path_distance_m=path_distance,
+            past_end_m=past_end,
+            guarded=guarded,
+            form=self.form,
+        )
 
 
 class _TaughtPolyline:
@@ -447,7 +511,7 @@ class _TaughtPolyline:
         dist[rows, cols] = np.linalg.norm(p[rows] - closest, axis=1)
         along = np.zeros_like(dist)
         along[rows, cols] = s_rc
-        nearest = np.argmin(dist, axis=1)              # the first of equally near segments, as over all of them
+        nearest = np.argmin(dist, axis=1)  # the first of equally near segments, as over all of them
         idx = np.arange(len(p))
         s_n = along[idx, nearest]
         past = np.zeros(len(p))
@@ -465,10 +529,23 @@ def _check_form(form: str) -> str:
 
 def _check_bounds(l_min: float, c_bar: float) -> None:
     for name, v in (("l_min", l_min), ("c_bar", c_bar)):
-        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating) \
-                or not math.isfinite(float(v)) or v < 0:
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, int | float | np.integer | np.floating)
+            or not math.isfinite(float(v))
+            or v < 0
+        ):
             raise EstimationError(f"{name} must be a finite number >= 0, got {v!r}")
 
 
-__all__ = ["CONSTRAINT_FORMS", "CameraMount", "FieldEvaluation", "PerceptionFieldError", "TaughtPathField",
-           "TaughtVertex", "check_direction", "perception_errors", "read_taught_vertices"]
+__all__ = [
+    "CONSTRAINT_FORMS",
+    "CameraMount",
+    "FieldEvaluation",
+    "PerceptionFieldError",
+    "TaughtPathField",
+    "TaughtVertex",
+    "check_direction",
+    "perception_errors",
+    "read_taught_vertices",
+]

@@ -42,8 +42,9 @@ class ClosedLoopRun:
     mean_error_m: np.ndarray
 
 
-def simulate(settings: DiscreteFlatnessSettings, controller: ControllerName, source: OutputSource,
-             noise_m: np.ndarray) -> ClosedLoopRun:
+def simulate(
+    settings: DiscreteFlatnessSettings, controller: ControllerName, source: OutputSource, noise_m: np.ndarray
+) -> ClosedLoopRun:
     """Fly ``controller`` with outputs from ``source``; ``noise_m`` (batch, warmup_ticks + ticks) is added to
     the true position at each tick the source measures. Tick ``-warmup_ticks`` is at time 0 (ns). Each tick the
     source is told the acceleration the commands sent so far produce by the controller's model of the pitch loop
@@ -83,10 +84,16 @@ def make_source(settings: DiscreteFlatnessSettings, loop: Loop, batch: int, sigm
     if loop == "perfect":
         return MeasuredOutputs(settings.control_dt_ns)
     if loop == "estimator":
-        smoothing = SmoothingConfig(qc_translation=settings.qc_translation, lag_s=settings.smoother_lag_s,
-                                    max_extrapolation_s=max(1.0, 2.0 / settings.measurement_rate_hz))
-        return SmootherBatch([SmootherOutputs(smoothing, sigma_m) for _ in range(batch)],
-                             settings.measurement_every * settings.control_dt_ns, settings.window_knots_back)
+        smoothing = SmoothingConfig(
+            qc_translation=settings.qc_translation,
+            lag_s=settings.smoother_lag_s,
+            max_extrapolation_s=max(1.0, 2.0 / settings.measurement_rate_hz),
+        )
+        return SmootherBatch(
+            [SmootherOutputs(smoothing, sigma_m) for _ in range(batch)],
+            settings.measurement_every * settings.control_dt_ns,
+            settings.window_knots_back,
+        )
     raise EstimationError(f"loop: expected one of {LOOPS}, got {loop!r}")
 
 
@@ -112,8 +119,10 @@ def calibrate(settings: DiscreteFlatnessSettings) -> DiscreteFlatnessSettings:
     pd = {w: settings.replace(pd_kp=w * w, pd_kd=2 * w) for w in PD_BANDWIDTHS_RPS}
     s = min(pd.values(), key=lambda c: noiseless_error_m(c, "pd"))
     target = noiseless_error_m(s, "pd")
-    weights: tuple[tuple[ControllerName, str], ...] = (("flatness_mpc", "r_command_flatness_mpc"),
-                                                       ("discrete_flatness", "r_jerk_discrete_flatness"))
+    weights: tuple[tuple[ControllerName, str], ...] = (
+        ("flatness_mpc", "r_command_flatness_mpc"),
+        ("discrete_flatness", "r_jerk_discrete_flatness"),
+    )
     for name, key in weights:
         lo, hi = LOG10_WEIGHT_BRACKETS[key]
         for _ in range(CALIBRATION_STEPS):
@@ -141,13 +150,19 @@ class SweepRow:
 
 def trial_noise(settings: DiscreteFlatnessSettings, sigma_m: float, trials: int, seed: int) -> np.ndarray:
     """Position noise (trials, warmup_ticks + ticks), the same for every controller and loop at one sigma."""
-    rng = np.random.default_rng(seed)       # the same draws scaled at every sigma: the curves compare
+    rng = np.random.default_rng(seed)  # the same draws scaled at every sigma: the curves compare
     return sigma_m * rng.standard_normal((trials, settings.warmup_ticks + settings.ticks))
 
 
-def sweep(settings: DiscreteFlatnessSettings, sigmas_m: Sequence[float], trials: int, seed: int = 0,
-          loops: Sequence[Loop] = LOOPS, controllers: Sequence[ControllerName] = CONTROLLERS,
-          progress: Callable[[SweepRow], None] | None = None) -> list[SweepRow]:
+def sweep(
+    settings: DiscreteFlatnessSettings,
+    sigmas_m: Sequence[float],
+    trials: int,
+    seed: int = 0,
+    loops: Sequence[Loop] = LOOPS,
+    controllers: Sequence[ControllerName] = CONTROLLERS,
+    progress: Callable[[SweepRow], None] | None = None,
+) -> list[SweepRow]:
     """Every loop x noise level x controller, ``trials`` runs each (one batch), in that order."""
     if trials < 1:
         raise EstimationError(f"trials: expected at least 1, got {trials}")
@@ -160,8 +175,7 @@ def sweep(settings: DiscreteFlatnessSettings, sigmas_m: Sequence[float], trials:
             noise = trial_noise(settings, sigma, trials, seed)
             for name in controllers:
                 err = simulate(settings, name, make_source(settings, loop, trials, sigma), noise).mean_error_m
-                row = SweepRow(loop, name, float(sigma), float(err.mean()), float(err.std()), float(err.max()),
-                               trials)
+                row = SweepRow(loop, name, float(sigma), float(err.mean()), float(err.std()), float(err.max()), trials)
                 rows.append(row)
                 if progress is not None:
                     progress(row)
@@ -174,7 +188,14 @@ def write_results_csv(path: Path, rows: Sequence[SweepRow]) -> None:
         w = csv.writer(f)
         w.writerow(RESULT_COLUMNS)
         for r in rows:
-            w.writerow([r.loop, r.controller, f"{r.sigma_m:g}", f"{r.mean_error_m:.6g}", f"{r.std_error_m:.6g}",
-                        f"{r.max_error_m:.6g}", r.trials])
-
-
+            w.writerow(
+                [
+                    r.loop,
+                    r.controller,
+                    f"{r.sigma_m:g}",
+                    f"{r.mean_error_m:.6g}",
+                    f"{r.std_error_m:.6g}",
+                    f"{r.max_error_m:.6g}",
+                    r.trials,
+                ]
+            )

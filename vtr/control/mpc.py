@@ -29,8 +29,8 @@ Mode = Literal["none", "fixed", "perception"]
 #: trunk's taught axis; a (3,) array is a gimbal holding that one axis in g.
 CAMERA_MOUNT, CAMERA_TAUGHT_AXIS = "mount", "taught"
 _NZ, _NW = N_STATE, N_INPUT
-_ROW_STATES = (0, 1, 2, 9, 3, 4, 5)        # the states a path row reads (position, yaw, velocity)
-_ROW = len(_ROW_STATES) + 1                # ... and its slack
+_ROW_STATES = (0, 1, 2, 9, 3, 4, 5)  # the states a path row reads (position, yaw, velocity)
+_ROW = len(_ROW_STATES) + 1  # ... and its slack
 ACCEPTED_STATUS = ("solved", "solved inaccurate", "maximum iterations reached")
 
 
@@ -73,10 +73,10 @@ class TaughtPathReference:
         self.direction = check_direction(direction)
         order = np.arange(len(p)) if self.direction == FORWARD else np.arange(len(p))[::-1]
         keep = np.concatenate([[True], np.linalg.norm(np.diff(p[order], axis=0), axis=1) > MIN_SEGMENT_LENGTH_M])
-        self.taught_index = order[keep]          # travel-order point -> taught vertex index
+        self.taught_index = order[keep]  # travel-order point -> taught vertex index
         self.path = ReferencePath(p[self.taught_index])
         d = self.path.directions
-        self.heading = np.arctan2(d[:, 1], d[:, 0])   # along travel, per segment
+        self.heading = np.arctan2(d[:, 1], d[:, 0])  # along travel, per segment
         self.taught_yaw = None
         if yaw_g is not None:
             y = np.asarray(yaw_g, float)
@@ -98,15 +98,17 @@ class TaughtPathReference:
         ``"along_travel"`` (the segment's heading) or ``"as_taught"`` (taught yaw, interpolated)."""
         s = np.clip(np.asarray(s, float), 0.0, self.path.length)
         seg = np.clip(np.searchsorted(self.path.cumulative, s, side="right") - 1, 0, len(self.path.lengths) - 1)
-        frac = (s - self.path.cumulative[seg])
+        frac = s - self.path.cumulative[seg]
         pts = self.path.points[seg] + frac[:, None] * self.path.directions[seg]
         if yaw == "along_travel":
             return pts, self.heading[seg]
         if yaw != "as_taught":
             raise EstimationError(f"yaw reference: expected along_travel or as_taught, got {yaw!r}")
         if self.taught_yaw is None:
-            raise EstimationError("yaw reference as_taught needs the taught yaw (TaughtPathReference(yaw_g=...) "
-                                  "or TaughtPathReference.from_field)")
+            raise EstimationError(
+                "yaw reference as_taught needs the taught yaw (TaughtPathReference(yaw_g=...) "
+                "or TaughtPathReference.from_field)"
+            )
         t = frac / self.path.lengths[seg]
         a, b = self.taught_yaw[seg], self.taught_yaw[seg + 1]
         return pts, a + t * wrap_angle(b - a)
@@ -120,9 +122,16 @@ class PerceptionAwareMPC:
     taught optical axis, the thesis' experiment) or a (3,) axis in g (a gimbal holding that one axis).
     """
 
-    def __init__(self, reference: TaughtPathReference, config: ControlConfig | None = None, *,
-                 mode: Mode = "perception", fixed_bound_m: float = 0.0,
-                 field: TaughtPathField | None = None, camera: str | np.ndarray = CAMERA_MOUNT) -> None:
+    def __init__(
+        self,
+        reference: TaughtPathReference,
+        config: ControlConfig | None = None,
+        *,
+        mode: Mode = "perception",
+        fixed_bound_m: float = 0.0,
+        field: TaughtPathField | None = None,
+        camera: str | np.ndarray = CAMERA_MOUNT,
+    ) -> None:
         import osqp  # osqp (~0.1 s) only when a controller is built
 
         self.cfg = c = config or ControlConfig()
@@ -134,7 +143,7 @@ class PerceptionAwareMPC:
             raise EstimationError(f"a fixed path-error bound must be positive, got {fixed_bound_m}")
         if mode == "fixed" and not np.isfinite(fixed_bound_m):
             raise EstimationError(f"a fixed path-error bound must be finite, got {fixed_bound_m}")
-        if field is not None:   # ControlConfig owns l_min, c_bar, the form (the field's landmarks are shared)
+        if field is not None:  # ControlConfig owns l_min, c_bar, the form (the field's landmarks are shared)
             field = field.with_bounds(c.l_min, c.c_bar, form=c.constraint_form, control=c)
         self.reference, self.mode, self.bound, self.field = reference, mode, float(fixed_bound_m), field
         self.direction = reference.direction
@@ -143,8 +152,9 @@ class PerceptionAwareMPC:
         self.camera_axis_g: np.ndarray | None = None
         if isinstance(camera, str):
             if camera not in (CAMERA_MOUNT, CAMERA_TAUGHT_AXIS):
-                raise EstimationError(f"camera: expected {CAMERA_MOUNT!r}, {CAMERA_TAUGHT_AXIS!r} or a 3-vector, "
-                                      f"got {camera!r}")
+                raise EstimationError(
+                    f"camera: expected {CAMERA_MOUNT!r}, {CAMERA_TAUGHT_AXIS!r} or a 3-vector, got {camera!r}"
+                )
             self.camera = camera
         else:
             axis = np.asarray(camera, float)
@@ -158,8 +168,8 @@ class PerceptionAwareMPC:
         self.nx = n * _NZ + n * _NW + self.n_soft
         self._build(osqp)
         self.z_prev: np.ndarray | None = None
-        self.progress_m: float | None = None    # along travel; set by the first tick (start anywhere)
-        self.reference_speed_mps = float(c.speed_mps)   # the speed governor's (module docstring)
+        self.progress_m: float | None = None  # along travel; set by the first tick (start anywhere)
+        self.reference_speed_mps = float(c.speed_mps)  # the speed governor's (module docstring)
 
     def field_kwargs(self, n: int) -> dict:
         """The camera keywords of :meth:`TaughtPathField.evaluate` / ``select_trunks`` for ``n`` steps."""
@@ -184,12 +194,12 @@ class PerceptionAwareMPC:
         # cost: 1/2 x' P x + q' x  (P = 2 Q on outputs, 2 R on inputs)
         pd = np.zeros(self.nx)
         for k in range(n):
-            pd[self._iz(k):self._iz(k) + 3] = 2.0 * c.q_position
+            pd[self._iz(k) : self._iz(k) + 3] = 2.0 * c.q_position
             pd[self._iz(k) + 9] = 2.0 * c.q_yaw
-            pd[self._iw(k):self._iw(k) + 3] = 2.0 * c.r_jerk
+            pd[self._iw(k) : self._iw(k) + 3] = 2.0 * c.r_jerk
             pd[self._iw(k) + 3] = 2.0 * c.r_yaw_rate
         if self.n_soft:
-            pd[self._is(0):] = c.slack_quadratic_weight  # strictly convex in the slacks (plus the L1 term in q)
+            pd[self._is(0) :] = c.slack_quadratic_weight  # strictly convex in the slacks (plus the L1 term in q)
         self.P = sp.diags(pd).tocsc()
         rows, cols, vals = [], [], []
         r = 0
@@ -253,11 +263,21 @@ class PerceptionAwareMPC:
         self._set_boxes()
         self.q = np.zeros(self.nx)
         if self.n_soft:
-            self.q[self._is(0):] = c.slack_weight
+            self.q[self._is(0) :] = c.slack_weight
         self.solver = osqp.OSQP()
-        self.solver.setup(self.P, self.q, self.A, self.l, self.u, verbose=False, warm_starting=True,
-                          polishing=c.osqp_polishing == "enabled", eps_abs=c.osqp_eps, eps_rel=c.osqp_eps,
-                          max_iter=c.osqp_max_iter)
+        self.solver.setup(
+            self.P,
+            self.q,
+            self.A,
+            self.l,
+            self.u,
+            verbose=False,
+            warm_starting=True,
+            polishing=c.osqp_polishing == "enabled",
+            eps_abs=c.osqp_eps,
+            eps_rel=c.osqp_eps,
+            max_iter=c.osqp_max_iter,
+        )
 
     def _set_boxes(self) -> None:
         c, n = self.cfg, self.n
@@ -266,13 +286,13 @@ class PerceptionAwareMPC:
             last = k == n - 1 and c.terminal_set == "hover"
             vmax = 0.0 if last else c.speed_max_mps
             amax = 0.0 if last else c.accel_max_mps2
-            self.l[r:r + 3], self.u[r:r + 3] = -vmax, vmax
-            self.l[r + 3:r + 6], self.u[r + 3:r + 6] = -amax, amax
+            self.l[r : r + 3], self.u[r : r + 3] = -vmax, vmax
+            self.l[r + 3 : r + 6], self.u[r + 3 : r + 6] = -amax, amax
             r += 6
-            self.l[r:r + 3], self.u[r:r + 3] = -c.jerk_max_mps3, c.jerk_max_mps3
+            self.l[r : r + 3], self.u[r : r + 3] = -c.jerk_max_mps3, c.jerk_max_mps3
             self.l[r + 3], self.u[r + 3] = -c.yaw_rate_max_rps, c.yaw_rate_max_rps
             r += _NW
-        self.l[r:r + self.n_soft], self.u[r:r + self.n_soft] = 0.0, np.inf
+        self.l[r : r + self.n_soft], self.u[r : r + self.n_soft] = 0.0, np.inf
 
     # ------------------------------------------------------------------ one tick
     def _check_state(self, z0: object) -> np.ndarray:
@@ -280,8 +300,7 @@ class PerceptionAwareMPC:
         try:
             z = np.asarray(z0, float)
         except (TypeError, ValueError):
-            raise EstimationError(f"MPC state: expected 10 numbers (p, v, a, psi), got {type(z0).__name__}") \
-                from None
+            raise EstimationError(f"MPC state: expected 10 numbers (p, v, a, psi), got {type(z0).__name__}") from None
         if z.shape != (_NZ,):
             raise EstimationError(f"MPC state: expected shape ({_NZ},) (p, v, a, psi), got {z.shape}")
         if not np.all(np.isfinite(z)):
@@ -324,12 +343,12 @@ class PerceptionAwareMPC:
         r_pos = r_pos - origin
         r_yaw = wrap_angle(r_yaw - yaw0)
         for k in range(n):
-            self.q[self._iz(k):self._iz(k) + 3] = -2.0 * c.q_position * r_pos[k]
+            self.q[self._iz(k) : self._iz(k) + 3] = -2.0 * c.q_position * r_pos[k]
             self.q[self._iz(k) + 9] = -2.0 * c.q_yaw * r_yaw[k]
         self.l[:_NZ] = self.u[:_NZ] = self.Ad @ z0s
         guess = self._initial_guess(z0)
         trunks = flags = None
-        unit = np.ones(n)           # inliers per unit of each perception row's slack
+        unit = np.ones(n)  # inliers per unit of each perception row's slack
         vals = self._coo_vals
         i0 = self._path_coo_start
         rr = self.path_row0
@@ -338,26 +357,32 @@ class PerceptionAwareMPC:
             seg = err.segment
             for k in range(n):
                 ref_pt = err.reference_point[k] - origin
-                for j, normal in enumerate((self.reference.path.left_normals[seg[k]],
-                                            self.reference.path.up_normals[seg[k]])):
+                for j, normal in enumerate(
+                    (self.reference.path.left_normals[seg[k]], self.reference.path.up_normals[seg[k]])
+                ):
                     off = float(normal @ ref_pt)
                     for sign_i, sign in enumerate((1.0, -1.0)):  # n.p + s >= off - d ; -n.p + s >= -off - d
                         row = rr + 4 * k + 2 * j + sign_i
-                        vals[i0:i0 + _ROW] = 0.0
-                        vals[i0:i0 + 3] = sign * normal
+                        vals[i0 : i0 + _ROW] = 0.0
+                        vals[i0 : i0 + 3] = sign * normal
                         vals[i0 + _ROW - 1] = 1.0
                         i0 += _ROW
                         self.l[row], self.u[row] = sign * off - self.bound, np.inf
         elif self.mode == "perception":
             assert self.field is not None
             start = int(trunk) if trunk is not None else self.field.nearest_trunk(z0[:3])
-            ev = self.field.evaluate(guess[:, :3], guess[:, 9], previous=start, direction=self.direction,
-                                     **self.field_kwargs(n))
+            ev = self.field.evaluate(
+                guess[:, :3], guess[:, 9], previous=start, direction=self.direction, **self.field_kwargs(n)
+            )
             trunks, flags = ev.trunk, ev.flag
             assert ev.dg_dpos is not None and ev.dg_dyaw is not None
             # g0 + dg.(y - y0) - b u.v >= margin - s   <=>   dg.y - b u.v + s >= margin - g0 + dg.y0
-            rhs = c.perception_margin - ev.g + np.einsum("nk,nk->n", ev.dg_dpos, guess[:, :3] - origin) \
+            rhs = (
+                c.perception_margin
+                - ev.g
+                + np.einsum("nk,nk->n", ev.dg_dpos, guess[:, :3] - origin)
                 + ev.dg_dyaw * (guess[:, 9] - yaw0)
+            )
             dv = np.zeros((n, 3))
             if c.intersample == "velocity":
                 v0 = guess[:, 3:6]
@@ -370,9 +395,9 @@ class PerceptionAwareMPC:
             scale = 1.0 / unit
             row = rr
             for k in range(n):
-                vals[i0:i0 + 3] = ev.dg_dpos[k] * scale[k]
+                vals[i0 : i0 + 3] = ev.dg_dpos[k] * scale[k]
                 vals[i0 + 3] = ev.dg_dyaw[k] * scale[k]
-                vals[i0 + 4:i0 + 7] = dv[k] * scale[k]
+                vals[i0 + 4 : i0 + 7] = dv[k] * scale[k]
                 vals[i0 + 7] = 1.0
                 i0 += _ROW
                 self.l[row], self.u[row] = rhs[k] * scale[k], np.inf
@@ -382,29 +407,33 @@ class PerceptionAwareMPC:
         status = str(res.info.status)
         x = res.x
         if status not in ACCEPTED_STATUS or x is None or not np.all(np.isfinite(x)):
-            self.z_prev = None          # the next tick linearizes about a hold, not about this iterate
-            raise MpcInfeasible(f"MPC: OSQP did not solve the tick's QP ({status}{self._why(z0)}); no command "
-                                "(the caller's fallback applies)")
+            self.z_prev = None  # the next tick linearizes about a hold, not about this iterate
+            raise MpcInfeasible(
+                f"MPC: OSQP did not solve the tick's QP ({status}{self._why(z0)}); no command "
+                "(the caller's fallback applies)"
+            )
         z_pred = x[: n * _NZ].reshape(n, _NZ).copy()
         z_pred[:, :3] += origin
         z_pred[:, 9] += yaw0
-        w_pred = x[n * _NZ: n * (_NZ + _NW)].reshape(n, _NW)
-        slack = np.maximum(x[self._is(0):], 0.0) if self.n_soft else np.zeros(0)
+        w_pred = x[n * _NZ : n * (_NZ + _NW)].reshape(n, _NW)
+        slack = np.maximum(x[self._is(0) :], 0.0) if self.n_soft else np.zeros(0)
         slack_m = float(slack.max()) if self.mode == "fixed" and slack.size else 0.0
         slack_inliers = float((slack * unit).max()) if self.mode == "perception" and slack.size else 0.0
         self.z_prev = z_pred
         plan_low = False
         if self.mode == "perception" and c.governor_check == "plan":
             assert self.field is not None and trunks is not None
-            true = self.field.evaluate(z_pred[:, :3], z_pred[:, 9], trunk=trunks, gradient=False,
-                                       **self.field_kwargs(n))
+            true = self.field.evaluate(
+                z_pred[:, :3], z_pred[:, 9], trunk=trunks, gradient=False, **self.field_kwargs(n)
+            )
             plan_low = bool(true.g.min() < 0.0)
         if plan_low or slack_inliers > c.perception_margin:  # the plan cannot keep the constraint at this speed
             self.reference_speed_mps *= c.speed_governor
-        else:                                          # recover toward the desired speed at accel_max
+        else:  # recover toward the desired speed at accel_max
             self.reference_speed_mps = min(c.speed_mps, self.reference_speed_mps + c.accel_max_mps2 / c.rate_hz)
-        return MpcSolution(w_pred[0].copy(), z_pred, w_pred, slack_m, slack_inliers, status, int(res.info.iter),
-                           trunks, flags)
+        return MpcSolution(
+            w_pred[0].copy(), z_pred, w_pred, slack_m, slack_inliers, status, int(res.info.iter), trunks, flags
+        )
 
 
 __all__ = ["MpcInfeasible", "MpcSolution", "PerceptionAwareMPC", "TaughtPathReference"]

@@ -54,15 +54,23 @@ class OnlineRepeat:
         allow_partial: follow a route whose teach run did not finish.
     """
 
-    def __init__(self, map_path: str | Path, config: Config | None = None, *, model: PerceptionModel | None = None,
-                 gravity_up: np.ndarray | None = None, start_index: int | None = None,
-                 mount: CameraMount | None = None, history_s: float = DEFAULT_HISTORY_S,
-                 allow_partial: bool = False) -> None:
+    def __init__(
+        self,
+        map_path: str | Path,
+        config: Config | None = None,
+        *,
+        model: PerceptionModel | None = None,
+        gravity_up: np.ndarray | None = None,
+        start_index: int | None = None,
+        mount: CameraMount | None = None,
+        history_s: float = DEFAULT_HISTORY_S,
+        allow_partial: bool = False,
+    ) -> None:
         if not (isinstance(history_s, int | float) and 0 < history_s < float("inf")):
             raise EstimationError(f"history_s: expected a finite time > 0 s, got {history_s!r}")
         config = config or Config()
         map_path = Path(map_path)
-        with Map.open(map_path) as m:          # a readable map with a route, not being written by another process
+        with Map.open(map_path) as m:  # a readable map with a route, not being written by another process
             m.check_taught_route(allow_partial)
         self._tmp = tempfile.TemporaryDirectory(prefix="vtr-online-")
         try:
@@ -70,18 +78,25 @@ class OnlineRepeat:
             copy_map_file(map_path, copy)
             self.map = Map.open(copy, "a")
             up = self.map.gravity_up if gravity_up is None else np.asarray(gravity_up, float)
-            self.repeat = Repeat(self.map, config, source=f"online:{map_path}", start_index=start_index,
-                                 allow_partial=allow_partial)
-            self.estimator = RepeatStateEstimator.for_route(self.repeat.chain.path, config.smoothing,
-                                                            config.localization, self.map.camera.T_vehicle_sensor, up)
-            self.field = None if model is None else TaughtPathField.from_map(
-                self.map, model, up_map=up, mount=mount, config=config.localization, control=config.control)
+            self.repeat = Repeat(
+                self.map, config, source=f"online:{map_path}", start_index=start_index, allow_partial=allow_partial
+            )
+            self.estimator = RepeatStateEstimator.for_route(
+                self.repeat.chain.path, config.smoothing, config.localization, self.map.camera.T_vehicle_sensor, up
+            )
+            self.field = (
+                None
+                if model is None
+                else TaughtPathField.from_map(
+                    self.map, model, up_map=up, mount=mount, config=config.localization, control=config.control
+                )
+            )
         except BaseException:
             self._tmp.cleanup()
             raise
         self.history_s = float(history_s)
         self._feeding = threading.Lock()
-        self._commanding = threading.Lock()          # the command log's writers (readers take the published log)
+        self._commanding = threading.Lock()  # the command log's writers (readers take the published log)
         self._command_t: list[int] = []
         self._command_a: list[np.ndarray] = []
         self._commands: CommandLog | None = None
@@ -101,7 +116,7 @@ class OnlineRepeat:
             self.estimator.add(step)
             view = self.estimator.view(self.history_s)
             self._latest = step
-            self._view = view                  # the publication: one reference, replaced whole
+            self._view = view  # the publication: one reference, replaced whole
         return step
 
     # -- any thread ----------------------------------------------------------------------------------------------
@@ -153,8 +168,9 @@ class OnlineRepeat:
         (:meth:`RepeatStateView.window`)."""
         return self._view.window(_time(t_end_ns), n, dt_s)
 
-    def constraint(self, positions_g: np.ndarray, yaw_g: np.ndarray, *, axes: np.ndarray | None = None,
-                   gradient: bool = True) -> FieldEvaluation:
+    def constraint(
+        self, positions_g: np.ndarray, yaw_g: np.ndarray, *, axes: np.ndarray | None = None, gradient: bool = True
+    ) -> FieldEvaluation:
         """The perception chance constraint along a horizon of vehicle outputs in the map's gravity frame g (an MPC's
         prediction), each step's trunk chosen from the latest trunk in the chain's direction of travel."""
         if self.field is None:
@@ -165,8 +181,9 @@ class OnlineRepeat:
         previous = int(v.vertex_trunk[-1])
         direction = int(v.vertex_direction[-1])
         pos = np.asarray(positions_g, float)
-        return self.field.evaluate(pos, yaw_g, previous=previous, axes=axes, direction=direction or 1,
-                                   gradient=gradient)
+        return self.field.evaluate(
+            pos, yaw_g, previous=previous, axes=axes, direction=direction or 1, gradient=gradient
+        )
 
     # -- lifetime ------------------------------------------------------------------------------------------------
 

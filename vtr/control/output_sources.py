@@ -183,5 +183,12 @@ class SmootherBatch:
         return min(t_ns, newest - self.knots_back * self.measurement_period_ns)
 
 
-__all__ = ["HISTORY_S", "ROTATION_SIGMA_RAD", "MeasuredOutputs", "OutputSource", "SmootherBatch", "SmootherOutputs",
-           "sample_times"]
+__all__ = [
+    "HISTORY_S",
+    "ROTATION_SIGMA_RAD",
+    "MeasuredOutputs",
+    "OutputSource",
+    "SmootherBatch",
+    "SmootherOutputs",
+    "sample_times",
+]

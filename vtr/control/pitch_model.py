@@ -74,17 +74,20 @@ class DiscreteFlatnessSettings(Section):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name, fast, slow in (("plant_rate_hz/control_rate_hz", self.plant_rate_hz, self.control_rate_hz),
-                                 ("control_rate_hz/measurement_rate_hz", self.control_rate_hz,
-                                  self.measurement_rate_hz)):
+        for name, fast, slow in (
+            ("plant_rate_hz/control_rate_hz", self.plant_rate_hz, self.control_rate_hz),
+            ("control_rate_hz/measurement_rate_hz", self.control_rate_hz, self.measurement_rate_hz),
+        ):
             ratio = fast / slow
             if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
                 raise ConfigError(f"discrete_flatness: {name} must be a whole number >= 1, got {ratio:g}")
         history_s = self.window_knots_back / self.measurement_rate_hz + (self.window_length - 1) / self.control_rate_hz
         if self.warmup_s < history_s - 1e-9:
-            raise ConfigError(f"discrete_flatness: warmup_s={self.warmup_s:g} is shorter than the first window's "
-                              f"history ({history_s:g} s: window_knots_back camera periods and window_length - 1 "
-                              f"= {self.window_length - 1} ticks)")
+            raise ConfigError(
+                f"discrete_flatness: warmup_s={self.warmup_s:g} is shorter than the first window's "
+                f"history ({history_s:g} s: window_knots_back camera periods and window_length - 1 "
+                f"= {self.window_length - 1} ticks)"
+            )
         if abs(NS_PER_S / self.control_rate_hz - round(NS_PER_S / self.control_rate_hz)) > 1e-6:
             raise ConfigError(f"discrete_flatness: control_rate_hz={self.control_rate_hz:g} has no whole-ns period")
 
@@ -143,8 +146,12 @@ class SpiralReference:
         t = np.maximum(t, 0.0)
         A, w = self.amplitude_m, self.omega_rps
         s, c = np.sin(w * t), np.cos(w * t)
-        return (A * t * s, A * (s + w * t * c), on * A * (2 * w * c - w * w * t * s),
-                on * A * w * w * (-3 * s - w * t * c))
+        return (
+            A * t * s,
+            A * (s + w * t * c),
+            on * A * (2 * w * c - w * w * t * s),
+            on * A * w * w * (-3 * s - w * t * c),
+        )
 
     def position(self, t_s: np.ndarray) -> np.ndarray:
         return self.derivatives(t_s)[0]
@@ -176,8 +183,10 @@ class PitchPlant:
             raise EstimationError(f"command: expected {self.state.shape[0]} finite pitch commands, got {u.shape}")
         s, dt = self.s, 1.0 / self.s.plant_rate_hz
         x, v, th = self.state.T
-        self.state = np.stack([x + dt * v, v + dt * GRAVITY_MPS2 * np.tan(th),
-                               th + dt * (s.attitude_gain * u - th) / s.time_constant_s], axis=1)
+        self.state = np.stack(
+            [x + dt * v, v + dt * GRAVITY_MPS2 * np.tan(th), th + dt * (s.attitude_gain * u - th) / s.time_constant_s],
+            axis=1,
+        )
 
 
 class InnerLoopModel:

@@ -26,8 +26,9 @@ FORMATS: dict[str, tuple[Callable[[Path], bool], Callable[[Path], FrameSource]]]
 FORMAT_ALIASES = {"rosbag1": "rosbag", "rosbag2": "rosbag", "mcap": "rosbag"}
 
 
-def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
-                format: str | None = None) -> FrameSource:
+def open_source(
+    path: str | Path, options: SourceOptions | str | None = None, *, format: str | None = None
+) -> FrameSource:
     """Open a logged stereo source, detecting its format unless the options force one.
 
     ``options`` is a ``SourceOptions`` (format, ROS bag topics, ``allow_unpaired``) or, for short,
@@ -60,7 +61,7 @@ def open_source(path: str | Path, options: SourceOptions | str | None = None, *,
     return FORMATS[name][1](path)
 
 
-FOLDER_FORMATS = ("kitti", "euroc", "stereo-pairs", "cloud")   # read a folder (a ROS bag may be a file)
+FOLDER_FORMATS = ("kitti", "euroc", "stereo-pairs", "cloud")  # read a folder (a ROS bag may be a file)
 BAG_FILES = ("*.db3", "*.mcap")
 
 
@@ -75,8 +76,9 @@ def _check_forced(path: Path, name: str) -> None:
         hint = f"; it looks like a {other} source: drop --format or pass --format {other}" if other else ""
         raise DataError(f"{path}: is a file, but --format {name} reads a folder{hint}")
     if other is not None and other != name and not FORMATS[name][0](path):
-        raise DataError(f"{path}: not a {name} source; it looks like a {other} source: drop --format or pass "
-                        f"--format {other}")
+        raise DataError(
+            f"{path}: not a {name} source; it looks like a {other} source: drop --format or pass --format {other}"
+        )
 
 
 def _layout_hint(path: Path) -> str:
@@ -84,12 +86,24 @@ def _layout_hint(path: Path) -> str:
     if path.is_dir():
         bags = sorted(p.name for pattern in BAG_FILES for p in path.glob(pattern))
         if bags and not (path / "metadata.yaml").exists():
-            return (f"; it holds {bags[0]} but no metadata.yaml: a ROS 2 bag folder needs its metadata.yaml "
-                    f"(or open the file itself: {path / bags[0]})")
+            return (
+                f"; it holds {bags[0]} but no metadata.yaml: a ROS 2 bag folder needs its metadata.yaml "
+                f"(or open the file itself: {path / bags[0]})"
+            )
     return ""
 
 
 __all__ = [
-    "FORMATS", "FORMAT_ALIASES", "CloudRun", "EurocSource", "FrameSource", "GroundTruth", "KittiSource",
-    "RosbagSource", "SourceOptions", "StereoPairsSource", "open_source", "parse_frame_range",
+    "FORMATS",
+    "FORMAT_ALIASES",
+    "CloudRun",
+    "EurocSource",
+    "FrameSource",
+    "GroundTruth",
+    "KittiSource",
+    "RosbagSource",
+    "SourceOptions",
+    "StereoPairsSource",
+    "open_source",
+    "parse_frame_range",
 ]

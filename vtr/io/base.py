@@ -33,10 +33,17 @@ class SourceOptions:
 
     def bag_kwargs(self) -> dict[str, str | bool | None]:
         """Keyword arguments of ``RosbagSource`` that differ from its defaults."""
-        return {k: v for k, v in (("left_topic", self.left_topic), ("right_topic", self.right_topic),
-                                  ("left_info_topic", self.left_info_topic),
-                                  ("right_info_topic", self.right_info_topic),
-                                  ("allow_unpaired", self.allow_unpaired)) if v}
+        return {
+            k: v
+            for k, v in (
+                ("left_topic", self.left_topic),
+                ("right_topic", self.right_topic),
+                ("left_info_topic", self.left_info_topic),
+                ("right_info_topic", self.right_info_topic),
+                ("allow_unpaired", self.allow_unpaired),
+            )
+            if v
+        }
 
 
 #: a reference pose further than this from a frame's time does not give that frame's gravity (ns)
@@ -57,7 +64,7 @@ class FrameSource(ABC, Sequence):
     path: Path
     camera: StereoCamera
     format_name: str = "?"
-    gravity_aligned_truth: bool = False     # the ground truth's world has z up (gravity_up reads it)
+    gravity_aligned_truth: bool = False  # the ground truth's world has z up (gravity_up reads it)
 
     @abstractmethod
     def __len__(self) -> int: ...

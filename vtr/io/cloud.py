@@ -31,8 +31,7 @@ STREAM_FILES: dict[str, tuple[str, ...]] = {
     "gimbal_angles": ("gimbalangles.txt", "gimbal_angles.txt"),
 }
 #: numeric values per row after the timestamp
-STREAM_COLUMNS = {"velocities": 3, "attitude": 4, "acceleration": 3, "gps": 3, "gimbal_state": 7,
-                  "gimbal_angles": 3}
+STREAM_COLUMNS = {"velocities": 3, "attitude": 4, "acceleration": 3, "gps": 3, "gimbal_state": 7, "gimbal_angles": 3}
 QUAT_ORDERS = ("xyzw", "wxyz")
 #: a quaternion whose norm differs from 1 by more than this is a malformed row
 QUAT_NORM_TOL = 1e-3
@@ -162,8 +161,10 @@ def _read_rows(path: Path, ncols: int | None) -> tuple[np.ndarray, list[list[str
                 continue
             raise DataError(f"{path}:{lineno}: timestamp {parts[0]!r} is not an integer (Unix ns)") from err
         if ncols is not None and len(parts) != ncols + 1:
-            raise DataError(f"{path}:{lineno}: expected {ncols + 1} comma-separated values (timestamp and "
-                            f"{ncols}), got {len(parts)}: {s!r}")
+            raise DataError(
+                f"{path}:{lineno}: expected {ncols + 1} comma-separated values (timestamp and "
+                f"{ncols}), got {len(parts)}: {s!r}"
+            )
         if t and ts < t[-1]:
             raise DataError(f"{path}:{lineno}: timestamp {ts} is earlier than the previous row's {t[-1]}")
         t.append(ts)
@@ -215,7 +216,8 @@ def refuse_cloud_stereo(path: Path) -> NoReturn:
     raise DataError(
         f"{path}: CLOUD runs are monocular (left camera only): stereo odometry, teach and repeat need a "
         "stereo source (KITTI/EuRoC folder or a ROS bag with two cameras). Use vtr.io.cloud.CloudRun for this "
-        "run's images, GPS/attitude reference trajectory and gimbal state (localization evaluation).")
+        "run's images, GPS/attitude reference trajectory and gimbal state (localization evaluation)."
+    )
 
 
 class CloudImages(Sequence):
@@ -250,8 +252,13 @@ class CloudRun:
     file (and row). ``validate()`` parses everything at once.
     """
 
-    def __init__(self, path: str | Path, quat_order: str = "xyzw", T_vehicle_base: np.ndarray | None = None,
-                 R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA):
+    def __init__(
+        self,
+        path: str | Path,
+        quat_order: str = "xyzw",
+        T_vehicle_base: np.ndarray | None = None,
+        R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
+    ):
         self.path = Path(path)
         if not self.path.is_dir():
             raise FileNotFoundError(f"{self.path}: no such folder")
@@ -270,8 +277,10 @@ class CloudRun:
         """File of stream ``name``; ``DataError`` naming the expected file when it is missing."""
         f = find_stream(self.path, name)
         if f is None:
-            raise DataError(f"{self.path / STREAM_FILES[name][0]}: missing CLOUD {name} stream "
-                            f"(accepted names: {', '.join(STREAM_FILES[name])})")
+            raise DataError(
+                f"{self.path / STREAM_FILES[name][0]}: missing CLOUD {name} stream "
+                f"(accepted names: {', '.join(STREAM_FILES[name])})"
+            )
         return f
 
     def missing_streams(self) -> list[str]:
@@ -282,11 +291,16 @@ class CloudRun:
         """Parse every stream and check every image id resolves to a file; raise on the first problem."""
         missing = self.missing_streams()
         if missing:
-            raise DataError(f"{self.path}: missing CLOUD stream(s): "
-                            + ", ".join(STREAM_FILES[n][0] for n in missing))
+            raise DataError(f"{self.path}: missing CLOUD stream(s): " + ", ".join(STREAM_FILES[n][0] for n in missing))
         _ = self.images
-        for read in (self.velocities, self.acceleration, self.attitude, self.gps, self.gimbal_state,
-                     self.gimbal_angles):
+        for read in (
+            self.velocities,
+            self.acceleration,
+            self.attitude,
+            self.gps,
+            self.gimbal_state,
+            self.gimbal_angles,
+        ):
             read()
 
     def _numeric(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, Path]:
@@ -301,8 +315,10 @@ class CloudRun:
         norm = np.linalg.norm(q, axis=1)
         bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOL)
         if len(bad):
-            raise DataError(f"{f}:{lines[bad[0]]}: quaternion norm {norm[bad[0]]:.6f} is not 1 "
-                            f"(malformed row or wrong quat_order {self.quat_order!r})")
+            raise DataError(
+                f"{f}:{lines[bad[0]]}: quaternion norm {norm[bad[0]]:.6f} is not 1 "
+                f"(malformed row or wrong quat_order {self.quat_order!r})"
+            )
         return q / norm[:, None]
 
     # -- streams
@@ -352,8 +368,14 @@ class CloudRun:
         keep = (ga.t_ns >= att.t_ns[0]) & (ga.t_ns <= att.t_ns[-1])
         if not np.any(keep):
             raise DataError(f"{self.path}: gimbal angles and attitude do not overlap in time")
-        R = rotation_from_gimbal_angles(ga.roll[keep], ga.pitch[keep], ga.yaw[keep], att.at(ga.t_ns[keep]),
-                                        self.T_vehicle_base[:3, :3], self.R_gimbal_camera)
+        R = rotation_from_gimbal_angles(
+            ga.roll[keep],
+            ga.pitch[keep],
+            ga.yaw[keep],
+            att.at(ga.t_ns[keep]),
+            self.T_vehicle_base[:3, :3],
+            self.R_gimbal_camera,
+        )
         return ga.t_ns[keep], R
 
     # -- images
@@ -380,8 +402,9 @@ class CloudRun:
             for k, i in enumerate(ids):
                 name = i if i in names else by_stem.get(i) or by_stem.get(os.path.splitext(i)[0])
                 if name is None:
-                    raise DataError(f"{self.stream_path('image_ids')}: row {k + 1} (image id {i!r}): no such "
-                                    f"image in {folder}")
+                    raise DataError(
+                        f"{self.stream_path('image_ids')}: row {k + 1} (image id {i!r}): no such image in {folder}"
+                    )
                 files.append(folder / name)
             self._cache["images"] = CloudImages(t, files)
         return self._cache["images"]  # type: ignore[return-value]

@@ -68,15 +68,17 @@ def R_enu_ecef(lat0_deg: float, lon0_deg: float) -> np.ndarray:
     return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
 
 
-def geodetic_to_enu(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike, lat0_deg: float, lon0_deg: float,
-                    alt0_m: float) -> np.ndarray:
+def geodetic_to_enu(
+    lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike, lat0_deg: float, lon0_deg: float, alt0_m: float
+) -> np.ndarray:
     """WGS84 fixes -> ENU positions (N, 3) in metres relative to the origin fix (exact, no flat-earth)."""
     d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m)
     return d @ R_enu_ecef(lat0_deg, lon0_deg).T
 
 
-def enu_to_geodetic(p_enu: np.ndarray, lat0_deg: float, lon0_deg: float,
-                    alt0_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def enu_to_geodetic(
+    p_enu: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ENU positions (N, 3) m relative to an origin fix -> WGS84 latitude, longitude (deg), height (m)."""
     p = geodetic_to_ecef(lat0_deg, lon0_deg, alt0_m) + np.asarray(p_enu, float) @ R_enu_ecef(lat0_deg, lon0_deg)
     return ecef_to_geodetic(p)
@@ -92,9 +94,14 @@ def vehicle_yaw_ned(R_enu_vehicle: np.ndarray) -> np.ndarray:
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
-def rotation_from_gimbal_angles(roll: ArrayLike, pitch: ArrayLike, yaw_rel: ArrayLike, R_enu_vehicle: np.ndarray,
-                                R_vehicle_base: np.ndarray | None = None,
-                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA) -> np.ndarray:
+def rotation_from_gimbal_angles(
+    roll: ArrayLike,
+    pitch: ArrayLike,
+    yaw_rel: ArrayLike,
+    R_enu_vehicle: np.ndarray,
+    R_vehicle_base: np.ndarray | None = None,
+    R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
+) -> np.ndarray:
     """``R_base_camera`` (N, 3, 3) from gimbal angles (rad; roll/pitch w.r.t. NED, yaw relative to the
     vehicle heading) and the vehicle attitude ``R_enu_vehicle`` (N, 3, 3) at the same times."""
     R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
@@ -106,10 +113,12 @@ def rotation_from_gimbal_angles(roll: ArrayLike, pitch: ArrayLike, yaw_rel: Arra
     return R_vb.T @ R_vehicle_camera
 
 
-def gimbal_angles_from_rotation(R_base_camera: np.ndarray, R_enu_vehicle: np.ndarray,
-                                R_vehicle_base: np.ndarray | None = None,
-                                R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
-                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def gimbal_angles_from_rotation(
+    R_base_camera: np.ndarray,
+    R_enu_vehicle: np.ndarray,
+    R_vehicle_base: np.ndarray | None = None,
+    R_gimbal_camera: np.ndarray = R_GIMBAL_CAMERA,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Inverse of ``rotation_from_gimbal_angles``: (roll, pitch, yaw_rel) in rad, yaw wrapped to (-pi, pi]."""
     R_enu_vehicle = np.asarray(R_enu_vehicle, float).reshape(-1, 3, 3)
     R_vb = np.eye(3) if R_vehicle_base is None else np.asarray(R_vehicle_base, float)

@@ -24,7 +24,7 @@ from ..errors import DataError
 Kind = Literal["int", "float", "bool", "str"]
 _DTYPES = {"int": np.int64, "float": np.float64, "bool": np.bool_, "str": object}
 _PARSE = {"int": int, "float": float, "str": str}
-_QUOTE_IF = (",", '"', "\r", "\n")           # csv.writer's minimal quoting (delimiter, quote, line breaks)
+_QUOTE_IF = (",", '"', "\r", "\n")  # csv.writer's minimal quoting (delimiter, quote, line breaks)
 
 
 @dataclass(frozen=True)
@@ -72,8 +72,10 @@ class Column:
                 try:
                     _DTYPES[self.kind](c)
                 except ValueError:
-                    raise DataError(f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
-                                    f"{'an integer' if self.kind == 'int' else 'a number'}") from None
+                    raise DataError(
+                        f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
+                        f"{'an integer' if self.kind == 'int' else 'a number'}"
+                    ) from None
             raise DataError(f"{where}: column {self.name}: unreadable values") from None
 
     def _parse_optional(self, cells: Sequence[str], where: Path, first_line: int) -> np.ndarray:
@@ -84,8 +86,10 @@ class Column:
             try:
                 out[i] = None if c == "" else parse(c)
             except ValueError:
-                raise DataError(f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
-                                f"{'an integer' if self.kind == 'int' else 'a number'}") from None
+                raise DataError(
+                    f"{where}:{first_line + i}: column {self.name}: {c!r} is not "
+                    f"{'an integer' if self.kind == 'int' else 'a number'}"
+                ) from None
         return out
 
 
@@ -93,7 +97,7 @@ class Column:
 class CsvSchema:
     """The columns of one CSV file, in the order they are written, and its line end."""
 
-    what: str                    # the file's name in messages ("localization.csv")
+    what: str  # the file's name in messages ("localization.csv")
     columns: tuple[Column, ...]
     line_end: str = "\r\n"
 

@@ -92,15 +92,17 @@ def check_increasing(t_ns: np.ndarray, linenos: np.ndarray, path: Path) -> None:
     if len(bad):
         k = int(bad[0]) + 1
         what = "repeats" if t_ns[k] == t_ns[k - 1] else "is earlier than"
-        raise DataError(f"{path}:{linenos[k]}: timestamp {t_ns[k]} {what} the previous row's "
-                        f"({t_ns[k - 1]}, line {linenos[k - 1]}): times must be strictly increasing")
+        raise DataError(
+            f"{path}:{linenos[k]}: timestamp {t_ns[k]} {what} the previous row's "
+            f"({t_ns[k - 1]}, line {linenos[k - 1]}): times must be strictly increasing"
+        )
 
 
 class EurocSource(FrameSource):
     """Reader of an EuRoC ASL stereo sequence, rectified on the fly."""
 
     format_name = "euroc"
-    gravity_aligned_truth = True      # the Vicon / Leica world of state_groundtruth_estimate0 has z up
+    gravity_aligned_truth = True  # the Vicon / Leica world of state_groundtruth_estimate0 has z up
 
     def __init__(self, path: str | Path, alpha: float = 0.0):
         self.path = Path(path)
@@ -113,7 +115,8 @@ class EurocSource(FrameSource):
         left = read_sensor_yaml(root / "cam0" / "sensor.yaml")
         right = read_sensor_yaml(root / "cam1" / "sensor.yaml")
         self.rectifier = StereoRectifier.from_raw(
-            left, right, alpha=alpha, where=f"{root / 'cam0' / 'sensor.yaml'}, {root / 'cam1' / 'sensor.yaml'}")
+            left, right, alpha=alpha, where=f"{root / 'cam0' / 'sensor.yaml'}, {root / 'cam1' / 'sensor.yaml'}"
+        )
         self.camera = self.rectifier.camera
         tl, nl = read_stamp_csv(root / "cam0" / "data.csv")
         tr, nr = read_stamp_csv(root / "cam1" / "data.csv")
@@ -129,8 +132,7 @@ class EurocSource(FrameSource):
         self._left = [root / "cam0" / "data" / nl[i] for i in np.flatnonzero(ok)]
         self._right = [root / "cam1" / "data" / nr[k] for k in j[ok]]
         # optional ground truth: validated now, not after a whole run
-        self._gt = body_ground_truth(root / "state_groundtruth_estimate0" / "data.csv", 1,
-                                     self.camera.T_vehicle_sensor)
+        self._gt = body_ground_truth(root / "state_groundtruth_estimate0" / "data.csv", 1, self.camera.T_vehicle_sensor)
 
     def __len__(self) -> int:
         return len(self._t_ns)
@@ -164,8 +166,9 @@ def body_ground_truth(path: Path, ns_per_unit: int, T_body_cam: np.ndarray) -> G
         raise DataError(f"{path}: no pose rows")
     if rows.shape[1] < 8:
         raise DataError(f"{path}: {rows.shape[1]} columns per row, expected at least 8 (time, x y z, qw qx qy qz)")
-    lines = np.array([i + 1 for i, line in enumerate(_text(path).splitlines())
-                      if line.strip() and not line.lstrip().startswith("#")])
+    lines = np.array(
+        [i + 1 for i, line in enumerate(_text(path).splitlines()) if line.strip() and not line.lstrip().startswith("#")]
+    )
     bad = np.flatnonzero(~np.isfinite(rows[:, :8]).all(axis=1))
     if len(bad):
         raise DataError(f"{path}:{lines[bad[0]]}: NaN or infinite value")
@@ -194,7 +197,7 @@ class StereoPairsSource(FrameSource):
     """
 
     format_name = "stereo-pairs"
-    gravity_aligned_truth = True      # groundtruth.csv holds EuRoC body poses (world z up)
+    gravity_aligned_truth = True  # groundtruth.csv holds EuRoC body poses (world z up)
 
     def __init__(self, path: str | Path, alpha: float = 0.0):
         self.path = Path(path)
@@ -203,7 +206,8 @@ class StereoPairsSource(FrameSource):
         left = read_sensor_yaml(self.path / "sensor_left.yaml")
         right = read_sensor_yaml(self.path / "sensor_right.yaml")
         self.rectifier = StereoRectifier.from_raw(
-            left, right, alpha=alpha, where=f"{self.path / 'sensor_left.yaml'}, {self.path / 'sensor_right.yaml'}")
+            left, right, alpha=alpha, where=f"{self.path / 'sensor_left.yaml'}, {self.path / 'sensor_right.yaml'}"
+        )
         self.camera = self.rectifier.camera
         n = 0
         while (self.path / f"left_{n}.png").is_file():

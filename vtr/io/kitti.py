@@ -18,7 +18,7 @@ from ..types import StereoImages
 from .base import FrameSource, GroundTruth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
-POSE_TOLERANCE = 1e-3   # KITTI poses are printed with ~6 significant digits: rigid to this
+POSE_TOLERANCE = 1e-3  # KITTI poses are printed with ~6 significant digits: rigid to this
 
 
 def is_kitti(path: Path) -> bool:
@@ -45,8 +45,9 @@ def read_kitti_calib(path: Path, width: int, height: int) -> StereoCamera:
     fx = P0[0, 0]
     if not np.allclose(P0[:, :3], P1[:, :3]):
         raise CalibrationError(f"{path}: P0 and P1 have different intrinsics; images are not rectified")
-    return StereoCamera(fx=fx, fy=P0[1, 1], cx=P0[0, 2], cy=P0[1, 2],
-                        baseline=-(P1[0, 3] - P0[0, 3]) / fx, width=width, height=height)
+    return StereoCamera(
+        fx=fx, fy=P0[1, 1], cx=P0[0, 2], cy=P0[1, 2], baseline=-(P1[0, 3] - P0[0, 3]) / fx, width=width, height=height
+    )
 
 
 def _list_images(folder: Path) -> list[Path]:
@@ -69,14 +70,13 @@ class KittiSource(FrameSource):
         if not self.left_files:
             raise DataError(f"{self.path / 'image_0'}: no images")
         if len(self.left_files) != len(self.right_files):
-            raise DataError(f"{self.path}: {len(self.left_files)} left images but "
-                            f"{len(self.right_files)} right images")
+            raise DataError(f"{self.path}: {len(self.left_files)} left images but {len(self.right_files)} right images")
         first = cv2.imread(str(self.left_files[0]), cv2.IMREAD_GRAYSCALE)
         if first is None:
             raise DataError(f"{self.left_files[0]}: cannot decode image (missing or corrupt file)")
         self.camera = read_kitti_calib(self.path / "calib.txt", first.shape[1], first.shape[0])
         self._t_ns = self._read_times()
-        self._gt = self._read_ground_truth()   # optional; validated now, not after a whole run
+        self._gt = self._read_ground_truth()  # optional; validated now, not after a whole run
 
     def _read_times(self) -> np.ndarray:
         n = len(self.left_files)
@@ -103,8 +103,9 @@ class KittiSource(FrameSource):
         bad = ~np.isfinite(t) | (np.abs(t) >= 2**63 / NS_PER_S)
         if bad.any():
             line = int(np.argmax(bad)) + 1
-            raise DataError(f"{times}: line {line}: {float(t[line - 1])} is not a time in seconds that fits int64 "
-                            "nanoseconds")
+            raise DataError(
+                f"{times}: line {line}: {float(t[line - 1])} is not a time in seconds that fits int64 nanoseconds"
+            )
         t_ns = np.round(t * NS_PER_S).astype(np.int64)
         if np.any(np.diff(t_ns) <= 0):
             raise DataError(f"{times}: timestamps are not strictly increasing")

@@ -22,20 +22,26 @@ from perception_model.outputs import existing_output, replace_file
 from ..errors import OutputError
 
 
-def check_new_output(path: Path, force: bool = False, *, can_force: bool = True, empty_folder_ok: bool = False,
-                     inputs: Iterable[Path | None] = ()) -> None:
+def check_new_output(
+    path: Path,
+    force: bool = False,
+    *,
+    can_force: bool = True,
+    empty_folder_ok: bool = False,
+    inputs: Iterable[Path | None] = (),
+) -> None:
     """Raise ``OutputError`` (one line naming ``path``) when ``path`` exists, unless ``force`` (a regular file
     is then replaced) or it is an empty folder and ``empty_folder_ok``. A folder, a symbolic link, anything
     not a regular file, and any of ``inputs`` are never replaced. ``can_force`` says whether the command has
     ``--force`` (the message offers it)."""
-    problem = existing_output(Path(path), force, can_force=can_force, empty_folder_ok=empty_folder_ok,
-                              inputs=inputs)
+    problem = existing_output(Path(path), force, can_force=can_force, empty_folder_ok=empty_folder_ok, inputs=inputs)
     if problem is not None:
         raise OutputError(problem)
 
 
-def write_output(path: Path, writer: Callable[[Path], Any], force: bool = False, *,
-                 inputs: Iterable[Path | None] = ()) -> Path:
+def write_output(
+    path: Path, writer: Callable[[Path], Any], force: bool = False, *, inputs: Iterable[Path | None] = ()
+) -> Path:
     """Write output file ``path`` by the rule: checked again (:func:`check_new_output`: the checks before the
     work ran may be minutes old), then ``writer(tmp)`` writes a temporary file beside it, renamed over
     ``path`` when complete (:func:`perception_model.outputs.replace_file`)."""
@@ -78,11 +84,15 @@ def check_apart(out: Path, inputs: Iterable[Path | None], option: str = "--out")
             continue
         i = Path(inp).resolve()
         if _inside(i, o):
-            raise OutputError(f"{option} {out}: contains the input {inp} (an output folder must be apart from "
-                              "the data it reads; choose another folder)")
+            raise OutputError(
+                f"{option} {out}: contains the input {inp} (an output folder must be apart from "
+                "the data it reads; choose another folder)"
+            )
         if _inside(o, i) and i.is_dir():
-            raise OutputError(f"{option} {out}: is inside the input {inp} (an output folder must be apart from "
-                              "the data it reads; choose another folder)")
+            raise OutputError(
+                f"{option} {out}: is inside the input {inp} (an output folder must be apart from "
+                "the data it reads; choose another folder)"
+            )
 
 
 def check_no_links(base: Path, folder: Path, option: str = "--out") -> None:
@@ -98,7 +108,9 @@ def check_no_links(base: Path, folder: Path, option: str = "--out") -> None:
         except FileNotFoundError:
             return
         if stat.S_ISLNK(st.st_mode):
-            raise OutputError(f"{option} {base}: {p} is a symbolic link that vtr did not make (not writing through "
-                              "it); remove it or choose another folder")
+            raise OutputError(
+                f"{option} {base}: {p} is a symbolic link that vtr did not make (not writing through "
+                "it); remove it or choose another folder"
+            )
         if not stat.S_ISDIR(st.st_mode):
             raise OutputError(f"{option} {base}: {p} exists and is not a folder")

@@ -29,8 +29,10 @@ MONO16_SHIFT = 8
 CALIB_EPS = 1e-12
 
 _GREY_FROM = {
-    "bgr8": (3, cv2.COLOR_BGR2GRAY), "rgb8": (3, cv2.COLOR_RGB2GRAY),
-    "bgra8": (4, cv2.COLOR_BGRA2GRAY), "rgba8": (4, cv2.COLOR_RGBA2GRAY),
+    "bgr8": (3, cv2.COLOR_BGR2GRAY),
+    "rgb8": (3, cv2.COLOR_RGB2GRAY),
+    "bgra8": (4, cv2.COLOR_BGRA2GRAY),
+    "rgba8": (4, cv2.COLOR_RGBA2GRAY),
 }
 _MONO8 = ("mono8", "8uc1")
 _MONO16 = ("mono16", "16uc1")
@@ -63,45 +65,65 @@ class CameraInfoData:
         return bool(np.any(np.abs(self.D) > CALIB_EPS) or not np.allclose(self.R, np.eye(3), atol=CALIB_EPS))
 
     @staticmethod
-    def from_stereo(camera: StereoCamera, left_frame: str = "camera_left_optical",
-                    right_frame: str = "camera_right_optical") -> tuple[CameraInfoData, CameraInfoData]:
+    def from_stereo(
+        camera: StereoCamera, left_frame: str = "camera_left_optical", right_frame: str = "camera_right_optical"
+    ) -> tuple[CameraInfoData, CameraInfoData]:
         """CameraInfo of both cameras of a rectified pair (D = 0, R = I, P from K and the baseline)."""
         P = np.hstack([camera.K, np.zeros((3, 1))])
         P_right = P.copy()
         P_right[0, 3] = -camera.fb
-        common: dict[str, Any] = dict(width=camera.width, height=camera.height, K=camera.K, D=np.zeros(5),
-                                      R=np.eye(3))
-        return (CameraInfoData(P=P, frame_id=left_frame, **common),
-                CameraInfoData(P=P_right, frame_id=right_frame, **common))
+        common: dict[str, Any] = dict(width=camera.width, height=camera.height, K=camera.K, D=np.zeros(5), R=np.eye(3))
+        return (
+            CameraInfoData(P=P, frame_id=left_frame, **common),
+            CameraInfoData(P=P_right, frame_id=right_frame, **common),
+        )
 
 
-def stereo_camera_from_info(left: CameraInfoData, right: CameraInfoData, where: str,
-                            T_vehicle_sensor: np.ndarray | None = None) -> StereoCamera:
+def stereo_camera_from_info(
+    left: CameraInfoData, right: CameraInfoData, where: str, T_vehicle_sensor: np.ndarray | None = None
+) -> StereoCamera:
     """Rectified ``StereoCamera`` from the two CameraInfos (intrinsics of P, baseline from the right P)."""
     if (left.width, left.height) != (right.width, right.height):
-        raise CalibrationError(f"{where}: left CameraInfo is {left.width}x{left.height} but right is "
-                               f"{right.width}x{right.height}")
+        raise CalibrationError(
+            f"{where}: left CameraInfo is {left.width}x{left.height} but right is {right.width}x{right.height}"
+        )
     Pl, Pr = left.P, right.P
     if Pr[0, 0] <= 0 or not np.all(np.isfinite(Pr)):
         raise CalibrationError(f"{where}: right CameraInfo has no projection matrix P (uncalibrated camera?)")
     if not np.allclose(Pl[:, :3], Pr[:, :3], rtol=1e-6, atol=1e-6):
-        raise CalibrationError(f"{where}: left and right CameraInfo P have different intrinsics "
-                               "(not a rectified stereo pair)")
+        raise CalibrationError(
+            f"{where}: left and right CameraInfo P have different intrinsics (not a rectified stereo pair)"
+        )
     baseline = -Pr[0, 3] / Pr[0, 0]
     if baseline <= 0:
-        raise CalibrationError(f"{where}: right CameraInfo P[0,3] = {Pr[0, 3]} gives baseline {baseline} m "
-                               "(must be > 0: are left and right swapped?)")
-    return StereoCamera(fx=Pr[0, 0], fy=Pr[1, 1], cx=Pr[0, 2], cy=Pr[1, 2], baseline=baseline,
-                        width=left.width, height=left.height,
-                        T_vehicle_sensor=np.eye(4) if T_vehicle_sensor is None else T_vehicle_sensor)
+        raise CalibrationError(
+            f"{where}: right CameraInfo P[0,3] = {Pr[0, 3]} gives baseline {baseline} m "
+            "(must be > 0: are left and right swapped?)"
+        )
+    return StereoCamera(
+        fx=Pr[0, 0],
+        fy=Pr[1, 1],
+        cx=Pr[0, 2],
+        cy=Pr[1, 2],
+        baseline=baseline,
+        width=left.width,
+        height=left.height,
+        T_vehicle_sensor=np.eye(4) if T_vehicle_sensor is None else T_vehicle_sensor,
+    )
 
 
 #: coefficients each distortion model may have (ROS: plumb_bob 5, rational_polynomial 8, equidistant 4)
-DISTORTION_COUNTS = {"plumb_bob": (4, 5, 8), "radtan": (4, 5), "rational_polynomial": (8, 12, 14),
-                     "equidistant": (4,), "fisheye": (4,), "": (0, 4, 5, 8)}
+DISTORTION_COUNTS = {
+    "plumb_bob": (4, 5, 8),
+    "radtan": (4, 5),
+    "rational_polynomial": (8, 12, 14),
+    "equidistant": (4,),
+    "fisheye": (4,),
+    "": (0, 4, 5, 8),
+}
 
 
-MIN_CORNER_SCALE, MAX_CORNER_SCALE = 0.05, 20.0   # distorted / undistorted radius at the image corners
+MIN_CORNER_SCALE, MAX_CORNER_SCALE = 0.05, 20.0  # distorted / undistorted radius at the image corners
 
 
 def check_distortion(info: CameraInfoData, where: str) -> None:
@@ -119,8 +141,10 @@ def check_distortion(info: CameraInfoData, where: str) -> None:
         raise CalibrationError(f"{where}: CameraInfo R is not a rotation")
     counts = DISTORTION_COUNTS.get(model)
     if counts is not None and len(D) and len(D) not in counts:
-        raise CalibrationError(f"{where}: distortion model {info.distortion_model!r} takes "
-                               f"{' or '.join(map(str, counts))} coefficients, CameraInfo D has {len(D)}")
+        raise CalibrationError(
+            f"{where}: distortion model {info.distortion_model!r} takes "
+            f"{' or '.join(map(str, counts))} coefficients, CameraInfo D has {len(D)}"
+        )
     if not np.any(D):
         return
     # normalized radius of the farthest image corner, sampled from the centre out
@@ -129,25 +153,29 @@ def check_distortion(info: CameraInfoData, where: str) -> None:
     if model in ("equidistant", "fisheye"):
         theta = np.arctan(np.linspace(0.0, r_max, 400))
         k = np.zeros(4)
-        k[:len(D)] = D[:4]
+        k[: len(D)] = D[:4]
         t2 = theta**2
         r_d = theta * (1 + k[0] * t2 + k[1] * t2**2 + k[2] * t2**3 + k[3] * t2**4)
     else:
         k = np.zeros(14)
-        k[:len(D)] = D[:14]
+        k[: len(D)] = D[:14]
         r = np.linspace(0.0, r_max, 400)
         r2 = r**2
         radial = (1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3) / (1 + k[5] * r2 + k[6] * r2**2 + k[7] * r2**3)
         r_d = r * radial
     scale = r_d[-1] / np.tan(theta[-1]) if model in ("equidistant", "fisheye") else radial[-1]
     if np.isfinite(scale) and not MIN_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
-        raise CalibrationError(f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} scales the "
-                               f"image corners by {scale:.3g} (a lens stays within {MIN_CORNER_SCALE:g} to "
-                               f"{MAX_CORNER_SCALE:g}): not a real lens calibration")
+        raise CalibrationError(
+            f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} scales the "
+            f"image corners by {scale:.3g} (a lens stays within {MIN_CORNER_SCALE:g} to "
+            f"{MAX_CORNER_SCALE:g}): not a real lens calibration"
+        )
     if not np.all(np.isfinite(r_d)) or np.any(np.diff(r_d) <= 0):
-        raise CalibrationError(f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} is not one to "
-                               "one over the image (the distorted radius stops growing before the corners): not a "
-                               "real lens calibration")
+        raise CalibrationError(
+            f"{where}: CameraInfo distortion D = {np.array2string(D, precision=4)} is not one to "
+            "one over the image (the distorted radius stops growing before the corners): not a "
+            "real lens calibration"
+        )
 
 
 def rectify_maps(info: CameraInfoData, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -158,11 +186,12 @@ def rectify_maps(info: CameraInfoData, where: str) -> tuple[np.ndarray, np.ndarr
         D = np.zeros(4) if len(info.D) == 0 else np.asarray(info.D[:4], float)
         return cv2.fisheye.initUndistortRectifyMap(info.K, D, info.R, info.P[:3, :3], size, cv2.CV_16SC2)
     if model not in ("plumb_bob", "rational_polynomial", "radtan", ""):
-        raise CalibrationError(f"{where}: distortion model {info.distortion_model!r} not supported "
-                               "(plumb_bob, rational_polynomial, equidistant)")
+        raise CalibrationError(
+            f"{where}: distortion model {info.distortion_model!r} not supported "
+            "(plumb_bob, rational_polynomial, equidistant)"
+        )
     D = np.asarray(info.D, float) if len(info.D) else np.zeros(5)
     return cv2.initUndistortRectifyMap(info.K, D, info.R, info.P, size, cv2.CV_16SC2)
-
 
 
 # ---------------------------------------------------------------------------------------------
@@ -192,12 +221,14 @@ def _field(msg: Any, *names: str) -> Any:
 
 def info_from_msg(msg: Any) -> CameraInfoData:
     return CameraInfoData(
-        width=int(msg.width), height=int(msg.height),
+        width=int(msg.width),
+        height=int(msg.height),
         K=np.asarray(_field(msg, "k", "K"), float).reshape(3, 3),
         D=np.asarray(_field(msg, "d", "D"), float).ravel(),
         R=np.asarray(_field(msg, "r", "R"), float).reshape(3, 3),
         P=np.asarray(_field(msg, "p", "P"), float).reshape(3, 4),
-        distortion_model=str(msg.distortion_model), frame_id=str(msg.header.frame_id),
+        distortion_model=str(msg.distortion_model),
+        frame_id=str(msg.header.frame_id),
     )
 
 
@@ -235,6 +266,7 @@ def decode_image(msg: Any, msgtype: str, where: str, mono16_shift: int = MONO16_
     if enc in _GREY_FROM:
         ch, code = _GREY_FROM[enc]
         return cv2.cvtColor(np.ascontiguousarray(rows[:, : ch * w]).reshape(h, w, ch), code)
-    raise DataError(f"{where}: image encoding {msg.encoding!r} not supported "
-                    f"({', '.join((*_MONO8[:1], *_MONO16[:1], *_GREY_FROM))}, or CompressedImage)")
-
+    raise DataError(
+        f"{where}: image encoding {msg.encoding!r} not supported "
+        f"({', '.join((*_MONO8[:1], *_MONO16[:1], *_GREY_FROM))}, or CompressedImage)"
+    )

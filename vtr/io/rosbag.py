@@ -81,8 +81,18 @@ def _read_errors() -> tuple[type[BaseException], ...]:
     from rosbags.rosbag1 import ReaderError as ReaderError1
     from rosbags.rosbag2 import ReaderError as ReaderError2
 
-    errs: list[type[BaseException]] = [AnyReaderError, ReaderError1, ReaderError2, OSError, EOFError,
-                                       struct.error, ValueError, KeyError, IndexError, AssertionError]
+    errs: list[type[BaseException]] = [
+        AnyReaderError,
+        ReaderError1,
+        ReaderError2,
+        OSError,
+        EOFError,
+        struct.error,
+        ValueError,
+        KeyError,
+        IndexError,
+        AssertionError,
+    ]
     try:
         import apsw
 
@@ -90,6 +100,7 @@ def _read_errors() -> tuple[type[BaseException], ...]:
     except ImportError:  # pragma: no cover - apsw ships with rosbags
         pass
     return tuple(errs)
+
 
 # ---------------------------------------------------------------------------------------------
 # topic selection
@@ -111,13 +122,14 @@ def _pick_image_topic(topics: dict[str, str], hints: Sequence[str], side: str, w
     if len(cands) == 1:
         return cands[0]
     what = "several" if cands else "no"
-    raise DataError(f"{where}: {what} {side} image topic{'s' if cands else ''} found "
-                    f"({', '.join(cands) if cands else 'names containing ' + '/'.join(hints)}); image topics "
-                    f"in the bag: {', '.join(images) or 'none'}; pass {side}_topic (CLI --{side}-topic)")
+    raise DataError(
+        f"{where}: {what} {side} image topic{'s' if cands else ''} found "
+        f"({', '.join(cands) if cands else 'names containing ' + '/'.join(hints)}); image topics "
+        f"in the bag: {', '.join(images) or 'none'}; pass {side}_topic (CLI --{side}-topic)"
+    )
 
 
-def _pick_info_topic(topics: dict[str, str], image_topic: str, hints: Sequence[str], side: str,
-                     where: str) -> str:
+def _pick_info_topic(topics: dict[str, str], image_topic: str, hints: Sequence[str], side: str, where: str) -> str:
     infos = sorted(t for t, ty in topics.items() if ty == INFO_MSGTYPE)
     ns = _namespace(image_topic)
     same_ns = [t for t in infos if _namespace(t) == ns]
@@ -129,7 +141,8 @@ def _pick_info_topic(topics: dict[str, str], image_topic: str, hints: Sequence[s
     raise CalibrationError(
         f"{where}: no unique CameraInfo topic for {side} image topic {image_topic} (CameraInfo topics: "
         f"{', '.join(infos) or 'none'}); stereo calibration needs sensor_msgs/CameraInfo for both cameras; "
-        f"pass {side}_info_topic (CLI --{side}-info-topic)")
+        f"pass {side}_info_topic (CLI --{side}-info-topic)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -156,10 +169,18 @@ class RosbagSource(FrameSource):
 
     format_name = "rosbag"
 
-    def __init__(self, path: str | Path, left_topic: str | None = None, right_topic: str | None = None,
-                 left_info_topic: str | None = None, right_info_topic: str | None = None,
-                 pair_tolerance_ns: int = DEFAULT_PAIR_TOLERANCE_NS, allow_unpaired: bool = False,
-                 mono16_shift: int = MONO16_SHIFT, rectify: bool | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        left_topic: str | None = None,
+        right_topic: str | None = None,
+        left_info_topic: str | None = None,
+        right_info_topic: str | None = None,
+        pair_tolerance_ns: int = DEFAULT_PAIR_TOLERANCE_NS,
+        allow_unpaired: bool = False,
+        mono16_shift: int = MONO16_SHIFT,
+        rectify: bool | None = None,
+    ):
         from rosbags.highlevel import AnyReader  # rosbags only for a bag
         from rosbags.typesys import Stores, get_typestore
 
@@ -167,8 +188,9 @@ class RosbagSource(FrameSource):
         if not self.path.exists():
             raise FileNotFoundError(f"{self.path}: no such file or folder")
         if not is_rosbag(self.path):
-            raise DataError(f"{self.path}: not a ROS bag (.bag file, ROS 2 bag folder with metadata.yaml, "
-                            ".db3 or .mcap)")
+            raise DataError(
+                f"{self.path}: not a ROS bag (.bag file, ROS 2 bag folder with metadata.yaml, .db3 or .mcap)"
+            )
         self._errors = _read_errors()
         # opening and indexing also meet MemoryError: a damaged length field asks for absurd buffers
         self._damage_errors: tuple[type[BaseException], ...] = (*self._errors, MemoryError)
@@ -177,7 +199,7 @@ class RosbagSource(FrameSource):
         rpath = bag_reader_path(self.path)
         self.ros2 = rpath.suffix != ROS1_SUFFIX
         default = get_typestore(Stores.ROS2_HUMBLE if self.ros2 else Stores.ROS1_NOETIC)
-        self._reader: Any = None     # the open AnyReader
+        self._reader: Any = None  # the open AnyReader
         try:
             reader = AnyReader([rpath], default_typestore=default)
             reader.open()
@@ -185,11 +207,16 @@ class RosbagSource(FrameSource):
             raise
         except self._damage_errors as err:
             hint = " (a truncated ROS 1 bag can be repaired with `rosbag reindex`)" if not self.ros2 else ""
-            if "end magic" in str(err).lower():      # an MCAP file whose end (footer, index) is missing
-                hint = (" (the MCAP file does not end as MCAP files do: it was truncated, e.g. a recording or a "
-                        "copy cut short; `mcap recover FILE -o FIXED.mcap` of the mcap CLI rebuilds what is readable)")
-            reason = "a record length is absurd (damaged file)" if isinstance(err, MemoryError) else \
-                " ".join(str(err).split()) or type(err).__name__
+            if "end magic" in str(err).lower():  # an MCAP file whose end (footer, index) is missing
+                hint = (
+                    " (the MCAP file does not end as MCAP files do: it was truncated, e.g. a recording or a "
+                    "copy cut short; `mcap recover FILE -o FIXED.mcap` of the mcap CLI rebuilds what is readable)"
+                )
+            reason = (
+                "a record length is absurd (damaged file)"
+                if isinstance(err, MemoryError)
+                else " ".join(str(err).split()) or type(err).__name__
+            )
             raise DataError(f"{self.path}: cannot open bag: {reason}{hint}") from err
         self._reader = reader
         try:
@@ -200,8 +227,15 @@ class RosbagSource(FrameSource):
 
     # -- opening
 
-    def _setup(self, left_topic: str | None, right_topic: str | None, left_info_topic: str | None,
-               right_info_topic: str | None, allow_unpaired: bool, rectify: bool | None) -> None:
+    def _setup(
+        self,
+        left_topic: str | None,
+        right_topic: str | None,
+        left_info_topic: str | None,
+        right_info_topic: str | None,
+        allow_unpaired: bool,
+        rectify: bool | None,
+    ) -> None:
         reader = self._reader
         where = str(self.path)
         conns: dict[str, list] = {}
@@ -220,16 +254,28 @@ class RosbagSource(FrameSource):
                 raise DataError(f"{where}: topic {topic} is {topics[topic]}, expected {' or '.join(types)}")
             return topic
 
-        lt = check(left_topic, IMAGE_MSGTYPES, "left images") if left_topic else \
-            _pick_image_topic(topics, LEFT_HINTS, "left", where)
-        rt = check(right_topic, IMAGE_MSGTYPES, "right images") if right_topic else \
-            _pick_image_topic(topics, RIGHT_HINTS, "right", where)
+        lt = (
+            check(left_topic, IMAGE_MSGTYPES, "left images")
+            if left_topic
+            else _pick_image_topic(topics, LEFT_HINTS, "left", where)
+        )
+        rt = (
+            check(right_topic, IMAGE_MSGTYPES, "right images")
+            if right_topic
+            else _pick_image_topic(topics, RIGHT_HINTS, "right", where)
+        )
         if lt == rt:
             raise DataError(f"{where}: left and right image topics are both {lt}")
-        lit = check(left_info_topic, (INFO_MSGTYPE,), "left CameraInfo") if left_info_topic else \
-            _pick_info_topic(topics, lt, LEFT_HINTS, "left", where)
-        rit = check(right_info_topic, (INFO_MSGTYPE,), "right CameraInfo") if right_info_topic else \
-            _pick_info_topic(topics, rt, RIGHT_HINTS, "right", where)
+        lit = (
+            check(left_info_topic, (INFO_MSGTYPE,), "left CameraInfo")
+            if left_info_topic
+            else _pick_info_topic(topics, lt, LEFT_HINTS, "left", where)
+        )
+        rit = (
+            check(right_info_topic, (INFO_MSGTYPE,), "right CameraInfo")
+            if right_info_topic
+            else _pick_info_topic(topics, rt, RIGHT_HINTS, "right", where)
+        )
         if lit == rit:
             raise CalibrationError(f"{where}: left and right CameraInfo topics are both {lit}")
         self.left_topic, self.right_topic = lt, rt
@@ -247,12 +293,15 @@ class RosbagSource(FrameSource):
         T_root_left = self._tf_static_pose(conns, self.left_info.frame_id)
         T_raw_rect = np.eye(4)
         T_raw_rect[:3, :3] = self.left_info.R.T
-        self.camera = stereo_camera_from_info(self.left_info, self.right_info, f"{where} [{lit}, {rit}]",
-                                              T_root_left @ T_raw_rect)
+        self.camera = stereo_camera_from_info(
+            self.left_info, self.right_info, f"{where} [{lit}, {rit}]", T_root_left @ T_raw_rect
+        )
         self._maps: Any = None
         if raw:
-            self._maps = (rectify_maps(self.left_info, f"{where} [{lit}]"),
-                          rectify_maps(self.right_info, f"{where} [{rit}]"))
+            self._maps = (
+                rectify_maps(self.left_info, f"{where} [{lit}]"),
+                rectify_maps(self.right_info, f"{where} [{rit}]"),
+            )
         self._index(allow_unpaired)
 
     def _first_info(self, conns: list, topic: str) -> CameraInfoData:
@@ -261,8 +310,10 @@ class RosbagSource(FrameSource):
                 return info_from_msg(self._reader.deserialize(raw, c.msgtype))
         except self._errors as err:
             raise DataError(f"{self.path} [{topic}]: cannot read CameraInfo: {err}") from err
-        raise CalibrationError(f"{self.path}: CameraInfo topic {topic} has no message; stereo calibration "
-                               "needs sensor_msgs/CameraInfo for both cameras")
+        raise CalibrationError(
+            f"{self.path}: CameraInfo topic {topic} has no message; stereo calibration "
+            "needs sensor_msgs/CameraInfo for both cameras"
+        )
 
     def _tf_static_pose(self, conns: dict[str, list], frame: str) -> np.ndarray:
         """``T_root_frame`` from /tf_static (identity when absent)."""
@@ -303,34 +354,40 @@ class RosbagSource(FrameSource):
                 logs[c.topic].append(t)
                 counted += 1
         except self._damage_errors as err:
-            raise DataError(f"{self.path}: bag is truncated or corrupt: read error after {counted} image "
-                            f"messages on {self.left_topic}, {self.right_topic}: {err}") from err
+            raise DataError(
+                f"{self.path}: bag is truncated or corrupt: read error after {counted} image "
+                f"messages on {self.left_topic}, {self.right_topic}: {err}"
+            ) from err
         for s in (self._left, self._right):
             s.stamps = np.frombuffer(stamps[s.topic], np.int64).copy()
             s.logs = np.frombuffer(logs[s.topic], np.int64).copy()
             expected = sum(int(getattr(c, "msgcount", 0) or 0) for c in s.conn)
             if expected and expected != len(s.stamps):
-                raise DataError(f"{self.path}: topic {s.topic}: the bag index lists {expected} messages but "
-                                f"{len(s.stamps)} could be read (truncated or partial bag)")
+                raise DataError(
+                    f"{self.path}: topic {s.topic}: the bag index lists {expected} messages but "
+                    f"{len(s.stamps)} could be read (truncated or partial bag)"
+                )
             if len(s.stamps) == 0:
                 raise DataError(f"{self.path}: image topic {s.topic} has no message")
             order = np.argsort(s.stamps, kind="stable")
             s.stamps, s.logs = s.stamps[order], s.logs[order]
             dup = np.flatnonzero(np.diff(s.stamps) == 0)
             if len(dup):
-                raise DataError(f"{self.path}: topic {s.topic} has two images with header stamp "
-                                f"{s.stamps[dup[0]]} ns")
+                raise DataError(f"{self.path}: topic {s.topic} has two images with header stamp {s.stamps[dup[0]]} ns")
         li, ri = _pair(self._left.stamps, self._right.stamps, self.pair_tolerance_ns)
         nl, nr = len(self._left.stamps), len(self._right.stamps)
         self.unpaired = (nl - len(li), nr - len(ri))
         if len(li) == 0:
-            raise DataError(f"{self.path}: no left image on {self.left_topic} has a right image on "
-                            f"{self.right_topic} within {self.pair_tolerance_ns} ns")
+            raise DataError(
+                f"{self.path}: no left image on {self.left_topic} has a right image on "
+                f"{self.right_topic} within {self.pair_tolerance_ns} ns"
+            )
         if (len(li) != nl or len(ri) != nr) and not allow_unpaired:
             raise DataError(
                 f"{self.path}: left topic {self.left_topic} has {nl} images and right topic {self.right_topic} "
                 f"has {nr}; only {len(li)} pairs match by header stamp within {self.pair_tolerance_ns} ns "
-                "(pass allow_unpaired=True, CLI --allow-unpaired, to use the matched pairs only)")
+                "(pass allow_unpaired=True, CLI --allow-unpaired, to use the matched pairs only)"
+            )
         self._l_stamp, self._l_log = self._left.stamps[li], self._left.logs[li]
         self._r_stamp, self._r_log = self._right.stamps[ri], self._right.logs[ri]
         self._t_ns = self._l_stamp.copy()
@@ -366,8 +423,10 @@ class RosbagSource(FrameSource):
                     return raw
         except self._errors as err:
             raise DataError(f"{self.path} [{side.topic} frame {index}]: read error: {err}") from err
-        raise DataError(f"{self.path} [{side.topic}]: message of frame {index} (stamp {stamp_ns} ns) "
-                        "not found on re-read (bag changed or corrupt)")
+        raise DataError(
+            f"{self.path} [{side.topic}]: message of frame {index} (stamp {stamp_ns} ns) "
+            "not found on re-read (bag changed or corrupt)"
+        )
 
     def _load(self, index: int) -> StereoImages:
         self._check_open()
@@ -391,16 +450,19 @@ class RosbagSource(FrameSource):
             for i in sel:
                 yield self._load(i)
             return
-        want = {self.left_topic: {int(self._l_stamp[i]): i for i in sel},
-                self.right_topic: {int(self._r_stamp[i]): i for i in sel}}
+        want = {
+            self.left_topic: {int(self._l_stamp[i]): i for i in sel},
+            self.right_topic: {int(self._r_stamp[i]): i for i in sel},
+        }
         idx = np.asarray(sel)
         start = int(min(self._l_log[idx].min(), self._r_log[idx].min()))
         stop = int(max(self._l_log[idx].max(), self._r_log[idx].max())) + 1
         pending: dict[int, list] = {}
         pos = 0
         try:
-            for c, _t, raw in self._reader.messages(connections=[*self._left.conn, *self._right.conn],
-                                                    start=start, stop=stop):
+            for c, _t, raw in self._reader.messages(
+                connections=[*self._left.conn, *self._right.conn], start=start, stop=stop
+            ):
                 k = want[c.topic].get(header_stamp_ns(raw, self.ros2))
                 if k is None:
                     continue
@@ -412,11 +474,14 @@ class RosbagSource(FrameSource):
                     pos += 1
                     yield frame
         except self._errors as err:
-            raise DataError(f"{self.path}: read error after {pos} of {len(sel)} frames (truncated or "
-                            f"corrupt bag): {err}") from err
+            raise DataError(
+                f"{self.path}: read error after {pos} of {len(sel)} frames (truncated or corrupt bag): {err}"
+            ) from err
         if pos < len(sel):
-            raise DataError(f"{self.path}: bag ended after {pos} of {len(sel)} frames: frame {sel[pos]} "
-                            f"(t {int(self._t_ns[sel[pos]])} ns) is missing its left or right image")
+            raise DataError(
+                f"{self.path}: bag ended after {pos} of {len(sel)} frames: frame {sel[pos]} "
+                f"(t {int(self._t_ns[sel[pos]])} ns) is missing its left or right image"
+            )
 
     def _check_open(self) -> None:
         if self._reader is None:

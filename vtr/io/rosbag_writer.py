@@ -55,11 +55,19 @@ class RosbagWriter:
     one camera's image (and CameraInfo), for bags whose cameras are not paired one to one.
     """
 
-    def __init__(self, path: str | Path, camera: StereoCamera, kind: str = "rosbag1",
-                 topics: BagTopics | None = None, encoding: str = "mono8",
-                 infos: tuple[CameraInfoData, CameraInfoData] | None = None,
-                 write_info: bool = True, write_tf: bool = True, base_frame: str = "base_link",
-                 T_base_left: np.ndarray | None = None):
+    def __init__(
+        self,
+        path: str | Path,
+        camera: StereoCamera,
+        kind: str = "rosbag1",
+        topics: BagTopics | None = None,
+        encoding: str = "mono8",
+        infos: tuple[CameraInfoData, CameraInfoData] | None = None,
+        write_info: bool = True,
+        write_tf: bool = True,
+        base_frame: str = "base_link",
+        T_base_left: np.ndarray | None = None,
+    ):
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # rosbags only when a bag is written
 
         if kind not in BAG_KINDS:
@@ -67,7 +75,7 @@ class RosbagWriter:
         if encoding not in (*_MONO8[:1], *_MONO16[:1], "bgr8", "rgb8", *_COMPRESSED_FORMATS):
             raise DataError(f"encoding {encoding!r} not supported for writing")
         self.path = Path(path)
-        check_new_output(self.path, can_force=False)       # the rule's owner: nothing is replaced, no link followed
+        check_new_output(self.path, can_force=False)  # the rule's owner: nothing is replaced, no link followed
         if kind == "rosbag1" and self.path.suffix != ROS1_SUFFIX:
             raise DataError(f"{self.path}: a ROS 1 bag file name must end in {ROS1_SUFFIX}")
         self.kind, self.encoding, self.camera = kind, encoding, camera
@@ -95,8 +103,10 @@ class RosbagWriter:
         img_type = COMPRESSED_MSGTYPE if encoding in _COMPRESSED_FORMATS else IMAGE_MSGTYPE
         self._img_type = img_type
         add = self._writer.add_connection
-        self._conn = {"left": add(self.topics.left, img_type, typestore=self.ts),
-                      "right": add(self.topics.right, img_type, typestore=self.ts)}
+        self._conn = {
+            "left": add(self.topics.left, img_type, typestore=self.ts),
+            "right": add(self.topics.right, img_type, typestore=self.ts),
+        }
         if write_info:
             self._conn["left_info"] = add(self.topics.left_info, INFO_MSGTYPE, typestore=self.ts)
             self._conn["right_info"] = add(self.topics.right_info, INFO_MSGTYPE, typestore=self.ts)
@@ -125,8 +135,9 @@ class RosbagWriter:
         want = {"mono8": (np.uint8, 2), "mono16": (np.uint16, 2), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
         dtype, ndim = want[self.encoding]
         if img.dtype != dtype or img.ndim != ndim or (ndim == 3 and img.shape[2] != 3):
-            raise DataError(f"{self.encoding} needs a {np.dtype(dtype).name} image with {ndim} dims, "
-                            f"got {img.dtype} {img.shape}")
+            raise DataError(
+                f"{self.encoding} needs a {np.dtype(dtype).name} image with {ndim} dims, got {img.dtype} {img.shape}"
+            )
         h, w = img.shape[:2]
         if (w, h) != (self.infos[0].width, self.infos[0].height):
             raise DataError(f"image is {w}x{h} but the calibration says {self.infos[0].width}x{self.infos[0].height}")
@@ -134,19 +145,31 @@ class RosbagWriter:
         if img.dtype == np.uint16:
             img = img.astype("<u2")
         data = img.reshape(-1).view(np.uint8)
-        return T[IMAGE_MSGTYPE](header=header, height=h, width=w, encoding=self.encoding, is_bigendian=0,
-                                step=data.size // h, data=data)
+        return T[IMAGE_MSGTYPE](
+            header=header, height=h, width=w, encoding=self.encoding, is_bigendian=0, step=data.size // h, data=data
+        )
 
     def _info_msg(self, t_ns: int, info: CameraInfoData) -> Any:
         T = self.ts.types
         roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        mats = {"d": np.asarray(info.D, float), "k": np.asarray(info.K, float).ravel(),
-                "r": np.asarray(info.R, float).ravel(), "p": np.asarray(info.P, float).ravel()}
+        mats = {
+            "d": np.asarray(info.D, float),
+            "k": np.asarray(info.K, float).ravel(),
+            "r": np.asarray(info.R, float).ravel(),
+            "p": np.asarray(info.P, float).ravel(),
+        }
         if not self.ros2:
             mats = {k.upper(): v for k, v in mats.items()}
-        return T[INFO_MSGTYPE](header=self._header(t_ns, info.frame_id), height=info.height, width=info.width,
-                               distortion_model=info.distortion_model, binning_x=0, binning_y=0, roi=roi,
-                               **mats)
+        return T[INFO_MSGTYPE](
+            header=self._header(t_ns, info.frame_id),
+            height=info.height,
+            width=info.width,
+            distortion_model=info.distortion_model,
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **mats,
+        )
 
     def _tf_msg(self, t_ns: int) -> Any:
         T = self.ts.types
@@ -154,9 +177,11 @@ class RosbagWriter:
         q = Rotation.from_matrix(Tm[:3, :3]).as_quat()
         tr = T["geometry_msgs/msg/Transform"](
             translation=T["geometry_msgs/msg/Vector3"](x=Tm[0, 3], y=Tm[1, 3], z=Tm[2, 3]),
-            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
-        ts = T["geometry_msgs/msg/TransformStamped"](header=self._header(t_ns, self.base_frame),
-                                                     child_frame_id=self.infos[0].frame_id, transform=tr)
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+        ts = T["geometry_msgs/msg/TransformStamped"](
+            header=self._header(t_ns, self.base_frame), child_frame_id=self.infos[0].frame_id, transform=tr
+        )
         return T[TF_MSGTYPE](transforms=[ts])
 
     def _write(self, key: str, t_ns: int, msg: Any) -> None:
@@ -196,15 +221,16 @@ class RosbagWriter:
     def __enter__(self) -> RosbagWriter:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
 
 #: MCAP record opcodes and layout this module reads (https://mcap.dev/spec): magic, Chunk and DataEnd records.
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MCAP_CHUNK, _MCAP_DATA_END = 0x06, 0x0F
-_CHUNK_CRC_AT = 24                 # the uncompressed CRC follows start time, end time and uncompressed size
+_CHUNK_CRC_AT = 24  # the uncompressed CRC follows start time, end time and uncompressed size
 
 
 def add_mcap_chunk_crcs(path: Path) -> int:
@@ -229,20 +255,21 @@ def add_mcap_chunk_crcs(path: Path) -> int:
                 break
             if op == _MCAP_CHUNK:
                 (name_len,) = struct.unpack_from("<I", data, body + 28)
-                compression = data[body + 32:body + 32 + name_len]
+                compression = data[body + 32 : body + 32 + name_len]
                 records_at = body + 32 + name_len + 8
                 (size,) = struct.unpack_from("<Q", data, records_at - 8)
                 if compression == b"":
-                    struct.pack_into("<I", data, body + _CHUNK_CRC_AT, crc32(data[records_at:records_at + size]))
+                    struct.pack_into("<I", data, body + _CHUNK_CRC_AT, crc32(data[records_at : records_at + size]))
                     f.seek(body + _CHUNK_CRC_AT)
-                    f.write(data[body + _CHUNK_CRC_AT:body + _CHUNK_CRC_AT + 4])
+                    f.write(data[body + _CHUNK_CRC_AT : body + _CHUNK_CRC_AT + 4])
                     n += 1
             pos = body + length
     return n
 
 
-def write_bag(path: str | Path, frames: Iterable[StereoImages], camera: StereoCamera, kind: str = "rosbag1",
-              **kwargs: Any) -> int:
+def write_bag(
+    path: str | Path, frames: Iterable[StereoImages], camera: StereoCamera, kind: str = "rosbag1", **kwargs: Any
+) -> int:
     """Write ``frames`` to a new bag; returns the number of frames written."""
     with RosbagWriter(path, camera, kind=kind, **kwargs) as w:
         for f in frames:

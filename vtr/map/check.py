@@ -24,7 +24,7 @@ class CheckReport:
     runs: int
     vertices: int
     edges: int
-    checksums: bool                    # the map has checksums (created by a vtr with them)
+    checksums: bool  # the map has checksums (created by a vtr with them)
 
 
 def check_map(m: Map) -> CheckReport:
@@ -35,19 +35,19 @@ def check_map(m: Map) -> CheckReport:
         if [tuple(r) for r in result] != [("ok",)]:
             raise MapError(f"{where}: the SQLite file is damaged ({str(result[0][0]).splitlines()[0]})")
         sums = checksummed(conn, where)
-    runs = m.runs()                           # checks the runs table
+    runs = m.runs()  # checks the runs table
     with m.file.connection() as conn:
         check_vertex_runs(conn, where)
     n_vertices = 0
     for run in runs:
-        ids, T = m.poses(run.id)              # checksums of the rows, when the map has them
+        ids, T = m.poses(run.id)  # checksums of the rows, when the map has them
         check_poses(where, ids, T)
         _, t = m.timestamps(run.id)
         back = np.diff(t) <= 0
         if back.any():
             raise damaged(where, int(ids[int(np.argmax(back)) + 1]), "its time is not after the previous vertex's")
         for vid in ids:
-            m.vertex(int(vid), cached=False)   # checksum of the blob, then the codec's checks
+            m.vertex(int(vid), cached=False)  # checksum of the blob, then the codec's checks
         n_vertices += len(ids)
     if any(r.privileged for r in runs):
         check_taught_path(where, m.taught_path())
@@ -64,6 +64,10 @@ def check_map(m: Map) -> CheckReport:
                 raise MapError(f"{where}: temporal edge {e.from_id}->{e.to_id} does not join two vertices of a run")
             d = inv_T(pose[e.from_id]) @ pose[e.to_id] - e.T_from_to
             if np.abs(d).max() > EDGE_TOL_M * max(1.0, float(np.abs(e.T_from_to[:3, 3]).max())):
-                raise damaged(where, e.to_id, f"its pose disagrees with the temporal edge from {e.from_id} by "
-                                               f"{float(np.abs(d[:3, 3]).max()):.3g} m (a moved vertex)")
+                raise damaged(
+                    where,
+                    e.to_id,
+                    f"its pose disagrees with the temporal edge from {e.from_id} by "
+                    f"{float(np.abs(d[:3, 3]).max()):.3g} m (a moved vertex)",
+                )
     return CheckReport(len(runs), n_vertices, len(edges), sums)

@@ -24,7 +24,7 @@ from .damage import damaged
 from .database import Connection
 
 TABLE = "vertex_checksums"
-META_KEY = "checksums"               # meta value on maps created with checksums
+META_KEY = "checksums"  # meta value on maps created with checksums
 META_VALUE = "blake2b-8 v1"
 SUM_BYTES = 8
 
@@ -40,8 +40,9 @@ CREATE TRIGGER {TABLE}_append_only_delete BEFORE DELETE ON {TABLE}
 BEGIN SELECT RAISE(ABORT, 'map checksums are immutable'); END;
 """
 
-ROW_COLUMNS = "v.id, v.run, v.idx, v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.n_features, v.n_landmarks, " \
-              "v.frame_index"
+ROW_COLUMNS = (
+    "v.id, v.run, v.idx, v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.n_features, v.n_landmarks, v.frame_index"
+)
 
 
 def _int(v: object) -> int:
@@ -50,12 +51,24 @@ def _int(v: object) -> int:
     return v
 
 
-def row_sum(vid: object, run: object, idx: object, t_ns: object, T_wv: object, T_vs: object, n_features: object,
-            n_landmarks: object, frame_index: object) -> bytes:
+def row_sum(
+    vid: object,
+    run: object,
+    idx: object,
+    t_ns: object,
+    T_wv: object,
+    T_vs: object,
+    n_features: object,
+    n_landmarks: object,
+    frame_index: object,
+) -> bytes:
     """The checksum of a vertex row (``TypeError`` when a field is not of its stored type)."""
     h = hashlib.blake2b(digest_size=SUM_BYTES, person=b"vtr-vertex-row")
-    h.update(struct.pack("<7q", _int(vid), _int(run), _int(idx), _int(t_ns), _int(n_features), _int(n_landmarks),
-                         _int(frame_index)))
+    h.update(
+        struct.pack(
+            "<7q", _int(vid), _int(run), _int(idx), _int(t_ns), _int(n_features), _int(n_landmarks), _int(frame_index)
+        )
+    )
     if not isinstance(T_wv, bytes) or not isinstance(T_vs, bytes):
         raise TypeError("poses are not blobs")
     h.update(T_wv)
@@ -88,8 +101,9 @@ def checksummed(conn: Connection, where: str) -> bool:
         problem = f"meta {META_KEY!r} is {row[0]!r}, this vtr writes {META_VALUE!r}"
     else:
         return True
-    raise MapError(f"{where}: the map's checksum metadata is damaged ({problem}); the map file was changed after "
-                   "vtr wrote it")
+    raise MapError(
+        f"{where}: the map's checksum metadata is damaged ({problem}); the map file was changed after vtr wrote it"
+    )
 
 
 def create(conn: Connection) -> None:
@@ -98,12 +112,24 @@ def create(conn: Connection) -> None:
     conn.execute("INSERT INTO meta(key, value) VALUES (?, ?)", (META_KEY, META_VALUE))
 
 
-def write(conn: Connection, vid: int, run: int, idx: int, t_ns: int, T_wv: bytes, T_vs: bytes,
-          n_features: int, n_landmarks: int, frame_index: int, blob: bytes) -> None:
+def write(
+    conn: Connection,
+    vid: int,
+    run: int,
+    idx: int,
+    t_ns: int,
+    T_wv: bytes,
+    T_vs: bytes,
+    n_features: int,
+    n_landmarks: int,
+    frame_index: int,
+    blob: bytes,
+) -> None:
     """The checksums of a vertex being inserted (same transaction)."""
-    conn.execute(f"INSERT INTO {TABLE}(id, row_sum, data_sum) VALUES (?, ?, ?)",
-                 (vid, row_sum(vid, run, idx, t_ns, T_wv, T_vs, n_features, n_landmarks, frame_index),
-                  data_sum(vid, blob)))
+    conn.execute(
+        f"INSERT INTO {TABLE}(id, row_sum, data_sum) VALUES (?, ?, ?)",
+        (vid, row_sum(vid, run, idx, t_ns, T_wv, T_vs, n_features, n_landmarks, frame_index), data_sum(vid, blob)),
+    )
 
 
 def verify_rows(conn: Connection, where: str, lo: int, hi: int, data: bool = False) -> int:
@@ -111,8 +137,11 @@ def verify_rows(conn: Connection, where: str, lo: int, hi: int, data: bool = Fal
     how many were checked. ``MapError`` naming the first damaged vertex."""
     cols = ROW_COLUMNS + ", c.row_sum, c.data_sum" + (", d.data" if data else "")
     join = " LEFT JOIN vertex_data d ON d.id = v.id" if data else ""
-    rows = conn.execute(f"SELECT {cols} FROM vertices v LEFT JOIN {TABLE} c ON c.id = v.id{join} "
-                        "WHERE v.id BETWEEN ? AND ? ORDER BY v.id", (lo, hi)).fetchall()
+    rows = conn.execute(
+        f"SELECT {cols} FROM vertices v LEFT JOIN {TABLE} c ON c.id = v.id{join} "
+        "WHERE v.id BETWEEN ? AND ? ORDER BY v.id",
+        (lo, hi),
+    ).fetchall()
     for r in rows:
         check_row(where, r, data)
     return len(rows)

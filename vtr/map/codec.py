@@ -28,9 +28,9 @@ VERTEX_ARRAYS: tuple[tuple[str, np.dtype, tuple[int, ...]], ...] = (
     ("u_right", np.dtype("<f8"), ()),
     ("points", np.dtype("<f8"), (3,)),
 )
-BLOB_MAGIC = b"VTRV\x02"             # vertex blob: magic + codec version
-COUNT_BYTES = 4                      # uint32 feature count after the magic
-RAW_ARRAYS = ("descriptors",)        # stored as is: binary descriptors are random bits, zlib gains nothing
+BLOB_MAGIC = b"VTRV\x02"  # vertex blob: magic + codec version
+COUNT_BYTES = 4  # uint32 feature count after the magic
+RAW_ARRAYS = ("descriptors",)  # stored as is: binary descriptors are random bits, zlib gains nothing
 ROW_BYTES = {name: dtype.itemsize * int(np.prod(tail, dtype=np.int64)) for name, dtype, tail in VERTEX_ARRAYS}
 
 
@@ -53,8 +53,9 @@ def readonly(a: np.ndarray) -> np.ndarray:
 def _frame(t_ns: int, index: int, arrays: dict[str, np.ndarray]) -> StereoFrame:
     a = {name: readonly(v) for name, v in arrays.items()}
     response = readonly(np.zeros(len(a["uv"])))
-    return StereoFrame(int(t_ns), int(index), Features(a["uv"], a["octave"], response, a["descriptors"]),
-                       a["u_right"], a["points"])
+    return StereoFrame(
+        int(t_ns), int(index), Features(a["uv"], a["octave"], response, a["descriptors"]), a["u_right"], a["points"]
+    )
 
 
 def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
@@ -62,8 +63,11 @@ def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
     inconsistent lengths or shapes, or on a lossy dtype conversion)."""
     try:
         src = {
-            "uv": frame.features.uv, "octave": frame.features.octave,
-            "descriptors": frame.features.descriptors, "u_right": frame.u_right, "points": frame.points,
+            "uv": frame.features.uv,
+            "octave": frame.features.octave,
+            "descriptors": frame.features.descriptors,
+            "u_right": frame.u_right,
+            "points": frame.points,
         }
     except AttributeError as err:
         raise MapError(f"frame: not a StereoFrame ({err})") from err
@@ -72,8 +76,11 @@ def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
     for name, dtype, tail in VERTEX_ARRAYS:
         a = np.asarray(src[name])
         if a.ndim != 1 + len(tail) or a.shape[1:] != tail:
-            raise MapError(f"frame {name}: expected shape (N, {', '.join(map(str, tail))}) got {a.shape}"
-                           if tail else f"frame {name}: expected shape (N,), got {a.shape}")
+            raise MapError(
+                f"frame {name}: expected shape (N, {', '.join(map(str, tail))}) got {a.shape}"
+                if tail
+                else f"frame {name}: expected shape (N,), got {a.shape}"
+            )
         n = len(a) if n is None else n
         if len(a) != n:
             raise MapError(f"frame {name}: {len(a)} rows, but uv has {n}")
@@ -90,7 +97,7 @@ def _stored_arrays(frame: StereoFrame) -> dict[str, np.ndarray]:
     return out
 
 
-MAX_LANDMARK_M = 1e6                 # no stereo pair triangulates a point this far (1000 km): damaged data
+MAX_LANDMARK_M = 1e6  # no stereo pair triangulates a point this far (1000 km): damaged data
 
 
 def check_landmarks_in_front(points: np.ndarray, where: str) -> None:
@@ -104,8 +111,10 @@ def check_landmarks_in_front(points: np.ndarray, where: str) -> None:
     far = np.abs(np.nan_to_num(points)).max(axis=1) > MAX_LANDMARK_M if len(points) else np.zeros(0, bool)
     if far.any():
         k = int(np.argmax(far))
-        raise MapError(f"{where}: landmark {k} of {len(points)} is {np.abs(points[k]).max():.3g} m away "
-                       f"(more than {MAX_LANDMARK_M:g} m)")
+        raise MapError(
+            f"{where}: landmark {k} of {len(points)} is {np.abs(points[k]).max():.3g} m away "
+            f"(more than {MAX_LANDMARK_M:g} m)"
+        )
     z = points[:, 2]
     behind = np.isfinite(points).all(axis=1) & ~(z > 0)
     if behind.any():
@@ -145,7 +154,7 @@ def decode_frame(blob: bytes, t_ns: int, index: int, where: str) -> StereoFrame:
     n = int(np.frombuffer(blob, dtype="<u4", count=1, offset=len(BLOB_MAGIC))[0])
     raw_size = n * sum(ROW_BYTES[name] for name in RAW_ARRAYS)
     try:
-        packed = zlib.decompress(blob[head + raw_size:])
+        packed = zlib.decompress(blob[head + raw_size :])
     except zlib.error as err:
         raise MapError(f"{where}: vertex data is damaged ({err})") from err
     if len(blob) < head + raw_size or len(packed) != n * sum(ROW_BYTES.values()) - raw_size:
@@ -154,8 +163,11 @@ def decode_frame(blob: bytes, t_ns: int, index: int, where: str) -> StereoFrame:
     for name, dtype, tail in VERTEX_ARRAYS:
         source, key = (blob, "raw") if name in RAW_ARRAYS else (packed, "packed")
         size = n * ROW_BYTES[name]
-        out[name] = np.frombuffer(source, dtype=dtype, count=size // dtype.itemsize, offset=offsets[key]).reshape(
-            (n, *tail)).astype(dtype.newbyteorder("="), copy=False)
+        out[name] = (
+            np.frombuffer(source, dtype=dtype, count=size // dtype.itemsize, offset=offsets[key])
+            .reshape((n, *tail))
+            .astype(dtype.newbyteorder("="), copy=False)
+        )
         offsets[key] += size
     check_landmarks_in_front(out["points"], where)
     return _frame(t_ns, index, out)

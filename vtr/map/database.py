@@ -35,23 +35,23 @@ from perception_model.inputs import input_problem
 from ..errors import MapError, VtrError
 from .lock import MapLock
 
-APPLICATION_ID = 0x56545231          # "VTR1" in the SQLite header marks the file as a vtr map
+APPLICATION_ID = 0x56545231  # "VTR1" in the SQLite header marks the file as a vtr map
 SQLITE_MAGIC = b"SQLite format 3\x00"
-BUSY_TIMEOUT_MS = 10_000             # wait for another connection's write lock before failing
-SYNCHRONOUS = "FULL"                 # fsync the WAL at every commit: durable across power loss too
+BUSY_TIMEOUT_MS = 10_000  # wait for another connection's write lock before failing
+SYNCHRONOUS = "FULL"  # fsync the WAL at every commit: durable across power loss too
 SIDE_FILES = ("-wal", "-shm", "-journal")  # SQLite's files beside a map
-CREATING_SUFFIX = ".creating"        # temporary name of a map being created (hard-linked when complete)
-NEW_FILE_MODE = 0o666                # a created map's mode before the umask (as open(2) makes files)
-COPIED_FILE_MODE = 0o644             # mode of a map created by copy where hard links are missing
+CREATING_SUFFIX = ".creating"  # temporary name of a map being created (hard-linked when complete)
+NEW_FILE_MODE = 0o666  # a created map's mode before the umask (as open(2) makes files)
+COPIED_FILE_MODE = 0o644  # mode of a map created by copy where hard links are missing
 # the write-ahead log's format (sqlite.org/fileformat2.html#the_write_ahead_log): a 32-byte header, then frames of
 # a 24-byte header and one page; the magic's last bit says whether checksums are big-endian
 WAL_MAGIC = (0x377F0682, 0x377F0683)
-WAL_HEADER = struct.Struct(">IIIIIIII")   # magic, version, page size, checkpoint seq, salt-1, salt-2, cksum-1, -2
-WAL_FRAME = struct.Struct(">IIIIII")      # page number, db size after commit (0: not a commit), salts, checksums
+WAL_HEADER = struct.Struct(">IIIIIIII")  # magic, version, page size, checkpoint seq, salt-1, salt-2, cksum-1, -2
+WAL_FRAME = struct.Struct(">IIIIII")  # page number, db size after commit (0: not a commit), salts, checksums
 WAL_WORD_MASK = 0xFFFFFFFF
-WAL_MIN_PAGE_SIZE = 512                   # SQLite's smallest page: a header with less is not a log
+WAL_MIN_PAGE_SIZE = 512  # SQLite's smallest page: a header with less is not a log
 
-Connection = sqlite3.Connection      # an open map file's SQLite connection (``MapFile.conn``)
+Connection = sqlite3.Connection  # an open map file's SQLite connection (``MapFile.conn``)
 
 T = TypeVar("T")
 M = TypeVar("M")
@@ -64,8 +64,9 @@ def connect(path: Path, readonly: bool, immutable: bool = False) -> Connection:
         target, uri = path.absolute().as_uri() + ("?immutable=1" if immutable else "?mode=ro"), True
     else:
         target, uri = str(path), False
-    conn = sqlite3.connect(target, uri=uri, isolation_level=None, check_same_thread=False,
-                           timeout=BUSY_TIMEOUT_MS / 1000)
+    conn = sqlite3.connect(
+        target, uri=uri, isolation_level=None, check_same_thread=False, timeout=BUSY_TIMEOUT_MS / 1000
+    )
     conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
     conn.execute("PRAGMA foreign_keys = ON")
     if readonly:
@@ -79,8 +80,7 @@ def _read_only_storage(err: BaseException) -> bool:
     """Whether ``err`` is SQLite (or the OS) refusing to write a read-only file or folder."""
     if isinstance(err, PermissionError):
         return True
-    return isinstance(err, sqlite3.OperationalError) and (
-        "readonly" in str(err) or "unable to open" in str(err))
+    return isinstance(err, sqlite3.OperationalError) and ("readonly" in str(err) or "unable to open" in str(err))
 
 
 def connect_readonly(path: Path) -> Connection:
@@ -95,9 +95,10 @@ def connect_readonly(path: Path) -> Connection:
         conn.close()
         wal = Path(f"{path}-wal")
         if wal.exists() and wal.stat().st_size > 0:
-            raise MapError(f"{path}: cannot open read-only ({err}) and {wal.name} holds data not yet in the map: "
-                           "open it once where it can be written (vtr map info on a writable copy of both files)"
-                           ) from err
+            raise MapError(
+                f"{path}: cannot open read-only ({err}) and {wal.name} holds data not yet in the map: "
+                "open it once where it can be written (vtr map info on a writable copy of both files)"
+            ) from err
     return connect(path, readonly=True, immutable=True)
 
 
@@ -128,10 +129,10 @@ def unfolded_wal_pages(path: Path) -> int:
     if magic not in WAL_MAGIC or page_size < WAL_MIN_PAGE_SIZE or page_size & (page_size - 1):
         return 0
     big = magic == WAL_MAGIC[1]
-    s = _wal_checksum(log[:WAL_HEADER.size - 8], 0, 0, big)
+    s = _wal_checksum(log[: WAL_HEADER.size - 8], 0, 0, big)
     if s != (c0, c1):
-        return 0                           # SQLite ignores a log whose header is not valid
-    pages: dict[int, int] = {}             # page number -> offset of its latest committed frame
+        return 0  # SQLite ignores a log whose header is not valid
+    pages: dict[int, int] = {}  # page number -> offset of its latest committed frame
     pending: dict[int, int] = {}
     db_pages = 0
     off = WAL_HEADER.size
@@ -139,8 +140,8 @@ def unfolded_wal_pages(path: Path) -> int:
         pgno, commit, f1, f2, k0, k1 = WAL_FRAME.unpack_from(log, off)
         if (f1, f2) != (salt1, salt2):
             break
-        s = _wal_checksum(log[off:off + 8], *s, big)
-        s = _wal_checksum(log[off + WAL_FRAME.size:off + WAL_FRAME.size + page_size], *s, big)
+        s = _wal_checksum(log[off : off + 8], *s, big)
+        s = _wal_checksum(log[off + WAL_FRAME.size : off + WAL_FRAME.size + page_size], *s, big)
         if s != (k0, k1):
             break
         pending[pgno] = off + WAL_FRAME.size
@@ -157,9 +158,9 @@ def unfolded_wal_pages(path: Path) -> int:
             return max(1, db_pages - os.fstat(f.fileno()).st_size // page_size)
         for pgno, at in pages.items():
             if pgno > db_pages:
-                continue                   # truncated away by a later commit
+                continue  # truncated away by a later commit
             f.seek((pgno - 1) * page_size)
-            differ += f.read(page_size) != log[at:at + page_size]
+            differ += f.read(page_size) != log[at : at + page_size]
     return differ
 
 
@@ -169,8 +170,10 @@ def check_side_files(path: Path) -> None:
     for suffix in SIDE_FILES:
         side = Path(f"{path}{suffix}")
         if side.is_symlink():
-            raise MapError(f"{side}: SQLite's {suffix[1:]} file beside the map is a symbolic link; a map's side files "
-                           "are never read or written through a link (remove it; the map itself is untouched)")
+            raise MapError(
+                f"{side}: SQLite's {suffix[1:]} file beside the map is a symbolic link; a map's side files "
+                "are never read or written through a link (remove it; the map itself is untouched)"
+            )
         if side.exists() and not side.is_file():
             raise MapError(f"{side}: SQLite's {suffix[1:]} file beside the map is not a regular file (remove it)")
 
@@ -183,7 +186,7 @@ def remove_map_files(path: Path) -> None:
 
 def copy_map_file(src: Path, dst: Path) -> None:
     """Copy a closed map file consistently to ``dst`` (SQLite's online backup: WAL content included)."""
-    s, d = sqlite3.connect(src), sqlite3.connect(dst)   # read-write: the last one out removes the WAL files
+    s, d = sqlite3.connect(src), sqlite3.connect(dst)  # read-write: the last one out removes the WAL files
     try:
         s.backup(d)
     finally:
@@ -223,8 +226,10 @@ def _create_by_copy(tmp: Path, path: Path, tmp_lock: MapLock) -> MapLock:
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, COPIED_FILE_MODE)
     except FileExistsError:
-        raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
-                       "first, or remove it and choose another path)") from None
+        raise MapError(
+            f"{path} already exists: refusing to overwrite a map (another process created it "
+            "first, or remove it and choose another path)"
+        ) from None
     try:
         lock = MapLock.writer(path, os.open(path, os.O_RDONLY))
     except BaseException:
@@ -280,13 +285,15 @@ class MapFile:
         On any error (in ``build`` too) the files this call made are removed and its lock released.
         """
         if path.is_dir():
-            raise MapError(f"{path} is a directory: a vtr map is one SQLite file, give a file path such as "
-                           f"{path / 'route.vtrmap'}")
-        check_side_files(path)               # a dangling link there would take the new map's log elsewhere
+            raise MapError(
+                f"{path} is a directory: a vtr map is one SQLite file, give a file path such as {path / 'route.vtrmap'}"
+            )
+        check_side_files(path)  # a dangling link there would take the new map's log elsewhere
         leftovers = [p for p in (path, Path(f"{path}-wal"), Path(f"{path}-journal")) if p.exists()]
         if leftovers:
-            raise MapError(f"{leftovers[0]} already exists: refusing to overwrite a map "
-                           "(remove it or choose another path)")
+            raise MapError(
+                f"{leftovers[0]} already exists: refusing to overwrite a map (remove it or choose another path)"
+            )
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -311,8 +318,10 @@ class MapFile:
             try:
                 os.link(tmp, path)
             except FileExistsError:
-                raise MapError(f"{path} already exists: refusing to overwrite a map (another process created it "
-                               "first, or remove it and choose another path)") from None
+                raise MapError(
+                    f"{path} already exists: refusing to overwrite a map (another process created it "
+                    "first, or remove it and choose another path)"
+                ) from None
             except OSError:  # no hard links on this file system: exclusive create, then copy
                 lock = _create_by_copy(tmp, path, lock)
             linked = True
@@ -326,7 +335,7 @@ class MapFile:
             if conn is not None:
                 conn.close()
             if linked:
-                remove_map_files(path)   # ours: created by this call and still locked by it
+                remove_map_files(path)  # ours: created by this call and still locked by it
             remove_map_files(tmp)
             if lock is not None:
                 lock.release()
@@ -340,8 +349,9 @@ class MapFile:
             raise
 
     @classmethod
-    def open(cls, path: Path, writable: bool, check: Callable[[dict[str, str]], M],
-             build: Callable[[MapFile, M], T]) -> T:
+    def open(
+        cls, path: Path, writable: bool, check: Callable[[dict[str, str]], M], build: Callable[[MapFile, M], T]
+    ) -> T:
         """Open the existing map file ``path``: its ``meta`` rows go through ``check`` (which raises for a
         map this vtr cannot read), then a writable file switches to WAL mode; returns
         ``build(file, check(meta))``.
@@ -354,7 +364,7 @@ class MapFile:
             raise MapError(f"no map at {path}")
         if path.is_dir():
             raise MapError(f"{path} is a directory, not a map file")
-        problem = input_problem(path)         # a named pipe or a device would block the open below forever
+        problem = input_problem(path)  # a named pipe or a device would block the open below forever
         if problem is not None:
             raise MapError(f"{path}: {problem}")
         check_side_files(path)
@@ -386,9 +396,11 @@ class MapFile:
             if isinstance(err, MapError):
                 raise
             if writable and _read_only_storage(err):
-                raise MapError(f"{path}: readable, but this process cannot write it or create files beside it "
-                               f"({err}): make {path.name} and its folder writable, or open it read-only "
-                               "(vtr repeat --read-only-map)") from err
+                raise MapError(
+                    f"{path}: readable, but this process cannot write it or create files beside it "
+                    f"({err}): make {path.name} and its folder writable, or open it read-only "
+                    "(vtr repeat --read-only-map)"
+                ) from err
             if isinstance(err, sqlite3.Error | ValueError | KeyError | VtrError):
                 raise MapError(f"{path}: not a readable vtr map ({type(err).__name__}: {err})") from err
             raise
@@ -438,8 +450,10 @@ class MapFile:
         try:
             busy = conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0]
         except sqlite3.Error as err:
-            raise MapError(f"{self.path}: could not write the write-ahead log back into the map ({err}); its "
-                           f"latest data is in {self.path.name}-wal: keep that file beside it") from err
+            raise MapError(
+                f"{self.path}: could not write the write-ahead log back into the map ({err}); its "
+                f"latest data is in {self.path.name}-wal: keep that file beside it"
+            ) from err
         if busy:
             return  # a reader is in the middle of a read: the last connection to close checkpoints
         try:

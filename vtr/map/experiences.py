@@ -23,9 +23,14 @@ from .store import Map
 
 #: the triggers that keep vertices, their data, checksums, edges and runs append-only; `prune` lifts them inside
 #: its one transaction and puts them back before it commits
-APPEND_ONLY_TRIGGERS = ("vertices_append_only_delete", "vertex_data_append_only_delete", "edges_append_only_delete",
-                        "runs_no_delete", "vertex_checksums_append_only_delete",
-                        "localizations_append_only_delete")
+APPEND_ONLY_TRIGGERS = (
+    "vertices_append_only_delete",
+    "vertex_data_append_only_delete",
+    "edges_append_only_delete",
+    "runs_no_delete",
+    "vertex_checksums_append_only_delete",
+    "localizations_append_only_delete",
+)
 
 
 @dataclass(frozen=True)
@@ -68,8 +73,10 @@ class ExperienceLinks:
 
 def _has_table(m: Map, name: str) -> bool:
     with m.file.connection() as conn:
-        return conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)).fetchone() \
+        return (
+            conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (name,)).fetchone()
             is not None
+        )
 
 
 def use_counts(m: Map) -> dict[int, tuple[int, int]]:
@@ -77,8 +84,9 @@ def use_counts(m: Map) -> dict[int, tuple[int, int]]:
     if not _has_table(m, "experience_use"):
         return {}
     with m.file.connection() as conn:
-        rows = conn.execute("SELECT experience, SUM(keyframes), COUNT(*) FROM experience_use "
-                            "GROUP BY experience").fetchall()
+        rows = conn.execute(
+            "SELECT experience, SUM(keyframes), COUNT(*) FROM experience_use GROUP BY experience"
+        ).fetchall()
     return {int(r[0]): (int(r[1]), int(r[2])) for r in rows}
 
 
@@ -87,7 +95,8 @@ def _localized_counts(m: Map) -> dict[int, int]:
     with m.file.connection() as conn:
         rows = conn.execute(
             "SELECT e.from_id >> 32, COUNT(DISTINCT e.from_id) FROM edges e JOIN runs t ON t.id = (e.to_id >> 32) "
-            "WHERE e.kind = 'spatial' AND t.privileged = 1 GROUP BY e.from_id >> 32").fetchall()
+            "WHERE e.kind = 'spatial' AND t.privileged = 1 GROUP BY e.from_id >> 32"
+        ).fetchall()
     return {int(r[0]): int(r[1]) for r in rows}
 
 
@@ -129,12 +138,15 @@ def experience_links(m: Map, runs: Iterable[int]) -> ExperienceLinks:
                 "SELECT e.from_id, e.to_id, e.T_from_to, e.inliers, e.covariance FROM edges e "
                 "JOIN runs t ON t.id = (e.to_id >> 32) "
                 f"WHERE e.kind = 'spatial' AND t.privileged = 1 AND (e.from_id >> 32) IN ({marks}) "
-                "ORDER BY e.from_id, e.to_id", runs).fetchall()
+                "ORDER BY e.from_id, e.to_id",
+                runs,
+            ).fetchall()
     vid = np.array([r[0] for r in rows], np.int64)
     T = np.stack([blob_matrix(r[2], (4, 4)) for r in rows]) if rows else np.zeros((0, 4, 4))
     C = np.stack([blob_matrix(r[4], (6, 6)) for r in rows]) if rows else np.zeros((0, 6, 6))
-    return ExperienceLinks(vid, vid >> RUN_SHIFT, np.array([r[1] for r in rows], np.int64), T, C,
-                           np.array([r[3] for r in rows], np.int64))
+    return ExperienceLinks(
+        vid, vid >> RUN_SHIFT, np.array([r[1] for r in rows], np.int64), T, C, np.array([r[3] for r in rows], np.int64)
+    )
 
 
 def record_use(m: Map, repeat_run: int, counts: Mapping[int, int]) -> None:
@@ -154,8 +166,9 @@ class Retention:
     remove: list[int]
 
 
-def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: float,
-              neighbours: int = 1) -> Retention:
+def retention(
+    m: Map, keep_last: int, keep_most_used: int, min_localized_share: float, neighbours: int = 1
+) -> Retention:
     """The retention rule: of the trusted experiences keep, at every taught vertex, the ``keep_last`` newest localized
     within ``neighbours`` taught vertices of it (the vertices whose experiences a submap there may use), plus the
     ``keep_most_used`` most used (ties: the newer); every other repeat run that is not running (older experiences,
@@ -165,10 +178,10 @@ def retention(m: Map, keep_last: int, keep_most_used: int, min_localized_share: 
     keep: dict[int, str] = {}
     links = experience_links(m, trusted)
     if keep_last > 0 and len(links):
-        slot = np.searchsorted(m.taught_path().ids, links.taught_id)   # path index of each link's taught vertex
+        slot = np.searchsorted(m.taught_path().ids, links.taught_id)  # path index of each link's taught vertex
         near = np.concatenate([slot + d for d in range(-neighbours, neighbours + 1)])
         pairs = np.unique(np.stack([near, np.tile(links.run, 2 * neighbours + 1)], 1), axis=0)  # (vertex, run)
-        pairs = pairs[np.lexsort((-pairs[:, 1], pairs[:, 0]))]           # by taught vertex, newest run first
+        pairs = pairs[np.lexsort((-pairs[:, 1], pairs[:, 0]))]  # by taught vertex, newest run first
         first = np.r_[0, np.flatnonzero(np.diff(pairs[:, 0])) + 1]
         rank = np.arange(len(pairs)) - np.repeat(first, np.diff(np.r_[first, len(pairs)]))
         for r in np.unique(pairs[rank < keep_last, 1]):
@@ -208,15 +221,22 @@ def prune(m: Map, runs: Iterable[int]) -> int:
     with m.file.transaction() as conn:
         saved = conn.execute(
             f"SELECT name, sql FROM sqlite_master WHERE type = 'trigger' AND name IN "
-            f"({','.join('?' * len(APPEND_ONLY_TRIGGERS))})", APPEND_ONLY_TRIGGERS).fetchall()
+            f"({','.join('?' * len(APPEND_ONLY_TRIGGERS))})",
+            APPEND_ONLY_TRIGGERS,
+        ).fetchall()
         for name, _ in saved:
             conn.execute(f"DROP TRIGGER {name}")
-        has_sums = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'vertex_checksums'"
-                                ).fetchone() is not None
-        has_use = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'experience_use'"
-                               ).fetchone() is not None
-        has_derived = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'derived'"
-                                   ).fetchone() is not None
+        has_sums = (
+            conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'vertex_checksums'").fetchone()
+            is not None
+        )
+        has_use = (
+            conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'experience_use'").fetchone()
+            is not None
+        )
+        has_derived = (
+            conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'derived'").fetchone() is not None
+        )
         has_records = localizations.has_table(conn)
         for r in runs:
             lo, hi = r << RUN_SHIFT, (r << RUN_SHIFT) | INDEX_MASK
@@ -229,7 +249,7 @@ def prune(m: Map, runs: Iterable[int]) -> int:
             conn.execute("DELETE FROM vertices WHERE id BETWEEN ? AND ?", (lo, hi))
             if has_use:
                 conn.execute("DELETE FROM experience_use WHERE experience = ? OR repeat = ?", (r, r))
-            if has_derived:              # the run's words: the next run takes the highest free id, maybe this one
+            if has_derived:  # the run's words: the next run takes the highest free id, maybe this one
                 conn.execute("DELETE FROM derived WHERE key LIKE ?", (f"{WORDS_KEY}/{r}/%",))
             conn.execute("DELETE FROM runs WHERE id = ?", (r,))
         for _, sql in saved:
@@ -239,5 +259,15 @@ def prune(m: Map, runs: Iterable[int]) -> int:
     return removed
 
 
-__all__ = ["WORDS_KEY", "ExperienceInfo", "ExperienceLinks", "Retention", "experience_links", "experiences", "prune",
-           "record_use", "retention", "use_counts"]
+__all__ = [
+    "WORDS_KEY",
+    "ExperienceInfo",
+    "ExperienceLinks",
+    "Retention",
+    "experience_links",
+    "experiences",
+    "prune",
+    "record_use",
+    "retention",
+    "use_counts",
+]

@@ -22,11 +22,20 @@ from .store import Map
 
 PLY_SUFFIX = ".ply"
 # One colour per run (RGB in [0, 1]), cycled: matplotlib's tab10 palette.
-RUN_COLOURS = np.array([
-    [0.122, 0.467, 0.706], [1.000, 0.498, 0.055], [0.173, 0.627, 0.173], [0.839, 0.153, 0.157],
-    [0.580, 0.404, 0.741], [0.549, 0.337, 0.294], [0.890, 0.467, 0.761], [0.498, 0.498, 0.498],
-    [0.737, 0.741, 0.133], [0.090, 0.745, 0.812],
-])
+RUN_COLOURS = np.array(
+    [
+        [0.122, 0.467, 0.706],
+        [1.000, 0.498, 0.055],
+        [0.173, 0.627, 0.173],
+        [0.839, 0.153, 0.157],
+        [0.580, 0.404, 0.741],
+        [0.549, 0.337, 0.294],
+        [0.890, 0.467, 0.761],
+        [0.498, 0.498, 0.498],
+        [0.737, 0.741, 0.133],
+        [0.090, 0.745, 0.812],
+    ]
+)
 
 
 @dataclass(frozen=True)
@@ -45,8 +54,9 @@ def run_colour(order: int) -> np.ndarray:
     return RUN_COLOURS[order % len(RUN_COLOURS)]
 
 
-def export_landmarks_ply(map_: Map, path: str | Path, runs: list[int] | None = None, *,
-                         gravity_aligned: bool = False) -> list[RunExport]:
+def export_landmarks_ply(
+    map_: Map, path: str | Path, runs: list[int] | None = None, *, gravity_aligned: bool = False
+) -> list[RunExport]:
     """Write the landmarks of ``runs`` (all by default) to a binary PLY point cloud, coloured by run.
 
     With ``gravity_aligned`` the points are in the map's gravity frame g (z up, x the first teach camera's forward
@@ -91,5 +101,5 @@ def export_landmarks_ply(map_: Map, path: str | Path, runs: list[int] | None = N
             raise MapError(f"{path}: open3d could not write the point cloud")
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    replace_file(path, write)           # whole, and never through a link at ``path``
+    replace_file(path, write)  # whole, and never through a link at ``path``
     return summary

@@ -39,8 +39,23 @@ SCHEMA = (
     f"CREATE TRIGGER IF NOT EXISTS {TABLE}_append_only_delete BEFORE DELETE ON {TABLE} "
     "BEGIN SELECT RAISE(ABORT, 'map localization records are immutable'); END",
 )
-COLUMNS = ("leaf_id", "t_ns", "trunk_id", "twig_id", "branch_id", "success", "matches", "inliers", "T_leaf_trunk",
-           "covariance", "consecutive_failures", "distance_since_success_m", "status", "direction", "experiences")
+COLUMNS = (
+    "leaf_id",
+    "t_ns",
+    "trunk_id",
+    "twig_id",
+    "branch_id",
+    "success",
+    "matches",
+    "inliers",
+    "T_leaf_trunk",
+    "covariance",
+    "consecutive_failures",
+    "distance_since_success_m",
+    "status",
+    "direction",
+    "experiences",
+)
 
 
 @dataclass(frozen=True)
@@ -72,22 +87,48 @@ class LocalizationRecord:
         C = np.asarray(self.covariance, dtype=np.float64)
         for name, value, shape in (("T_leaf_trunk", T, (4, 4)), ("covariance", C, (6, 6))):
             if value.shape != shape:
-                raise MapError(f"localization of vertex {self.leaf_id}: {name} must be {shape[0]}x{shape[1]}, got "
-                               f"shape {value.shape}")
+                raise MapError(
+                    f"localization of vertex {self.leaf_id}: {name} must be {shape[0]}x{shape[1]}, got "
+                    f"shape {value.shape}"
+                )
         distance = float(self.distance_since_success_m)
-        return (int(self.leaf_id), int(self.t_ns), int(self.trunk_id), int(self.twig_id), int(self.branch_id),
-                int(bool(self.success)), int(self.matches), int(self.inliers), matrix_blob(T), matrix_blob(C),
-                int(self.consecutive_failures), None if np.isnan(distance) else distance, str(self.status),
-                int(self.direction), EXPERIENCE_SEPARATOR.join(str(int(e)) for e in self.experiences))
+        return (
+            int(self.leaf_id),
+            int(self.t_ns),
+            int(self.trunk_id),
+            int(self.twig_id),
+            int(self.branch_id),
+            int(bool(self.success)),
+            int(self.matches),
+            int(self.inliers),
+            matrix_blob(T),
+            matrix_blob(C),
+            int(self.consecutive_failures),
+            None if np.isnan(distance) else distance,
+            str(self.status),
+            int(self.direction),
+            EXPERIENCE_SEPARATOR.join(str(int(e)) for e in self.experiences),
+        )
 
     @classmethod
     def of_row(cls, r: Sequence) -> LocalizationRecord:
-        return cls(leaf_id=int(r[0]), t_ns=int(r[1]), trunk_id=int(r[2]), twig_id=int(r[3]), branch_id=int(r[4]),
-                   success=bool(r[5]), matches=int(r[6]), inliers=int(r[7]), T_leaf_trunk=blob_matrix(r[8], (4, 4)),
-                   covariance=blob_matrix(r[9], (6, 6)), consecutive_failures=int(r[10]),
-                   distance_since_success_m=float("nan") if r[11] is None else float(r[11]), status=str(r[12]),
-                   direction=int(r[13]),
-                   experiences=tuple(int(e) for e in str(r[14]).split(EXPERIENCE_SEPARATOR) if e))
+        return cls(
+            leaf_id=int(r[0]),
+            t_ns=int(r[1]),
+            trunk_id=int(r[2]),
+            twig_id=int(r[3]),
+            branch_id=int(r[4]),
+            success=bool(r[5]),
+            matches=int(r[6]),
+            inliers=int(r[7]),
+            T_leaf_trunk=blob_matrix(r[8], (4, 4)),
+            covariance=blob_matrix(r[9], (6, 6)),
+            consecutive_failures=int(r[10]),
+            distance_since_success_m=float("nan") if r[11] is None else float(r[11]),
+            status=str(r[12]),
+            direction=int(r[13]),
+            experiences=tuple(int(e) for e in str(r[14]).split(EXPERIENCE_SEPARATOR) if e),
+        )
 
 
 @dataclass(frozen=True)
@@ -112,8 +153,9 @@ class Leaf:
 
 
 def has_table(conn: Connection) -> bool:
-    return conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (TABLE,)).fetchone() \
-        is not None
+    return (
+        conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?", (TABLE,)).fetchone() is not None
+    )
 
 
 def create(conn: Connection) -> None:
@@ -132,8 +174,10 @@ def read(conn: Connection, run: int) -> list[LocalizationRecord]:
     if not has_table(conn):
         return []
     lo = int(run) << RUN_SHIFT
-    rows = conn.execute(f"SELECT {', '.join(COLUMNS)} FROM {TABLE} WHERE leaf_id BETWEEN ? AND ? ORDER BY leaf_id",
-                        (lo, lo | INDEX_MASK)).fetchall()
+    rows = conn.execute(
+        f"SELECT {', '.join(COLUMNS)} FROM {TABLE} WHERE leaf_id BETWEEN ? AND ? ORDER BY leaf_id",
+        (lo, lo | INDEX_MASK),
+    ).fetchall()
     return [LocalizationRecord.of_row(r) for r in rows]
 
 
@@ -142,9 +186,20 @@ def count(conn: Connection, run: int) -> int:
     if not has_table(conn):
         return 0
     lo = int(run) << RUN_SHIFT
-    return int(conn.execute(f"SELECT COUNT(*) FROM {TABLE} WHERE leaf_id BETWEEN ? AND ?",
-                            (lo, lo | INDEX_MASK)).fetchone()[0])
+    return int(
+        conn.execute(f"SELECT COUNT(*) FROM {TABLE} WHERE leaf_id BETWEEN ? AND ?", (lo, lo | INDEX_MASK)).fetchone()[0]
+    )
 
 
-__all__ = ["COLUMNS", "TABLE", "Leaf", "LocalizationRecord", "SpatialEdge", "count", "create", "has_table", "insert",
-           "read"]
+__all__ = [
+    "COLUMNS",
+    "TABLE",
+    "Leaf",
+    "LocalizationRecord",
+    "SpatialEdge",
+    "count",
+    "create",
+    "has_table",
+    "insert",
+    "read",
+]

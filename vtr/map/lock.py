@@ -29,7 +29,7 @@ except ImportError:  # pragma: no cover - not POSIX
     fcntl = None  # type: ignore[assignment]
 
 
-_users: dict[tuple[int, int], int] = {}          # (device, inode) -> MapLocks of this process on it
+_users: dict[tuple[int, int], int] = {}  # (device, inode) -> MapLocks of this process on it
 _deferred: dict[tuple[int, int], list[int]] = {}  # descriptors whose close waits for the last user
 _registry = threading.Lock()
 
@@ -78,8 +78,9 @@ class MapLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 _close(fd, key)
-                raise MapError(f"{path}: another process is writing this map (one writer at a time; "
-                               "wait for it to finish)") from None
+                raise MapError(
+                    f"{path}: another process is writing this map (one writer at a time; wait for it to finish)"
+                ) from None
             except OSError:
                 pass  # a file system without flock: no lock, as on Windows
         return cls(fd, exclusive=True, key=key)
@@ -120,7 +121,7 @@ class MapLock:
             return
         if self.exclusive and fcntl is not None:
             try:
-                fcntl.flock(self._fd, fcntl.LOCK_UN)   # the writer lock goes now, even if the close waits
+                fcntl.flock(self._fd, fcntl.LOCK_UN)  # the writer lock goes now, even if the close waits
             except OSError:
                 pass
         _close(self._fd, self._key)

@@ -43,8 +43,10 @@ class TaughtPath:
     def __post_init__(self) -> None:
         ids, T, t = np.asarray(self.ids), np.asarray(self.T_world_vertex), np.asarray(self.t_ns)
         if ids.ndim != 1 or T.shape != (len(ids), 4, 4) or t.shape != ids.shape:
-            raise MapError(f"taught path: ids {ids.shape}, T_world_vertex {T.shape} and t_ns {t.shape} "
-                           "do not describe the same N vertices")
+            raise MapError(
+                f"taught path: ids {ids.shape}, T_world_vertex {T.shape} and t_ns {t.shape} "
+                "do not describe the same N vertices"
+            )
         object.__setattr__(self, "ids", _frozen(ids, np.int64))
         object.__setattr__(self, "T_world_vertex", _frozen(T, np.float64))
         object.__setattr__(self, "t_ns", _frozen(t, np.int64))

@@ -53,6 +53,7 @@ def poses_in_map_frame(map_: Map, run: int) -> tuple[np.ndarray, np.ndarray, boo
     choice = np.where(np.abs(ar - link_idx[left]) <= np.abs(link_idx[right] - ar), left, right)
     return ids, link_T[choice] @ T_run_v, True
 
+
 def landmarks_in_map_frame(map_: Map, run: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(points (M, 3) metres, run_of_point (M,) int64)``: every vertex landmark in the map frame.
 

@@ -22,9 +22,9 @@ from .codec import readonly as _readonly
 if TYPE_CHECKING:
     from ..types import StereoFrame
 
-RUN_SHIFT = 32                       # bits of the index part of a vertex id
+RUN_SHIFT = 32  # bits of the index part of a vertex id
 INDEX_MASK = (1 << RUN_SHIFT) - 1
-MAX_RUN = (1 << 31) - 1              # ids stay positive signed int64 (SQLite INTEGER)
+MAX_RUN = (1 << 31) - 1  # ids stay positive signed int64 (SQLite INTEGER)
 
 EDGE_KINDS = ("temporal", "spatial")
 RUN_KINDS = ("teach", "repeat")
@@ -32,7 +32,7 @@ RUN_KINDS = ("teach", "repeat")
 # a run still marked running whose writer is gone (killed), so it will never finish.
 RUN_RUNNING, RUN_FINISHED, RUN_ABORTED, RUN_INTERRUPTED = "running", "finished", "aborted", "interrupted"
 RUN_STATES = (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED, RUN_INTERRUPTED)
-REASON_MAX_CHARS = 500               # an abort reason is one line, cut to this length
+REASON_MAX_CHARS = 500  # an abort reason is one line, cut to this length
 
 
 def vertex_id(run: int, index: int) -> int:
@@ -73,8 +73,9 @@ class VertexRecord:
     frame: StereoFrame
 
     @classmethod
-    def of(cls, vid: int, t_ns: int, T_world_vertex: np.ndarray, T_vehicle_sensor: np.ndarray,
-           frame: StereoFrame) -> VertexRecord:
+    def of(
+        cls, vid: int, t_ns: int, T_world_vertex: np.ndarray, T_vehicle_sensor: np.ndarray, frame: StereoFrame
+    ) -> VertexRecord:
         """The record of vertex ``vid`` (run and index from the id; poses made read-only)."""
         run, index = split_vertex_id(vid)
         return cls(vid, run, index, int(t_ns), _readonly(T_world_vertex), _readonly(T_vehicle_sensor), frame)
@@ -221,8 +222,9 @@ def check_run_row(path: Path, r: tuple) -> None:
     elif state not in (RUN_RUNNING, RUN_FINISHED, RUN_ABORTED):
         problem = f"state {state!r}"
     if problem is not None:
-        raise MapError(f"{path}: the runs table is damaged (run {rid!r}: {problem}); the map file was changed "
-                       "after vtr wrote it")
+        raise MapError(
+            f"{path}: the runs table is damaged (run {rid!r}: {problem}); the map file was changed after vtr wrote it"
+        )
 
 
 def run_range(run: int) -> tuple[int, int]:

@@ -10,10 +10,14 @@ MATRIX4_BYTES = 16 * 8
 MATRIX6_BYTES = 36 * 8
 
 #: how often each experience (an earlier repeat) gave a later repeat's keyframes inliers (vtr.map.experiences)
-USE_TABLE = ("CREATE TABLE IF NOT EXISTS experience_use (experience INTEGER NOT NULL, repeat INTEGER NOT NULL, "
-             "keyframes INTEGER NOT NULL CHECK (keyframes >= 0), PRIMARY KEY (experience, repeat)) WITHOUT ROWID")
-USE_SQL = ("INSERT INTO experience_use(experience, repeat, keyframes) VALUES (?, ?, ?) "
-           "ON CONFLICT(experience, repeat) DO UPDATE SET keyframes = keyframes + excluded.keyframes")
+USE_TABLE = (
+    "CREATE TABLE IF NOT EXISTS experience_use (experience INTEGER NOT NULL, repeat INTEGER NOT NULL, "
+    "keyframes INTEGER NOT NULL CHECK (keyframes >= 0), PRIMARY KEY (experience, repeat)) WITHOUT ROWID"
+)
+USE_SQL = (
+    "INSERT INTO experience_use(experience, repeat, keyframes) VALUES (?, ?, ?) "
+    "ON CONFLICT(experience, repeat) DO UPDATE SET keyframes = keyframes + excluded.keyframes"
+)
 DERIVED_TABLE = "CREATE TABLE IF NOT EXISTS derived (key TEXT PRIMARY KEY, data BLOB NOT NULL) WITHOUT ROWID"
 
 SCHEMA = f"""

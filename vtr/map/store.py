@@ -37,11 +37,9 @@ from __future__ import annotations
 
 import json
 from collections import OrderedDict
-from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -51,67 +49,78 @@ from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import MapError, UnfinishedRouteError
 from . import checksums, damage, localizations
-from .codec import decode_frame
 from .database import Connection, MapFile
 from .localizations import LocalizationRecord
 from .path import TaughtPath
+from .reading import MapReading
 from .records import (
-    EDGE_KINDS,
     GRAVITY_META_KEY,
     INDEX_MASK,
     RUN_FINISHED,
     RUN_INTERRUPTED,
     RUN_RUNNING,
-    EdgeRecord,
     RunInfo,
     VertexRecord,
     abort_reason,
-    blob_matrix,
     check_gravity_up,
     check_int,
     check_run_row,
     run_range,
-    split_vertex_id,
     utc_now,
     vertex_id,
 )
 from .schema import DERIVED_TABLE, SCHEMA
 from .writing import INTERRUPTED_REASON, MapWriting
 
-MAP_FORMAT_VERSION = 3                # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
-VERTEX_CACHE_SIZE = 64               # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
+MAP_FORMAT_VERSION = 3  # 3: run lifecycle state, abort reason; 2: raw descriptors (vtr.map.codec)
+VERTEX_CACHE_SIZE = 64  # decoded vertices kept by Map.vertex (a -10..+20 window is 31)
 MODES = ("r", "a")
 # re-exported: vtr.map.store has always named them
-__all__ = ["GRAVITY_META_KEY", "INTERRUPTED_REASON", "MAP_FORMAT_VERSION", "MODES", "VERTEX_CACHE_SIZE", "Map",
-           "abort_reason", "check_gravity_up"]
+__all__ = [
+    "GRAVITY_META_KEY",
+    "INTERRUPTED_REASON",
+    "MAP_FORMAT_VERSION",
+    "MODES",
+    "VERTEX_CACHE_SIZE",
+    "Map",
+    "abort_reason",
+    "check_gravity_up",
+]
 
 
-class Map(MapWriting):
+class Map(MapReading, MapWriting):
     """A pose-graph map file. Use :meth:`create` or :meth:`open`; a context manager.
 
     ``camera`` is the rectified stereo calibration the map was taught with; ``path`` the file.
     """
 
-    def __init__(self, file: MapFile, mode: str, camera: StereoCamera, meta: dict[str, str], cache_size: int,
-                 created: bool = False) -> None:
+    def __init__(
+        self,
+        file: MapFile,
+        mode: str,
+        camera: StereoCamera,
+        meta: dict[str, str],
+        cache_size: int,
+        created: bool = False,
+    ) -> None:
         self.path = file.path
         self.mode = mode
         self.camera = camera
         self.meta = dict(meta)
         self.format_version = int(meta["format_version"])
-        self.created = created          # this session created the file (it may remove it if left empty)
+        self.created = created  # this session created the file (it may remove it if left empty)
         self._file = file
         self._lock = file.lock
         self._compress_level = int(meta.get("compress_level", MapConfig().compress_level))
         self._cache: OrderedDict[int, VertexRecord] = OrderedDict()
         self._cache_size = check_int(cache_size, "cache_size", 1)
-        self._generation = 0            # bumps when the privileged path grows (invalidates its caches)
+        self._generation = 0  # bumps when the privileged path grows (invalidates its caches)
         self._path_cache: tuple[int, TaughtPath] | None = None
         self._open_run: int | None = None
         self._open_run_privileged = False
         self._open_run_touched = False  # this session began or wrote to the open run
-        self._aborted = False           # this session aborted a run
-        assert file.conn is not None   # verified on every read (vtr.map.checksums); damaged metadata refused
+        self._aborted = False  # this session aborted a run
+        assert file.conn is not None  # verified on every read (vtr.map.checksums); damaged metadata refused
         self._checksums = checksums.checksummed(file.conn, str(file.path))
         if mode == "a":
             # we hold the writer lock, so a run still marked running was left by a killed writer: it stays
@@ -124,8 +133,15 @@ class Map(MapWriting):
     # ------------------------------------------------------------ opening
 
     @classmethod
-    def create(cls, path: str | Path, camera: StereoCamera, config: MapConfig | None = None, *,
-               cache_size: int = VERTEX_CACHE_SIZE, gravity_up: ArrayLike | None = None) -> Map:
+    def create(
+        cls,
+        path: str | Path,
+        camera: StereoCamera,
+        config: MapConfig | None = None,
+        *,
+        cache_size: int = VERTEX_CACHE_SIZE,
+        gravity_up: ArrayLike | None = None,
+    ) -> Map:
         """Create a new, empty map at ``path`` (opened for appending). Refuses to overwrite anything.
 
         Atomic and exclusive (:meth:`vtr.map.database.MapFile.create`): the schema is written to a
@@ -151,12 +167,13 @@ class Map(MapWriting):
             "created": utc_now(),
             "vtr_version": __version__,
             "compress_level": str(level),
-            checksums.META_KEY: checksums.META_VALUE,   # every vertex has checksums (vtr.map.checksums)
+            checksums.META_KEY: checksums.META_VALUE,  # every vertex has checksums (vtr.map.checksums)
         }
         if up is not None:
             meta[GRAVITY_META_KEY] = json.dumps([float(x) for x in up])
-        return MapFile.create(path, SCHEMA + checksums.SCHEMA, meta,
-                              lambda file: cls(file, "a", camera, meta, cache_size, created=True))
+        return MapFile.create(
+            path, SCHEMA + checksums.SCHEMA, meta, lambda file: cls(file, "a", camera, meta, cache_size, created=True)
+        )
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r", *, cache_size: int = VERTEX_CACHE_SIZE) -> Map:
@@ -175,14 +192,20 @@ class Map(MapWriting):
                 raise MapError(f"{path} is not a vtr map (no format version)")
             version = int(meta["format_version"])
             if version != MAP_FORMAT_VERSION:
-                hint = "written by a newer vtr: upgrade vtr" if version > MAP_FORMAT_VERSION else \
-                    "written by an older vtr: teach it again"
-                raise MapError(f"{path}: map format version {version}, this vtr {__version__} reads only "
-                               f"format version {MAP_FORMAT_VERSION} ({hint})")
+                hint = (
+                    "written by a newer vtr: upgrade vtr"
+                    if version > MAP_FORMAT_VERSION
+                    else "written by an older vtr: teach it again"
+                )
+                raise MapError(
+                    f"{path}: map format version {version}, this vtr {__version__} reads only "
+                    f"format version {MAP_FORMAT_VERSION} ({hint})"
+                )
             return meta, StereoCamera.from_dict(json.loads(meta["camera"]))
 
-        return MapFile.open(path, mode == "a", check,
-                            lambda file, checked: cls(file, mode, checked[1], checked[0], cache_size))
+        return MapFile.open(
+            path, mode == "a", check, lambda file, checked: cls(file, mode, checked[1], checked[0], cache_size)
+        )
 
     def close(self) -> None:
         """Finish the run this session wrote (it becomes immutable), fold the write-ahead log into the
@@ -201,8 +224,11 @@ class Map(MapWriting):
                 if self.mode == "a":
                     if self._open_run is not None and self._open_run_touched:
                         self._set_state(self._open_run, RUN_FINISHED, "")
-                    discard = self.created and self._aborted and \
-                        conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
+                    discard = (
+                        self.created
+                        and self._aborted
+                        and conn.execute("SELECT COUNT(*) FROM vertices").fetchone()[0] == 0
+                    )
                     if not discard:
                         self._file.fold_wal()
             finally:
@@ -212,11 +238,17 @@ class Map(MapWriting):
     def __enter__(self) -> Map:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         """Normal exit finishes the open run; an exception (Ctrl-C, SIGTERM too) aborts it with its reason."""
-        if exc is not None and not self.closed and self.mode == "a" and self._open_run is not None \
-                and self._open_run_touched:
+        if (
+            exc is not None
+            and not self.closed
+            and self.mode == "a"
+            and self._open_run is not None
+            and self._open_run_touched
+        ):
             try:
                 self.abort_run(abort_reason(exc))
             except MapError:
@@ -245,9 +277,11 @@ class Map(MapWriting):
         pages = self._file.unfolded_pages()
         if not pages:
             return None
-        return (f"not closed: {pages} page(s) committed in {self.path.name}-wal are not in the map file (its "
-                f"writer was killed); run `vtr map check --repair` to fold them in (until then keep the -wal "
-                "beside it: a copy of the map file alone lacks them)")
+        return (
+            f"not closed: {pages} page(s) committed in {self.path.name}-wal are not in the map file (its "
+            f"writer was killed); run `vtr map check --repair` to fold them in (until then keep the -wal "
+            "beside it: a copy of the map file alone lacks them)"
+        )
 
     @property
     def gravity_up(self) -> np.ndarray | None:
@@ -304,8 +338,9 @@ class Map(MapWriting):
         if self._open_run is None:
             raise MapError(f"{self.path}: {what}: no open run (call begin_run first); finished runs are immutable")
         if run != self._open_run:
-            raise MapError(f"{self.path}: {what}: run {run} is not the open run ({self._open_run}); "
-                           "finished runs are immutable")
+            raise MapError(
+                f"{self.path}: {what}: run {run} is not the open run ({self._open_run}); finished runs are immutable"
+            )
 
     def _run_row(self, conn: Connection, run: int) -> tuple:
         row = conn.execute("SELECT id, kind, privileged FROM runs WHERE id = ?", (int(run),)).fetchone()
@@ -334,18 +369,30 @@ class Map(MapWriting):
         with self._db() as conn:
             return localizations.count(conn, check_int(run, "run", 0))
 
-
     def runs(self) -> list[RunInfo]:
         """All runs in id order, with their vertex counts and lifecycle state (see ``RunInfo``)."""
         with self._db() as conn:
             rows = conn.execute(
                 "SELECT r.id, r.kind, r.privileged, r.source, r.created, r.state, r.reason, "
                 "(SELECT COUNT(*) FROM vertices v WHERE v.id BETWEEN (r.id << 32) AND ((r.id << 32) | ?)) "
-                "FROM runs r ORDER BY r.id", (INDEX_MASK,)).fetchall()
+                "FROM runs r ORDER BY r.id",
+                (INDEX_MASK,),
+            ).fetchall()
         for r in rows:
             check_run_row(self.path, r)
-        return [RunInfo(id=int(r[0]), kind=r[1], privileged=bool(r[2]), source=r[3], created=r[4],
-                        n_vertices=int(r[7]), state=self._seen_state(int(r[0]), r[5]), reason=r[6]) for r in rows]
+        return [
+            RunInfo(
+                id=int(r[0]),
+                kind=r[1],
+                privileged=bool(r[2]),
+                source=r[3],
+                created=r[4],
+                n_vertices=int(r[7]),
+                state=self._seen_state(int(r[0]), r[5]),
+                reason=r[6],
+            )
+            for r in rows
+        ]
 
     def _seen_state(self, run: int, stored: str) -> str:
         """A stored state as it stands: ``running`` only while a live session writes the run."""
@@ -371,134 +418,9 @@ class Map(MapWriting):
             return
         for r in self.runs():
             if r.privileged and not r.finished:
-                raise UnfinishedRouteError(f"{self.path}: teach run {r.id} is {r.describe()}, not finished",
-                                           r.n_vertices)
-
-    def has_vertex(self, vid: int) -> bool:
-        if int(vid) in self._cache:
-            return True
-        with self._db() as conn:
-            return conn.execute("SELECT 1 FROM vertices WHERE id = ?", (int(vid),)).fetchone() is not None
-
-    __contains__ = has_vertex
-
-    def vertex_ids(self, run: int) -> np.ndarray:
-        """(N,) int64 vertex ids of ``run`` in index order."""
-        lo, hi = run_range(check_int(run, "run", 0))
-        with self._db() as conn:
-            self._run_row(conn, run)
-            ids = [r[0] for r in conn.execute("SELECT id FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id", (lo, hi))]
-        return np.array(ids, dtype=np.int64)
-
-    def poses(self, run: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (N,) int64, T_world_vertex (N, 4, 4))`` of a run in index order, from the pose index only."""
-        lo, hi = run_range(check_int(run, "run", 0))
-        with self._db() as conn:
-            self._run_row(conn, run)
-            rows = conn.execute("SELECT id, T_world_vertex FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
-                                (lo, hi)).fetchall()
-            if self._checksums:
-                checksums.verify_rows(conn, str(self.path), lo, hi)
-        return self._pose_arrays(rows)
-
-    @staticmethod
-    def _pose_arrays(rows: list[Any]) -> tuple[np.ndarray, np.ndarray]:
-        ids = np.array([r[0] for r in rows], dtype=np.int64)
-        T = np.frombuffer(b"".join(r[1] for r in rows), dtype="<f8").astype(np.float64).reshape(-1, 4, 4)
-        return ids, T
-
-    def timestamps(self, run: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (N,) int64, t_ns (N,) int64)`` of a run in index order."""
-        lo, hi = run_range(check_int(run, "run", 0))
-        with self._db() as conn:
-            self._run_row(conn, run)
-            rows = conn.execute("SELECT id, t_ns FROM vertices WHERE id BETWEEN ? AND ? ORDER BY id",
-                                (lo, hi)).fetchall()
-            if self._checksums:
-                checksums.verify_rows(conn, str(self.path), lo, hi)
-        return (np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1] for r in rows], dtype=np.int64))
-
-    def vertex(self, vid: int, cached: bool = True) -> VertexRecord:
-        """The keyframe ``vid`` with its features, checksums verified: decoded once, then served from a bounded LRU
-        cache; ``cached=False`` reads it from the file and leaves the cache alone (a full check, a stream)."""
-        vid = check_int(vid, "vertex id", 0)
-        if not cached:
-            return self._read_vertex(vid)
-        with self._lock:
-            record = self._cache.get(vid)
-            if record is not None:
-                self._cache.move_to_end(vid)
-                return record
-            record = self._read_vertex(vid)
-            self._cache_put(record)
-            return record
-
-    def _read_vertex(self, vid: int) -> VertexRecord:
-        with self._db() as conn:
-            row = conn.execute(
-                "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
-                "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (vid,)).fetchone()
-        if row is None:
-            run, index = split_vertex_id(vid)
-            raise MapError(f"{self.path}: no vertex {vid} (run {run}, index {index}) with data")
-        return self._decode_vertex(vid, row)
-
-    def _decode_vertex(self, vid: int, row: tuple[Any, ...]) -> VertexRecord:
-        if self._checksums:
-            with self._db() as conn:
-                checksums.verify_rows(conn, str(self.path), vid, vid, data=True)
-        t_ns, T_wv, T_vs, frame_index, data = row
-        frame = decode_frame(data, t_ns, frame_index, f"{self.path} vertex {vid}")
-        return VertexRecord.of(vid, t_ns, blob_matrix(T_wv, (4, 4)), blob_matrix(T_vs, (4, 4)), frame)
-
-    def _cache_put(self, record: VertexRecord) -> None:
-        with self._lock:
-            self._cache[record.id] = record
-            self._cache.move_to_end(record.id)
-            while len(self._cache) > self._cache_size:
-                self._cache.popitem(last=False)
-
-    def iter_vertices(self, run: int) -> Iterator[VertexRecord]:
-        """Every vertex of a run in index order, streamed (bypasses the cache; memory stays flat)."""
-        for vid in self.vertex_ids(run):
-            with self._db() as conn:
-                row = conn.execute(
-                    "SELECT v.t_ns, v.T_world_vertex, v.T_vehicle_sensor, v.frame_index, d.data FROM vertices v "
-                    "JOIN vertex_data d ON d.id = v.id WHERE v.id = ?", (int(vid),)).fetchone()
-            yield self._decode_vertex(int(vid), row)
-
-    def edges(self, run: int | None = None, kind: str | None = None) -> list[EdgeRecord]:
-        """Edges touching ``run`` (either end; all runs when ``None``), optionally of one ``kind``."""
-        if kind is not None and kind not in EDGE_KINDS:
-            raise MapError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
-        sql = "SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges"
-        where: list[str] = []
-        args: list[int | str] = []
-        if run is not None:
-            lo, hi = run_range(check_int(run, "run", 0))
-            where.append("(from_id BETWEEN ? AND ? OR to_id BETWEEN ? AND ?)")
-            args += [lo, hi, lo, hi]
-        if kind is not None:
-            where.append("kind = ?")
-            args.append(kind)
-        if where:
-            sql += " WHERE " + " AND ".join(where)
-        with self._db() as conn:
-            if run is not None:
-                self._run_row(conn, run)
-            rows = conn.execute(sql + " ORDER BY from_id, to_id, kind", args).fetchall()
-        return [EdgeRecord(from_id=int(r[0]), to_id=int(r[1]), kind=r[2], T_from_to=blob_matrix(r[3], (4, 4)),
-                           covariance=blob_matrix(r[4], (6, 6)), inliers=int(r[5])) for r in rows]
-
-    def edge(self, from_id: int, to_id: int, kind: str) -> EdgeRecord:
-        """The edge ``from_id -> to_id`` of ``kind`` (``MapError`` if absent)."""
-        with self._db() as conn:
-            r = conn.execute("SELECT from_id, to_id, kind, T_from_to, covariance, inliers FROM edges "
-                             "WHERE from_id = ? AND to_id = ? AND kind = ?",
-                             (int(from_id), int(to_id), kind)).fetchone()
-        if r is None:
-            raise MapError(f"{self.path}: no {kind} edge {from_id}->{to_id}")
-        return EdgeRecord(int(r[0]), int(r[1]), r[2], blob_matrix(r[3], (4, 4)), blob_matrix(r[4], (6, 6)), int(r[5]))
+                raise UnfinishedRouteError(
+                    f"{self.path}: teach run {r.id} is {r.describe()}, not finished", r.n_vertices
+                )
 
     # ------------------------------------------------------------ the privileged path
 
@@ -510,7 +432,8 @@ class Map(MapWriting):
             with self._db() as conn:
                 rows = conn.execute(
                     "SELECT v.id, v.T_world_vertex, v.t_ns FROM vertices v JOIN runs r ON r.id = v.run "
-                    "WHERE r.privileged = 1 ORDER BY v.id").fetchall()
+                    "WHERE r.privileged = 1 ORDER BY v.id"
+                ).fetchall()
                 damage.check_vertex_runs(conn, str(self.path))
                 if self._checksums:
                     for (run,) in conn.execute("SELECT id FROM runs WHERE privileged = 1").fetchall():

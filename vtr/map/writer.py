@@ -38,13 +38,14 @@ class LeafWriter:
 
     def __init__(self, map_: Map, timer: StageTimer | None = None):
         self._map = map_
-        self._timer = timer or StageTimer()          # seconds in "map_write" (on the writer thread)
+        self._timer = timer or StageTimer()  # seconds in "map_write" (on the writer thread)
         self._conn: Connection | None = map_.file.second_connection()
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-map-write")
         self._failed = threading.Event()
 
-    def submit(self, run: int, keyframe: Keyframe, leaf: Leaf,
-               T_vehicle_sensor: np.ndarray | None = None) -> Future[VertexRecord]:
+    def submit(
+        self, run: int, keyframe: Keyframe, leaf: Leaf, T_vehicle_sensor: np.ndarray | None = None
+    ) -> Future[VertexRecord]:
         """Queue ``add_leaf(run, keyframe, leaf)``; the future gives the stored vertex once committed, or raises its
         error (``CancelledError`` when an earlier leaf failed or the writer closed before starting it)."""
         return self._pool.submit(self._write, run, keyframe, leaf, T_vehicle_sensor)
@@ -64,7 +65,7 @@ class LeafWriter:
                 return
 
     def _write(self, run: int, keyframe: Keyframe, leaf: Leaf, T_vehicle_sensor: np.ndarray | None) -> VertexRecord:
-        if self._failed.is_set():           # an earlier leaf failed: never write a later one
+        if self._failed.is_set():  # an earlier leaf failed: never write a later one
             raise CancelledError()
         try:
             with self._timer("map_write"):
@@ -84,8 +85,9 @@ class LeafWriter:
     def __enter__(self) -> LeafWriter:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close(cancel_pending=exc is not None)
 
 

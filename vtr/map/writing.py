@@ -53,7 +53,7 @@ INTERRUPTED_REASON = "interrupted: its writing process ended without closing the
 class MapWriting:
     """The writing half of :class:`vtr.map.Map`: runs begun and ended, vertices, keyframes, leaves and edges."""
 
-    if TYPE_CHECKING:      # what Map provides
+    if TYPE_CHECKING:  # what Map provides
         path: Path
         camera: StereoCamera
         _file: MapFile
@@ -87,12 +87,15 @@ class MapWriting:
         with self._tx() as conn:
             if mine is not None:
                 conn.execute("UPDATE runs SET state = ? WHERE id = ? AND state = ?", (RUN_FINISHED, mine, RUN_RUNNING))
-            conn.execute("UPDATE runs SET state = ?, reason = ? WHERE state = ?",
-                         (RUN_ABORTED, INTERRUPTED_REASON, RUN_RUNNING))
+            conn.execute(
+                "UPDATE runs SET state = ?, reason = ? WHERE state = ?", (RUN_ABORTED, INTERRUPTED_REASON, RUN_RUNNING)
+            )
             run = conn.execute("SELECT COALESCE(MAX(id) + 1, 0) FROM runs").fetchone()[0]
             vertex_id(run, 0)  # checks the run id range
-            conn.execute("INSERT INTO runs(id, kind, privileged, source, created, state) VALUES (?, ?, ?, ?, ?, ?)",
-                         (run, kind, int(privileged), str(source), utc_now(), RUN_RUNNING))
+            conn.execute(
+                "INSERT INTO runs(id, kind, privileged, source, created, state) VALUES (?, ?, ?, ?, ?, ?)",
+                (run, kind, int(privileged), str(source), utc_now(), RUN_RUNNING),
+            )
         self._open_run, self._open_run_touched = int(run), True
         self._open_run_privileged = privileged
         return int(run)
@@ -119,8 +122,14 @@ class MapWriting:
         self._open_run = None
         self._open_run_touched = False
 
-    def add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                   T_vehicle_sensor: np.ndarray | None = None) -> VertexRecord:
+    def add_vertex(
+        self,
+        run: int,
+        t_ns: int,
+        T_world_vertex: np.ndarray,
+        frame: StereoFrame,
+        T_vehicle_sensor: np.ndarray | None = None,
+    ) -> VertexRecord:
         """Append a stereo frame as the next vertex of the open run ``run`` (no edge); returns the stored record.
 
         ``T_world_vertex`` (4x4) is the frame's left camera pose in the run's first camera frame;
@@ -130,8 +139,9 @@ class MapWriting:
         """
         return self._add_vertex(run, t_ns, T_world_vertex, frame, T_vehicle_sensor, None)
 
-    def add_keyframe(self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None,
-                     link_previous: bool = True) -> VertexRecord:
+    def add_keyframe(
+        self, run: int, keyframe: Keyframe, T_vehicle_sensor: np.ndarray | None = None, link_previous: bool = True
+    ) -> VertexRecord:
         """Append an odometry ``Keyframe`` and its temporal edge from the run's previous vertex, atomically.
 
         The edge is ``T_prev_vertex = inv(T_world_prev) @ T_world_kf`` from the two stored poses, with the
@@ -142,13 +152,21 @@ class MapWriting:
         """
         edge = None
         if link_previous:
-            edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
-                    check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
-        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
-                                edge)
+            edge = (
+                check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
+                check_int(keyframe.edge_inliers, "temporal edge inliers", 0),
+            )
+        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor, edge)
 
-    def add_leaf(self, run: int, keyframe: Keyframe, leaf: Leaf, T_vehicle_sensor: np.ndarray | None = None, *,
-                 connection: Connection | None = None) -> VertexRecord:
+    def add_leaf(
+        self,
+        run: int,
+        keyframe: Keyframe,
+        leaf: Leaf,
+        T_vehicle_sensor: np.ndarray | None = None,
+        *,
+        connection: Connection | None = None,
+    ) -> VertexRecord:
         """Append a repeat keyframe with its localization, atomically: the vertex and its temporal edge (as
         :meth:`add_keyframe`), the spatial edge of a success (``leaf.spatial``, from this vertex), one keyframe of use
         for each experience it used (``leaf.experience_use``) and its localization record (``leaf.record``), in one
@@ -163,43 +181,64 @@ class MapWriting:
         if leaf.spatial is not None:
             e = leaf.spatial
             to_id = check_int(e.to_id, "spatial edge to_id", 0)
-            spatial = (to_id, matrix_blob(check_transform(e.T_from_to, f"spatial edge ->{to_id} T_from_to")),
-                       matrix_blob(check_covariance(e.covariance, f"spatial edge ->{to_id} covariance")),
-                       check_int(e.inliers, "spatial edge inliers", 0))
+            spatial = (
+                to_id,
+                matrix_blob(check_transform(e.T_from_to, f"spatial edge ->{to_id} T_from_to")),
+                matrix_blob(check_covariance(e.covariance, f"spatial edge ->{to_id} covariance")),
+                check_int(e.inliers, "spatial edge inliers", 0),
+            )
         use = [(int(x), int(run), 1) for x in leaf.experience_use]
 
         def extra(conn: Connection, vid: int) -> None:
             if vid != row[0]:
-                raise MapError(f"{self.path}: the localization record is for vertex {row[0]}, the keyframe became "
-                               f"vertex {vid} (another writer?)")
+                raise MapError(
+                    f"{self.path}: the localization record is for vertex {row[0]}, the keyframe became "
+                    f"vertex {vid} (another writer?)"
+                )
             if spatial is not None:
-                conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
-                             "VALUES (?, ?, 'spatial', ?, ?, ?)", (vid, *spatial))
+                conn.execute(
+                    "INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
+                    "VALUES (?, ?, 'spatial', ?, ?, ?)",
+                    (vid, *spatial),
+                )
             if use:
                 conn.execute(USE_TABLE)
                 conn.executemany(USE_SQL, use)
             localizations.create(conn)
             localizations.insert(conn, row)
 
-        edge = (check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
-                check_int(keyframe.edge_inliers, "temporal edge inliers", 0))
-        return self._add_vertex(run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor,
-                                edge, extra, connection)
+        edge = (
+            check_covariance(keyframe.edge_covariance, "temporal edge covariance"),
+            check_int(keyframe.edge_inliers, "temporal edge inliers", 0),
+        )
+        return self._add_vertex(
+            run, keyframe.frame.t_ns, keyframe.T_world_kf, keyframe.frame, T_vehicle_sensor, edge, extra, connection
+        )
 
-    def _add_vertex(self, run: int, t_ns: int, T_world_vertex: np.ndarray, frame: StereoFrame,
-                    T_vehicle_sensor: np.ndarray | None, edge: tuple[np.ndarray, int] | None,
-                    extra: Callable[[Connection, int], None] | None = None,
-                    connection: Connection | None = None) -> VertexRecord:
+    def _add_vertex(
+        self,
+        run: int,
+        t_ns: int,
+        T_world_vertex: np.ndarray,
+        frame: StereoFrame,
+        T_vehicle_sensor: np.ndarray | None,
+        edge: tuple[np.ndarray, int] | None,
+        extra: Callable[[Connection, int], None] | None = None,
+        connection: Connection | None = None,
+    ) -> VertexRecord:
         self._check_writable()
         run = check_int(run, "run", 0)
         self._check_open_run(run, "add_vertex")
         t_ns = check_int(t_ns, "t_ns")
         if not -(2**63) <= t_ns < 2**63:
-            raise MapError(f"t_ns: {t_ns} does not fit int64 nanoseconds (a time past the year 2262: a damaged "
-                           "timestamp in the source?)")
+            raise MapError(
+                f"t_ns: {t_ns} does not fit int64 nanoseconds (a time past the year 2262: a damaged "
+                "timestamp in the source?)"
+            )
         T_wv = check_transform(T_world_vertex, "T_world_vertex")
-        T_vs = check_transform(self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor,
-                               "T_vehicle_sensor")
+        T_vs = check_transform(
+            self.camera.T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor, "T_vehicle_sensor"
+        )
         encoded = encode_frame(frame, t_ns, self._compress_level)
         lo, hi = run_range(run)
         with self._tx() if connection is None else transaction(connection, self.path) as conn:
@@ -209,21 +248,44 @@ class MapWriting:
             conn.execute(
                 "INSERT INTO vertices(id, run, idx, t_ns, T_world_vertex, T_vehicle_sensor, n_features, "
                 "n_landmarks, frame_index) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs), encoded.n_features,
-                 encoded.n_landmarks, encoded.frame.index),
+                (
+                    vid,
+                    run,
+                    index,
+                    t_ns,
+                    matrix_blob(T_wv),
+                    matrix_blob(T_vs),
+                    encoded.n_features,
+                    encoded.n_landmarks,
+                    encoded.frame.index,
+                ),
             )
             conn.execute("INSERT INTO vertex_data(id, data) VALUES (?, ?)", (vid, encoded.blob))
             if self._checksums:
-                checksums.write(conn, vid, run, index, t_ns, matrix_blob(T_wv), matrix_blob(T_vs),
-                                encoded.n_features, encoded.n_landmarks, encoded.frame.index, encoded.blob)
+                checksums.write(
+                    conn,
+                    vid,
+                    run,
+                    index,
+                    t_ns,
+                    matrix_blob(T_wv),
+                    matrix_blob(T_vs),
+                    encoded.n_features,
+                    encoded.n_landmarks,
+                    encoded.frame.index,
+                    encoded.blob,
+                )
             if edge is not None and last is not None:
                 C, inliers = edge
-                T_world_prev = blob_matrix(conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?",
-                                                        (int(last),)).fetchone()[0], (4, 4))
+                T_world_prev = blob_matrix(
+                    conn.execute("SELECT T_world_vertex FROM vertices WHERE id = ?", (int(last),)).fetchone()[0], (4, 4)
+                )
                 T = inv_T(T_world_prev) @ T_wv
-                conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
-                             "VALUES (?, ?, 'temporal', ?, ?, ?)", (int(last), vid, matrix_blob(T), matrix_blob(C),
-                                                                    inliers))
+                conn.execute(
+                    "INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
+                    "VALUES (?, ?, 'temporal', ?, ?, ?)",
+                    (int(last), vid, matrix_blob(T), matrix_blob(C), inliers),
+                )
             if extra is not None:
                 extra(conn, vid)
         self._open_run_touched = True
@@ -233,8 +295,9 @@ class MapWriting:
         self._cache_put(record)
         return record
 
-    def add_edge(self, from_id: int, to_id: int, T_from_to: np.ndarray, covariance: np.ndarray, kind: str,
-                 inliers: int = 0) -> None:
+    def add_edge(
+        self, from_id: int, to_id: int, T_from_to: np.ndarray, covariance: np.ndarray, kind: str, inliers: int = 0
+    ) -> None:
         """Add an edge; ``T_from_to`` (4x4) maps to-vertex coordinates into the from-vertex frame.
 
         ``temporal`` edges join consecutive vertices (index i -> i+1) of the open run; ``spatial``
@@ -258,20 +321,27 @@ class MapWriting:
                 raise MapError(f"{self.path}: no vertex {vid} (run {vid >> RUN_SHIFT}, index {vid & INDEX_MASK})")
         if kind == "temporal":
             if run_f != run_t or idx_t != idx_f + 1:
-                raise MapError(f"temporal edge must join consecutive vertices of one run, got "
-                               f"({run_f}, {idx_f}) -> ({run_t}, {idx_t})")
+                raise MapError(
+                    f"temporal edge must join consecutive vertices of one run, got "
+                    f"({run_f}, {idx_f}) -> ({run_t}, {idx_t})"
+                )
             self._check_open_run(run_f, "temporal edge")
         elif self._open_run is None or self._open_run not in (run_f, run_t):
-            raise MapError(f"{self.path}: spatial edge ({run_f}, {idx_f}) -> ({run_t}, {idx_t}) must touch the "
-                           f"open run ({self._open_run}); finished runs are immutable")
+            raise MapError(
+                f"{self.path}: spatial edge ({run_f}, {idx_f}) -> ({run_t}, {idx_t}) must touch the "
+                f"open run ({self._open_run}); finished runs are immutable"
+            )
         with self._db() as conn:
-            dup = conn.execute("SELECT 1 FROM edges WHERE from_id = ? AND to_id = ? AND kind = ?",
-                               (from_id, to_id, kind)).fetchone()
+            dup = conn.execute(
+                "SELECT 1 FROM edges WHERE from_id = ? AND to_id = ? AND kind = ?", (from_id, to_id, kind)
+            ).fetchone()
         if dup:
             raise MapError(f"{self.path}: {kind} edge {from_id}->{to_id} already exists")
         with self._tx() as conn:
-            conn.execute("INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) "
-                         "VALUES (?, ?, ?, ?, ?, ?)", (from_id, to_id, kind, matrix_blob(T), matrix_blob(C), inliers))
+            conn.execute(
+                "INSERT INTO edges(from_id, to_id, kind, T_from_to, covariance, inliers) VALUES (?, ?, ?, ?, ?, ?)",
+                (from_id, to_id, kind, matrix_blob(T), matrix_blob(C), inliers),
+            )
         self._open_run_touched = True
 
 

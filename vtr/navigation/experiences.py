@@ -48,11 +48,12 @@ from .place import PlaceIndex, PlaceMatch
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
 
-FRAMES_KEPT = 96            # decoded frames held for submaps before the cache starts again (memory stays flat)
+FRAMES_KEPT = 96  # decoded frames held for submaps before the cache starts again (memory stays flat)
 
 
-def experience_covariance(submap: TaughtSubmap, est: LocalizationEstimate,
-                          edge_covariance: Callable[[int], np.ndarray | None]) -> np.ndarray:
+def experience_covariance(
+    submap: TaughtSubmap, est: LocalizationEstimate, edge_covariance: Callable[[int], np.ndarray | None]
+) -> np.ndarray:
     """What the experiences' own placement adds to the covariance of ``est`` (6x6, [rot, trans], the leaf-frame
     perturbation of ``T_leaf_trunk`` as the chain takes it): the adjustment holds each experience vertex ``x`` where
     its stored spatial edge puts it, so that edge's error ``P_x`` moves the estimate by up to ``Ad(T_leaf_x) P_x
@@ -66,14 +67,15 @@ def experience_covariance(submap: TaughtSubmap, est: LocalizationEstimate,
         return out
     for s in np.unique(submap.slot[est.matched[est.inlier]]):
         P = edge_covariance(int(submap.vertex_ids[s]))
-        if P is not None:                             # None: a taught vertex, placed by the path itself
+        if P is not None:  # None: a taught vertex, placed by the path itself
             A = adjoint(est.T_leaf_trunk @ inv_T(submap.T_vertex_trunk[s]))
             out += A @ P @ A.T
     return out
 
 
-def taught_covariance(submap: TaughtSubmap, est: LocalizationEstimate,
-                      edge_covariance: Callable[[int], np.ndarray | None]) -> np.ndarray:
+def taught_covariance(
+    submap: TaughtSubmap, est: LocalizationEstimate, edge_covariance: Callable[[int], np.ndarray | None]
+) -> np.ndarray:
     """What the taught submap's own placement adds to the covariance of ``est`` (6x6, [rot, trans], as
     :func:`experience_covariance`): the adjustment holds each taught vertex ``s`` and the landmarks the teach placed
     with it fixed, but the teach placed vertex ``s`` relative to its predecessor only as well as its temporal edge's
@@ -88,7 +90,7 @@ def taught_covariance(submap: TaughtSubmap, est: LocalizationEstimate,
         return out
     for s in np.unique(submap.slot[est.matched[est.inlier]]):
         P = edge_covariance(int(submap.vertex_ids[s]))
-        if P is not None:                             # None: not a taught vertex (an experience's)
+        if P is not None:  # None: not a taught vertex (an experience's)
             A = adjoint(est.T_leaf_trunk @ inv_T(submap.T_vertex_trunk[s]))
             out += A @ P @ A.T
     return out
@@ -105,8 +107,9 @@ class ExperienceLocalizer(Localizer):
         est = super().localize(leaf, submap, *args, **kwargs)
         if self.experiences is None or not est.ok:
             return est
-        extra = (experience_covariance(submap, est, self.experiences.edge_covariance)
-                 + taught_covariance(submap, est, self.experiences.taught_edge_covariance))
+        extra = experience_covariance(submap, est, self.experiences.edge_covariance) + taught_covariance(
+            submap, est, self.experiences.taught_edge_covariance
+        )
         if not extra.any():
             return est
         return dataclasses.replace(est, covariance=est.covariance + extra, frame_covariance=extra)
@@ -119,17 +122,21 @@ def single_experience(config: Config) -> Config:
     return dataclasses.replace(config, experiences=dataclasses.replace(config.experiences, max_per_keyframe=0))
 
 
-DIGEST_BYTES = 8                 # of the vocabulary the words are of
+DIGEST_BYTES = 8  # of the vocabulary the words are of
 
 
 def _encode_words(words: dict[int, np.ndarray]) -> bytes:
     vids = np.array(sorted(words), np.int64)
     top = max((int(w.max()) for w in words.values() if len(w)), default=0)
-    dtype = np.uint16 if top <= np.iinfo(np.uint16).max else np.int32          # 1024 words: two bytes a feature
+    dtype = np.uint16 if top <= np.iinfo(np.uint16).max else np.int32  # 1024 words: two bytes a feature
     parts = [np.asarray(words[int(v)], dtype) for v in vids]
     buf = io.BytesIO()
-    np.savez(buf, vertex_id=vids, indptr=np.r_[0, np.cumsum([len(p) for p in parts])].astype(np.int64),
-             words=np.concatenate(parts) if parts else np.zeros(0, dtype))
+    np.savez(
+        buf,
+        vertex_id=vids,
+        indptr=np.r_[0, np.cumsum([len(p) for p in parts])].astype(np.int64),
+        words=np.concatenate(parts) if parts else np.zeros(0, dtype),
+    )
     return buf.getvalue()
 
 
@@ -143,7 +150,7 @@ def _decode_words(data: bytes | None) -> dict[int, np.ndarray] | None:
         if len(indptr) != len(vids) + 1 or indptr[-1] != len(words):
             return None
         words = words.astype(np.int64)
-        return {int(v): words[indptr[i]:indptr[i + 1]] for i, v in enumerate(vids)}
+        return {int(v): words[indptr[i] : indptr[i + 1]] for i, v in enumerate(vids)}
     except (ValueError, KeyError, OSError, zipfile.BadZipFile):
         return None
 
@@ -175,14 +182,15 @@ class Recommender:
         if k == 0 or len(available) == 0:
             return []
         recent = self.recent()
-        ranked = sorted((e for e in (int(a) for a in available) if recent.get(e, 0) > 0),
-                        key=lambda e: (-recent[e], -e))
-        chosen = ranked[:k - 1 if k > 1 else k]
+        ranked = sorted(
+            (e for e in (int(a) for a in available) if recent.get(e, 0) > 0), key=lambda e: (-recent[e], -e)
+        )
+        chosen = ranked[: k - 1 if k > 1 else k]
         rest = available[~np.isin(available, chosen)]
         if len(chosen) < k and len(rest):
             score = np.asarray(similarity(rest), float)
             order = np.lexsort((-rest, -score))
-            chosen += [int(e) for e in rest[order][:k - len(chosen)]]
+            chosen += [int(e) for e in rest[order][: k - len(chosen)]]
         return chosen
 
 
@@ -203,14 +211,14 @@ class ExperiencePlaces:
         return len(self.index)
 
     def __getattr__(self, name: str) -> Any:
-        if name == "index":                    # not set yet (copying): no recursion
+        if name == "index":  # not set yet (copying): no recursion
             raise AttributeError(name)
-        return getattr(self.index, name)       # anything else is the taught index's
+        return getattr(self.index, name)  # anything else is the taught index's
 
     def query(self, descriptors: np.ndarray, k: int) -> PlaceMatch:
         """The ``k`` best-scoring taught vertices (path indices) by :meth:`scores`, best first."""
         s = self.scores(descriptors)
-        top = np.argsort(-s, kind="stable")[:min(int(k), len(s))]
+        top = np.argsort(-s, kind="stable")[: min(int(k), len(s))]
         return PlaceMatch(top.astype(np.int64), s[top])
 
     def vector(self, descriptors: np.ndarray) -> np.ndarray:
@@ -238,14 +246,23 @@ class ExperiencePlaces:
 
 
 class ExperienceSubmaps:
-    """Builds the submap of a trunk (the ``submap`` of :class:`~vtr.navigation.chain.ChainLocalizer`) with the
+    """Builds the submap of a trunk (the ``submap`` of :class:`~vtr.navigation.chain_localizer.ChainLocalizer`) with the
     experiences the recommender picks, and learns from each localization which ones matched.
 
     ``exclude``: runs never used (the repeat under way). Trusted experiences are read once, when the repeat starts.
     """
 
-    def __init__(self, map_: Map, path: TaughtPath, config: ExperienceConfig, neighbours: int, camera: StereoCamera,
-                 place: PlaceIndex, exclude: tuple[int, ...] = (), warn: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        map_: Map,
+        path: TaughtPath,
+        config: ExperienceConfig,
+        neighbours: int,
+        camera: StereoCamera,
+        place: PlaceIndex,
+        exclude: tuple[int, ...] = (),
+        warn: Callable[[str], None] | None = None,
+    ):
         """``config``: the experiences section; ``neighbours``: taught vertices on each side of a trunk in its
         submap (``localization.neighbour_vertices``)."""
         self.map = map_
@@ -262,9 +279,10 @@ class ExperienceSubmaps:
             trusted = [e.run for e in self.infos if e.trusted]
         self.links: ExperienceLinks = experience_links(map_, trusted)
         taught_slot = np.searchsorted(path.ids, self.links.taught_id)
-        ok = (taught_slot < len(path.ids)) & (path.ids[np.minimum(taught_slot, len(path.ids) - 1)] ==
-                                              self.links.taught_id)
-        self._link_slot = np.where(ok, taught_slot, -1)        # path index of each link's taught vertex
+        ok = (taught_slot < len(path.ids)) & (
+            path.ids[np.minimum(taught_slot, len(path.ids) - 1)] == self.links.taught_id
+        )
+        self._link_slot = np.where(ok, taught_slot, -1)  # path index of each link's taught vertex
         self._rows_of: dict[int, list[int]] = {}
         for row, vid in enumerate(self.links.vertex_id.tolist()):
             self._rows_of.setdefault(int(vid), []).append(row)
@@ -277,9 +295,9 @@ class ExperienceSubmaps:
         self._damaged: set[int] = set()
         self._leaf: StereoFrame | None = None
         self._leaf_vector: np.ndarray | None = None
-        self._chosen: dict[int, tuple[int, ...]] = {}          # this leaf's choice per trunk
-        self._leaf_submaps: dict[int, TaughtSubmap] = {}       # this leaf's submap per trunk
-        self._used: dict[int, int] = {}                        # keyframes each experience gave inliers to
+        self._chosen: dict[int, tuple[int, ...]] = {}  # this leaf's choice per trunk
+        self._leaf_submaps: dict[int, TaughtSubmap] = {}  # this leaf's submap per trunk
+        self._used: dict[int, int] = {}  # keyframes each experience gave inliers to
 
     @property
     def trusted(self) -> list[int]:
@@ -381,9 +399,11 @@ class ExperienceSubmaps:
         if words is None:
             vids = np.unique(self.links.vertex_id[self.links.run == run])
             try:
-                words = {int(v): self.place.vocabulary.words_of(self.map.vertex(int(v)).frame.features.descriptors)
-                         for v in vids}
-            except MapError as err:     # a vertex that does not read back whole: its experience is never used
+                words = {
+                    int(v): self.place.vocabulary.words_of(self.map.vertex(int(v)).frame.features.descriptors)
+                    for v in vids
+                }
+            except MapError as err:  # a vertex that does not read back whole: its experience is never used
                 self._drop({run}, err)
                 words = {}
             else:
@@ -394,11 +414,13 @@ class ExperienceSubmaps:
 
     def _vocabulary_digest(self) -> str:
         voc = self.place.vocabulary
-        return hashlib.blake2b(np.ascontiguousarray(voc.top).tobytes() + np.ascontiguousarray(voc.leaves).tobytes(),
-                               digest_size=DIGEST_BYTES).hexdigest()
+        return hashlib.blake2b(
+            np.ascontiguousarray(voc.top).tobytes() + np.ascontiguousarray(voc.leaves).tobytes(),
+            digest_size=DIGEST_BYTES,
+        ).hexdigest()
 
     def _drop(self, runs: set[int], err: MapError) -> None:
-        runs = runs - self._damaged         # said once per experience
+        runs = runs - self._damaged  # said once per experience
         if not runs:
             return
         self._damaged |= runs
@@ -433,7 +455,7 @@ class ExperienceSubmaps:
             return sub
         try:
             sub = self._build(trunk, [int(rows[np.flatnonzero(runs == e)[0]]) for e in chosen])
-        except MapError as err:              # an experience vertex that does not read back whole: never used again
+        except MapError as err:  # an experience vertex that does not read back whole: never used again
             bad = {e for e in chosen if not self._readable(int(rows[np.flatnonzero(runs == e)[0]]))}
             if not bad:
                 raise
@@ -461,8 +483,13 @@ class ExperienceSubmaps:
             s = int(self._link_slot[r])
             T_vertex_trunk.append(self.links.T_vertex_taught[r] @ inv_T(T_world[s]) @ T_world[trunk])
         frames = [self.frame(i) for i in ids]
-        return TaughtSubmap.build(frames, np.array(ids, np.int64), np.array(T_vertex_trunk),
-                                  int(np.flatnonzero(slots == trunk)[0]), self.camera)
+        return TaughtSubmap.build(
+            frames,
+            np.array(ids, np.int64),
+            np.array(T_vertex_trunk),
+            int(np.flatnonzero(slots == trunk)[0]),
+            self.camera,
+        )
 
     # -- learning from the localizations -----------------------------------------------------------
 
@@ -487,5 +514,11 @@ class ExperienceSubmaps:
         record_use(self.map, repeat_run, {e: 1 for e in used})
 
 
-__all__ = ["ExperienceLocalizer", "ExperiencePlaces", "ExperienceSubmaps", "Recommender", "experience_covariance",
-           "single_experience"]
+__all__ = [
+    "ExperienceLocalizer",
+    "ExperiencePlaces",
+    "ExperienceSubmaps",
+    "Recommender",
+    "experience_covariance",
+    "single_experience",
+]

@@ -30,15 +30,15 @@ from ..vo.matching import match_landmarks
 class LocalizationStatus(StrEnum):
     """Outcome of one localization attempt, as ``localization.csv``'s ``status`` column says it."""
 
-    LOCALIZED = "localized"                   # a success: consistent, and (when searching) confirmed
-    UNCONFIRMED = "unconfirmed"               # verified against a place candidate, waiting for the next keyframe
-    NO_CANDIDATES = "no_candidates"           # place recognition found no taught vertex that verified
-    TOO_FEW_MATCHES = "too_few_matches"       # fewer candidate matches than localization.min_matches
-    TOO_FEW_INLIERS = "too_few_inliers"       # fewer inliers than localization.min_inliers (or _unlocalized)
-    LOW_INLIER_RATIO = "low_inlier_ratio"     # inliers / matches below localization.min_inlier_ratio
-    RESIDUALS = "residuals_inconsistent"      # inlier residuals do not fit the pixel noise model
-    INCONSISTENT = "inconsistent_with_odometry"   # outside the innovation gate of the odometry-propagated prior
-    OFF_ROUTE = "off_route"                   # beyond either end of the taught route
+    LOCALIZED = "localized"  # a success: consistent, and (when searching) confirmed
+    UNCONFIRMED = "unconfirmed"  # verified against a place candidate, waiting for the next keyframe
+    NO_CANDIDATES = "no_candidates"  # place recognition found no taught vertex that verified
+    TOO_FEW_MATCHES = "too_few_matches"  # fewer candidate matches than localization.min_matches
+    TOO_FEW_INLIERS = "too_few_inliers"  # fewer inliers than localization.min_inliers (or _unlocalized)
+    LOW_INLIER_RATIO = "low_inlier_ratio"  # inliers / matches below localization.min_inlier_ratio
+    RESIDUALS = "residuals_inconsistent"  # inlier residuals do not fit the pixel noise model
+    INCONSISTENT = "inconsistent_with_odometry"  # outside the innovation gate of the odometry-propagated prior
+    OFF_ROUTE = "off_route"  # beyond either end of the taught route
 
 
 @dataclass(frozen=True)
@@ -69,14 +69,13 @@ class Localization:
     distance_since_success_m: float
     landmarks: Observations | None = None
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
-    direction: int = 1                      # +1 the route travelled as taught, -1 backward, 0 not yet decided
-    experiences: tuple[int, ...] = ()       # the experiences (repeat runs) that gave this success inliers
+    direction: int = 1  # +1 the route travelled as taught, -1 backward, 0 not yet decided
+    experiences: tuple[int, ...] = ()  # the experiences (repeat runs) that gave this success inliers
     # the part of ``covariance`` that is the map's own placement (taught vertices, experiences): shared by the
     # leaves localized against the same vertices, not independent between them (LocalizationEstimate)
     frame_covariance: np.ndarray | None = None
 
-    __repr__ = short_repr                   # arrays by shape: print(repeat.latest) stays short
-
+    __repr__ = short_repr  # arrays by shape: print(repeat.latest) stays short
 
 
 #: a stored landmark whose depth differs from its own triangulation by more than this disparity was refined
@@ -114,8 +113,14 @@ class TaughtSubmap:
     refined: np.ndarray
 
     @classmethod
-    def build(cls, frames: list[StereoFrame], vertex_ids: np.ndarray, T_vertex_trunk: np.ndarray, trunk_slot: int,
-              camera: StereoCamera) -> TaughtSubmap:
+    def build(
+        cls,
+        frames: list[StereoFrame],
+        vertex_ids: np.ndarray,
+        T_vertex_trunk: np.ndarray,
+        trunk_slot: int,
+        camera: StereoCamera,
+    ) -> TaughtSubmap:
         """From the vertices' stereo frames (landmarks with depth) and their poses relative to the trunk.
 
         A vertex stores each landmark where odometry's windowed bundle adjustment left it, or, when the
@@ -124,15 +129,24 @@ class TaughtSubmap:
         """
         feats = [np.flatnonzero(f.has_depth) for f in frames]
         T_trunk_vertex = inv_T(np.asarray(T_vertex_trunk))
-        points = np.concatenate([f.points[i] @ T[:3, :3].T + T[:3, 3]
-                                 for f, i, T in zip(frames, feats, T_trunk_vertex, strict=True)])
+        points = np.concatenate(
+            [f.points[i] @ T[:3, :3].T + T[:3, 3] for f, i, T in zip(frames, feats, T_trunk_vertex, strict=True)]
+        )
         z = np.concatenate([f.stereo_measurements[i] for f, i in zip(frames, feats, strict=True)])
         depth = np.concatenate([f.points[i, 2] for f, i in zip(frames, feats, strict=True)])
         refined = refined_landmarks(z, depth, camera)
-        return cls(np.asarray(vertex_ids), np.asarray(T_vertex_trunk), trunk_slot, points,
-                   np.concatenate([f.features.descriptors[i] for f, i in zip(frames, feats, strict=True)]),
-                   np.concatenate([np.full(len(i), s) for s, i in enumerate(feats)]), z, np.concatenate(feats),
-                   depth, refined)
+        return cls(
+            np.asarray(vertex_ids),
+            np.asarray(T_vertex_trunk),
+            trunk_slot,
+            points,
+            np.concatenate([f.features.descriptors[i] for f, i in zip(frames, feats, strict=True)]),
+            np.concatenate([np.full(len(i), s) for s, i in enumerate(feats)]),
+            z,
+            np.concatenate(feats),
+            depth,
+            refined,
+        )
 
     @classmethod
     def of_frame(cls, frame: StereoFrame, camera: StereoCamera, vertex_id: int = 0) -> TaughtSubmap:
@@ -162,7 +176,7 @@ class LocalizationEstimate:
     matched: np.ndarray
     inlier: np.ndarray
     status: LocalizationStatus = LocalizationStatus.LOCALIZED
-    median_residual_px: float = float("nan")   # median reprojection error of the inliers (worse of the two views)
+    median_residual_px: float = float("nan")  # median reprojection error of the inliers (worse of the two views)
     # the part of ``covariance`` the map's own placement adds (vtr.navigation.experiences.taught_covariance and
     # experience_covariance): an error of the frame the leaf is localized in, which consecutive leaves localized
     # against the same vertices share; None: none added
@@ -177,17 +191,35 @@ class LocalizationEstimate:
         return int(self.inlier.sum())
 
     @classmethod
-    def failed(cls, matched: np.ndarray, status: LocalizationStatus, inlier: np.ndarray | None = None,
-               median_residual_px: float = float("nan")) -> LocalizationEstimate:
-        return cls(None, np.full((6, 6), np.nan), len(matched), matched,
-                   np.zeros(len(matched), bool) if inlier is None else inlier, status, median_residual_px)
+    def failed(
+        cls,
+        matched: np.ndarray,
+        status: LocalizationStatus,
+        inlier: np.ndarray | None = None,
+        median_residual_px: float = float("nan"),
+    ) -> LocalizationEstimate:
+        return cls(
+            None,
+            np.full((6, 6), np.nan),
+            len(matched),
+            matched,
+            np.zeros(len(matched), bool) if inlier is None else inlier,
+            status,
+            median_residual_px,
+        )
 
 
 class Localizer:
     """Matches a leaf's features to a taught submap's landmarks and estimates ``T_leaf_trunk``."""
 
-    def __init__(self, camera: StereoCamera, config: LocalizationConfig, estimation: EstimationConfig,
-                 pixel_sigma: float, timer: StageTimer | None = None):
+    def __init__(
+        self,
+        camera: StereoCamera,
+        config: LocalizationConfig,
+        estimation: EstimationConfig,
+        pixel_sigma: float,
+        timer: StageTimer | None = None,
+    ):
         self.camera = camera
         self.config = config
         self.estimation = estimation
@@ -196,8 +228,15 @@ class Localizer:
         # edges): the split tools/bench_repeat.py prints
         self.timer = timer or StageTimer()
 
-    def localize(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
-                 seed: int = 0, trusted_prior: bool = True, consecutive_failures: int = 0) -> LocalizationEstimate:
+    def localize(
+        self,
+        leaf: StereoFrame,
+        submap: TaughtSubmap,
+        T_prior: np.ndarray | None,
+        seed: int = 0,
+        trusted_prior: bool = True,
+        consecutive_failures: int = 0,
+    ) -> LocalizationEstimate:
         """Estimate ``T_leaf_trunk``; ``T_prior`` None means no usable prior (unguided matching).
 
         Without a trusted prior (searching: the start, after a loss) a localization needs
@@ -211,14 +250,21 @@ class Localizer:
         """
         c = self.config
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
-        radius = min(c.match_radius_px * c.match_radius_growth ** consecutive_failures, c.max_match_radius_px)
+        radius = min(c.match_radius_px * c.match_radius_growth**consecutive_failures, c.max_match_radius_px)
         with self.timer("match"):
             li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
             return LocalizationEstimate.failed(li, LocalizationStatus.TOO_FEW_MATCHES)
         with self.timer("ransac"):
-            rs = ransac_pnp(submap.points_trunk[li], leaf.features.uv[lj], self.camera, c.ransac_iterations,
-                            c.ransac_threshold_px, self.estimation.ransac_confidence, seed)
+            rs = ransac_pnp(
+                submap.points_trunk[li],
+                leaf.features.uv[lj],
+                self.camera,
+                c.ransac_iterations,
+                c.ransac_threshold_px,
+                self.estimation.ransac_confidence,
+                seed,
+            )
         if rs is None or len(rs.inliers) < min_inliers:
             return LocalizationEstimate.failed(li, LocalizationStatus.TOO_FEW_INLIERS)
         sel = rs.inliers
@@ -240,8 +286,9 @@ class Localizer:
         cov = cov * factor * c.covariance_scale
         return LocalizationEstimate(T, cov, len(li), li, inlier, LocalizationStatus.LOCALIZED, median_px)
 
-    def _refine(self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray,
-                T_leaf_trunk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    def _refine(
+        self, submap: TaughtSubmap, landmarks: np.ndarray, z_leaf: np.ndarray, T_leaf_trunk: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Stereo bundle adjustment of ``T_leaf_trunk`` with the matched landmarks free, each observed by its
         taught vertex (held where the taught path puts it) and by the leaf. Returns (T_leaf_trunk,
         covariance, inlier mask).
@@ -258,12 +305,20 @@ class Localizer:
         w = self._row_weights(np.concatenate([z_taught, z_leaf]))
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
-        w[np.flatnonzero(refined), 2] = 1.0           # taught rows come first
-        res = bundle_adjust(np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
-                            np.r_[np.ones(V, bool), False], submap.points_trunk[landmarks],
-                            np.r_[submap.slot[landmarks], np.full(n, V)], np.r_[np.arange(n), np.arange(n)],
-                            np.nan_to_num(np.concatenate([z_taught, z_leaf])), w, self.camera, self.pixel_sigma,
-                            o.huber_px, o.refine_iterations)
+        w[np.flatnonzero(refined), 2] = 1.0  # taught rows come first
+        res = bundle_adjust(
+            np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
+            np.r_[np.ones(V, bool), False],
+            submap.points_trunk[landmarks],
+            np.r_[submap.slot[landmarks], np.full(n, V)],
+            np.r_[np.arange(n), np.arange(n)],
+            np.nan_to_num(np.concatenate([z_taught, z_leaf])),
+            w,
+            self.camera,
+            self.pixel_sigma,
+            o.huber_px,
+            o.refine_iterations,
+        )
         err_sq = np.maximum(res.error_sq[:n], res.error_sq[n:])
         inlier = err_sq <= self.config.ransac_threshold_px**2
         # the a-posteriori variance factor: the robust cost (in units of the modelled noise) per degree of freedom,
@@ -275,8 +330,9 @@ class Localizer:
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         return odometry_row_weights(z, self.camera, self.estimation)
 
-    def _match(self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None,
-               radius: float) -> tuple[np.ndarray, np.ndarray]:
+    def _match(
+        self, leaf: StereoFrame, submap: TaughtSubmap, T_prior: np.ndarray | None, radius: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Candidate matches (submap landmarks, leaf features). The trunk's landmarks are matched first and the
         neighbours' only to the leaf features left over, so the trunk's matches (those ``landmarks.csv``
         records for the perception model) are the ones a localization against the trunk alone would find."""
@@ -289,22 +345,44 @@ class Localizer:
             li, lj = np.r_[li, lo[fresh]], np.r_[lj, jo[fresh]]
         return li, lj
 
-    def _match_subset(self, leaf: StereoFrame, submap: TaughtSubmap, subset: np.ndarray, T_prior: np.ndarray | None,
-                      radius: float) -> tuple[np.ndarray, np.ndarray]:
+    def _match_subset(
+        self, leaf: StereoFrame, submap: TaughtSubmap, subset: np.ndarray, T_prior: np.ndarray | None, radius: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
         if T_prior is not None:
-            li, lj = match_landmarks(submap.points_trunk[subset], submap.descriptors[subset], leaf, T_prior,
-                                     self.camera, radius, c.max_descriptor_distance, self.estimation.ratio_test)
+            li, lj = match_landmarks(
+                submap.points_trunk[subset],
+                submap.descriptors[subset],
+                leaf,
+                T_prior,
+                self.camera,
+                radius,
+                c.max_descriptor_distance,
+                self.estimation.ratio_test,
+            )
             if len(li) >= c.min_matches:
                 return subset[li], lj
         # unguided: every taught landmark against every leaf feature, ratio test
-        li, lj = match_all(submap.descriptors[subset], leaf.features.descriptors, c.max_descriptor_distance,
-                           ratio=self.estimation.ratio_test)
+        li, lj = match_all(
+            submap.descriptors[subset],
+            leaf.features.descriptors,
+            c.max_descriptor_distance,
+            ratio=self.estimation.ratio_test,
+        )
         return subset[li], lj
 
 
-def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: StereoCamera, matched: np.ndarray,
-                    inlier: np.ndarray, *, t_ns: int, leaf_id: int, trunk_id: int) -> Observations:
+def landmark_record(
+    trunk: StereoFrame,
+    T_leaf_trunk: np.ndarray,
+    camera: StereoCamera,
+    matched: np.ndarray,
+    inlier: np.ndarray,
+    *,
+    t_ns: int,
+    leaf_id: int,
+    trunk_id: int,
+) -> Observations:
     """Angles of every trunk landmark inside the leaf's image, as ``landmarks.csv`` rows; ``matched`` and
     ``inlier`` are the feature indices of the trunk's matched / inlier landmarks.
 
@@ -326,7 +404,14 @@ def landmark_record(trunk: StereoFrame, T_leaf_trunk: np.ndarray, camera: Stereo
     is_matched = np.isin(idx, matched)
     is_inlier = np.isin(idx, inlier)
     n = len(idx)
-    return Observations(alpha=parallax_angle(p_is, p_ao), theta=view_angle(p_is, p_ao, z), inlier=is_inlier,
-                        t_ns=np.full(n, t_ns, np.int64), leaf_id=np.full(n, leaf_id, np.int64),
-                        trunk_id=np.full(n, trunk_id, np.int64), landmark_id=idx.astype(np.int64),
-                        range_m=np.linalg.norm(P_leaf, axis=1), matched=is_matched)
+    return Observations(
+        alpha=parallax_angle(p_is, p_ao),
+        theta=view_angle(p_is, p_ao, z),
+        inlier=is_inlier,
+        t_ns=np.full(n, t_ns, np.int64),
+        leaf_id=np.full(n, leaf_id, np.int64),
+        trunk_id=np.full(n, trunk_id, np.int64),
+        landmark_id=idx.astype(np.int64),
+        range_m=np.linalg.norm(P_leaf, axis=1),
+        matched=is_matched,
+    )

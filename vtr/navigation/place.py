@@ -39,10 +39,10 @@ from .kernels import coarse_scores, row_scores
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
 
-DESCRIPTOR_BYTES = 32          # ORB: 256 bits
+DESCRIPTOR_BYTES = 32  # ORB: 256 bits
 INDEX_MAGIC = b"VTRP\x01"
-DIGEST_BYTES = 16              # BLAKE2b of the indexed vertices (ids, times, poses)
-ROWS_PER_BLOCK = 4096          # rows sorted at once when the inverted file is derived (bounds its temporary arrays)
+DIGEST_BYTES = 16  # BLAKE2b of the indexed vertices (ids, times, poses)
+ROWS_PER_BLOCK = 4096  # rows sorted at once when the inverted file is derived (bounds its temporary arrays)
 
 
 def _words(descriptors: np.ndarray) -> np.ndarray:
@@ -57,7 +57,7 @@ def k_majority(descriptors: np.ndarray, k: int, iterations: int, rng: np.random.
     if len(X) <= k:
         return X[np.arange(k) % len(X)] if len(X) else np.zeros((k, DESCRIPTOR_BYTES), np.uint8)
     centres = X[rng.choice(len(X), k, replace=False)].copy()
-    bits = np.unpackbits(X, axis=1).astype(np.float32)        # (N, 256)
+    bits = np.unpackbits(X, axis=1).astype(np.float32)  # (N, 256)
     for _ in range(iterations):
         a = km.nearest(_words(X), _words(centres))
         counts = np.bincount(a, minlength=k)
@@ -75,8 +75,9 @@ def _sum_rows(out: np.ndarray, rows: np.ndarray, values: np.ndarray) -> None:
     out += onehot @ values
 
 
-def train_vocabulary(descriptors: np.ndarray, branching: int, iterations: int,
-                     seed: int) -> tuple[np.ndarray, np.ndarray]:
+def train_vocabulary(
+    descriptors: np.ndarray, branching: int, iterations: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
     """A two-level vocabulary tree: ``branching`` top nodes (B, 32) and ``branching`` leaf words under each
     (B * B, 32), by k-majority clustering of the descriptors, then of each node's members."""
     rng = np.random.default_rng(seed)
@@ -123,8 +124,15 @@ class CoarseFile:
     vertex_words: int
 
     @classmethod
-    def of_rows(cls, indptr: np.ndarray, word: np.ndarray, weight: np.ndarray, n_words: int, vertex_words: int,
-                rows_per_block: int = ROWS_PER_BLOCK) -> CoarseFile:
+    def of_rows(
+        cls,
+        indptr: np.ndarray,
+        word: np.ndarray,
+        weight: np.ndarray,
+        n_words: int,
+        vertex_words: int,
+        rows_per_block: int = ROWS_PER_BLOCK,
+    ) -> CoarseFile:
         """From the unit TF-IDF rows (CSR): each row's ``vertex_words`` heaviest words (ties: the lower word),
         in blocks of rows so memory stays that of the rows."""
         vs, ws, xs = [], [], []
@@ -132,8 +140,8 @@ class CoarseFile:
         for lo in range(0, V, rows_per_block):
             hi = min(lo + rows_per_block, V)
             a, b = int(indptr[lo]), int(indptr[hi])
-            row = np.repeat(np.arange(lo, hi), np.diff(indptr[lo:hi + 1]))
-            order = np.lexsort((word[a:b], -weight[a:b], row))          # by row, heaviest first
+            row = np.repeat(np.arange(lo, hi), np.diff(indptr[lo : hi + 1]))
+            order = np.lexsort((word[a:b], -weight[a:b], row))  # by row, heaviest first
             rank = np.arange(b - a) - (indptr[row[order]] - a)
             keep = order[rank < vertex_words]
             vs.append(row[keep])
@@ -141,8 +149,12 @@ class CoarseFile:
             xs.append(weight[a:b][keep])
         v, w, x = (np.concatenate(a) if a else np.zeros(0) for a in (vs, ws, xs))
         o = np.lexsort((v, w))
-        return cls(np.r_[0, np.cumsum(np.bincount(w[o].astype(np.int64), minlength=n_words))].astype(np.int64),
-                   v[o].astype(np.int32), x[o].astype(np.float32), int(vertex_words))
+        return cls(
+            np.r_[0, np.cumsum(np.bincount(w[o].astype(np.int64), minlength=n_words))].astype(np.int64),
+            v[o].astype(np.int32),
+            x[o].astype(np.float32),
+            int(vertex_words),
+        )
 
     @property
     def nbytes(self) -> int:
@@ -160,8 +172,8 @@ class PlaceIndex:
     indptr: np.ndarray
     word: np.ndarray
     weight: np.ndarray
-    digest: bytes = b""        # vertices_digest of the vertices indexed (empty: an index stored before digests)
-    coarse: CoarseFile | None = None     # None: derived from the rows when first needed (PlaceConfig's vertex_words)
+    digest: bytes = b""  # vertices_digest of the vertices indexed (empty: an index stored before digests)
+    coarse: CoarseFile | None = None  # None: derived from the rows when first needed (PlaceConfig's vertex_words)
     shortlist: int = PlaceConfig().shortlist
     query_words: int = PlaceConfig().query_words
 
@@ -169,8 +181,14 @@ class PlaceIndex:
         return len(self.indptr) - 1
 
     @classmethod
-    def build(cls, descriptor_sets: Callable[[], Iterable[np.ndarray]], n_vertices: int, config: PlaceConfig,
-              seed: int = 0, digest: bytes = b"") -> PlaceIndex:
+    def build(
+        cls,
+        descriptor_sets: Callable[[], Iterable[np.ndarray]],
+        n_vertices: int,
+        config: PlaceConfig,
+        seed: int = 0,
+        digest: bytes = b"",
+    ) -> PlaceIndex:
         """From each taught vertex's descriptors, in path order, read twice from ``descriptor_sets()`` (a sample
         of every vertex to learn the vocabulary, then each vertex's words), so memory does not grow with the route.
         ``digest``: :func:`vertices_digest` of those vertices, kept with the index."""
@@ -182,36 +200,49 @@ class PlaceIndex:
         for d in descriptor_sets():
             d = np.asarray(d, np.uint8).reshape(-1, DESCRIPTOR_BYTES)
             sample.append(d if len(d) <= per_vertex else d[rng.choice(len(d), per_vertex, replace=False)])
-        vocabulary = Vocabulary(*train_vocabulary(np.concatenate(sample), config.branching,
-                                                  config.training_iterations, seed))
+        vocabulary = Vocabulary(
+            *train_vocabulary(np.concatenate(sample), config.branching, config.training_iterations, seed)
+        )
         W, V = len(vocabulary), len(sample)
-        compact = np.int16 if len(vocabulary) <= np.iinfo(np.int16).max else np.int32   # memory: one row a vertex
-        words = [tuple(a.astype(compact) for a in np.unique(vocabulary.words_of(d), return_counts=True))
-                 for d in descriptor_sets()]
+        compact = np.int16 if len(vocabulary) <= np.iinfo(np.int16).max else np.int32  # memory: one row a vertex
+        words = [
+            tuple(a.astype(compact) for a in np.unique(vocabulary.words_of(d), return_counts=True))
+            for d in descriptor_sets()
+        ]
         if len(words) != V:
             raise MapError(f"place index: the taught vertices changed while indexing ({V} then {len(words)})")
         df = np.bincount(np.concatenate([w for w, _ in words]), minlength=W) if V else np.zeros(W)
-        idf = np.log((V + 1.0) / (df + 1.0)) + 1.0 / (V + 1.0)   # never 0: a word on every vertex still counts a little
+        idf = np.log((V + 1.0) / (df + 1.0)) + 1.0 / (V + 1.0)  # never 0: a word on every vertex still counts a little
         indptr = np.r_[0, np.cumsum([len(w) for w, _ in words])].astype(np.int64)
         word = np.concatenate([w for w, _ in words]).astype(compact) if V else np.zeros(0, compact)
         weight = np.concatenate([_unit(c * idf[w]) for w, c in words]).astype(np.float32)
         del words
         coarse = CoarseFile.of_rows(indptr, word, weight, W, config.vertex_words)
-        return cls(vocabulary, idf.astype(np.float32), indptr, word, weight, bytes(digest), coarse,
-                   config.shortlist, config.query_words)
+        return cls(
+            vocabulary,
+            idf.astype(np.float32),
+            indptr,
+            word,
+            weight,
+            bytes(digest),
+            coarse,
+            config.shortlist,
+            config.query_words,
+        )
 
     def configured(self, config: PlaceConfig) -> PlaceIndex:
         """This index queried as ``config`` says (its inverted file rebuilt when ``vertex_words`` differs)."""
         coarse = self.coarse
         if coarse is None or coarse.vertex_words != config.vertex_words:
-            coarse = CoarseFile.of_rows(self.indptr, self.word, self.weight, len(self.vocabulary),
-                                        config.vertex_words)
+            coarse = CoarseFile.of_rows(self.indptr, self.word, self.weight, len(self.vocabulary), config.vertex_words)
         return dataclasses.replace(self, coarse=coarse, shortlist=config.shortlist, query_words=config.query_words)
 
     def nbytes(self) -> int:
         """Bytes of the index's arrays (the vocabulary, the rows, the inverted file and any cached matrix)."""
-        own = sum(a.nbytes for a in (self.vocabulary.top, self.vocabulary.leaves, self.idf, self.indptr, self.word,
-                                     self.weight))
+        own = sum(
+            a.nbytes
+            for a in (self.vocabulary.top, self.vocabulary.leaves, self.idf, self.indptr, self.word, self.weight)
+        )
         m = self.__dict__.get("_csr_cache")
         cached = 0 if m is None else m.data.nbytes + m.indices.nbytes + m.indptr.nbytes
         return own + (self._coarse().nbytes if len(self) > self.shortlist else 0) + cached
@@ -248,11 +279,11 @@ class PlaceIndex:
 
         coarse = self._coarse()
         nz = np.flatnonzero(q)
-        top = nz[np.lexsort((nz, -q[nz]))[:self.query_words]]
+        top = nz[np.lexsort((nz, -q[nz]))[: self.query_words]]
         acc = coarse_scores(coarse.indptr, coarse.vertex, coarse.weight, top.astype(np.int64), q[top], len(self))
         rows = np.flatnonzero(acc > 0)
         if len(rows) > self.shortlist:
-            rows = np.sort(rows[np.argpartition(-acc[rows], self.shortlist - 1)[:self.shortlist]])
+            rows = np.sort(rows[np.argpartition(-acc[rows], self.shortlist - 1)[: self.shortlist]])
         return rows
 
     def _row_scores(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -262,8 +293,13 @@ class PlaceIndex:
 
     def _coarse(self) -> CoarseFile:
         if self.coarse is None:
-            object.__setattr__(self, "coarse", CoarseFile.of_rows(self.indptr, self.word, self.weight,
-                                                                  len(self.vocabulary), PlaceConfig().vertex_words))
+            object.__setattr__(
+                self,
+                "coarse",
+                CoarseFile.of_rows(
+                    self.indptr, self.word, self.weight, len(self.vocabulary), PlaceConfig().vertex_words
+                ),
+            )
         assert self.coarse is not None
         return self.coarse
 
@@ -288,10 +324,20 @@ class PlaceIndex:
     def to_bytes(self) -> bytes:
         buf = io.BytesIO()
         c = self._coarse()
-        np.savez(buf, top=self.vocabulary.top, leaves=self.vocabulary.leaves, idf=self.idf, indptr=self.indptr,
-                 word=self.word, weight=self.weight, digest=np.frombuffer(self.digest, np.uint8),
-                 coarse_indptr=c.indptr, coarse_vertex=c.vertex, coarse_weight=c.weight,
-                 coarse_vertex_words=np.array(c.vertex_words, np.int64))
+        np.savez(
+            buf,
+            top=self.vocabulary.top,
+            leaves=self.vocabulary.leaves,
+            idf=self.idf,
+            indptr=self.indptr,
+            word=self.word,
+            weight=self.weight,
+            digest=np.frombuffer(self.digest, np.uint8),
+            coarse_indptr=c.indptr,
+            coarse_vertex=c.vertex,
+            coarse_weight=c.weight,
+            coarse_vertex_words=np.array(c.vertex_words, np.int64),
+        )
         return INDEX_MAGIC + buf.getvalue()
 
     @classmethod
@@ -299,28 +345,43 @@ class PlaceIndex:
         if not data.startswith(INDEX_MAGIC):
             raise MapError(f"{where}: not a place index (bad magic)")
         try:
-            with np.load(io.BytesIO(data[len(INDEX_MAGIC):]), allow_pickle=False) as z:
+            with np.load(io.BytesIO(data[len(INDEX_MAGIC) :]), allow_pickle=False) as z:
                 digest = z["digest"].astype(np.uint8).tobytes() if "digest" in z.files else b""
-                coarse = None          # an index stored before the inverted file: derived when first needed
+                coarse = None  # an index stored before the inverted file: derived when first needed
                 if "coarse_indptr" in z.files:
-                    coarse = CoarseFile(z["coarse_indptr"], z["coarse_vertex"], z["coarse_weight"],
-                                        int(z["coarse_vertex_words"]))
-                out = cls(Vocabulary(z["top"], z["leaves"]), z["idf"], z["indptr"], z["word"], z["weight"], digest,
-                          coarse)
+                    coarse = CoarseFile(
+                        z["coarse_indptr"], z["coarse_vertex"], z["coarse_weight"], int(z["coarse_vertex_words"])
+                    )
+                out = cls(
+                    Vocabulary(z["top"], z["leaves"]), z["idf"], z["indptr"], z["word"], z["weight"], digest, coarse
+                )
         except (ValueError, KeyError, OSError, zipfile.BadZipFile) as err:
             raise MapError(f"{where}: damaged place index ({err})") from None
         W, B = len(out.vocabulary), len(out.vocabulary.top)
-        if (out.vocabulary.top.shape != (B, DESCRIPTOR_BYTES)
-                or out.vocabulary.leaves.shape != (B * B, DESCRIPTOR_BYTES) or out.idf.shape != (W,)
-                or out.indptr.ndim != 1 or len(out.indptr) < 2 or out.indptr[-1] != len(out.word)
-                or out.word.shape != out.weight.shape or (len(out.word) and (out.word.min() < 0 or out.word.max() >= W))
-                or np.any(np.diff(out.indptr) < 0) or not np.all(np.isfinite(out.weight))):
+        if (
+            out.vocabulary.top.shape != (B, DESCRIPTOR_BYTES)
+            or out.vocabulary.leaves.shape != (B * B, DESCRIPTOR_BYTES)
+            or out.idf.shape != (W,)
+            or out.indptr.ndim != 1
+            or len(out.indptr) < 2
+            or out.indptr[-1] != len(out.word)
+            or out.word.shape != out.weight.shape
+            or (len(out.word) and (out.word.min() < 0 or out.word.max() >= W))
+            or np.any(np.diff(out.indptr) < 0)
+            or not np.all(np.isfinite(out.weight))
+        ):
             raise MapError(f"{where}: damaged place index (inconsistent arrays)")
         c = out.coarse
-        if c is not None and (c.indptr.shape != (W + 1,) or c.indptr[0] != 0 or c.indptr[-1] != len(c.vertex)
-                              or c.vertex.shape != c.weight.shape or np.any(np.diff(c.indptr) < 0)
-                              or (len(c.vertex) and (c.vertex.min() < 0 or c.vertex.max() >= len(out)))
-                              or not np.all(np.isfinite(c.weight)) or c.vertex_words < 1):
+        if c is not None and (
+            c.indptr.shape != (W + 1,)
+            or c.indptr[0] != 0
+            or c.indptr[-1] != len(c.vertex)
+            or c.vertex.shape != c.weight.shape
+            or np.any(np.diff(c.indptr) < 0)
+            or (len(c.vertex) and (c.vertex.min() < 0 or c.vertex.max() >= len(out)))
+            or not np.all(np.isfinite(c.weight))
+            or c.vertex_words < 1
+        ):
             raise MapError(f"{where}: damaged place index (inconsistent inverted file)")
         return out
 
@@ -344,8 +405,9 @@ def vertices_digest(ids: np.ndarray, t_ns: np.ndarray, T_world_vertex: np.ndarra
     return h.digest()
 
 
-def route_place_index(map_: Map, config: PlaceConfig, seed: int = 0,
-                      warn: Callable[[str], None] | None = None) -> PlaceIndex:
+def route_place_index(
+    map_: Map, config: PlaceConfig, seed: int = 0, warn: Callable[[str], None] | None = None
+) -> PlaceIndex:
     """The taught route's place index: stored in the map, else built from its vertices (stored when the map is
     writable: a map taught before the index existed gets one the first time it is repeated).
 
@@ -388,16 +450,22 @@ def stored_place_index(map_: Map) -> StoredPlaceIndex:
     if not index.digest:
         return StoredPlaceIndex(key, None, "it has no digest of the vertices it indexes (stored by an older vtr)")
     if index.digest != vertices_digest(path.ids, path.t_ns, path.T_world_vertex) or len(index) != len(path):
-        return StoredPlaceIndex(key, None, "it does not match the taught vertices (another map's index, or the "
-                                           "vertices changed)")
+        return StoredPlaceIndex(
+            key, None, "it does not match the taught vertices (another map's index, or the vertices changed)"
+        )
     return StoredPlaceIndex(key, index, None)
 
 
 def rebuild_place_index(map_: Map, config: PlaceConfig, seed: int = 0) -> PlaceIndex:
     """Build the taught route's place index from its vertices; stored when the map is open for writing."""
     path = map_.taught_path()
-    index = PlaceIndex.build(lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids), len(path),
-                             config, seed, vertices_digest(path.ids, path.t_ns, path.T_world_vertex))
+    index = PlaceIndex.build(
+        lambda: (map_.vertex(int(i)).frame.features.descriptors for i in path.ids),
+        len(path),
+        config,
+        seed,
+        vertices_digest(path.ids, path.t_ns, path.T_world_vertex),
+    )
     if map_.mode == "a":
         map_.put_derived(_route_key(map_), index.to_bytes())
     return index
@@ -409,5 +477,17 @@ def _route_key(map_: Map) -> str:
     return place_key(-1 if run is None else run)
 
 
-__all__ = ["CoarseFile", "PlaceIndex", "PlaceMatch", "StoredPlaceIndex", "Vocabulary", "k_majority", "place_key",
-           "rebuild_place_index", "route_place_index", "stored_place_index", "train_vocabulary", "vertices_digest"]
+__all__ = [
+    "CoarseFile",
+    "PlaceIndex",
+    "PlaceMatch",
+    "StoredPlaceIndex",
+    "Vocabulary",
+    "k_majority",
+    "place_key",
+    "rebuild_place_index",
+    "route_place_index",
+    "stored_place_index",
+    "train_vocabulary",
+    "vertices_digest",
+]

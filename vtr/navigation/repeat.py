@@ -32,7 +32,8 @@ from ..map.writer import LeafWriter
 from ..signals import held_signals
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
 from ..vo.odometry import OdometrySettings, StereoOdometry
-from .chain import ChainLocalizer, LocalizationChain
+from .chain import LocalizationChain
+from .chain_localizer import ChainLocalizer
 from .experiences import ExperienceLocalizer, ExperienceSubmaps
 from .localization import Localization, LocalizationStatus, TaughtSubmap, landmark_record
 from .place import PlaceIndex, route_place_index
@@ -52,15 +53,15 @@ class RepeatStep:
     localization: Localization | None
     vertex_id: int
     T_teach_frame: np.ndarray
-    localization_seconds: float = 0.0     # time spent localizing this frame (0 when it made no vertex)
+    localization_seconds: float = 0.0  # time spent localizing this frame (0 when it made no vertex)
     localized: bool = False
     direction: int = 0
 
 
-LOCALIZATION_LOOKAHEAD = 2   # frames the odometry may run ahead of the steps handed out (localized and written)
-PREFETCH_STEPS = (1, 2)      # taught vertices decoded ahead, counted past the submap's edge in the direction of travel
+LOCALIZATION_LOOKAHEAD = 2  # frames the odometry may run ahead of the steps handed out (localized and written)
+PREFETCH_STEPS = (1, 2)  # taught vertices decoded ahead, counted past the submap's edge in the direction of travel
 
-_Pending = tuple[RepeatStep, "Future[VertexRecord] | None"]      # a localized frame's step and its map write under way
+_Pending = tuple[RepeatStep, "Future[VertexRecord] | None"]  # a localized frame's step and its map write under way
 
 
 def _ready(future: Future[_Pending]) -> bool:
@@ -75,31 +76,59 @@ def _ready(future: Future[_Pending]) -> bool:
 
 def localization_record(loc: Localization) -> LocalizationRecord:
     """What the map keeps of a localization (its ``localization.csv`` row's fields, the full covariance)."""
-    return LocalizationRecord(t_ns=loc.t_ns, leaf_id=loc.leaf_id, trunk_id=loc.trunk_id, twig_id=loc.twig_id,
-                              branch_id=loc.branch_id, success=loc.success, matches=loc.matches, inliers=loc.inliers,
-                              T_leaf_trunk=loc.T_leaf_trunk, covariance=loc.covariance,
-                              consecutive_failures=loc.consecutive_failures,
-                              distance_since_success_m=loc.distance_since_success_m, status=loc.status.value,
-                              direction=loc.direction, experiences=loc.experiences)
+    return LocalizationRecord(
+        t_ns=loc.t_ns,
+        leaf_id=loc.leaf_id,
+        trunk_id=loc.trunk_id,
+        twig_id=loc.twig_id,
+        branch_id=loc.branch_id,
+        success=loc.success,
+        matches=loc.matches,
+        inliers=loc.inliers,
+        T_leaf_trunk=loc.T_leaf_trunk,
+        covariance=loc.covariance,
+        consecutive_failures=loc.consecutive_failures,
+        distance_since_success_m=loc.distance_since_success_m,
+        status=loc.status.value,
+        direction=loc.direction,
+        experiences=loc.experiences,
+    )
 
 
 def localization_of_record(record: LocalizationRecord) -> Localization:
     """The localization a map record stores (without its landmark record: ``landmarks.csv`` is not in the map)."""
-    return Localization(t_ns=record.t_ns, leaf_id=record.leaf_id, trunk_id=record.trunk_id, twig_id=record.twig_id,
-                        branch_id=record.branch_id, success=record.success, matches=record.matches,
-                        inliers=record.inliers, T_leaf_trunk=np.array(record.T_leaf_trunk),
-                        covariance=np.array(record.covariance), consecutive_failures=record.consecutive_failures,
-                        distance_since_success_m=record.distance_since_success_m,
-                        status=LocalizationStatus(record.status), direction=record.direction,
-                        experiences=record.experiences)
+    return Localization(
+        t_ns=record.t_ns,
+        leaf_id=record.leaf_id,
+        trunk_id=record.trunk_id,
+        twig_id=record.twig_id,
+        branch_id=record.branch_id,
+        success=record.success,
+        matches=record.matches,
+        inliers=record.inliers,
+        T_leaf_trunk=np.array(record.T_leaf_trunk),
+        covariance=np.array(record.covariance),
+        consecutive_failures=record.consecutive_failures,
+        distance_since_success_m=record.distance_since_success_m,
+        status=LocalizationStatus(record.status),
+        direction=record.direction,
+        experiences=record.experiences,
+    )
 
 
 class Repeat:
     """Repeat pipeline: feed frames with ``process`` / ``process_frame``, or a stream to ``steps``;
     ``latest`` holds the latest localization delivered."""
 
-    def __init__(self, map_: Map, config: Config, source: str = "", start_index: int | None = None,
-                 allow_partial: bool = False, warn: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        map_: Map,
+        config: Config,
+        source: str = "",
+        start_index: int | None = None,
+        allow_partial: bool = False,
+        warn: Callable[[str], None] | None = None,
+    ):
         """Refuses (``MapError``) a map whose taught run is not finished unless ``allow_partial``. ``config``: a
         run-level root, it hands each part its sections (docs/configuration.md).
 
@@ -112,26 +141,35 @@ class Repeat:
         self.config = config
         map_.check_taught_route(allow_partial)
         self.chain = LocalizationChain(map_.taught_path(), config.localization, config.smoothing, start_index)
-        self.localizer = ExperienceLocalizer(self.camera, config.localization, config.estimation,
-                                             config.stereo.pixel_sigma)
+        self.localizer = ExperienceLocalizer(
+            self.camera, config.localization, config.estimation, config.stereo.pixel_sigma
+        )
         self.place = route_place_index(map_, config.place, config.run.seed, warn)
-        self._odometry_broken = False             # odometry failed since the previous leaf
+        self._odometry_broken = False  # odometry failed since the previous leaf
         self.odometry = StereoOdometry(self.camera, OdometrySettings.of(config), keep_history=False)
-        self.timer = self.odometry.timer          # odometry stages plus "map_write" and "localization"
+        self.timer = self.odometry.timer  # odometry stages plus "map_write" and "localization"
         self.run = map_.begin_run("repeat", source=source, privileged=False)
-        self._next_vertex = map_.next_vertex_id(self.run)     # the id the next leaf gets (leaves are written in order)
+        self._next_vertex = map_.next_vertex_id(self.run)  # the id the next leaf gets (leaves are written in order)
         # taught submaps plus the experiences (earlier repeats) a recommender picks (vtr.navigation.experiences)
-        self.submaps = ExperienceSubmaps(map_, self.chain.path, config.experiences,
-                                         config.localization.neighbour_vertices, self.camera, self.place, (self.run,),
-                                         warn)
-        self.localizer.experiences = self.submaps     # estimates carry the experiences' placement error
+        self.submaps = ExperienceSubmaps(
+            map_,
+            self.chain.path,
+            config.experiences,
+            config.localization.neighbour_vertices,
+            self.camera,
+            self.place,
+            (self.run,),
+            warn,
+        )
+        self.localizer.experiences = self.submaps  # estimates carry the experiences' placement error
         # the chain only asks place recognition for scores: the experiences' stand in for the teach's alone
         places = cast(PlaceIndex, self.submaps.places()) if self.submaps.trusted else self.place
-        self.chain_localizer = ChainLocalizer(self.chain, self.localizer, places, self._submap, config.localization,
-                                      config.place, config.run.seed)
+        self.chain_localizer = ChainLocalizer(
+            self.chain, self.localizer, places, self._submap, config.localization, config.place, config.run.seed
+        )
         self.latest: Localization | None = None
-        self._leaf: int | None = None            # map id of the newest repeat vertex
-        self._kf_of_leaf: dict[int, int] = {}        # odometry keyframe id of each recent leaf
+        self._leaf: int | None = None  # map id of the newest repeat vertex
+        self._kf_of_leaf: dict[int, int] = {}  # odometry keyframe id of each recent leaf
         self._undelivered: list[RepeatStep] = []
 
     def process(self, images: StereoImages) -> RepeatStep:
@@ -171,13 +209,16 @@ class Repeat:
         failed = threading.Event()
 
         def localize(result: OdometryResult, window: dict[int, np.ndarray]) -> _Pending:
-            if failed.is_set():                 # an earlier vertex failed: never localize or write a later one
+            if failed.is_set():  # an earlier vertex failed: never localize or write a later one
                 raise CancelledError()
             try:
                 step, leaf = self._localize_step(result, window)
                 kf = result.new_keyframe
-                write = None if leaf is None or kf is None else \
-                    writer.submit(self.run, kf, leaf, self.camera.T_vehicle_sensor)
+                write = (
+                    None
+                    if leaf is None or kf is None
+                    else writer.submit(self.run, kf, leaf, self.camera.T_vehicle_sensor)
+                )
                 if step.localization is not None:
                     writer.prefetch(self._next_taught(step.localization.trunk_id, step.direction))
                 return step, write
@@ -186,10 +227,10 @@ class Repeat:
                 raise
 
         pending: deque[Future[_Pending]] = deque()
-        yielded: RepeatStep | None = None       # the newest step handed out (its caller may not have taken it)
+        yielded: RepeatStep | None = None  # the newest step handed out (its caller may not have taken it)
         try:
             for frame in frames:
-                with held_signals():            # Ctrl-C between frames, never inside a compiled kernel
+                with held_signals():  # Ctrl-C between frames, never inside a compiled kernel
                     result = self._odometry(frame)
                     if pool is None:
                         done: Future[_Pending] = Future()
@@ -209,7 +250,7 @@ class Repeat:
                 future.cancel()
             if pool is not None:
                 pool.shutdown(wait=True)
-            writer.close()                      # the leaves localized are committed (none after a failed one)
+            writer.close()  # the leaves localized are committed (none after a failed one)
             # steps the map holds but the stream did not deliver (it was closed early): a caller that reports every
             # step takes them with take_undelivered, so the map and its reports agree
             out = [] if yielded is None else [yielded]
@@ -250,8 +291,9 @@ class Repeat:
             self.latest = step.localization
         return step
 
-    def _localize_step(self, result: OdometryResult,
-                       window: dict[int, np.ndarray] | None = None) -> tuple[RepeatStep, Leaf | None]:
+    def _localize_step(
+        self, result: OdometryResult, window: dict[int, np.ndarray] | None = None
+    ) -> tuple[RepeatStep, Leaf | None]:
         """The step of an odometry result, its keyframe localized (``window``: the odometry window's keyframe poses
         right after it, by odometry keyframe id), and what the map is to store with that keyframe (None: no
         keyframe). The keyframe's vertex id is the next of the run: the caller writes the leaves in order."""
@@ -269,8 +311,15 @@ class Repeat:
             with self.timer("localization"):
                 loc, leaf = self._localize(vid, kf, window or {})
             seconds = time.perf_counter() - t0
-        return RepeatStep(result, loc, vid, self.T_teach(result.T_world_frame), seconds,
-                          localized=self.chain.localized, direction=self.chain.state.direction), leaf
+        return RepeatStep(
+            result,
+            loc,
+            vid,
+            self.T_teach(result.T_world_frame),
+            seconds,
+            localized=self.chain.localized,
+            direction=self.chain.state.direction,
+        ), leaf
 
     def T_teach(self, T_world_frame: np.ndarray) -> np.ndarray:
         """A repeat camera pose (repeat run's world) in the teach run's first camera frame, via the chain."""
@@ -295,21 +344,39 @@ class Repeat:
             spatial = SpatialEdge(trunk_id, est.T_leaf_trunk, covariance, est.inliers)
         used = self.submaps.observe(self.submaps.chosen_submap(attempt.trunk), est, attempt.success)
         record = None
-        if attempt.success:      # landmarks.csv (the perception model's training data) holds successes only
+        if attempt.success:  # landmarks.csv (the perception model's training data) holds successes only
             sub = self._submap(attempt.trunk)
             with self.localizer.timer("landmark_record"):
-                record = landmark_record(self.submaps.frame(trunk_id), attempt.T_report, self.camera,
-                                         sub.trunk_features(est.matched),
-                                         sub.trunk_features(est.matched[est.inlier]),
-                                         t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id)
+                record = landmark_record(
+                    self.submaps.frame(trunk_id),
+                    attempt.T_report,
+                    self.camera,
+                    sub.trunk_features(est.matched),
+                    sub.trunk_features(est.matched[est.inlier]),
+                    t_ns=kf.t_ns,
+                    leaf_id=leaf_id,
+                    trunk_id=trunk_id,
+                )
         s = c.state
-        loc = Localization(t_ns=kf.t_ns, leaf_id=leaf_id, trunk_id=trunk_id, twig_id=twig, branch_id=branch,
-                           success=attempt.success, matches=est.matches, inliers=est.inliers,
-                           T_leaf_trunk=attempt.T_report, covariance=covariance,
-                           consecutive_failures=s.consecutive_failures,
-                           distance_since_success_m=s.distance_since_success_m, landmarks=record,
-                           status=attempt.status, direction=s.direction, experiences=used,
-                           frame_covariance=est.frame_covariance if attempt.success else None)
+        loc = Localization(
+            t_ns=kf.t_ns,
+            leaf_id=leaf_id,
+            trunk_id=trunk_id,
+            twig_id=twig,
+            branch_id=branch,
+            success=attempt.success,
+            matches=est.matches,
+            inliers=est.inliers,
+            T_leaf_trunk=attempt.T_report,
+            covariance=covariance,
+            consecutive_failures=s.consecutive_failures,
+            distance_since_success_m=s.distance_since_success_m,
+            landmarks=record,
+            status=attempt.status,
+            direction=s.direction,
+            experiences=used,
+            frame_covariance=est.frame_covariance if attempt.success else None,
+        )
         return loc, Leaf(localization_record(loc), spatial, used)
 
     def _submap(self, trunk: int) -> TaughtSubmap:

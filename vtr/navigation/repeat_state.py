@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 UNLOCALIZED_ROTATION_SIGMA_RAD = 0.01
 UNLOCALIZED_TRANSLATION_SIGMA_M = 0.1
 
+
 def check_rate(rate_hz: float) -> float:
     """The state output rate (Hz) as a float; ConfigError unless inside the domain of smoothing.rate_hz."""
     return float(check_setting("smoothing", "rate_hz", rate_hz, "state rate"))
@@ -71,11 +72,11 @@ def vehicle_from_sensor(T_vehicle_sensor: np.ndarray, gravity_up: np.ndarray | N
 @dataclass
 class _Vertex:
     t_ns: int
-    T_world_leaf: np.ndarray          # repeat world
+    T_world_leaf: np.ndarray  # repeat world
     relative_covariance: np.ndarray | None
-    T_teach_leaf: np.ndarray | None   # localization, teach world
+    T_teach_leaf: np.ndarray | None  # localization, teach world
     localization_covariance: np.ndarray | None
-    T_teach_chain: np.ndarray         # the chain's estimate (used only if the run never localizes)
+    T_teach_chain: np.ndarray  # the chain's estimate (used only if the run never localizes)
 
 
 class RepeatStateEstimator:
@@ -94,59 +95,94 @@ class RepeatStateEstimator:
             camera was level (or the mount ``T_vehicle_sensor`` says where up is).
     """
 
-    def __init__(self, path: TaughtPath, smoothing: SmoothingConfig, T_vehicle_sensor: np.ndarray, *,
-                 trunk_window: tuple[int, int], off_route_distance_m: float,
-                 gravity_up: np.ndarray | None = None):
+    def __init__(
+        self,
+        path: TaughtPath,
+        smoothing: SmoothingConfig,
+        T_vehicle_sensor: np.ndarray,
+        *,
+        trunk_window: tuple[int, int],
+        off_route_distance_m: float,
+        gravity_up: np.ndarray | None = None,
+    ):
         self.path = path
         self.smoothing = smoothing
         self.smoother = TrajectorySmoother(smoothing)
         # the motion prior's Qc from the repeat's own odometry steps (kept across pauses: the vehicle is the same),
         # starting from the taught path's motion (the configured Qc when the taught path is too short to say)
-        psd = MotionPsd(self.smoother.q_psd, smoothing.qc_window_s, smoothing.qc_min_samples,
-                        smoothing.qc_floor_share, smoothing.qc_long_steps)
+        psd = MotionPsd(
+            self.smoother.q_psd,
+            smoothing.qc_window_s,
+            smoothing.qc_min_samples,
+            smoothing.qc_floor_share,
+            smoothing.qc_long_steps,
+        )
         self.taught_qc = psd.of_poses(path.t_ns, path.T_world_vertex, smoothing.max_extrapolation_s)
-        self.motion_psd = MotionPsd(self.taught_qc, smoothing.qc_window_s, smoothing.qc_min_samples,
-                                    smoothing.qc_floor_share, smoothing.qc_long_steps)
+        self.motion_psd = MotionPsd(
+            self.taught_qc,
+            smoothing.qc_window_s,
+            smoothing.qc_min_samples,
+            smoothing.qc_floor_share,
+            smoothing.qc_long_steps,
+        )
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
         self.off_route_distance_m = float(off_route_distance_m)
         self.gravity_up = None if gravity_up is None else np.asarray(gravity_up, float)
         self.T_vehicle_sensor = vehicle_from_sensor(T_vehicle_sensor, self.gravity_up)
         self.T_sensor_vehicle = inv_T(self.T_vehicle_sensor)
         # the gravity-aligned frame g of the teach world: from the map's up, else the vehicle at the first camera
-        self.C_g_world = (self.T_vehicle_sensor[:3, :3] if self.gravity_up is None
-                          else T_g_map_from_up(self.gravity_up)[:3, :3])
-        self.route = RouteFrames(path, self.T_sensor_vehicle, self.C_g_world, self.trunk_window,
-                                 self.off_route_distance_m, smoothing.max_extrapolation_s,
-                                 smoothing.acceleration_window_s)
+        self.C_g_world = (
+            self.T_vehicle_sensor[:3, :3] if self.gravity_up is None else T_g_map_from_up(self.gravity_up)[:3, :3]
+        )
+        self.route = RouteFrames(
+            path,
+            self.T_sensor_vehicle,
+            self.C_g_world,
+            self.trunk_window,
+            self.off_route_distance_m,
+            smoothing.max_extrapolation_s,
+            smoothing.acceleration_window_s,
+        )
         self._full_view: RepeatStateView | None = None
         self._pending: list[_Vertex] = []
         self._anchored = False
         self._last: _Vertex | None = None
-        self._past_segments: list[TrajectorySmoother] = []   # closed by pauses, oldest first
-        self.pauses_s: list[float] = []                      # the length of each pause (s)
+        self._past_segments: list[TrajectorySmoother] = []  # closed by pauses, oldest first
+        self.pauses_s: list[float] = []  # the length of each pause (s)
         self.vertex_t_ns: list[int] = []
-        self.vertex_trunk: list[int] = []     # index along the privileged path
-        self.vertex_localized: list[bool] = []   # the chain's verdict after the vertex's attempt
-        self.vertex_direction: list[int] = []    # the chain's direction of travel after it
-        self.vertex_off_route: list[bool] = []   # the attempt found the vertex beyond an end of the route
+        self.vertex_trunk: list[int] = []  # index along the privileged path
+        self.vertex_localized: list[bool] = []  # the chain's verdict after the vertex's attempt
+        self.vertex_direction: list[int] = []  # the chain's direction of travel after it
+        self.vertex_off_route: list[bool] = []  # the attempt found the vertex beyond an end of the route
         # the map's placement error (6x6, leaf camera) of the latest localization at or before the vertex
         self.vertex_frame_covariance: list[np.ndarray] = []
-        self.frame_t_ns: list[int] = []          # every frame fed (a state long after the last one is unknown)
+        self.frame_t_ns: list[int] = []  # every frame fed (a state long after the last one is unknown)
         self._ever = False
-        self.unknown: str | None = None           # why the state of a never-localized run is unknown
+        self.unknown: str | None = None  # why the state of a never-localized run is unknown
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
-        self.seconds = 0.0                    # time spent feeding the smoother and answering queries
+        self.seconds = 0.0  # time spent feeding the smoother and answering queries
 
     @classmethod
-    def for_route(cls, path: TaughtPath, smoothing: SmoothingConfig, localization: LocalizationConfig,
-                  T_vehicle_sensor: np.ndarray, gravity_up: np.ndarray | None = None) -> RepeatStateEstimator:
+    def for_route(
+        cls,
+        path: TaughtPath,
+        smoothing: SmoothingConfig,
+        localization: LocalizationConfig,
+        T_vehicle_sensor: np.ndarray,
+        gravity_up: np.ndarray | None = None,
+    ) -> RepeatStateEstimator:
         """The estimator of a repeat along ``path`` with ``smoothing``, the ``localization``'s trunk window and
         off-route distance, and the map's ``gravity_up``."""
         loc = localization
-        return cls(path, smoothing, T_vehicle_sensor,
-                   trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
-                   off_route_distance_m=loc.off_route_distance_m, gravity_up=gravity_up)
+        return cls(
+            path,
+            smoothing,
+            T_vehicle_sensor,
+            trunk_window=(loc.trunk_window_back, loc.trunk_window_forward),
+            off_route_distance_m=loc.off_route_distance_m,
+            gravity_up=gravity_up,
+        )
 
     # -- feeding ------------------------------------------------------------------------------------
 
@@ -179,19 +215,27 @@ class RepeatStateEstimator:
                 loc_cov = usable_covariance(loc.covariance)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
-                    frame_cov = (np.zeros((6, 6)) if loc.frame_covariance is None
-                                 else np.asarray(loc.frame_covariance, float))
+                    frame_cov = (
+                        np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance, float)
+                    )
             self.vertex_frame_covariance.append(frame_cov)
-            v = _Vertex(int(r.t_ns), np.asarray(kf.T_world_kf, float), rel_cov, T_teach_leaf, loc_cov,
-                        np.asarray(step.T_teach_frame, float))
+            v = _Vertex(
+                int(r.t_ns),
+                np.asarray(kf.T_world_kf, float),
+                rel_cov,
+                T_teach_leaf,
+                loc_cov,
+                np.asarray(step.T_teach_frame, float),
+            )
             self.vertex_t_ns.append(v.t_ns)
             self._ever = self._ever or (loc is not None and loc.success)
             self.vertex_localized.append(bool(step.localized))
             self.vertex_direction.append(int(step.direction))
             self.vertex_off_route.append(loc is not None and loc.status == LocalizationStatus.OFF_ROUTE)
             trunk = loc.trunk_id if loc is not None else None
-            self.vertex_trunk.append(self.path.index(trunk) if trunk is not None else
-                                     (self.vertex_trunk[-1] if self.vertex_trunk else 0))
+            self.vertex_trunk.append(
+                self.path.index(trunk) if trunk is not None else (self.vertex_trunk[-1] if self.vertex_trunk else 0)
+            )
             if self._anchored:
                 self._feed(v)
             else:
@@ -217,8 +261,9 @@ class RepeatStateEstimator:
         """Odometry drift between two vertices, growing with the distance travelled ([rot, trans])."""
         c = self.smoothing
         d = float(np.linalg.norm(T_world_b[:3, 3] - T_world_a[:3, 3]))
-        return np.diag(np.r_[[(c.odometry_rotation_sigma_per_m * d) ** 2] * 3,
-                             [(c.odometry_translation_sigma_per_m * d) ** 2] * 3])
+        return np.diag(
+            np.r_[[(c.odometry_rotation_sigma_per_m * d) ** 2] * 3, [(c.odometry_translation_sigma_per_m * d) ** 2] * 3]
+        )
 
     def finish(self) -> None:
         """End of the run: vertices still waiting for a localization are fed with the chain's assumption. When
@@ -260,7 +305,7 @@ class RepeatStateEstimator:
 
     def _feed(self, v: _Vertex) -> None:
         if self._last is not None and v.t_ns <= self._last.t_ns:
-            return      # a repeated timestamp: one knot per time (the next vertex's odometry spans both)
+            return  # a repeated timestamp: one knot per time (the next vertex's odometry spans both)
         kw = {}
         if self._last is not None and v.relative_covariance is not None:
             kw["T_prev_cur"] = T_prev_cur = inv_T(self._last.T_world_leaf) @ v.T_world_leaf
@@ -300,17 +345,24 @@ class RepeatStateEstimator:
         if history_s is not None:
             trajectory = self.smoother.snapshot(since)
         elif self._past_segments:
-            trajectory = SegmentedTrajectory([sm._view() for sm in (*self._past_segments, self.smoother)
-                                              if sm.num_keyframes])
+            trajectory = SegmentedTrajectory(
+                [sm._view() for sm in (*self._past_segments, self.smoother) if sm.num_keyframes]
+            )
         else:
             trajectory = self.smoother._view()
         return RepeatStateView(
-            route=self.route, trajectory=trajectory, vertex_t_ns=t_v[lo_v:],
-            vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:], vertex_localized=localized[lo_v:],
-            vertex_ever=ever[lo_v:], vertex_direction=np.asarray(self.vertex_direction, np.int64)[lo_v:],
-            vertex_off_route=np.asarray(self.vertex_off_route, bool)[lo_v:], frame_t_ns=frames[lo_f:],
+            route=self.route,
+            trajectory=trajectory,
+            vertex_t_ns=t_v[lo_v:],
+            vertex_trunk=np.asarray(self.vertex_trunk, np.int64)[lo_v:],
+            vertex_localized=localized[lo_v:],
+            vertex_ever=ever[lo_v:],
+            vertex_direction=np.asarray(self.vertex_direction, np.int64)[lo_v:],
+            vertex_off_route=np.asarray(self.vertex_off_route, bool)[lo_v:],
+            frame_t_ns=frames[lo_f:],
             vertex_frame_covariance=np.asarray(self.vertex_frame_covariance, float).reshape(-1, 6, 6)[lo_v:],
-            unknown=self.unknown)
+            unknown=self.unknown,
+        )
 
     def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world)."""
@@ -324,8 +376,9 @@ class RepeatStateEstimator:
         """The chain's direction of travel (+1, -1; 0 undecided) at the latest vertex at or before each time."""
         return self.view().direction_at(t_ns)
 
-    def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
-                            with_covariance: bool = False) -> ControllerState:
+    def controller_state_at(
+        self, t_ns: int, trunk_index: int | None = None, *, with_covariance: bool = False
+    ) -> ControllerState:
         """:meth:`RepeatStateView.controller_state_at` on the whole run so far."""
         return self.view().controller_state_at(t_ns, trunk_index, with_covariance=with_covariance)
 

@@ -50,11 +50,11 @@ class StateTable:
     lateral: np.ndarray
     vertical: np.ndarray
     along_track: np.ndarray
-    localized: np.ndarray | None = None   # (N,) bool: the chain held a localization at that time
-    direction: np.ndarray | None = None   # (N,) int: +1 taught order, -1 backward, 0 not decided
-    status: np.ndarray | None = None      # (N,) str: StateStatus values
-    position_sigma: np.ndarray | None = None   # (N, 3) m: standard deviations of position in o
-    velocity_sigma: np.ndarray | None = None   # (N, 3) m/s: likewise of velocity
+    localized: np.ndarray | None = None  # (N,) bool: the chain held a localization at that time
+    direction: np.ndarray | None = None  # (N,) int: +1 taught order, -1 backward, 0 not decided
+    status: np.ndarray | None = None  # (N,) str: StateStatus values
+    position_sigma: np.ndarray | None = None  # (N, 3) m: standard deviations of position in o
+    velocity_sigma: np.ndarray | None = None  # (N, 3) m/s: likewise of velocity
 
     def __len__(self) -> int:
         return len(self.t_ns)
@@ -85,8 +85,9 @@ class SegmentedTrajectory:
     def state_at(self, t_ns: int, *, with_covariance: bool = True) -> TrajectoryState:
         return self._segment(t_ns).state_at(t_ns, with_covariance=with_covariance)
 
-    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
-                            ) -> tuple[np.ndarray, np.ndarray]:
+    def fitted_acceleration(
+        self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         return self._segment(t_ns).fitted_acceleration(t_ns, window_s, T_sensor_point)
 
     def joint_covariance(self, t_ns: np.ndarray) -> np.ndarray:
@@ -155,9 +156,16 @@ class RouteFrames:
     """The taught route as the controller state sees it (immutable once built; the memo of each trunk's frame and
     reference path fills on first use, from any thread: entries are pure functions of the route)."""
 
-    def __init__(self, path: TaughtPath, T_sensor_vehicle: np.ndarray, C_g_world: np.ndarray,
-                 trunk_window: tuple[int, int], off_route_distance_m: float, max_gap_s: float,
-                 acceleration_window_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        path: TaughtPath,
+        T_sensor_vehicle: np.ndarray,
+        C_g_world: np.ndarray,
+        trunk_window: tuple[int, int],
+        off_route_distance_m: float,
+        max_gap_s: float,
+        acceleration_window_s: float = 0.0,
+    ) -> None:
         self.path = path
         self.T_sensor_vehicle = T_sensor_vehicle
         self.C_g_world = C_g_world
@@ -165,7 +173,7 @@ class RouteFrames:
         self.off_route_distance_m = off_route_distance_m
         self.max_gap_s = max_gap_s
         self.acceleration_window_s = float(acceleration_window_s)
-        self.T_world_trunk = path.T_world_vertex @ T_sensor_vehicle      # taught vehicle poses, teach world
+        self.T_world_trunk = path.T_world_vertex @ T_sensor_vehicle  # taught vehicle poses, teach world
         self.arc = path.arc_length_m(T_sensor_vehicle)
         self._memo: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
 
@@ -192,7 +200,7 @@ class RouteFrames:
             lo, hi = self.path.window(k, back, forward)
             try:
                 path = ReferencePath.from_world(self.T_world_trunk[lo:hi], T_wt, T_o_t)
-            except EstimationError:       # fewer than two distinct taught vertices
+            except EstimationError:  # fewer than two distinct taught vertices
                 path = None
             hit = self._memo.setdefault(key, (T_o_t, path, float(self.arc[lo])))
         return hit
@@ -208,7 +216,7 @@ class RepeatStateView:
     vertex_t_ns: np.ndarray
     vertex_trunk: np.ndarray
     vertex_localized: np.ndarray
-    vertex_ever: np.ndarray           # a localization at or before the vertex (the whole run's, not the view's)
+    vertex_ever: np.ndarray  # a localization at or before the vertex (the whole run's, not the view's)
     vertex_direction: np.ndarray
     vertex_off_route: np.ndarray
     frame_t_ns: np.ndarray
@@ -254,8 +262,11 @@ class RepeatStateView:
         if len(self.vertex_t_ns):
             i = self._vertex_at(t)
             has, ii = i >= 0, np.maximum(i, 0)
-            loc, ever, off = (self.vertex_localized[ii] & has, self.vertex_ever[ii] & has,
-                              self.vertex_off_route[ii] & has)
+            loc, ever, off = (
+                self.vertex_localized[ii] & has,
+                self.vertex_ever[ii] & has,
+                self.vertex_off_route[ii] & has,
+            )
         f = np.searchsorted(self.frame_t_ns, t, side="right") - 1
         gap_ns = self.route.max_gap_s * NS_PER_S
         latest = self.frame_t_ns[np.maximum(f, 0)] if len(self.frame_t_ns) else t
@@ -287,8 +298,11 @@ class RepeatStateView:
         cs = controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
         if cs.position_covariance is not None and cs.yaw_variance is not None:
             F = self.frame_output_covariance(int(t_ns), cs.T_o_a)
-            cs = dataclasses.replace(cs, position_covariance=cs.position_covariance + F[:3, :3],
-                                     yaw_variance=cs.yaw_variance + float(F[3, 3]))
+            cs = dataclasses.replace(
+                cs,
+                position_covariance=cs.position_covariance + F[:3, :3],
+                yaw_variance=cs.yaw_variance + float(F[3, 3]),
+            )
         window = self.route.acceleration_window_s
         if window <= 0.0 or not fit_acceleration:
             return cs
@@ -310,8 +324,14 @@ class RepeatStateView:
         F = H @ self.vertex_frame_covariance[i] @ H.T
         return 0.5 * (F + F.T)
 
-    def controller_state_at(self, t_ns: int, trunk_index: int | None = None, *,
-                            with_covariance: bool = False, commands: CommandLog | None = None) -> ControllerState:
+    def controller_state_at(
+        self,
+        t_ns: int,
+        trunk_index: int | None = None,
+        *,
+        with_covariance: bool = False,
+        commands: CommandLog | None = None,
+    ) -> ControllerState:
         """Controller state (vehicle in o at the trunk) at ``t_ns``, with its status, the direction of travel, the
         trunk frame in the map's g (``T_g_o``) and, ``with_covariance``, the position, velocity and yaw
         covariances in o. After the newest knot the state is extrapolated at constant velocity, or, given the
@@ -330,14 +350,20 @@ class RepeatStateView:
         status = StateStatus(self.status_at(t, np.array([along]))[0])
         return dataclasses.replace(cs, status=status, direction=direction, T_g_o=self.route.T_g_o(k))
 
-    def _with_commands(self, cs: ControllerState, k: int, t_knot_ns: int, t_ns: int,
-                       commands: CommandLog) -> ControllerState:
+    def _with_commands(
+        self, cs: ControllerState, k: int, t_knot_ns: int, t_ns: int, commands: CommandLog
+    ) -> ControllerState:
         """``cs`` (extrapolated at constant velocity from the knot at ``t_knot_ns``) moved by the commanded
         accelerations since that knot: ``dv = int a``, ``dp = int (t - tau) a`` (zero-order hold)."""
         dp_g, dv_g, a_g = commands.integrate(t_knot_ns, t_ns)
         C_o_g = self.route.T_g_o(k)[:3, :3].T
-        return dataclasses.replace(cs, position=cs.position + C_o_g @ dp_g, velocity=cs.velocity + C_o_g @ dv_g,
-                                   acceleration=C_o_g @ a_g, acceleration_covariance=None)
+        return dataclasses.replace(
+            cs,
+            position=cs.position + C_o_g @ dp_g,
+            velocity=cs.velocity + C_o_g @ dv_g,
+            acceleration=C_o_g @ a_g,
+            acceleration_covariance=None,
+        )
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
         """The outputs ``y = (p, psi)`` of ``n`` samples ``dt_s`` apart ending at ``t_end_ns``, all in the frame o of
@@ -355,15 +381,21 @@ class RepeatStateView:
         for j, tj in enumerate(t):
             cs = self._state(int(tj), k, with_covariance=False, fit_acceleration=False)
             P[j], yaw[j] = cs.position, cs.yaw
-            H[4 * j:4 * j + 4, 12 * j:12 * j + 12] = output_jacobian(cs.T_o_a, self.route.T_sensor_vehicle)
+            H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian(cs.T_o_a, self.route.T_sensor_vehicle)
         _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
-        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))   # cs: t_end's
-        return OutputWindow(t_ns=t, position=P, yaw=np.unwrap(yaw), covariance=0.5 * (cov + cov.T),
-                            trunk_id=int(self.route.path.ids[k]), T_g_o=self.route.T_g_o(k),
-                            status=self.status_at(t, np.atleast_1d(along)))
+        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))  # cs: t_end's
+        return OutputWindow(
+            t_ns=t,
+            position=P,
+            yaw=np.unwrap(yaw),
+            covariance=0.5 * (cov + cov.T),
+            trunk_id=int(self.route.path.ids[k]),
+            T_g_o=self.route.T_g_o(k),
+            status=self.status_at(t, np.atleast_1d(along)),
+        )
 
     def states(self, t_ns: np.ndarray, *, with_covariance: bool = True) -> StateTable:
         """Controller states and path errors at the given times (int64 ns, not before the first vertex); with
@@ -373,12 +405,22 @@ class RepeatStateView:
         if self.unknown is not None:
             nan3, nan = np.full((n, 3), np.nan), np.full(n, np.nan)
             trunks = self.trunk_index_at(t_ns)
-            return StateTable(t_ns=t_ns, position=nan3, velocity=nan3.copy(), acceleration=nan3.copy(), yaw=nan,
-                              trunk_id=self.route.path.ids[trunks], lateral=nan.copy(), vertical=nan.copy(),
-                              along_track=nan.copy(), localized=np.zeros(n, bool), direction=self.direction_at(t_ns),
-                              status=np.full(n, StateStatus.UNKNOWN.value),
-                              position_sigma=nan3.copy() if with_covariance else None,
-                              velocity_sigma=nan3.copy() if with_covariance else None)
+            return StateTable(
+                t_ns=t_ns,
+                position=nan3,
+                velocity=nan3.copy(),
+                acceleration=nan3.copy(),
+                yaw=nan,
+                trunk_id=self.route.path.ids[trunks],
+                lateral=nan.copy(),
+                vertical=nan.copy(),
+                along_track=nan.copy(),
+                localized=np.zeros(n, bool),
+                direction=self.direction_at(t_ns),
+                status=np.full(n, StateStatus.UNKNOWN.value),
+                position_sigma=nan3.copy() if with_covariance else None,
+                velocity_sigma=nan3.copy() if with_covariance else None,
+            )
         if n and self.trajectory.n == 0:
             raise DataError("no repeat vertex was processed: no state to report")
         trunks = self.trunk_index_at(t_ns)
@@ -389,7 +431,7 @@ class RepeatStateView:
         for j in range(n):
             try:
                 cs = self._state(int(t_ns[j]), int(trunks[j]), with_covariance)
-            except EstimationError:         # a pause: no segment reaches this time (the row is unknown)
+            except EstimationError:  # a pause: no segment reaches this time (the row is unknown)
                 P[j] = Vel[j] = A[j] = np.nan
                 yaw[j] = np.nan
                 continue
@@ -410,12 +452,23 @@ class RepeatStateView:
                 ver[sel], along[sel] = e.vertical, e.along_track + offset
         status = self.status_at(t_ns, along)
         localized = status == StateStatus.LOCALIZED.value
-        lat[~localized] = ver[~localized] = np.nan        # no path error where the repeat is not localized
-        return StateTable(t_ns=t_ns, position=P, velocity=Vel, acceleration=A, yaw=yaw,
-                          trunk_id=self.route.path.ids[trunks], lateral=lat, vertical=ver, along_track=along,
-                          localized=localized, direction=direction, status=status,
-                          position_sigma=sig_p if with_covariance else None,
-                          velocity_sigma=sig_v if with_covariance else None)
+        lat[~localized] = ver[~localized] = np.nan  # no path error where the repeat is not localized
+        return StateTable(
+            t_ns=t_ns,
+            position=P,
+            velocity=Vel,
+            acceleration=A,
+            yaw=yaw,
+            trunk_id=self.route.path.ids[trunks],
+            lateral=lat,
+            vertical=ver,
+            along_track=along,
+            localized=localized,
+            direction=direction,
+            status=status,
+            position_sigma=sig_p if with_covariance else None,
+            velocity_sigma=sig_v if with_covariance else None,
+        )
 
 
 __all__ = [

@@ -35,8 +35,8 @@ class Teach:
         self._seed = config.run.seed
         self._max_failed = config.odometry.teach_max_failed_fraction
         self.vertices = 0
-        self.frames = 0                 # frames through odometry
-        self.failures = 0               # ... of which odometry failed on (FAILURE)
+        self.frames = 0  # frames through odometry
+        self.failures = 0  # ... of which odometry failed on (FAILURE)
 
     def process(self, images: StereoImages) -> OdometryResult:
         """Stereo-process a rectified pair, then :meth:`process_frame`."""
@@ -59,15 +59,16 @@ class Teach:
             raise TeachFailedError(
                 f"teach failed: odometry failed on {self.failures} of {self.frames} frames (more than "
                 f"odometry.teach_max_failed_fraction = {self._max_failed:g} of them), so the map is no route; "
-                "check the images, the calibration and the frame range")
+                "check the images, the calibration and the frame range"
+            )
         self._flush()
         if self.vertices == 0:
             raise MapError("teach produced no keyframe: the map has no taught path")
         self.map.finish_run()
         try:
-            route_place_index(self.map, self._place, self._seed)   # where-am-I index of the route, stored in the map
+            route_place_index(self.map, self._place, self._seed)  # where-am-I index of the route, stored in the map
         except MapError:
-            pass        # derived data (e.g. no room to store it): the first repeat builds it from the vertices
+            pass  # derived data (e.g. no room to store it): the first repeat builds it from the vertices
         return self.vertices
 
     def abort(self, exc: BaseException) -> int:

@@ -22,9 +22,9 @@ import yaml
 
 from . import synthetic as syn
 
-SPEED_MPS = 4.0           # flight speed: frame times follow from the 1 m frame spacing
-RAMP_M = 4.0              # a repeat drifts to its lateral offset over this distance
-REPEAT_PHASE_M = 0.5      # repeat frames fall between the taught ones
+SPEED_MPS = 4.0  # flight speed: frame times follow from the 1 m frame spacing
+RAMP_M = 4.0  # a repeat drifts to its lateral offset over this distance
+REPEAT_PHASE_M = 0.5  # repeat frames fall between the taught ones
 
 
 RENDER_KEY = "render_key.txt"
@@ -32,19 +32,24 @@ RENDER_KEY = "render_key.txt"
 
 def _sequence(folder: Path, scene_index: int, T, noise_seed: int) -> Path:
     key = hashlib.sha256(f"{scene_index} {noise_seed} {SPEED_MPS} ".encode() + T.tobytes()).hexdigest()
-    if (folder / "times_ns.txt").is_file() and (folder / RENDER_KEY).is_file() \
-            and (folder / RENDER_KEY).read_text().strip() == key:
+    if (
+        (folder / "times_ns.txt").is_file()
+        and (folder / RENDER_KEY).is_file()
+        and (folder / RENDER_KEY).read_text().strip() == key
+    ):
         return folder
     if folder.exists():
-        shutil.rmtree(folder)               # rendered with other parameters (or unfinished)
-    syn.write_sequence(folder, syn.aerial_scene(scene_index), syn.zed_camera(), T, syn.route_times(T, SPEED_MPS),
-                       noise_seed=noise_seed)
+        shutil.rmtree(folder)  # rendered with other parameters (or unfinished)
+    syn.write_sequence(
+        folder, syn.aerial_scene(scene_index), syn.zed_camera(), T, syn.route_times(T, SPEED_MPS), noise_seed=noise_seed
+    )
     (folder / RENDER_KEY).write_text(key + "\n")
     return folder
 
 
-def write_batch_routes(root: str | Path, n_routes: int, offsets_m: Sequence[float], length_m: float,
-                       spacing_m: float = 1.0) -> Path:
+def write_batch_routes(
+    root: str | Path, n_routes: int, offsets_m: Sequence[float], length_m: float, spacing_m: float = 1.0
+) -> Path:
     """``n_routes`` routes under ``root`` (``route_<k>/teach``, ``route_<k>/rep_<offset>``: one repeat per
     lateral offset) and ``root/manifest.yaml`` listing them. Returns the manifest's path."""
     root = Path(root)

@@ -31,8 +31,16 @@ def other_texture(scene: Scene, seed_offset: int = OTHER_TEXTURE_SEED_OFFSET) ->
     return dataclasses.replace(scene, seed=int(scene.seed) + int(seed_offset))
 
 
-def write_drifted_sequence(out_dir: str | Path, scene: Scene, camera: StereoCamera, T_world_cam: np.ndarray,
-                           t_ns: np.ndarray, change: float, *, other: Scene | None = None) -> Path:
+def write_drifted_sequence(
+    out_dir: str | Path,
+    scene: Scene,
+    camera: StereoCamera,
+    T_world_cam: np.ndarray,
+    t_ns: np.ndarray,
+    change: float,
+    *,
+    other: Scene | None = None,
+) -> Path:
     """A KITTI-layout folder (as :func:`vtr.sim.synthetic.write_sequence`: images, calib, times, ``poses.txt`` and
     ``poses_world.txt``) of ``scene`` seen along ``T_world_cam`` (N, 4, 4) at ``t_ns`` (N,), its appearance moved
     ``change`` (0: as the scene, 1: entirely ``other``, default :func:`other_texture`) toward the other texture."""
@@ -51,9 +59,12 @@ def write_drifted_sequence(out_dir: str | Path, scene: Scene, camera: StereoCame
         pair = [own.left, own.right]
         if change > 0.0:
             changed = render_stereo(other, camera, T[i])
-            pair = [np.clip(np.rint((1.0 - change) * a.astype(np.float32) + change * b.astype(np.float32)), 0,
-                            GREY_MAX).astype(np.uint8)
-                    for a, b in ((own.left, changed.left), (own.right, changed.right))]
+            pair = [
+                np.clip(
+                    np.rint((1.0 - change) * a.astype(np.float32) + change * b.astype(np.float32)), 0, GREY_MAX
+                ).astype(np.uint8)
+                for a, b in ((own.left, changed.left), (own.right, changed.right))
+            ]
         writer.add(int(t_ns[i]), pair[0], pair[1])
     writer.close(inv_T(T[0]) @ T)
     write_kitti_poses(out / "poses_world.txt", T)

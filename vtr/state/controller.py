@@ -31,10 +31,10 @@ from ..errors import EstimationError
 from ..geometry import check_se3, inv_T, skew
 from .smoothing import TrajectoryState, adjoint
 
-GRAVITY_UP = np.array([0.0, 0.0, 1.0])    # z axis of o and of any gravity-aligned frame g
-MIN_SEGMENT_LENGTH_M = 1e-9               # shorter path segments are merged away
-MIN_HORIZONTAL_FRACTION = 1e-9            # a segment steeper than this is treated as vertical
-_ROT_AND_LINEAR_VEL = np.array([0, 1, 2, 9, 10, 11])   # (d theta, d v) inside [pose, twist] perturbations
+GRAVITY_UP = np.array([0.0, 0.0, 1.0])  # z axis of o and of any gravity-aligned frame g
+MIN_SEGMENT_LENGTH_M = 1e-9  # shorter path segments are merged away
+MIN_HORIZONTAL_FRACTION = 1e-9  # a segment steeper than this is treated as vertical
+_ROT_AND_LINEAR_VEL = np.array([0, 1, 2, 9, 10, 11])  # (d theta, d v) inside [pose, twist] perturbations
 
 
 def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
@@ -55,10 +55,10 @@ def gravity_aligned_T_o_t(C_g_t: np.ndarray) -> np.ndarray:
 class StateStatus(StrEnum):
     """What a controller state rests on (``ControllerState.status``, ``state.csv``'s ``status`` column)."""
 
-    LOCALIZED = "localized"             # the localization chain holds a localization (its verdict): trust it
-    DEAD_RECKONING = "dead_reckoning"   # localized before, now carried by odometry alone: the error grows
-    OFF_ROUTE = "off_route"             # beyond either end of the taught route (or the chain said so)
-    UNKNOWN = "unknown"                 # not localized yet, or too long after the last frame (a pause)
+    LOCALIZED = "localized"  # the localization chain holds a localization (its verdict): trust it
+    DEAD_RECKONING = "dead_reckoning"  # localized before, now carried by odometry alone: the error grows
+    OFF_ROUTE = "off_route"  # beyond either end of the taught route (or the chain said so)
+    UNKNOWN = "unknown"  # not localized yet, or too long after the last frame (a pause)
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,7 @@ def trunk_in_world(T_world_leaf: np.ndarray, T_leaf_trunk: np.ndarray) -> np.nda
 def yaw_jacobian(C_o_a: np.ndarray) -> np.ndarray:
     """d psi / d theta (1x3) for a right rotation perturbation ``C_o_a Exp(theta)``."""
     x = C_o_a[:, 0]
-    d_x = -C_o_a @ skew(np.array([1.0, 0.0, 0.0]))   # d(C Exp(theta) e1)/d theta
+    d_x = -C_o_a @ skew(np.array([1.0, 0.0, 0.0]))  # d(C Exp(theta) e1)/d theta
     den = x[0] ** 2 + x[1] ** 2
     return (x[0] * d_x[1] - x[1] * d_x[0]) / den
 
@@ -188,7 +188,7 @@ def controller_state(
         # position p_o = T_o_world p_world(a): right perturbation moves it by C_o_a d_trans.
         pos_cov = C_o_a @ P[3:6, 3:6] @ C_o_a.T
         # v_o = C_o_a v_a: d v_o = C_o_a (d v - v^ d theta)
-        Jv = np.hstack([-C_o_a @ skew(v_a), C_o_a])                 # w.r.t. (d theta, d v)
+        Jv = np.hstack([-C_o_a @ skew(v_a), C_o_a])  # w.r.t. (d theta, d v)
         vel_cov = Jv @ P[_ROT_AND_LINEAR_VEL][:, _ROT_AND_LINEAR_VEL] @ Jv.T
         jy = yaw_jacobian(C_o_a)
         yaw_var = float(jy @ P[:3, :3] @ jy)
@@ -211,7 +211,7 @@ def output_jacobian(T_o_a: np.ndarray, T_sensor_vehicle: np.ndarray | None = Non
     C_o_a = np.asarray(T_o_a, float)[:3, :3]
     Ad_vs = np.eye(6) if T_sensor_vehicle is None else adjoint(inv_T(check_se3(T_sensor_vehicle, "T_sensor_vehicle")))
     H = np.zeros((4, 12))
-    Hv = np.zeros((4, 6))                     # w.r.t. the vehicle's pose perturbation (rot, trans)
+    Hv = np.zeros((4, 6))  # w.r.t. the vehicle's pose perturbation (rot, trans)
     Hv[:3, 3:6] = C_o_a
     Hv[3, :3] = yaw_jacobian(C_o_a)
     H[:, :6] = Hv @ Ad_vs
@@ -319,13 +319,13 @@ class ReferencePath:
             raise EstimationError(f"p_o: expected shape (3,) or (M, 3), got {p.shape}")
         if not np.all(np.isfinite(P)):
             raise EstimationError("p_o: contains NaN or infinity")
-        a = self.points[:-1]                                           # (S, 3)
-        rel = P[:, None, :] - a[None]                                  # (M, S, 3)
-        s = np.einsum("msk,sk->ms", rel, self.directions)              # along each segment
+        a = self.points[:-1]  # (S, 3)
+        rel = P[:, None, :] - a[None]  # (M, S, 3)
+        s = np.einsum("msk,sk->ms", rel, self.directions)  # along each segment
         s_clamped = np.clip(s, 0.0, self.lengths[None])
         closest = a[None] + s_clamped[..., None] * self.directions[None]
         dist2 = np.sum((P[:, None, :] - closest) ** 2, axis=-1)
-        seg = np.argmin(dist2, axis=1)                                 # first on ties
+        seg = np.argmin(dist2, axis=1)  # first on ties
         m = np.arange(len(P))
         d = rel[m, seg]
         lateral = np.einsum("mk,mk->m", d, self.left_normals[seg])

@@ -66,8 +66,8 @@ from .trajectory import (
 from .wnoa import STATE_DIM
 
 # Weak prior on the first knot's twist: only there so a single keyframe is a determined problem.
-INITIAL_ANGULAR_VELOCITY_SIGMA = 10.0    # rad/s
-INITIAL_LINEAR_VELOCITY_SIGMA = 100.0    # m/s
+INITIAL_ANGULAR_VELOCITY_SIGMA = 10.0  # rad/s
+INITIAL_LINEAR_VELOCITY_SIGMA = 100.0  # m/s
 
 # ISAM2: relinearize any variable whose update exceeds this (rad, m, rad/s, m/s), at every update.
 RELINEARIZE_THRESHOLD = 1e-6
@@ -81,7 +81,7 @@ ITERATIONS_PER_KEYFRAME = 1
 COVARIANCE_REFRESH_KNOTS = 2
 
 _INITIAL_CAPACITY = 256
-_VELOCITY_SYMBOL = "v"           # gtsam symbol character of the twist keys V(i)
+_VELOCITY_SYMBOL = "v"  # gtsam symbol character of the twist keys V(i)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -99,8 +99,8 @@ class _KnotCache:
         self.vels = np.zeros((n, POSE_DIM))
         # seg_cov[i]: joint covariance (24x24) of knots i and i+1, last snapshot.
         self.seg_cov = np.zeros((n, 2 * STATE_DIM, 2 * STATE_DIM))
-        self.qc = np.zeros((n, POSE_DIM))      # qc[i]: the PSD of the prior factor into knot i (knot 0: configured)
-        self.last_cov = np.zeros((STATE_DIM, STATE_DIM))     # marginal of the newest knot
+        self.qc = np.zeros((n, POSE_DIM))  # qc[i]: the PSD of the prior factor into knot i (knot 0: configured)
+        self.last_cov = np.zeros((STATE_DIM, STATE_DIM))  # marginal of the newest knot
         self.segments: dict[int, Segment] = {}
 
     def grow(self) -> None:
@@ -148,13 +148,11 @@ class TrajectorySmoother:
             raise ConfigError("smoothing: initial velocity sigmas must be positive")
         self.config = config
         self.qc = np.array([config.qc_rotation] * 3 + [config.qc_translation] * 3)
-        self._velocity_prior_sigmas = np.array(
-            [initial_velocity_sigma[0]] * 3 + [initial_velocity_sigma[1]] * 3
-        )
+        self._velocity_prior_sigmas = np.array([initial_velocity_sigma[0]] * 3 + [initial_velocity_sigma[1]] * 3)
         self._smoother = self._new_smoother()
         self._cache = _KnotCache()
         self._t0_ns: int | None = None
-        self._window_start = 0            # index of the oldest knot still in the solver
+        self._window_start = 0  # index of the oldest knot still in the solver
         self._broken: str | None = None
 
     # -- public properties ---------------------------------------------------------------------
@@ -249,8 +247,9 @@ class TrajectorySmoother:
             covariance = check_covariance(cast(np.ndarray, covariance), "covariance", definite=True)
         if T_prev_cur is not None:
             T_prev_cur = check_se3(T_prev_cur, "T_prev_cur")
-            relative_covariance = check_covariance(cast(np.ndarray, relative_covariance), "relative_covariance",
-                                                   definite=True)
+            relative_covariance = check_covariance(
+                cast(np.ndarray, relative_covariance), "relative_covariance", definite=True
+            )
         if qc is None:
             qc = self.qc
         else:
@@ -296,15 +295,29 @@ class TrajectorySmoother:
         lo = 0
         if since_ns is not None and c.n:
             lo = max(0, int(np.searchsorted(c.times_ns[: c.n], int(since_ns), side="right")) - 1)
-        return KnotTrajectory(c.times_ns[lo : c.n].copy(), c.poses[lo : c.n].copy(), c.vels[lo : c.n].copy(),
-                              c.seg_cov[lo : c.n].copy(), c.last_cov.copy(), c.qc[lo : c.n].copy(),
-                              self.config.max_extrapolation_s)
+        return KnotTrajectory(
+            c.times_ns[lo : c.n].copy(),
+            c.poses[lo : c.n].copy(),
+            c.vels[lo : c.n].copy(),
+            c.seg_cov[lo : c.n].copy(),
+            c.last_cov.copy(),
+            c.qc[lo : c.n].copy(),
+            self.config.max_extrapolation_s,
+        )
 
     def _view(self) -> KnotTrajectory:
         """The queries over the live cache (no copy; the segment memo is the cache's)."""
         c = self._cache
-        return KnotTrajectory(c.times_ns[: c.n], c.poses[: c.n], c.vels[: c.n], c.seg_cov[: c.n], c.last_cov,
-                              c.qc[: c.n], self.config.max_extrapolation_s, segments=c.segments)
+        return KnotTrajectory(
+            c.times_ns[: c.n],
+            c.poses[: c.n],
+            c.vels[: c.n],
+            c.seg_cov[: c.n],
+            c.last_cov,
+            c.qc[: c.n],
+            self.config.max_extrapolation_s,
+            segments=c.segments,
+        )
 
     # -- internals: solver -----------------------------------------------------------------------
 
@@ -318,8 +331,15 @@ class TrajectorySmoother:
         params.findUnusedFactorSlots = True
         return gtsam.IncrementalFixedLagSmoother(self.config.lag_s, params)
 
-    def _insert(self, t_ns: int, T_ws: np.ndarray | None, cov: np.ndarray | None, T_pc: np.ndarray | None,
-                rel_cov: np.ndarray | None, qc: np.ndarray) -> None:
+    def _insert(
+        self,
+        t_ns: int,
+        T_ws: np.ndarray | None,
+        cov: np.ndarray | None,
+        T_pc: np.ndarray | None,
+        rel_cov: np.ndarray | None,
+        qc: np.ndarray,
+    ) -> None:
         c = self._cache
         k = c.n
         first = k == 0
@@ -340,7 +360,7 @@ class TrajectorySmoother:
         timestamps: dict[Any, float] = {X(k): t_s, V(k): t_s}
         values.insert(X(k), gtsam.Pose3(T_init))
         values.insert(V(k), v_init)
-        if T_ws is not None and cov is not None:          # given together (add_knot checked)
+        if T_ws is not None and cov is not None:  # given together (add_knot checked)
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T_ws), gtsam.noiseModel.Gaussian.Covariance(cov)))
         if T_pc is not None and rel_cov is not None:
             graph.add(
@@ -386,7 +406,7 @@ class TrajectorySmoother:
         c = self._cache
         est = self._smoother.calculateEstimate()
         # One call each for all poses / twists of the window, in key (= knot index) order.
-        poses = gtsam.utilities.extractPose3(est)                  # rows: R (row-major 9), t (3)
+        poses = gtsam.utilities.extractPose3(est)  # rows: R (row-major 9), t (3)
         vels = gtsam.utilities.extractVectors(est, _VELOCITY_SYMBOL)
         m = len(poses)
         start = c.n - m

@@ -187,11 +187,9 @@ def check_time(t_ns: object, what: str = "t_ns") -> int:
     if isinstance(t_ns, bool) or not isinstance(t_ns, int | np.integer):
         raise EstimationError(f"{what}: expected an integer time in nanoseconds, got {type(t_ns).__name__}")
     t = int(t_ns)
-    if not _T_NS_MIN <= t <= _T_NS_MAX:    # times are stored as int64: checked before anything is inserted
+    if not _T_NS_MIN <= t <= _T_NS_MAX:  # times are stored as int64: checked before anything is inserted
         raise EstimationError(f"{what}={t}: outside the int64 nanosecond range [{_T_NS_MIN}, {_T_NS_MAX}]")
     return t
-
-
 
 
 class Segment:
@@ -209,7 +207,7 @@ class Segment:
         self.T1, self.v1, self.v2 = T1, v1, v2
         T21 = inv_T(T1) @ T2
         self.xi21, self.Jr_inv21 = logmap(T21)
-        self.g21 = self.Jr_inv21 @ v2                      # xi'(dt) in the local variable
+        self.g21 = self.Jr_inv21 @ v2  # xi'(dt) in the local variable
         # Jl^-1(xi) = Jr^-1(xi) Ad(Exp(-xi))
         self.Jl_inv21 = self.Jr_inv21 @ adjoint_inv(T21)
         self.M = np.stack([dt * v1, self.xi21, dt * self.g21])
@@ -223,7 +221,7 @@ class Segment:
             S[0, :, 6:12] = np.eye(POSE_DIM)
             S[1, :, 0:6] = -self.Jl_inv21
             S[1, :, 12:18] = self.Jr_inv21
-            D = d_jr_inv_times(self.xi21, self.v2)       # d(Jr^-1(xi) v2)/d xi at xi21
+            D = d_jr_inv_times(self.xi21, self.v2)  # d(Jr^-1(xi) v2)/d xi at xi21
             S[2] = D @ S[1]
             S[2, :, 18:24] += self.Jr_inv21
             self._S = S
@@ -239,12 +237,20 @@ class KnotTrajectory:
     ``last_cov`` (12, 12) (the newest knot's marginal).
     """
 
-    def __init__(self, times_ns: np.ndarray, poses: np.ndarray, vels: np.ndarray, seg_cov: np.ndarray,
-                 last_cov: np.ndarray, qc: np.ndarray, max_extrapolation_s: float,
-                 segments: dict[int, Segment] | None = None) -> None:
+    def __init__(
+        self,
+        times_ns: np.ndarray,
+        poses: np.ndarray,
+        vels: np.ndarray,
+        seg_cov: np.ndarray,
+        last_cov: np.ndarray,
+        qc: np.ndarray,
+        max_extrapolation_s: float,
+        segments: dict[int, Segment] | None = None,
+    ) -> None:
         self.times_ns, self.poses, self.vels, self.seg_cov, self.last_cov = times_ns, poses, vels, seg_cov, last_cov
         self.n = len(times_ns)
-        self.qc = qc               # (N, 6): per knot the PSD of the prior into it (the newest's: the extrapolation's)
+        self.qc = qc  # (N, 6): per knot the PSD of the prior into it (the newest's: the extrapolation's)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.segments: dict[int, Segment] = {} if segments is None else segments
 
@@ -272,12 +278,14 @@ class KnotTrajectory:
             if ahead_s > self.max_extrapolation_s:
                 raise EstimationError(
                     f"state_at: t_ns={t_ns} is {ahead_s:.6g} s after the newest keyframe, beyond "
-                    f"smoothing.max_extrapolation_s={self.max_extrapolation_s:g} s")
+                    f"smoothing.max_extrapolation_s={self.max_extrapolation_s:g} s"
+                )
             return self._extrapolate(i, t_ns, with_covariance)
         return self._interpolate(i, t_ns, with_covariance)
 
-    def fitted_acceleration(self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
-                            ) -> tuple[np.ndarray, np.ndarray]:
+    def fitted_acceleration(
+        self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """World-frame acceleration (3,) of a point on the sensor at ``t_ns`` (default its origin; ``T_sensor_point``
         places another, e.g. the vehicle's origin) and its covariance (3x3): the slope of a weighted linear fit of
         the point's world-frame velocity at the knots within ``window_s`` of ``t_ns`` (tricube weights, continuous
@@ -295,7 +303,7 @@ class KnotTrajectory:
         R = self.poses[lo:hi, :3, :3]
         tw = self.vels[lo:hi]
         if T_sensor_point is not None:
-            Ad = adjoint_inv(np.asarray(T_sensor_point, float))        # twist moved to the point's frame
+            Ad = adjoint_inv(np.asarray(T_sensor_point, float))  # twist moved to the point's frame
             tw = tw @ Ad.T
             R = R @ np.asarray(T_sensor_point, float)[:3, :3]
         v_world = np.einsum("kij,kj->ki", R, tw[:, 3:])
@@ -311,7 +319,7 @@ class KnotTrajectory:
         sxx = float(np.sum(w * (dt - tbar) ** 2))
         if sxx <= 0.0:
             return np.zeros(3), np.full((3, 3), np.inf)
-        c = w * (dt - tbar) / sxx                                         # slope = sum c_k v_k
+        c = w * (dt - tbar) / sxx  # slope = sum c_k v_k
         acc = c @ v_world
         cov = np.einsum("k,kij,k->ij", c, np.einsum("kab,kbc,kdc->kad", R, V, R), c)
         return acc, 0.5 * (cov + cov.T)
@@ -331,7 +339,7 @@ class KnotTrajectory:
         times = [check_time(int(t)) for t in np.atleast_1d(np.asarray(t_ns))]
         maps: list[list[tuple[int, np.ndarray]]] = []
         for t in times:
-            self.state_at(t, with_covariance=False)          # the same range checks
+            self.state_at(t, with_covariance=False)  # the same range checks
             i = int(np.searchsorted(self.times_ns[: self.n], t, side="right")) - 1
             if int(self.times_ns[i]) == t:
                 maps.append([(i, np.eye(STATE_DIM))])
@@ -354,7 +362,7 @@ class KnotTrajectory:
         J = np.zeros((STATE_DIM * len(times), STATE_DIM * (hi - lo + 1)))
         for r, m in enumerate(maps):
             for k, Jk in m:
-                J[r * STATE_DIM:(r + 1) * STATE_DIM, (k - lo) * STATE_DIM:(k - lo + 1) * STATE_DIM] = Jk
+                J[r * STATE_DIM : (r + 1) * STATE_DIM, (k - lo) * STATE_DIM : (k - lo + 1) * STATE_DIM] = Jk
         C = J @ K @ J.T
         # the diagonal blocks become the marginals of state_at exactly (a state's own covariance, with its GP
         # noise), the cross-time blocks keep the correlations of J K J': a congruence, so the result stays PSD
@@ -375,19 +383,19 @@ class KnotTrajectory:
         m, d = hi - lo + 1, STATE_DIM
         marg = [self._knot_cov(lo + a) for a in range(m)]
         roots = [_psd_sqrt(M) for M in marg]
-        corr = []                                      # whitened cross-correlation of knots (b-1, b)
+        corr = []  # whitened cross-correlation of knots (b-1, b)
         for b in range(1, m):
             P = self.seg_cov[lo + b - 1]
             corr.append(_psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True))
         K = np.zeros((m * d, m * d))
         for a in range(m):
-            K[a * d:(a + 1) * d, a * d:(a + 1) * d] = marg[a]
+            K[a * d : (a + 1) * d, a * d : (a + 1) * d] = marg[a]
             R = np.eye(d)
             for b in range(a + 1, m):
                 R = R @ corr[b - 1]
                 blk = roots[a] @ R @ roots[b]
-                K[a * d:(a + 1) * d, b * d:(b + 1) * d] = blk
-                K[b * d:(b + 1) * d, a * d:(a + 1) * d] = blk.T
+                K[a * d : (a + 1) * d, b * d : (b + 1) * d] = blk
+                K[b * d : (b + 1) * d, a * d : (a + 1) * d] = blk.T
         return K
 
     def _segment(self, i: int) -> Segment:
@@ -517,7 +525,7 @@ def interpolation_jacobian(
     ``D = d(Jr^-1(xi) v2)/d xi`` at ``xi21`` and ``E = d(Jr(xi) w)/d xi`` at ``(xi, xi')``.
     ``xi``, ``dxi`` are ``xi(tau)``, ``xi'(tau)``; ``E_xi``, ``Jr`` are ``Exp(xi)`` and ``Jr(xi)``.
     """
-    W = hermite_matrix(tau, seg.dt)[:2] * np.array([seg.dt, 1.0, seg.dt])   # weights of (v1, xi21, g21)
+    W = hermite_matrix(tau, seg.dt)[:2] * np.array([seg.dt, 1.0, seg.dt])  # weights of (v1, xi21, g21)
     d = (W @ seg.S.reshape(3, -1)).reshape(2, POSE_DIM, 2 * STATE_DIM)
     if E is None:
         E = d_jr_times(xi, dxi)

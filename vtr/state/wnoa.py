@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry import POSE_DIM
 
-STATE_DIM = 2 * POSE_DIM         # [pose tangent, body twist]
+STATE_DIM = 2 * POSE_DIM  # [pose tangent, body twist]
 
 
 def noise_map(Jr: np.ndarray, E: np.ndarray) -> np.ndarray:
@@ -73,7 +73,7 @@ def wnoa_conditional_Q(tau: float, dt: float) -> np.ndarray:
     q00, q01, q11 = tau**3 / 3.0, tau**2 / 2.0, tau
     # Psi = Q(tau) Phi(kappa)^T Q(dt)^-1 with Q(dt)^-1 = [[12/dt³, -6/dt²], [-6/dt², 4/dt]]
     i00, i01, i11 = 12.0 / dt**3, -6.0 / dt**2, 4.0 / dt
-    m00, m01 = q00 + q01 * kappa, q01                  # Q(tau) Phi(kappa)^T
+    m00, m01 = q00 + q01 * kappa, q01  # Q(tau) Phi(kappa)^T
     m10, m11 = q01 + q11 * kappa, q11
     p00, p01 = m00 * i00 + m01 * i01, m00 * i01 + m01 * i11
     p10, p11 = m10 * i00 + m11 * i01, m10 * i01 + m11 * i11
@@ -126,8 +126,9 @@ class MotionPsd:
     the estimate never falls below ``floor_share`` of it.
     """
 
-    def __init__(self, fallback: np.ndarray, window_s: float, min_samples: float, floor_share: float,
-                 long_steps: int) -> None:
+    def __init__(
+        self, fallback: np.ndarray, window_s: float, min_samples: float, floor_share: float, long_steps: int
+    ) -> None:
         self.fallback = np.asarray(fallback, float).copy()
         self.window_s = float(window_s)
         self.min_samples = float(min_samples)
@@ -149,12 +150,12 @@ class MotionPsd:
         """The current estimate (6,) ``[rot x3 (rad²/s³), trans x3 (m²/s³)]``; the fallback until enough samples."""
         if self.window_s <= 0.0 or self._w[1] < self.min_samples or self._w[0] <= 0.0:
             return self.fallback.copy()
-        y = self._y / self._w[:, None]                      # mean d^2 per span and axis
-        (a1, b1), (a2, b2) = self._ab / self._w[:, None]    # mean regressors per span
+        y = self._y / self._w[:, None]  # mean d^2 per span and axis
+        (a1, b1), (a2, b2) = self._ab / self._w[:, None]  # mean regressors per span
         det = a2 * b1 - a1 * b2
         qc = (y[1] * b1 - y[0] * b2) / det if det > 0.0 else y[1] / a2
         r = (y[0] - qc * a1) / b1
-        qc = np.where(r < 0.0, (y[0] + y[1]) / (a1 + a2), qc)    # no noise: both spans measure Qc alone
+        qc = np.where(r < 0.0, (y[0] + y[1]) / (a1 + a2), qc)  # no noise: both spans measure Qc alone
         return np.maximum(qc, self.floor)
 
     def add(self, xi: np.ndarray, dt_s: float) -> None:
@@ -162,7 +163,7 @@ class MotionPsd:
         if not dt_s > 0.0 or self.window_s <= 0.0:
             return
         self._steps.append((np.asarray(xi, float), float(dt_s)))
-        del self._steps[:-2 * self.spans[1]]
+        del self._steps[: -2 * self.spans[1]]
         keep = float(np.exp(-dt_s / self.window_s))
         self._y *= keep
         self._ab *= keep
@@ -170,7 +171,7 @@ class MotionPsd:
         for j, k in enumerate(self.spans):
             if len(self._steps) < 2 * k:
                 continue
-            before, after = self._steps[-2 * k:-k], self._steps[-k:]
+            before, after = self._steps[-2 * k : -k], self._steps[-k:]
             T1, T2 = sum(dt for _, dt in before), sum(dt for _, dt in after)
             d = sum(x for x, _ in after) / T2 - sum(x for x, _ in before) / T1
             self._y[j] += d**2

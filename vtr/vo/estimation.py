@@ -31,16 +31,28 @@ class RansacResult:
     inliers: np.ndarray  # indices into the correspondences
 
 
-def ransac_pnp(points_r: np.ndarray, uv_q: np.ndarray, camera: StereoCamera, iterations: int,
-               threshold_px: float, confidence: float, seed: int,
-               T_guess: np.ndarray | None = None) -> RansacResult | None:
+def ransac_pnp(
+    points_r: np.ndarray,
+    uv_q: np.ndarray,
+    camera: StereoCamera,
+    iterations: int,
+    threshold_px: float,
+    confidence: float,
+    seed: int,
+    T_guess: np.ndarray | None = None,
+) -> RansacResult | None:
     """P3P RANSAC of ``T_q_r`` from landmarks (N, 3) in frame r and their left pixels (N, 2) in q."""
     if len(points_r) < 4:
         return None
     cv2.setRNGSeed(seed)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        points_r.astype(np.float64), uv_q.astype(np.float64), camera.K, None,
-        iterationsCount=iterations, reprojectionError=threshold_px, confidence=confidence,
+        points_r.astype(np.float64),
+        uv_q.astype(np.float64),
+        camera.K,
+        None,
+        iterationsCount=iterations,
+        reprojectionError=threshold_px,
+        confidence=confidence,
         flags=cv2.SOLVEPNP_P3P,
     )
     if not ok or inl is None or len(inl) < 4:
@@ -51,8 +63,9 @@ def ransac_pnp(points_r: np.ndarray, uv_q: np.ndarray, camera: StereoCamera, ite
     return RansacResult(T, inl.ravel())
 
 
-def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float, far_disparity_weight: float,
-                       min_near: int = 1) -> np.ndarray:
+def stereo_row_weights(
+    z: np.ndarray, camera: StereoCamera, near_depth_m: float, far_disparity_weight: float, min_near: int = 1
+) -> np.ndarray:
     """Weights of the measurement rows (u_l, v, u_r) of stereo observations ``z`` (M, 3).
 
     The image position (u_l, v) always counts. The disparity row counts fully only for a near
@@ -78,12 +91,23 @@ def stereo_row_weights(z: np.ndarray, camera: StereoCamera, near_depth_m: float,
 def odometry_row_weights(z: np.ndarray, camera: StereoCamera, config: EstimationConfig) -> np.ndarray:
     """:func:`stereo_row_weights` with the near/far settings of ``estimation`` (the one rule odometry and
     localization share): near within ``far_point_baselines`` baselines."""
-    return stereo_row_weights(z, camera, config.far_point_baselines * camera.baseline, config.far_disparity_weight,
-                              config.min_near_observations)
+    return stereo_row_weights(
+        z,
+        camera,
+        config.far_point_baselines * camera.baseline,
+        config.far_disparity_weight,
+        config.min_near_observations,
+    )
 
 
-def triangulate_bearings(T_cam_world: np.ndarray, obs_pose: np.ndarray, obs_point: np.ndarray, uv: np.ndarray,
-                         camera: StereoCamera, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+def triangulate_bearings(
+    T_cam_world: np.ndarray,
+    obs_pose: np.ndarray,
+    obs_point: np.ndarray,
+    uv: np.ndarray,
+    camera: StereoCamera,
+    n_points: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """Multi-view triangulation of landmarks from their left-image bearings alone (no disparity).
 
     The point nearest, in the least-squares sense, to every ray that observed it (``obs_pose``,
@@ -96,7 +120,7 @@ def triangulate_bearings(T_cam_world: np.ndarray, obs_pose: np.ndarray, obs_poin
     rays = np.column_stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))])
     d = np.einsum("mji,mj->mi", R[obs_pose], rays)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    P = np.eye(3) - d[:, :, None] * d[:, None, :]              # projector orthogonal to each ray
+    P = np.eye(3) - d[:, :, None] * d[:, None, :]  # projector orthogonal to each ray
     A = np.zeros((n_points, 3, 3))
     b = np.zeros((n_points, 3))
     np.add.at(A, obs_point, P)
@@ -141,15 +165,26 @@ class BundleResult:
     cost: float
 
 
-RELATIVE_COST_TOLERANCE = 1e-6   # bundle adjustment stops when a step lowers the cost by less than this
-POSE_STEP_TOLERANCE = 1e-5       # ... or moves no pose by more than this (rad, m): only landmarks still creep
-MAX_LM_ATTEMPTS = 8              # damping increases per iteration before giving up
+RELATIVE_COST_TOLERANCE = 1e-6  # bundle adjustment stops when a step lowers the cost by less than this
+POSE_STEP_TOLERANCE = 1e-5  # ... or moves no pose by more than this (rad, m): only landmarks still creep
+MAX_LM_ATTEMPTS = 8  # damping increases per iteration before giving up
 MIN_LM_DAMPING = 1e-7
 
 
-def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray, obs_pose: np.ndarray,
-                  obs_point: np.ndarray, z: np.ndarray, row_weight: np.ndarray, camera: StereoCamera,
-                  sigma_px: float, huber_px: float, iterations: int, fix_points: bool = False) -> BundleResult:
+def bundle_adjust(
+    T_cam_world: np.ndarray,
+    fixed: np.ndarray,
+    points: np.ndarray,
+    obs_pose: np.ndarray,
+    obs_point: np.ndarray,
+    z: np.ndarray,
+    row_weight: np.ndarray,
+    camera: StereoCamera,
+    sigma_px: float,
+    huber_px: float,
+    iterations: int,
+    fix_points: bool = False,
+) -> BundleResult:
     """Levenberg-Marquardt bundle adjustment on stereo reprojection errors (u_l, v, u_r).
 
     ``obs_pose``/``obs_point`` index the pose and landmark of each observation (a landmark is seen at
@@ -176,8 +211,18 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     cam = (camera.fx, camera.fy, camera.cx, camera.cy, camera.fb)
 
     def evaluate(T_, X_):
-        return kb.residuals(np.ascontiguousarray(T_[:, :3, :3]), np.ascontiguousarray(T_[:, :3, 3]), X_,
-                            obs_pose, obs_point, zz, measured, info_rows, k_huber, *cam)
+        return kb.residuals(
+            np.ascontiguousarray(T_[:, :3, :3]),
+            np.ascontiguousarray(T_[:, :3, 3]),
+            X_,
+            obs_pose,
+            obs_point,
+            zz,
+            measured,
+            info_rows,
+            k_huber,
+            *cam,
+        )
 
     Y, e, w, cost, min_depth = evaluate(T, X)
     if not min_depth > 0:
@@ -186,8 +231,9 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
     S = np.eye(6 * K)
     for _ in range(iterations):
         R = np.ascontiguousarray(T[:, :3, :3])
-        H, b, Hll, bl, W = kb.normal_equations(R, Y, e, w, obs_pose, obs_point, info_rows, L, pose_free, fix_points,
-                                               camera.fx, camera.fy, camera.fb)
+        H, b, Hll, bl, W = kb.normal_equations(
+            R, Y, e, w, obs_pose, obs_point, info_rows, L, pose_free, fix_points, camera.fx, camera.fy, camera.fb
+        )
         improved = converged = False
         for _attempt in range(MAX_LM_ATTEMPTS):
             if fix_points:
@@ -205,7 +251,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
             dpk[free_rows] = dp
             T_new = T.copy()
             for k in free:
-                T_new[k] = exp_se3(dpk[6 * k:6 * k + 6]) @ T[k]
+                T_new[k] = exp_se3(dpk[6 * k : 6 * k + 6]) @ T[k]
             X_new = X
             if not fix_points:
                 X_new = kb.back_substitute(X, Hll_inv, bl, W, obs_pose, point_start, point_obs, dpk)
@@ -224,7 +270,7 @@ def bundle_adjust(T_cam_world: np.ndarray, fixed: np.ndarray, points: np.ndarray
         try:
             Sinv = np.linalg.inv(S[np.ix_(free_rows, free_rows)])
             for j, k in enumerate(free):
-                cov[k] = Sinv[6 * j:6 * j + 6, 6 * j:6 * j + 6]
+                cov[k] = Sinv[6 * j : 6 * j + 6, 6 * j : 6 * j + 6]
         except np.linalg.LinAlgError:
             cov[free] = np.nan
     err_sq = ((camera.project(Y) - zz) ** 2 * measured).sum(1)

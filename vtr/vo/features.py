@@ -17,8 +17,9 @@ from ..types import Features
 from .kernels import matching as km
 
 
-def bucket(uv: np.ndarray, response: np.ndarray, size: tuple[int, int], rows: int, cols: int,
-           n_keep: int) -> np.ndarray:
+def bucket(
+    uv: np.ndarray, response: np.ndarray, size: tuple[int, int], rows: int, cols: int, n_keep: int
+) -> np.ndarray:
     """Indices of at most ``n_keep`` features spread over a rows x cols grid.
 
     Each cell keeps its strongest features up to an equal quota; the quota left unused by
@@ -30,11 +31,11 @@ def bucket(uv: np.ndarray, response: np.ndarray, size: tuple[int, int], rows: in
     col = np.minimum((uv[:, 0] * cols / w).astype(int), cols - 1)
     row = np.minimum((uv[:, 1] * rows / h).astype(int), rows - 1)
     cell = row * cols + col
-    order = np.lexsort((-response, cell))           # by cell, strongest first
+    order = np.lexsort((-response, cell))  # by cell, strongest first
     sorted_cell = cell[order]
     first = np.searchsorted(sorted_cell, sorted_cell, side="left")
     rank = np.empty(len(uv), int)
-    rank[order] = np.arange(len(uv)) - first          # rank within its cell
+    rank[order] = np.arange(len(uv)) - first  # rank within its cell
     quota = max(1, n_keep // (rows * cols))
     keep = rank < quota
     n_extra = n_keep - int(keep.sum())
@@ -88,8 +89,9 @@ class FeatureExtractor:
             uv = cv2.KeyPoint_convert(kept).astype(np.float64)  # type: ignore[attr-defined]
             response = _keypoint_field(kept, "response", np.float64)
             keep = np.arange(len(kept))
-        return Features(uv=uv[keep], octave=_keypoint_field(kept, "octave", np.int32), response=response[keep],
-                        descriptors=desc)
+        return Features(
+            uv=uv[keep], octave=_keypoint_field(kept, "octave", np.int32), response=response[keep], descriptors=desc
+        )
 
 
 def _keypoint_field(keypoints, name: str, dtype) -> np.ndarray:
@@ -106,24 +108,44 @@ def descriptor_words(descriptors: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(descriptors, dtype=np.uint8).view(np.uint64)
 
 
-def match_within_radius(pred_uv: np.ndarray, query_descriptors: np.ndarray, uv: np.ndarray,
-                        descriptors: np.ndarray, radius: float, max_distance: int, ratio: float = 1.0,
-                        mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def match_within_radius(
+    pred_uv: np.ndarray,
+    query_descriptors: np.ndarray,
+    uv: np.ndarray,
+    descriptors: np.ndarray,
+    radius: float,
+    max_distance: int,
+    ratio: float = 1.0,
+    mutual: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
     """Match queries predicted at ``pred_uv`` (N, 2) px to the features at ``uv`` within ``radius`` px.
 
     Keeps each query's closest descriptor within ``max_distance`` (Hamming) that passes the ratio
     test ``best < ratio * second`` and, with ``mutual``, is its feature's closest query.
     Returns (query indices, feature indices).
     """
-    qi, tj, _ = km.radius_match(np.ascontiguousarray(pred_uv, dtype=np.float64), descriptor_words(query_descriptors),
-                                np.ascontiguousarray(uv, dtype=np.float64), descriptor_words(descriptors),
-                                float(radius), int(max_distance), float(ratio), bool(mutual))
+    qi, tj, _ = km.radius_match(
+        np.ascontiguousarray(pred_uv, dtype=np.float64),
+        descriptor_words(query_descriptors),
+        np.ascontiguousarray(uv, dtype=np.float64),
+        descriptor_words(descriptors),
+        float(radius),
+        int(max_distance),
+        float(ratio),
+        bool(mutual),
+    )
     return qi, tj
 
 
-def match_all(query_descriptors: np.ndarray, descriptors: np.ndarray, max_distance: int, ratio: float = 1.0,
-              mutual: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def match_all(
+    query_descriptors: np.ndarray, descriptors: np.ndarray, max_distance: int, ratio: float = 1.0, mutual: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Match every query descriptor against every descriptor (no position gate); see ``match_within_radius``."""
-    qi, tj, _ = km.all_pairs_match(descriptor_words(query_descriptors), descriptor_words(descriptors),
-                                   int(max_distance), float(ratio), bool(mutual))
+    qi, tj, _ = km.all_pairs_match(
+        descriptor_words(query_descriptors),
+        descriptor_words(descriptors),
+        int(max_distance),
+        float(ratio),
+        bool(mutual),
+    )
     return qi, tj

@@ -42,7 +42,7 @@ class _WindowKeyframe:
     id: int
     frame: StereoFrame
     T_cam_world: np.ndarray
-    landmark_ids: np.ndarray       # (N,) landmark of each feature, -1 if none
+    landmark_ids: np.ndarray  # (N,) landmark of each feature, -1 if none
     edge_covariance: np.ndarray
     edge_inliers: int
 
@@ -67,7 +67,7 @@ class LocalMap:
         self.keyframes: deque[_WindowKeyframe] = deque()
         self.positions = np.zeros((0, 3))
         self.descriptors = np.zeros((0, 32), np.uint8)
-        self.refined = np.zeros(0, bool)      # position set by a windowed bundle adjustment (else triangulated)
+        self.refined = np.zeros(0, bool)  # position set by a windowed bundle adjustment (else triangulated)
 
     def add_landmarks(self, points_world: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
         ids = np.arange(len(self.positions), len(self.positions) + len(points_world))
@@ -121,16 +121,16 @@ class StereoOdometry:
         store keyframes as they are finalized, turn it off so memory does not grow with the route."""
         self.config = settings or OdometrySettings()
         self.keep_history = keep_history
-        self.skipped_window_adjustments = 0    # window adjustments not run (a landmark behind a camera)
+        self.skipped_window_adjustments = 0  # window adjustments not run (a landmark behind a camera)
         self.camera = camera
         self.timer = StageTimer()
         self.stereo = StereoProcessor(camera, self.config.features, self.config.stereo, self.timer)
         self.map = LocalMap(self.config.odometry.window_keyframes)
         self._next_id = 0
-        self._T_cw_last: np.ndarray | None = None    # last frame's T_cam_world
+        self._T_cw_last: np.ndarray | None = None  # last frame's T_cam_world
         self._t_last = 0
-        self._velocity: np.ndarray | None = None     # twist per second of T_cur_prev ([rot, trans])
-        self._keyframe_poses: dict[int, np.ndarray] = {}   # id -> T_world_kf (latest estimate)
+        self._velocity: np.ndarray | None = None  # twist per second of T_cur_prev ([rot, trans])
+        self._keyframe_poses: dict[int, np.ndarray] = {}  # id -> T_world_kf (latest estimate)
         self._frame_refs: list[tuple[int, np.ndarray]] = []
 
     def process(self, images: StereoImages) -> OdometryResult:
@@ -164,20 +164,35 @@ class StereoOdometry:
         trans = np.linalg.norm(T_kf_frame[:3, 3])
         rot = np.degrees(rotation_angle(T_kf_frame[:3, :3]))
         new_kf, finalized = None, ()
-        if trans > cfg.keyframe_translation_m or rot > cfg.keyframe_rotation_deg \
-                or n_inliers < cfg.keyframe_min_inliers:
+        if (
+            trans > cfg.keyframe_translation_m
+            or rot > cfg.keyframe_rotation_deg
+            or n_inliers < cfg.keyframe_min_inliers
+        ):
             new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, est.landmarks, est.features)
             kind = FrameKind.CREATE_VERTEX
             T_world_frame = self._keyframe_poses[new_kf.id]
-            T_kf_frame = ref.T_cam_world @ T_world_frame   # ref may have just left the window
+            T_kf_frame = ref.T_cam_world @ T_world_frame  # ref may have just left the window
         else:
-            moved = np.linalg.norm(T_step[:3, 3]) > cfg.still_translation_m \
+            moved = (
+                np.linalg.norm(T_step[:3, 3]) > cfg.still_translation_m
                 or np.degrees(rotation_angle(T_step[:3, :3])) > cfg.still_rotation_deg
+            )
             kind = FrameKind.CREATE_CANDIDATE if moved else FrameKind.DO_NOTHING
         self._remember(new_kf.id if new_kf else ref.id, np.eye(4) if new_kf else T_kf_frame)
-        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=kind, matches=n_matches, inliers=n_inliers,
-                              keyframe_id=ref.id, T_keyframe_frame=T_kf_frame, T_world_frame=T_world_frame,
-                              covariance=cov, new_keyframe=new_kf, finalized=finalized)
+        return OdometryResult(
+            t_ns=frame.t_ns,
+            index=frame.index,
+            kind=kind,
+            matches=n_matches,
+            inliers=n_inliers,
+            keyframe_id=ref.id,
+            T_keyframe_frame=T_kf_frame,
+            T_world_frame=T_world_frame,
+            covariance=cov,
+            new_keyframe=new_kf,
+            finalized=finalized,
+        )
 
     def window_poses(self) -> dict[int, np.ndarray]:
         """Current ``T_world_kf`` (copies) of the keyframes in the window, by keyframe id: later keyframes' bundle
@@ -206,28 +221,52 @@ class StereoOdometry:
         self._next_id += 1
         return self._next_id - 1
 
-    def _start(self, frame: StereoFrame, T_cw: np.ndarray | None = None,
-               covariance: np.ndarray | None = None) -> OdometryResult:
+    def _start(
+        self, frame: StereoFrame, T_cw: np.ndarray | None = None, covariance: np.ndarray | None = None
+    ) -> OdometryResult:
         T_cw = np.eye(4) if T_cw is None else T_cw
-        kf = self._new_window_keyframe(frame, T_cw, covariance if covariance is not None else np.zeros((6, 6)),
-                                       0, np.zeros(0, int), np.zeros(0, int))
+        kf = self._new_window_keyframe(
+            frame,
+            T_cw,
+            covariance if covariance is not None else np.zeros((6, 6)),
+            0,
+            np.zeros(0, int),
+            np.zeros(0, int),
+        )
         self._T_cw_last, self._t_last = T_cw, frame.t_ns
         self._remember(kf.id, np.eye(4))
         new = self._public(kf)
-        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=FrameKind.CREATE_VERTEX, matches=0, inliers=0,
-                              keyframe_id=kf.id, T_keyframe_frame=np.eye(4), T_world_frame=inv_T(T_cw),
-                              covariance=kf.edge_covariance, new_keyframe=new)
+        return OdometryResult(
+            t_ns=frame.t_ns,
+            index=frame.index,
+            kind=FrameKind.CREATE_VERTEX,
+            matches=0,
+            inliers=0,
+            keyframe_id=kf.id,
+            T_keyframe_frame=np.eye(4),
+            T_world_frame=inv_T(T_cw),
+            covariance=kf.edge_covariance,
+            new_keyframe=new,
+        )
 
-    def _new_window_keyframe(self, frame: StereoFrame, T_cw: np.ndarray, cov: np.ndarray, inliers: int,
-                             lm_ids: np.ndarray, feat_idx: np.ndarray) -> _WindowKeyframe:
+    def _new_window_keyframe(
+        self,
+        frame: StereoFrame,
+        T_cw: np.ndarray,
+        cov: np.ndarray,
+        inliers: int,
+        lm_ids: np.ndarray,
+        feat_idx: np.ndarray,
+    ) -> _WindowKeyframe:
         """Register a keyframe: matched features keep their landmarks, other stereo features start new ones."""
         ids = -np.ones(len(frame.features), int)
         ids[feat_idx] = lm_ids
         self.map.descriptors[lm_ids] = frame.features.descriptors[feat_idx]
         fresh = np.flatnonzero((ids < 0) & frame.has_depth)
         T_wc = inv_T(T_cw)
-        ids[fresh] = self.map.add_landmarks(frame.points[fresh] @ T_wc[:3, :3].T + T_wc[:3, 3],
-                                            frame.features.descriptors[fresh])
+        ids[fresh] = self.map.add_landmarks(
+            frame.points[fresh] @ T_wc[:3, :3].T + T_wc[:3, 3], frame.features.descriptors[fresh]
+        )
         kf = _WindowKeyframe(self._take_id(), frame, T_cw, ids, cov, inliers)
         self.map.keyframes.append(kf)
         self._keyframe_poses[kf.id] = T_wc
@@ -307,7 +346,7 @@ class StereoOdometry:
         np.logical_or.at(near, lm_local, weights[:, 2] == 1.0)
         if len(uniq) > cfg.window_max_landmarks:
             # ties broken by id (deterministic)
-            order = np.lexsort((uniq, -seen[uniq], ~near))[:cfg.window_max_landmarks]
+            order = np.lexsort((uniq, -seen[uniq], ~near))[: cfg.window_max_landmarks]
             selected = np.zeros(len(uniq), bool)
             selected[order] = True
             keep = selected[lm_local]
@@ -318,10 +357,20 @@ class StereoOdometry:
         fixed = np.zeros(len(kfs), bool)
         fixed[0] = True
         try:
-            res = bundle_adjust(T, fixed, self.map.positions[uniq], slot, lm_local, np.nan_to_num(z), weights,
-                                self.camera, self.config.stereo.pixel_sigma, self.config.estimation.huber_px,
-                                cfg.window_iterations)
-        except EstimationError:     # a landmark behind a camera: the window keeps its tracked poses (counted)
+            res = bundle_adjust(
+                T,
+                fixed,
+                self.map.positions[uniq],
+                slot,
+                lm_local,
+                np.nan_to_num(z),
+                weights,
+                self.camera,
+                self.config.stereo.pixel_sigma,
+                self.config.estimation.huber_px,
+                cfg.window_iterations,
+            )
+        except EstimationError:  # a landmark behind a camera: the window keeps its tracked poses (counted)
             self.skipped_window_adjustments += 1
             return
         for s, kf in enumerate(kfs):
@@ -334,16 +383,27 @@ class StereoOdometry:
         for s in np.unique(slot[bad]):
             kfs[s].landmark_ids[feat[bad & (slot == s)]] = -1
 
-    def _place_far_by_parallax(self, T_cam_world: np.ndarray, slot: np.ndarray, lm_local: np.ndarray, z: np.ndarray,
-                               uniq: np.ndarray, near: np.ndarray) -> None:
+    def _place_far_by_parallax(
+        self,
+        T_cam_world: np.ndarray,
+        slot: np.ndarray,
+        lm_local: np.ndarray,
+        z: np.ndarray,
+        uniq: np.ndarray,
+        near: np.ndarray,
+    ) -> None:
         """Far landmarks ``uniq[~near]`` whose window rays span at least ``far_min_parallax_deg`` start at the
         point their left-image rays meet (when in front of every camera that saw them)."""
         tri, parallax = triangulate_bearings(T_cam_world, slot, lm_local, z[:, :2], self.camera, len(uniq))
         depth = np.einsum("mj,mj->m", T_cam_world[slot, 2, :3], np.nan_to_num(tri[lm_local])) + T_cam_world[slot, 2, 3]
         in_front = np.ones(len(uniq), bool)
         np.logical_and.at(in_front, lm_local, depth > MIN_DEPTH_M)
-        use = ~near & in_front & np.isfinite(tri).all(1) \
+        use = (
+            ~near
+            & in_front
+            & np.isfinite(tri).all(1)
             & (parallax >= np.radians(self.config.odometry.far_min_parallax_deg))
+        )
         self.map.positions[uniq[use]] = tri[use]
 
     def _plausible(self, T_cw: np.ndarray, dt: float) -> bool:
@@ -351,8 +411,10 @@ class StereoOdometry:
         cfg = self.config.odometry
         step = T_cw @ inv_T(cast(np.ndarray, self._T_cw_last))
         dt = max(dt, MIN_FRAME_INTERVAL_S)
-        return bool(np.linalg.norm(step[:3, 3]) <= cfg.max_speed_mps * dt
-                    and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt)
+        return bool(
+            np.linalg.norm(step[:3, 3]) <= cfg.max_speed_mps * dt
+            and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt
+        )
 
     def _fail(self, frame: StereoFrame, T_pred: np.ndarray, ref: _WindowKeyframe) -> OdometryResult:
         """No reliable estimate: carry the pose by the motion prior and restart the local map here."""
@@ -361,18 +423,35 @@ class StereoOdometry:
         unknown = np.eye(6) * self.config.odometry.failure_variance
         res = self._start(frame, T_pred, unknown)
         T_kf_frame = ref.T_cam_world @ inv_T(T_pred)
-        return OdometryResult(t_ns=frame.t_ns, index=frame.index, kind=FrameKind.FAILURE, matches=0, inliers=0,
-                              keyframe_id=ref.id, T_keyframe_frame=T_kf_frame, T_world_frame=res.T_world_frame,
-                              covariance=unknown, new_keyframe=res.new_keyframe, finalized=finalized)
+        return OdometryResult(
+            t_ns=frame.t_ns,
+            index=frame.index,
+            kind=FrameKind.FAILURE,
+            matches=0,
+            inliers=0,
+            keyframe_id=ref.id,
+            T_keyframe_frame=T_kf_frame,
+            T_world_frame=res.T_world_frame,
+            covariance=unknown,
+            new_keyframe=res.new_keyframe,
+            finalized=finalized,
+        )
 
     def _track(self, frame: StereoFrame, T_pred: np.ndarray, radius: float) -> _Track | None:
         """Match to the local map, RANSAC, refine ``T_cam_world``; None when too few inliers."""
         cfg: OdometryConfig = self.config.odometry
         with self.timer("matching"):
             active = self.map.active()
-            lm, feat = match_landmarks(self.map.positions[active], self.map.descriptors[active], frame, T_pred,
-                                       self.camera, radius, cfg.max_descriptor_distance,
-                                       self.config.estimation.ratio_test)
+            lm, feat = match_landmarks(
+                self.map.positions[active],
+                self.map.descriptors[active],
+                frame,
+                T_pred,
+                self.camera,
+                radius,
+                cfg.max_descriptor_distance,
+                self.config.estimation.ratio_test,
+            )
             lm = active[lm]
         if len(lm) < cfg.min_inliers:
             return None
@@ -390,9 +469,15 @@ class StereoOdometry:
         """
         cfg = self.config.odometry
         order = self._ransac_order(len(lm), frame.index)
-        rs = ransac_pnp(self.map.positions[lm[order]], frame.features.uv[feat[order]], self.camera,
-                        cfg.ransac_iterations, cfg.ransac_threshold_px, self.config.estimation.ransac_confidence,
-                        self.config.seed)
+        rs = ransac_pnp(
+            self.map.positions[lm[order]],
+            frame.features.uv[feat[order]],
+            self.camera,
+            cfg.ransac_iterations,
+            cfg.ransac_threshold_px,
+            self.config.estimation.ransac_confidence,
+            self.config.seed,
+        )
         if rs is None or len(rs.inliers) < cfg.min_inliers:
             return None
         z = frame.stereo_measurements[feat]
@@ -457,7 +542,17 @@ class StereoOdometry:
         z_all = np.concatenate([z_obs[keep], z])
         T = np.concatenate([np.stack([kf.T_cam_world for kf in kfs]), T_cam_world[None]])
         fixed = np.r_[np.ones(K, bool), False]
-        res = bundle_adjust(T, fixed, points_world, obs_pose, obs_point, np.nan_to_num(z_all),
-                            self._row_weights(z_all), self.camera, self.config.stereo.pixel_sigma,
-                            self.config.estimation.huber_px, self.config.estimation.refine_iterations)
+        res = bundle_adjust(
+            T,
+            fixed,
+            points_world,
+            obs_pose,
+            obs_point,
+            np.nan_to_num(z_all),
+            self._row_weights(z_all),
+            self.camera,
+            self.config.stereo.pixel_sigma,
+            self.config.estimation.huber_px,
+            self.config.estimation.refine_iterations,
+        )
         return res, res.error_sq[-n:] <= cfg.ransac_threshold_px**2

@@ -21,11 +21,12 @@ from .features import FeatureExtractor, descriptor_words
 from .kernels import matching as km
 from .kernels import stereo as ks
 
-MAX_OCTAVE_GAP = 1   # left/right features more pyramid levels apart are not the same corner
+MAX_OCTAVE_GAP = 1  # left/right features more pyramid levels apart are not the same corner
 
 
-def refine_disparity(left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: np.ndarray,
-                     u_r: np.ndarray, half: int, search: int) -> tuple[np.ndarray, np.ndarray]:
+def refine_disparity(
+    left: np.ndarray, right: np.ndarray, u_l: np.ndarray, v_l: np.ndarray, u_r: np.ndarray, half: int, search: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Subpixel right-image columns by mean-removed SSD block matching along the row around ``u_r``.
 
     Left patches are centred on the rounded left keypoints; the returned left columns are those
@@ -53,8 +54,9 @@ def check_stereo_images(images: StereoImages, camera: StereoCamera) -> None:
         if not isinstance(img, np.ndarray):
             raise DataError(f"{where}: expected a numpy array, got {type(img).__name__}")
         if img.ndim != 2:
-            raise DataError(f"{where}: expected a 2-D greyscale image, got shape {img.shape} "
-                            "(convert colour with cv2.cvtColor)")
+            raise DataError(
+                f"{where}: expected a 2-D greyscale image, got shape {img.shape} (convert colour with cv2.cvtColor)"
+            )
         if img.dtype != np.uint8:
             raise DataError(f"{where}: expected uint8 pixels, got {img.dtype} (scale to 0..255 and cast first)")
         if img.shape != (h, w):
@@ -75,8 +77,9 @@ class StereoProcessor:
     that many threads. Every thread has its own extractor, so results equal the one-thread run bit for bit.
     """
 
-    def __init__(self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig,
-                 timer: StageTimer | None = None):
+    def __init__(
+        self, camera: StereoCamera, features: FeatureConfig, stereo: StereoConfig, timer: StageTimer | None = None
+    ):
         self.camera = camera
         self.timer = timer or StageTimer()
         self.cfg = stereo
@@ -84,7 +87,7 @@ class StereoProcessor:
         self.extractor = FeatureExtractor(features, camera.size)
         self.scales = self.extractor.level_scales
         self.threads = resolve_threads(features.threads)
-        self._local = threading.local()     # a frames() worker's own extractor
+        self._local = threading.local()  # a frames() worker's own extractor
         self._right_extractor = self.extractor
         self._pool: ThreadPoolExecutor | None = None
         if self.threads > 1:
@@ -107,16 +110,18 @@ class StereoProcessor:
 
     def _frames_on_pool(self, images: Iterable[StereoImages]) -> Iterator[StereoFrame]:
         niceness = self.features_config.worker_niceness
-        with ThreadPoolExecutor(self.threads, thread_name_prefix="vtr-stereo", initializer=background_thread,
-                                initargs=(niceness,)) as pool:
+        with ThreadPoolExecutor(
+            self.threads, thread_name_prefix="vtr-stereo", initializer=background_thread, initargs=(niceness,)
+        ) as pool:
             # the reader (decoding, a serial stage that feeds every worker) keeps the normal priority
-            pending = prefetch((pool.submit(self._process_on_worker, im) for im in images),
-                               lookahead_frames(self.threads))
+            pending = prefetch(
+                (pool.submit(self._process_on_worker, im) for im in images), lookahead_frames(self.threads)
+            )
             try:
                 for future in pending:
                     yield future.result()
             finally:
-                pending.close()                         # stops the reader before the pool is shut down
+                pending.close()  # stops the reader before the pool is shut down
                 pool.shutdown(wait=True, cancel_futures=True)
 
     def process(self, images: StereoImages) -> StereoFrame:
@@ -134,8 +139,9 @@ class StereoProcessor:
             extractor = self._local.extractor = FeatureExtractor(self.features_config, self.camera.size)
         return self._process(images, _both(extractor))
 
-    def _process(self, images: StereoImages,
-                 extract: Callable[[StereoImages], tuple[Features, Features]]) -> StereoFrame:
+    def _process(
+        self, images: StereoImages, extract: Callable[[StereoImages], tuple[Features, Features]]
+    ) -> StereoFrame:
         check_stereo_images(images, self.camera)
         with self.timer("features"):
             left, right = extract(images)
@@ -146,17 +152,32 @@ class StereoProcessor:
         """Left/right matches on epipolar rows: (left indices, right indices)."""
         c = self.cfg
         qi, tj, _ = km.row_band_match(
-            np.ascontiguousarray(left.uv), left.octave.astype(np.int64), descriptor_words(left.descriptors),
-            np.ascontiguousarray(right.uv), right.octave.astype(np.int64), descriptor_words(right.descriptors),
-            c.max_row_diff_px * self.scales, c.min_disparity_px - c.refine_search_px, c.max_disparity_px,
-            MAX_OCTAVE_GAP, c.max_descriptor_distance)
+            np.ascontiguousarray(left.uv),
+            left.octave.astype(np.int64),
+            descriptor_words(left.descriptors),
+            np.ascontiguousarray(right.uv),
+            right.octave.astype(np.int64),
+            descriptor_words(right.descriptors),
+            c.max_row_diff_px * self.scales,
+            c.min_disparity_px - c.refine_search_px,
+            c.max_disparity_px,
+            MAX_OCTAVE_GAP,
+            c.max_descriptor_distance,
+        )
         return qi, tj
 
     def _triangulate(self, images: StereoImages, left: Features, right: Features) -> StereoFrame:
         qi, tj = self.match(left, right)
         c = self.cfg
-        ul, ur = refine_disparity(images.left, images.right, left.uv[qi, 0], left.uv[qi, 1],
-                                  right.uv[tj, 0], c.refine_half_window, c.refine_search_px)
+        ul, ur = refine_disparity(
+            images.left,
+            images.right,
+            left.uv[qi, 0],
+            left.uv[qi, 1],
+            right.uv[tj, 0],
+            c.refine_half_window,
+            c.refine_search_px,
+        )
         disp = ul - ur
         good = np.isfinite(ur) & (disp >= c.min_disparity_px) & (disp <= c.max_disparity_px)
         qi, ul, ur = qi[good], ul[good], ur[good]

@@ -28,11 +28,10 @@ from .outcome import RunOutcome
 from .run import execute_run
 from .tls import local_security
 
-MAX_WORKERS_PER_CORE = 4           # --workers above this many per core only thrash (each worker is a process)
+MAX_WORKERS_PER_CORE = 4  # --workers above this many per core only thrash (each worker is a process)
 SCHEDULER_SCHEMES = ("tcp", "tls")
 #: the HTTP routes the batch's own cluster serves when its dashboard is off
 HEALTH_ONLY_ROUTES = ("distributed.http.health",)
-
 
 
 def check_workers(workers: int | None) -> int:
@@ -44,8 +43,9 @@ def check_workers(workers: int | None) -> int:
         return cores
     limit = MAX_WORKERS_PER_CORE * cores
     if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= limit:
-        raise ConfigError(f"--workers {workers!r}: expected 1 to {limit} ({MAX_WORKERS_PER_CORE} per core on "
-                          f"{cores} cores)")
+        raise ConfigError(
+            f"--workers {workers!r}: expected 1 to {limit} ({MAX_WORKERS_PER_CORE} per core on {cores} cores)"
+        )
     return workers
 
 
@@ -62,11 +62,18 @@ def check_scheduler(address: str | None) -> str | None:
         port = parts.port
     except ValueError:
         raise ConfigError(f"{msg} (port not a number from 1 to 65535)") from None
-    if parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None or not 1 <= port <= 65535 \
-            or parts.path not in ("", "/") or parts.query or parts.fragment or parts.username:
+    if (
+        parts.scheme not in SCHEDULER_SCHEMES
+        or not parts.hostname
+        or port is None
+        or not 1 <= port <= 65535
+        or parts.path not in ("", "/")
+        or parts.query
+        or parts.fragment
+        or parts.username
+    ):
         raise ConfigError(msg)
     return address
-
 
 
 def one_line(err: BaseException) -> str:
@@ -95,32 +102,44 @@ class _DaskClient:
 
     def __init__(self, opts: BatchOptions, workers: int) -> None:
         self.opts, self.workers = opts, workers
-        self.cluster: Any = None      # distributed.LocalCluster
-        self.client: Any = None       # distributed.Client
+        self.cluster: Any = None  # distributed.LocalCluster
+        self.client: Any = None  # distributed.Client
 
     def __enter__(self) -> Any:
         import dask  # Dask only for a batch that starts its cluster
         from distributed import Client, LocalCluster
 
         if self.opts.scheduler:
-            try:        # tls:// takes its certificates from Dask's config (distributed.comm.tls.*)
+            try:  # tls:// takes its certificates from Dask's config (distributed.comm.tls.*)
                 self.client = Client(self.opts.scheduler, timeout=30)
-            except (OSError, TimeoutError, ValueError, TypeError) as err:   # TypeError: distributed's TLS setup
+            except (OSError, TimeoutError, ValueError, TypeError) as err:  # TypeError: distributed's TLS setup
                 raise ConfigError(f"--scheduler {self.opts.scheduler}: cannot connect ({one_line(err)})") from None
             return self.client
         security = local_security()
-        kwargs = {"n_workers": self.workers, "threads_per_worker": 1, "processes": True,
-                  "host": "127.0.0.1", "protocol": "tls://", "security": security,
-                  # the HTTP server (health, and the dashboard only when asked) on loopback, any free port
-                  "dashboard_address": "127.0.0.1:0", "scheduler_kwargs": {"dashboard": self.opts.dashboard},
-                  "silence_logs": logging.ERROR, **self.opts.cluster_kwargs}
+        kwargs = {
+            "n_workers": self.workers,
+            "threads_per_worker": 1,
+            "processes": True,
+            "host": "127.0.0.1",
+            "protocol": "tls://",
+            "security": security,
+            # the HTTP server (health, and the dashboard only when asked) on loopback, any free port
+            "dashboard_address": "127.0.0.1:0",
+            "scheduler_kwargs": {"dashboard": self.opts.dashboard},
+            "silence_logs": logging.ERROR,
+            **self.opts.cluster_kwargs,
+        }
         # a dead worker's task is given to another one this many times before it counts as failed; without the
         # dashboard, the scheduler's and workers' HTTP servers answer /health only (not the logs, worker addresses
         # and memory that Dask's default routes serve to anyone on the machine)
         settings: dict[str, Any] = {"distributed.scheduler.allowed-failures": max(self.opts.retries, 1)}
         if not self.opts.dashboard:
-            settings.update({"distributed.scheduler.http.routes": list(HEALTH_ONLY_ROUTES),
-                             "distributed.worker.http.routes": list(HEALTH_ONLY_ROUTES)})
+            settings.update(
+                {
+                    "distributed.scheduler.http.routes": list(HEALTH_ONLY_ROUTES),
+                    "distributed.worker.http.routes": list(HEALTH_ONLY_ROUTES),
+                }
+            )
         with dask.config.set(settings), _workers_ignore_ctrl_c():
             self.cluster = LocalCluster(**kwargs)
         self.client = Client(self.cluster, security=security)
@@ -134,24 +153,45 @@ class _DaskClient:
             self.cluster.close()
 
 
-def _run_on(client: Any, pending: list[tuple[RunSpec, dict[str, Any], str | None]], outcomes: dict[RunSpec, RunOutcome],
-            out: Path,
-            threads: int | None, opts: BatchOptions, report: Callable[[RunSpec, RunOutcome], None]) -> None:
+def _run_on(
+    client: Any,
+    pending: list[tuple[RunSpec, dict[str, Any], str | None]],
+    outcomes: dict[RunSpec, RunOutcome],
+    out: Path,
+    threads: int | None,
+    opts: BatchOptions,
+    report: Callable[[RunSpec, RunOutcome], None],
+) -> None:
     from distributed import as_completed  # Dask, imported with the cluster
 
     futures: dict[Any, RunSpec] = {}
     submitted: dict[tuple[str, str], Any] = {}
-    for spec, key, changed in pending:          # teaches come before their repeats (Manifest.runs order)
-        def prior(name: str, spec: RunSpec = spec) -> Any:   # its future, or its outcome when resumed
+    for spec, key, changed in pending:  # teaches come before their repeats (Manifest.runs order)
+
+        def prior(name: str, spec: RunSpec = spec) -> Any:  # its future, or its outcome when resumed
             fut = submitted.get((spec.route, name))
-            return fut if fut is not None else next(o for s, o in outcomes.items()
-                                                    if s.route == spec.route and s.name == name)
+            return (
+                fut
+                if fut is not None
+                else next(o for s, o in outcomes.items() if s.route == spec.route and s.name == name)
+            )
 
         teach: Any = None if spec.is_teach else prior(TEACH_FOLDER)
-        earlier = [prior(name) for name in spec.after]   # flown before it: it waits for them (experiences)
-        fut = client.submit(execute_run, spec, str(out), threads, teach, opts.on_start, key, changed, earlier,
-                            retries=opts.retries,
-                            key=f"{spec.route}/{spec.name}-{time.time_ns()}", pure=False)
+        earlier = [prior(name) for name in spec.after]  # flown before it: it waits for them (experiences)
+        fut = client.submit(
+            execute_run,
+            spec,
+            str(out),
+            threads,
+            teach,
+            opts.on_start,
+            key,
+            changed,
+            earlier,
+            retries=opts.retries,
+            key=f"{spec.route}/{spec.name}-{time.time_ns()}",
+            pure=False,
+        )
         futures[fut] = spec
         submitted[spec.route, spec.name] = fut
     try:
@@ -166,4 +206,3 @@ def _run_on(client: Any, pending: list[tuple[RunSpec, dict[str, Any], str | None
         for fut in futures:
             fut.cancel()
         raise
-

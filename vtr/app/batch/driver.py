@@ -38,9 +38,12 @@ def check_inputs(manifest: Manifest) -> None:
             raise DataError(f"{manifest.path}: route {spec.route!r} {spec.name}: {spec.config}: no such config file")
 
 
-
-def run_batch(manifest: Manifest, out: str | Path, options: BatchOptions | None = None,
-              progress: Callable[[RunOutcome, int, int], None] | None = None) -> BatchResult:
+def run_batch(
+    manifest: Manifest,
+    out: str | Path,
+    options: BatchOptions | None = None,
+    progress: Callable[[RunOutcome, int, int], None] | None = None,
+) -> BatchResult:
     """Run every teach and repeat of ``manifest`` into ``out`` on a Dask cluster; see the module doc."""
     opts = options or BatchOptions()
     out = Path(out)
@@ -58,12 +61,14 @@ def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     check_scheduler_tls(opts.scheduler)
     workers = check_workers(opts.workers) if opts.scheduler is None else (opts.workers or available_cores())
     check_scheduler(opts.scheduler)
-    if opts.scheduler is None and opts.threads is not None:   # sizes that multiply: processes x threads
+    if opts.scheduler is None and opts.threads is not None:  # sizes that multiply: processes x threads
         cores = available_cores()
         threads = resolve_threads(opts.threads, "--threads")
         if workers * threads > MAX_WORKERS_PER_CORE * cores:
-            raise ConfigError(f"--workers {workers} x --threads {opts.threads} is {workers * threads} threads on "
-                              f"{cores} cores; at most {MAX_WORKERS_PER_CORE * cores}")
+            raise ConfigError(
+                f"--workers {workers} x --threads {opts.threads} is {workers * threads} threads on "
+                f"{cores} cores; at most {MAX_WORKERS_PER_CORE * cores}"
+            )
     check_apart(Path(out), [p for spec in manifest.runs() for p in (spec.source, spec.config)])
     for route in manifest.routes:
         if (Path(out) / route.name).exists():
@@ -71,8 +76,14 @@ def check_batch(manifest: Manifest, out: Path, opts: BatchOptions) -> int:
     return workers
 
 
-def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOptions, workers: int,
-               progress: Callable[[RunOutcome, int, int], None] | None) -> BatchResult:
+def _run_batch(
+    manifest: Manifest,
+    out: Path,
+    own: OutputFolder,
+    opts: BatchOptions,
+    workers: int,
+    progress: Callable[[RunOutcome, int, int], None] | None,
+) -> BatchResult:
     runs = manifest.runs()
     for route in manifest.routes:
         check_no_links(out, out / route.name)
@@ -88,12 +99,13 @@ def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOpti
             progress(outcome, done, len(runs))
 
     pending: list[tuple[RunSpec, dict[str, Any], str | None]] = []
-    resumed: list[tuple[RunSpec, RunOutcome]] = []     # every run.json is checked before anything is reported
+    resumed: list[tuple[RunSpec, RunOutcome]] = []  # every run.json is checked before anything is reported
     teach_keys: dict[str, dict[str, Any]] = {}
     keys: dict[tuple[str, str], dict[str, Any]] = {}
     for spec in runs:
-        key = run_key(spec, None if spec.is_teach else teach_keys[spec.route],
-                      [keys[spec.route, name] for name in spec.after])
+        key = run_key(
+            spec, None if spec.is_teach else teach_keys[spec.route], [keys[spec.route, name] for name in spec.after]
+        )
         keys[spec.route, spec.name] = key
         if spec.is_teach:
             teach_keys[spec.route] = key
@@ -103,8 +115,13 @@ def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOpti
         if doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED and changed is None:
             resumed.append((spec, outcome_from_folder(spec, folder, RESUMED)))
         else:
-            pending.append((spec, key, changed if doc is not None and
-                            doc.get("status", STATUS_FINISHED) == STATUS_FINISHED else None))
+            pending.append(
+                (
+                    spec,
+                    key,
+                    changed if doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED else None,
+                )
+            )
     for spec, outcome in resumed:
         report(spec, outcome)
     threads = opts.threads
@@ -120,4 +137,3 @@ def _run_batch(manifest: Manifest, out: Path, own: OutputFolder, opts: BatchOpti
     if opts.fit:
         result.fit = fit_repeats(manifest, out, ordered)
     return result
-

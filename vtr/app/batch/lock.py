@@ -23,8 +23,9 @@ class BatchLock:
 
     def __enter__(self) -> BatchLock:
         try:
-            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) |
-                              getattr(os, "O_CLOEXEC", 0), 0o644)
+            self.fd = os.open(
+                self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644
+            )
         except OSError as err:
             raise OutputError(f"{self.path}: cannot open the batch lock ({err.strerror or err})") from None
         try:
@@ -32,12 +33,13 @@ class BatchLock:
         except BlockingIOError:
             os.close(self.fd)
             self.fd = None
-            raise OutputError(f"--out {self.path.parent}: another vtr batch is writing this folder (it holds "
-                              f"{LOCK_NAME}); wait for it or choose another --out") from None
+            raise OutputError(
+                f"--out {self.path.parent}: another vtr batch is writing this folder (it holds "
+                f"{LOCK_NAME}); wait for it or choose another --out"
+            ) from None
         return self
 
     def __exit__(self, *exc: Any) -> None:
         if self.fd is not None:
             os.close(self.fd)
             self.fd = None
-

@@ -25,7 +25,7 @@ from ...config import Config, DuplicateKeyError, UniqueKeyLoader
 from ...errors import ConfigError, DataError
 from .layout import RESERVED_NAMES, TEACH_FOLDER
 
-NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")   # route and run names are folder names (fullmatch)
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # route and run names are folder names (fullmatch)
 RUN_KEYS = {"source", "name", "frames", "config", "format"}
 ROUTE_KEYS = {"name", "teach", "repeats", "frames", "config", "format", "experiences"}
 TOP_KEYS = {"routes", "frames", "config", "format"}
@@ -36,7 +36,7 @@ class RunSpec:
     """One teach or repeat of a manifest: where its data is and where it writes."""
 
     route: str
-    name: str                       # output folder inside OUT/<route>/ ("teach" for the teach)
+    name: str  # output folder inside OUT/<route>/ ("teach" for the teach)
     source: Path
     frames: str | None = None
     config: Path | None = None
@@ -80,14 +80,24 @@ class _ManifestLoader(UniqueKeyLoader):
 
 
 _ManifestLoader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers
-            if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    first: [
+        (tag, regexp) for tag, regexp in resolvers if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+    ]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
 for _tag, _pattern, _first in (
-        ("tag:yaml.org,2002:int", r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$",
-         "-+0123456789"),
-        ("tag:yaml.org,2002:float", r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?"
-         r"|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$", "-+0123456789.")):
+    (
+        "tag:yaml.org,2002:int",
+        r"^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$",
+        "-+0123456789",
+    ),
+    (
+        "tag:yaml.org,2002:float",
+        r"^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?"
+        r"|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$",
+        "-+0123456789.",
+    ),
+):
     _ManifestLoader.add_implicit_resolver(_tag, re.compile(_pattern), list(_first))
 
 
@@ -97,7 +107,7 @@ def load_manifest(path: str | Path) -> Manifest:
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such manifest file")
-    problem = input_problem(path)                # a folder, a named pipe or a device: never opened
+    problem = input_problem(path)  # a folder, a named pipe or a device: never opened
     if problem is not None:
         raise DataError(f"{path}: {problem}")
     try:
@@ -127,8 +137,10 @@ def load_manifest(path: str | Path) -> Manifest:
         if name.casefold() in seen:
             raise ConfigError(f"{where}: route name used twice (names differing only in case count as one folder)")
         if name in RESERVED_NAMES or name.casefold() in {n.casefold() for n in RESERVED_NAMES}:
-            raise ConfigError(f"{where}: {name!r} is the name of the batch's own output "
-                              f"({', '.join(sorted(RESERVED_NAMES))}); rename the route")
+            raise ConfigError(
+                f"{where}: {name!r} is the name of the batch's own output "
+                f"({', '.join(sorted(RESERVED_NAMES))}); rename the route"
+            )
         seen.add(name.casefold())
         if "teach" not in entry:
             raise ConfigError(f"{where}: no 'teach' source")
@@ -145,8 +157,10 @@ def load_manifest(path: str | Path) -> Manifest:
         for j, rep in enumerate(repeats_doc):
             run = _run(rep, name, route_defaults, base, f"{where}.repeats[{j}]", None)
             if run.name.casefold() in names:
-                raise ConfigError(f"{where}.repeats[{j}]: output folder {run.name!r} is used twice in the route "
-                                  f"(give the repeat a distinct 'name')")
+                raise ConfigError(
+                    f"{where}.repeats[{j}]: output folder {run.name!r} is used twice in the route "
+                    f"(give the repeat a distinct 'name')"
+                )
             names.add(run.name.casefold())
             if chained:
                 run = dataclasses.replace(run, after=tuple(r.name for r in repeats))
@@ -163,8 +177,10 @@ def _check_keys(doc: dict, allowed: set[str], where: str) -> None:
 
 def _name(value: Any, where: str) -> str:
     if not isinstance(value, str) or not NAME_PATTERN.fullmatch(value):
-        raise ConfigError(f"{where}: {value!r} is not a usable folder name (1-100 letters, digits, '.', '_', '-', "
-                          "starting with a letter or digit)")
+        raise ConfigError(
+            f"{where}: {value!r} is not a usable folder name (1-100 letters, digits, '.', '_', '-', "
+            "starting with a letter or digit)"
+        )
     return value
 
 
@@ -180,8 +196,9 @@ def _defaults(doc: dict, inherited: dict, base: Path, where: str) -> dict:
     if doc.get("frames") is not None:
         frames = doc["frames"]
         if not isinstance(frames, str) or any(not c.isprintable() for c in frames):
-            raise ConfigError(f"{where}.frames: {frames!r} is not a frame range (write START:STOP:STEP, e.g. "
-                              "\"0:100:2\")")
+            raise ConfigError(
+                f'{where}.frames: {frames!r} is not a frame range (write START:STOP:STEP, e.g. "0:100:2")'
+            )
         out["frames"] = frames
     if doc.get("config") is not None:
         out["config"] = _path(doc["config"], base, f"{where}.config")
@@ -209,8 +226,6 @@ def _run(entry: Any, route: str, defaults: dict, base: Path, where: str, name: s
     return RunSpec(route, name, source, own.get("frames"), own.get("config"), own.get("fmt"))
 
 
-
 def run_config(spec: RunSpec, threads: int | None) -> Config:
     config = Config.load(spec.config) if spec.config is not None else Config()
     return config if threads is None else config.replace("features", threads=threads)
-

@@ -56,7 +56,7 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
 
     def chunks() -> Iterator[Samples]:
         for f in files:
-            own = OutputFolder(f.parent).own_file(f.name)      # again, just before reading it
+            own = OutputFolder(f.parent).own_file(f.name)  # again, just before reading it
             if own is None:
                 raise PerceptionModelError(f"{f}: removed while the batch read it")
             obs = read_landmarks(own, fields=FIT_FIELDS)
@@ -69,7 +69,12 @@ def fit_repeats(manifest: Manifest, out: Path, outcomes: list[RunOutcome]) -> di
     data = {"files": [str(f) for f in files], "n_observations": result.n, "n_inliers": result.n_inliers}
     fit_folder.write("model.json", result.model.save, fit=result.to_dict(), data=data)
     fit_folder.write("fit.png", lambda p: plot_fit(result, p))
-    return {"model": folder / "model.json", "plot": folder / "fit.png", "files": len(files),
-            "observations": result.n, "constants": {c.name: c.estimate for c in result.intervals},
-            "r2": result.r2, "log_loss": result.log_loss}
-
+    return {
+        "model": folder / "model.json",
+        "plot": folder / "fit.png",
+        "files": len(files),
+        "observations": result.n,
+        "constants": {c.name: c.estimate for c in result.intervals},
+        "r2": result.r2,
+        "log_loss": result.log_loss,
+    }

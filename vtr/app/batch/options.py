@@ -11,18 +11,17 @@ from typing import Any
 
 from .manifest import RunSpec
 
-DEFAULT_RETRIES = 2                # extra attempts of a task that raised inside Dask (its worker died: see above)
+DEFAULT_RETRIES = 2  # extra attempts of a task that raised inside Dask (its worker died: see above)
 
 
 @dataclass
 class BatchOptions:
-    workers: int | None = None          # local cluster size (default: every core)
-    scheduler: str | None = None        # address of a running Dask scheduler instead of a local cluster
-    threads: int | None = None          # threads per run (default: local: cores // workers; remote: config)
+    workers: int | None = None  # local cluster size (default: every core)
+    scheduler: str | None = None  # address of a running Dask scheduler instead of a local cluster
+    threads: int | None = None  # threads per run (default: local: cores // workers; remote: config)
     retries: int = DEFAULT_RETRIES
     fit: bool = False
-    dashboard: bool = False             # the local cluster's dashboard (loopback only), off by default
-    on_dashboard: Callable[[str], None] | None = None          # told the dashboard's address when it starts
-    on_start: Callable[[RunSpec, Path], None] | None = None   # called in the worker before each run (tests)
+    dashboard: bool = False  # the local cluster's dashboard (loopback only), off by default
+    on_dashboard: Callable[[str], None] | None = None  # told the dashboard's address when it starts
+    on_start: Callable[[RunSpec, Path], None] | None = None  # called in the worker before each run (tests)
     cluster_kwargs: dict[str, Any] = field(default_factory=dict)
-

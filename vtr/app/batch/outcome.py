@@ -25,14 +25,14 @@ class RunOutcome:
     route: str
     name: str
     kind: str
-    status: str                     # FINISHED, RESUMED, FAILED, BLOCKED
+    status: str  # FINISHED, RESUMED, FAILED, BLOCKED
     frames: int | None = None
     vertices: int | None = None
-    localized: int | None = None    # repeats: localized vertices
+    localized: int | None = None  # repeats: localized vertices
     median_inliers: float | None = None
-    seconds: float | None = None    # wall time of the run (as recorded in its run.json)
+    seconds: float | None = None  # wall time of the run (as recorded in its run.json)
     error: str | None = None
-    changed: str | None = None      # why a run finished before was run again (what of its key changed)
+    changed: str | None = None  # why a run finished before was run again (what of its key changed)
 
     @property
     def localized_pct(self) -> float | None:
@@ -66,11 +66,13 @@ def checked_run(folder: Path) -> dict[str, Any] | None:
         raise DataError(f"{p}: 'summary' is {type(summary).__name__}, expected a mapping{hint}")
     for key, kind in SUMMARY_NUMBERS.items():
         v = summary.get(key)
-        ok = v is None or (not isinstance(v, bool) and isinstance(v, int | float) and (kind is float or
-                                                                                    isinstance(v, int)))
+        ok = v is None or (
+            not isinstance(v, bool) and isinstance(v, int | float) and (kind is float or isinstance(v, int))
+        )
         if not ok or (isinstance(v, float) and v != v and key != "median_inliers"):
-            raise DataError(f"{p}: 'summary.{key}' is {v!r}, expected {'an integer' if kind is int else 'a number'}"
-                            f"{hint}")
+            raise DataError(
+                f"{p}: 'summary.{key}' is {v!r}, expected {'an integer' if kind is int else 'a number'}{hint}"
+            )
     if doc.get("error") is not None and not isinstance(doc["error"], str):
         raise DataError(f"{p}: 'error' is {type(doc['error']).__name__}, expected text{hint}")
     return doc
@@ -80,10 +82,19 @@ def outcome_from_folder(spec: RunSpec, folder: Path, status: str, changed: str |
     """The outcome recorded in ``folder/run.json``."""
     doc = checked_run(folder) or {}
     s = doc.get("summary") or {}
-    return RunOutcome(spec.route, spec.name, spec.kind, status, frames=s.get("frames"), vertices=s.get("vertices"),
-                      localized=s.get("localized"), median_inliers=s.get("median_inliers"), seconds=s.get("seconds"),
-                      error=doc.get("error"), changed=changed)
-
+    return RunOutcome(
+        spec.route,
+        spec.name,
+        spec.kind,
+        status,
+        frames=s.get("frames"),
+        vertices=s.get("vertices"),
+        localized=s.get("localized"),
+        median_inliers=s.get("median_inliers"),
+        seconds=s.get("seconds"),
+        error=doc.get("error"),
+        changed=changed,
+    )
 
 
 @dataclass
@@ -91,14 +102,13 @@ class BatchResult:
     out: Path
     outcomes: list[RunOutcome]
     seconds: float
-    workers: str                                   # "local N" or the scheduler address
-    fit: dict[str, Any] | None = None              # --fit: report (paths, numbers) or error
+    workers: str  # "local N" or the scheduler address
+    fit: dict[str, Any] | None = None  # --fit: report (paths, numbers) or error
     summary_csv: Path | None = None
 
     @property
     def failed(self) -> list[RunOutcome]:
         return [o for o in self.outcomes if not o.ok]
-
 
 
 __all__ = ["BatchResult", "RunOutcome", "checked_run", "outcome_from_folder", "write_summary_csv"]

@@ -23,8 +23,9 @@ from .layout import KEY_NAME, RERUN_PREFIX
 from .manifest import RunSpec, run_config
 
 
-def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None,
-            earlier_keys: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+def run_key(
+    spec: RunSpec, teach_key: dict[str, Any] | None = None, earlier_keys: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
     """What makes a run's result: its source (path, files, bytes, and a fingerprint of their content:
     :func:`vtr.app.fingerprint.source_fingerprint`), frames, format, config (without the thread count: results are
     identical for every count), the vtr version; a repeat's teach key too, and the keys of the earlier repeats whose
@@ -34,11 +35,15 @@ def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None,
     src = spec.source.resolve()
     files = [src] if src.is_file() else [f for f in src.rglob("*") if f.is_file()]
     key: dict[str, Any] = {
-        "source": str(src), "source_files": len(files), "source_bytes": sum(f.stat().st_size for f in files),
+        "source": str(src),
+        "source_files": len(files),
+        "source_bytes": sum(f.stat().st_size for f in files),
         "source_content": source_fingerprint(src),
-        "frames": spec.frames, "format": spec.fmt,
+        "frames": spec.frames,
+        "format": spec.fmt,
         "config": hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest(),
-        "version": __version__}
+        "version": __version__,
+    }
     if teach_key is not None:
         key["teach"] = hashlib.sha256(json.dumps(teach_key, sort_keys=True).encode()).hexdigest()
     if earlier_keys:
@@ -49,7 +54,7 @@ def run_key(spec: RunSpec, teach_key: dict[str, Any] | None = None,
 def key_change(folder: Path, key: dict[str, Any]) -> str | None:
     """None when ``folder``'s run was made with ``key``; else what changed (for the summary)."""
     try:
-        data = OutputFolder(folder).read_own(KEY_NAME)     # never through a link vtr did not make
+        data = OutputFolder(folder).read_own(KEY_NAME)  # never through a link vtr did not make
         old = None if data is None else json.loads(data)
     except (OSError, ValueError):
         old = None
@@ -62,7 +67,6 @@ def key_change(folder: Path, key: dict[str, Any]) -> str | None:
     what = sorted({names.get(k, k) for k in diff})
     detail = f" ({old.get('frames')!r} -> {key['frames']!r})" if "frames" in diff else ""
     return f"rerun: {', '.join(what)} changed{detail}"
-
 
 
 def rerun_folder(out: Path, spec: RunSpec) -> Path:
@@ -79,4 +83,3 @@ def prepare_run_folder(out: Path, spec: RunSpec, folder: Path | None = None) -> 
     own = OutputFolder(folder)
     own.clear()
     return own
-

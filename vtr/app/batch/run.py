@@ -39,25 +39,34 @@ def copy_map(src: Path, dst: Path) -> None:
     copy_map_file(src, dst)
 
 
-
-def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome | None = None,
-                on_start: Callable[[RunSpec, Path], None] | None = None, key: dict[str, Any] | None = None,
-                changed: str | None = None, earlier: list[RunOutcome] | None = None) -> RunOutcome:
+def execute_run(
+    spec: RunSpec,
+    out: str,
+    threads: int | None,
+    teach: RunOutcome | None = None,
+    on_start: Callable[[RunSpec, Path], None] | None = None,
+    key: dict[str, Any] | None = None,
+    changed: str | None = None,
+    earlier: list[RunOutcome] | None = None,
+) -> RunOutcome:
     """One teach or repeat (a Dask task: paths in, a small record out). Never raises for a run's own error:
     it is written to the run's run.json and returned. A repeat starts from a copy of the teach's map, or with
     ``earlier`` (the route's repeats flown before it, when they are experiences) of the newest finished one's."""
 
     folder = spec.folder(Path(out))
     doc = checked_run(folder)
-    if doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED and \
-            (key is None or key_change(folder, key) is None):   # a retry after the run had finished
+    if (
+        doc is not None
+        and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED
+        and (key is None or key_change(folder, key) is None)
+    ):  # a retry after the run had finished
         return outcome_from_folder(spec, folder, RESUMED)
     if teach is not None and not teach.ok:
         return RunOutcome(spec.route, spec.name, spec.kind, BLOCKED, error=f"teach of {spec.route} {teach.status}")
     # A finished run is replaced only by one that finished: a rerun is built beside it and moved in at the end.
     finished_before = doc is not None and doc.get("status", STATUS_FINISHED) == STATUS_FINISHED
     work = rerun_folder(Path(out), spec) if finished_before else folder
-    own = prepare_run_folder(Path(out), spec, work)   # what an interrupted, failed or changed attempt made
+    own = prepare_run_folder(Path(out), spec, work)  # what an interrupted, failed or changed attempt made
     if on_start is not None:
         on_start(spec, folder)
     t0 = time.perf_counter()
@@ -74,11 +83,15 @@ def execute_run(spec: RunSpec, out: str, threads: int | None, teach: RunOutcome 
     except Exception as err:  # noqa: BLE001 - recorded in run.json; the batch goes on
         message = f"{type(err).__name__}: {err}"
         if finished_before:
-            message += (f" (the rerun failed; the finished outputs of the earlier run are kept in {folder}, the "
-                        f"failed attempt's record is {work / 'run.json'})")
+            message += (
+                f" (the rerun failed; the finished outputs of the earlier run are kept in {folder}, the "
+                f"failed attempt's record is {work / 'run.json'})"
+            )
         RunLog(work, spec.kind, config, [spec.source]).write(
             {"seconds": time.perf_counter() - t0, "traceback": traceback.format_exc(limit=8)},
-            status=STATUS_FAILED, error=message)
+            status=STATUS_FAILED,
+            error=message,
+        )
         return outcome_from_folder(spec, work, FAILED, changed)
     if key is not None:
         own.write_text(KEY_NAME, json.dumps(key, indent=1))
@@ -103,4 +116,3 @@ def _opencv_threads(config: Config) -> None:
     """OpenCV's own pool follows the run's thread count (a batch worker runs one run per core)."""
 
     cv2.setNumThreads(resolve_threads(config.features.threads))
-

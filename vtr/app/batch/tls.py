@@ -21,10 +21,11 @@ def check_scheduler_tls(address: str | None) -> None:
     from distributed.security import Security  # Dask only for a remote scheduler
 
     if Security().get_connection_args("client").get("ssl_context") is None:
-        raise ConfigError(f"--scheduler {address}: tls:// needs this client's TLS certificates in Dask's configuration "
-                          "(distributed.comm.tls.ca-file, distributed.comm.tls.client.cert and .key, e.g. in "
-                          "~/.config/dask/distributed.yaml or DASK_DISTRIBUTED__COMM__TLS__CA_FILE=...); none is set")
-
+        raise ConfigError(
+            f"--scheduler {address}: tls:// needs this client's TLS certificates in Dask's configuration "
+            "(distributed.comm.tls.ca-file, distributed.comm.tls.client.cert and .key, e.g. in "
+            "~/.config/dask/distributed.yaml or DASK_DISTRIBUTED__COMM__TLS__CA_FILE=...); none is set"
+        )
 
 
 def local_security() -> Any:
@@ -36,4 +37,3 @@ def local_security() -> Any:
         return Security.temporary()
     except ImportError as err:  # pragma: no cover - cryptography is a dependency
         raise ConfigError(f"the local Dask cluster needs the 'cryptography' package for TLS ({err})") from None
-

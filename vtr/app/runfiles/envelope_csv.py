@@ -24,24 +24,39 @@ POSITION_DECIMALS = 4
 HEADING_DECIMALS = 3
 BOUND_DECIMALS = 3
 
-SCHEMA = CsvSchema("envelope.csv", (
-    Column("vertex_id", "int"),
-    *(Column(f"{a}_m", "float", unit="m") for a in ("x", "y", "z")),
-    Column("heading_deg", "float", unit="deg"),
-    Column("bound_taught", "float"),
-    *(Column(f"{d}_m", "float", unit="m") for d in DIRECTIONS),
-    *(Column(f"{d}_capped", "bool") for d in DIRECTIONS),
-    *(Column(f"{d}_extrapolated", "bool") for d in DIRECTIONS),
-))
+SCHEMA = CsvSchema(
+    "envelope.csv",
+    (
+        Column("vertex_id", "int"),
+        *(Column(f"{a}_m", "float", unit="m") for a in ("x", "y", "z")),
+        Column("heading_deg", "float", unit="deg"),
+        Column("bound_taught", "float"),
+        *(Column(f"{d}_m", "float", unit="m") for d in DIRECTIONS),
+        *(Column(f"{d}_capped", "bool") for d in DIRECTIONS),
+        *(Column(f"{d}_extrapolated", "bool") for d in DIRECTIONS),
+    ),
+)
 
 
-def envelope_row(vertex_id: int, position_g: np.ndarray, yaw_g: float, bound_taught: float,
-                 distance_m: dict[str, float], capped: dict[str, bool], extrapolated: dict[str, bool]) -> list[Any]:
+def envelope_row(
+    vertex_id: int,
+    position_g: np.ndarray,
+    yaw_g: float,
+    bound_taught: float,
+    distance_m: dict[str, float],
+    capped: dict[str, bool],
+    extrapolated: dict[str, bool],
+) -> list[Any]:
     """The cells of one vertex's row (rounded as written)."""
-    return [vertex_id, *np.round(position_g, POSITION_DECIMALS).tolist(),
-            round(float(np.degrees(yaw_g)), HEADING_DECIMALS), round(bound_taught, BOUND_DECIMALS),
-            *(round(distance_m[d], POSITION_DECIMALS) for d in DIRECTIONS), *(bool(capped[d]) for d in DIRECTIONS),
-            *(bool(extrapolated.get(d, False)) for d in DIRECTIONS)]
+    return [
+        vertex_id,
+        *np.round(position_g, POSITION_DECIMALS).tolist(),
+        round(float(np.degrees(yaw_g)), HEADING_DECIMALS),
+        round(bound_taught, BOUND_DECIMALS),
+        *(round(distance_m[d], POSITION_DECIMALS) for d in DIRECTIONS),
+        *(bool(capped[d]) for d in DIRECTIONS),
+        *(bool(extrapolated.get(d, False)) for d in DIRECTIONS),
+    ]
 
 
 def write_envelope_rows(file: IO[str], rows: list[list[Any]]) -> None:

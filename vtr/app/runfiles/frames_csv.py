@@ -21,13 +21,16 @@ import numpy as np
 from ...io.csv_table import Column, CsvSchema
 from ...types import FrameRecord
 
-SCHEMA = CsvSchema("frames.csv", (
-    Column("t_ns", "int", unit="ns"),
-    Column("result", "str"),
-    Column("matches", "int"),
-    Column("inliers", "int"),
-    Column("keyframe_id", "int"),
-))
+SCHEMA = CsvSchema(
+    "frames.csv",
+    (
+        Column("t_ns", "int", unit="ns"),
+        Column("result", "str"),
+        Column("matches", "int"),
+        Column("inliers", "int"),
+        Column("keyframe_id", "int"),
+    ),
+)
 
 
 def write_frames_csv(path: Path, records: Sequence[FrameRecord]) -> None:

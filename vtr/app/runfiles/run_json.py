@@ -13,8 +13,8 @@ from typing import Any
 
 from ...config import Config
 
-STATUS_FINISHED = "finished"   # every output written; run.json is written last, so its presence means this
-STATUS_FAILED = "failed"       # the run stopped on an error (``error`` holds it); its outputs are incomplete
+STATUS_FINISHED = "finished"  # every output written; run.json is written last, so its presence means this
+STATUS_FAILED = "failed"  # the run stopped on an error (``error`` holds it); its outputs are incomplete
 KEY_PACKAGES = ("vtr", "numpy", "scipy", "opencv-python-headless", "gtsam", "open3d", "rosbags")
 
 

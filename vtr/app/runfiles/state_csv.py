@@ -21,22 +21,26 @@ from ...navigation.repeat_state import StateTable
 from ...state.controller import StateStatus
 
 _XYZ = ("x", "y", "z")
-SCHEMA = CsvSchema("state.csv", (
-    Column("t_ns", "int", unit="ns"),
-    *(Column(f"p{a}", "float", ".6f", "m") for a in _XYZ),
-    *(Column(f"v{a}", "float", ".6f", "m/s") for a in _XYZ),
-    *(Column(f"a{a}", "float", ".6f", "m/s^2") for a in _XYZ),
-    Column("yaw", "float", ".8f", "rad"),
-    Column("trunk_id", "int"),
-    Column("lateral_m", "float", ".6f", "m"),
-    Column("vertical_m", "float", ".6f", "m"),
-    Column("along_track_m", "float", ".6f", "m"),
-    Column("localized", "bool"),
-    Column("direction", "int"),
-    Column("status", "str"),
-    *(Column(f"sigma_p{a}_m", "float", ".6f", "m") for a in _XYZ),
-    *(Column(f"sigma_v{a}_mps", "float", ".6f", "m/s") for a in _XYZ),
-), line_end="\n")
+SCHEMA = CsvSchema(
+    "state.csv",
+    (
+        Column("t_ns", "int", unit="ns"),
+        *(Column(f"p{a}", "float", ".6f", "m") for a in _XYZ),
+        *(Column(f"v{a}", "float", ".6f", "m/s") for a in _XYZ),
+        *(Column(f"a{a}", "float", ".6f", "m/s^2") for a in _XYZ),
+        Column("yaw", "float", ".8f", "rad"),
+        Column("trunk_id", "int"),
+        Column("lateral_m", "float", ".6f", "m"),
+        Column("vertical_m", "float", ".6f", "m"),
+        Column("along_track_m", "float", ".6f", "m"),
+        Column("localized", "bool"),
+        Column("direction", "int"),
+        Column("status", "str"),
+        *(Column(f"sigma_p{a}_m", "float", ".6f", "m") for a in _XYZ),
+        *(Column(f"sigma_v{a}_mps", "float", ".6f", "m/s") for a in _XYZ),
+    ),
+    line_end="\n",
+)
 
 
 def write_state_csv(path: Path, table: StateTable) -> None:
@@ -44,14 +48,36 @@ def write_state_csv(path: Path, table: StateTable) -> None:
     n = len(table)
     localized = np.ones(n, bool) if table.localized is None else table.localized
     direction = np.zeros(n, np.int64) if table.direction is None else table.direction
-    status = (np.where(localized, StateStatus.LOCALIZED.value, StateStatus.UNKNOWN.value) if table.status is None
-              else table.status)
+    status = (
+        np.where(localized, StateStatus.LOCALIZED.value, StateStatus.UNKNOWN.value)
+        if table.status is None
+        else table.status
+    )
     nan3 = np.full((n, 3), np.nan)
     sig_p = nan3 if table.position_sigma is None else table.position_sigma
     sig_v = nan3 if table.velocity_sigma is None else table.velocity_sigma
-    SCHEMA.write(path, ((table.t_ns[j], *table.position[j], *table.velocity[j], *table.acceleration[j],
-                         table.yaw[j], table.trunk_id[j], table.lateral[j], table.vertical[j], table.along_track[j],
-                         localized[j], direction[j], status[j], *sig_p[j], *sig_v[j]) for j in range(n)))
+    SCHEMA.write(
+        path,
+        (
+            (
+                table.t_ns[j],
+                *table.position[j],
+                *table.velocity[j],
+                *table.acceleration[j],
+                table.yaw[j],
+                table.trunk_id[j],
+                table.lateral[j],
+                table.vertical[j],
+                table.along_track[j],
+                localized[j],
+                direction[j],
+                status[j],
+                *sig_p[j],
+                *sig_v[j],
+            )
+            for j in range(n)
+        ),
+    )
 
 
 def read_state_csv(path: Path) -> StateTable:
@@ -61,12 +87,22 @@ def read_state_csv(path: Path) -> StateTable:
     def xyz(prefix: str) -> np.ndarray:
         return np.column_stack([c[f"{prefix}{a}"] for a in _XYZ]).reshape(-1, 3)
 
-    return StateTable(t_ns=c["t_ns"], position=xyz("p"), velocity=xyz("v"), acceleration=xyz("a"), yaw=c["yaw"],
-                      trunk_id=c["trunk_id"], lateral=c["lateral_m"], vertical=c["vertical_m"],
-                      along_track=c["along_track_m"], localized=c["localized"], direction=c["direction"],
-                      status=c["status"],
-                      position_sigma=np.column_stack([c[f"sigma_p{a}_m"] for a in _XYZ]).reshape(-1, 3),
-                      velocity_sigma=np.column_stack([c[f"sigma_v{a}_mps"] for a in _XYZ]).reshape(-1, 3))
+    return StateTable(
+        t_ns=c["t_ns"],
+        position=xyz("p"),
+        velocity=xyz("v"),
+        acceleration=xyz("a"),
+        yaw=c["yaw"],
+        trunk_id=c["trunk_id"],
+        lateral=c["lateral_m"],
+        vertical=c["vertical_m"],
+        along_track=c["along_track_m"],
+        localized=c["localized"],
+        direction=c["direction"],
+        status=c["status"],
+        position_sigma=np.column_stack([c[f"sigma_p{a}_m"] for a in _XYZ]).reshape(-1, 3),
+        velocity_sigma=np.column_stack([c[f"sigma_v{a}_mps"] for a in _XYZ]).reshape(-1, 3),
+    )
 
 
 __all__ = ["SCHEMA", "read_state_csv", "write_state_csv"]

@@ -14,20 +14,23 @@ from typing import Any
 
 from ...io.csv_table import Column, CsvSchema
 
-SCHEMA = CsvSchema("summary.csv", (
-    Column("route", "str"),
-    Column("name", "str"),
-    Column("kind", "str"),
-    Column("status", "str"),
-    Column("frames", "int", optional=True),
-    Column("vertices", "int", optional=True),
-    Column("localized", "int", optional=True),
-    Column("median_inliers", "float", optional=True),
-    Column("seconds", "float", unit="s", optional=True),
-    Column("error", "str", optional=True),
-    Column("changed", "str", optional=True),
-    Column("localized_pct", "float", unit="%", optional=True),
-))
+SCHEMA = CsvSchema(
+    "summary.csv",
+    (
+        Column("route", "str"),
+        Column("name", "str"),
+        Column("kind", "str"),
+        Column("status", "str"),
+        Column("frames", "int", optional=True),
+        Column("vertices", "int", optional=True),
+        Column("localized", "int", optional=True),
+        Column("median_inliers", "float", optional=True),
+        Column("seconds", "float", unit="s", optional=True),
+        Column("error", "str", optional=True),
+        Column("changed", "str", optional=True),
+        Column("localized_pct", "float", unit="%", optional=True),
+    ),
+)
 
 
 def write_summary_csv(path: Path, outcomes: Iterable[Any]) -> None:

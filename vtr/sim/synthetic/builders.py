@@ -63,9 +63,17 @@ def make_scene(
             r = 0.5 * math.hypot(sx, sy)
             if free(x, y, r):
                 placed.append((x, y, r))
-                boxes.append(Box(x - sx / 2, y - sy / 2, x + sx / 2, y + sy / 2,
-                                 float(rng.uniform(*box_height_m)),
-                                 albedo=float(rng.uniform(0.7, 1.1)), contrast=float(rng.uniform(0.7, 1.0))))
+                boxes.append(
+                    Box(
+                        x - sx / 2,
+                        y - sy / 2,
+                        x + sx / 2,
+                        y + sy / 2,
+                        float(rng.uniform(*box_height_m)),
+                        albedo=float(rng.uniform(0.7, 1.1)),
+                        contrast=float(rng.uniform(0.7, 1.0)),
+                    )
+                )
                 break
     trees: list[Tree] = []
     for _ in range(n_trees):
@@ -76,10 +84,18 @@ def make_scene(
             x, y = float(rng.uniform(x_min, x_max)), float(rng.uniform(y_min, y_max))
             if free(x, y, crown_r):
                 placed.append((x, y, crown_r))
-                trees.append(Tree(x, y, trunk_radius=float(h * rng.uniform(0.025, 0.04)),
-                                  trunk_height=float(trunk_h),
-                                  crown_radius=float(crown_r), crown_height=float(h - trunk_h),
-                                  albedo=float(rng.uniform(0.6, 0.9)), contrast=float(rng.uniform(0.8, 1.0))))
+                trees.append(
+                    Tree(
+                        x,
+                        y,
+                        trunk_radius=float(h * rng.uniform(0.025, 0.04)),
+                        trunk_height=float(trunk_h),
+                        crown_radius=float(crown_r),
+                        crown_height=float(h - trunk_h),
+                        albedo=float(rng.uniform(0.6, 0.9)),
+                        contrast=float(rng.uniform(0.8, 1.0)),
+                    )
+                )
                 break
     backdrop = None
     if backdrop_radius_m is not None:
@@ -90,11 +106,20 @@ def make_scene(
             prof += rng.normal() / k * np.cos(k * phi + rng.uniform(0, 2 * np.pi))
         prof = (prof - prof.min()) / max(prof.max() - prof.min(), 1e-9)
         h_lo, h_hi = backdrop_height_m
-        backdrop = Backdrop((float(backdrop_centre_xy[0]), float(backdrop_centre_xy[1])), float(backdrop_radius_m),
-                            tuple(float(v) for v in h_lo + (h_hi - h_lo) * prof))
+        backdrop = Backdrop(
+            (float(backdrop_centre_xy[0]), float(backdrop_centre_xy[1])),
+            float(backdrop_radius_m),
+            tuple(float(v) for v in h_lo + (h_hi - h_lo) * prof),
+        )
     ground = Ground(half_extent_m=ground_half_extent_m, contrast=ground_contrast)
-    return Scene(seed=int(seed), ground=ground, boxes=tuple(boxes), trees=tuple(trees), backdrop=backdrop,
-                 texture_size=texture_size)
+    return Scene(
+        seed=int(seed),
+        ground=ground,
+        boxes=tuple(boxes),
+        trees=tuple(trees),
+        backdrop=backdrop,
+        texture_size=texture_size,
+    )
 
 
 def aerial_scene(seed: int = 0, **overrides) -> Scene:
@@ -103,9 +128,15 @@ def aerial_scene(seed: int = 0, **overrides) -> Scene:
     return make_scene(seed, **overrides)
 
 
-def far_structure_scene(seed: int = 0, route_xy: np.ndarray | None = None, *,
-                        centre_xy: tuple[float, float] = (0.0, 0.0), backdrop_radius_m: float = 60.0,
-                        near_clearance_m: float = 25.0, **overrides) -> Scene:
+def far_structure_scene(
+    seed: int = 0,
+    route_xy: np.ndarray | None = None,
+    *,
+    centre_xy: tuple[float, float] = (0.0, 0.0),
+    backdrop_radius_m: float = 60.0,
+    near_clearance_m: float = 25.0,
+    **overrides,
+) -> Scene:
     """Scene whose texture lies mostly far away, for ground-vehicle turning tests.
 
     The ground is faint (contrast 0.15); trees and buildings stand at least ``near_clearance_m`` from the
@@ -116,10 +147,19 @@ def far_structure_scene(seed: int = 0, route_xy: np.ndarray | None = None, *,
     cx, cy = centre_xy
     r = backdrop_radius_m * 0.9
     path = np.array([centre_xy], float) if route_xy is None else np.asarray(route_xy, float)
-    kw: dict = dict(area_m=(cx - r, cx + r, cy - r, cy + r), n_boxes=25, n_trees=60, box_size_m=(3.0, 12.0),
-                    box_height_m=(3.0, 12.0), tree_height_m=(5.0, 14.0), clear_path_xy=path,
-                    clear_radius_m=near_clearance_m, ground_contrast=0.15,
-                    backdrop_radius_m=backdrop_radius_m, backdrop_centre_xy=centre_xy,
-                    backdrop_height_m=(0.1 * backdrop_radius_m, 0.3 * backdrop_radius_m))
+    kw: dict = dict(
+        area_m=(cx - r, cx + r, cy - r, cy + r),
+        n_boxes=25,
+        n_trees=60,
+        box_size_m=(3.0, 12.0),
+        box_height_m=(3.0, 12.0),
+        tree_height_m=(5.0, 14.0),
+        clear_path_xy=path,
+        clear_radius_m=near_clearance_m,
+        ground_contrast=0.15,
+        backdrop_radius_m=backdrop_radius_m,
+        backdrop_centre_xy=centre_xy,
+        backdrop_height_m=(0.1 * backdrop_radius_m, 0.3 * backdrop_radius_m),
+    )
     kw.update(overrides)
     return make_scene(seed, **kw)

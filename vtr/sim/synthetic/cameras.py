@@ -16,8 +16,7 @@ def zed_camera() -> StereoCamera:
 
 def kitti_like_camera() -> StereoCamera:
     """KITTI-odometry-like rectified stereo camera (1226x370, fx = 707.09 px, 0.537 m baseline)."""
-    return StereoCamera(fx=707.0912, fy=707.0912, cx=601.8873, cy=183.1104, baseline=0.537,
-                        width=1226, height=370)
+    return StereoCamera(fx=707.0912, fy=707.0912, cx=601.8873, cy=183.1104, baseline=0.537, width=1226, height=370)
 
 
 def T_left_right(camera: StereoCamera) -> np.ndarray:

@@ -66,8 +66,14 @@ class _Frame:
 
     def write(self, pix, t, u, v, fp, gain, bias) -> None:
         """Store surface attributes at flat pixel indices ``pix`` (depth already resolved or set here)."""
-        for buf, val in ((self.depth, t), (self.tex_u, u), (self.tex_v, v), (self.footprint, fp),
-                         (self.gain, gain), (self.bias, bias)):
+        for buf, val in (
+            (self.depth, t),
+            (self.tex_u, u),
+            (self.tex_v, v),
+            (self.footprint, fp),
+            (self.gain, gain),
+            (self.bias, bias),
+        ):
             buf[pix] = val
 
     def resolve(self, pix: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -130,8 +136,8 @@ def _cast_ground(fr: _Frame, scene: Scene) -> None:
     hy = t * dy
     g = scene.ground
     if math.isfinite(g.half_extent_m):
-        mask &= (np.abs(hx - np.float32(g.centre_xy[0] - fr.C[0])) <= g.half_extent_m)
-        mask &= (np.abs(hy - np.float32(g.centre_xy[1] - fr.C[1])) <= g.half_extent_m)
+        mask &= np.abs(hx - np.float32(g.centre_xy[0] - fr.C[0])) <= g.half_extent_m
+        mask &= np.abs(hy - np.float32(g.centre_xy[1] - fr.C[1])) <= g.half_extent_m
     cos_inc = np.maximum(np.abs(dz) * fr.inv_norm, np.float32(MIN_COS_INCIDENCE))
     fp = t * np.float32(inv_tex / fr.f) / cos_inc
     size = scene.texture_size
@@ -139,8 +145,14 @@ def _cast_ground(fr: _Frame, scene: Scene) -> None:
     hx += np.float32((fr.C[0] * inv_tex + off_u) % size)
     hy *= np.float32(inv_tex)
     hy += np.float32((fr.C[1] * inv_tex + off_v) % size)
-    for buf, val in ((fr.depth, t), (fr.tex_u, hx), (fr.tex_v, hy), (fr.footprint, fp),
-                     (fr.gain, np.float32(gain)), (fr.bias, np.float32(bias))):
+    for buf, val in (
+        (fr.depth, t),
+        (fr.tex_u, hx),
+        (fr.tex_v, hy),
+        (fr.footprint, fp),
+        (fr.gain, np.float32(gain)),
+        (fr.bias, np.float32(bias)),
+    ):
         np.copyto(buf, val, where=mask)
 
 
@@ -170,8 +182,7 @@ def _cast_backdrop(fr: _Frame, scene: Scene) -> None:
     t = np.where(t_near > NEAR_M, t_near, t_far) if c > 0 else t_far
     hz = np.float32(fr.C[2]) + t * dz
     heights = comp.backdrop_heights
-    keep = np.flatnonzero((disc >= 0) & (t > NEAR_M) & (t < fr.depth[pix]) & (hz >= 0)
-                          & (hz <= heights.max()))
+    keep = np.flatnonzero((disc >= 0) & (t > NEAR_M) & (t < fr.depth[pix]) & (hz >= 0) & (hz <= heights.max()))
     pix, t, hz, dx, dy = pix[keep], t[keep], hz[keep], dx[keep], dy[keep]
     hx = ox32 + t * dx
     hy = oy32 + t * dy
@@ -184,8 +195,9 @@ def _cast_backdrop(fr: _Frame, scene: Scene) -> None:
     h = heights[i0] * (1 - frac) + heights[(i0 + 1) % n] * frac
     k = np.flatnonzero(hz <= h)
     pix, t, hz, hx, hy, dx, dy, pos = pix[k], t[k], hz[k], hx[k], hy[k], dx[k], dy[k], pos[k]
-    cos_inc = np.maximum(np.abs(hx * dx + hy * dy) * np.float32(1.0 / bd.radius) * fr.inv_norm[pix],
-                         np.float32(MIN_COS_INCIDENCE))
+    cos_inc = np.maximum(
+        np.abs(hx * dx + hy * dy) * np.float32(1.0 / bd.radius) * fr.inv_norm[pix], np.float32(MIN_COS_INCIDENCE)
+    )
     fp = t * np.float32(inv_tex / fr.f) / cos_inc
     u = pos * np.float32(scene.texture_size / n)  # one atlas period around the circle: seamless
     v = hz * np.float32(inv_tex) + np.float32(off_v)
@@ -235,8 +247,10 @@ def _cast_frusta(fr: _Frame, scene: Scene) -> None:
     cz = fr.C[2]
     k_all = (F[:, 5] - F[:, 4]) / (F[:, 3] - F[:, 2])  # radius slope dr/dz
     # per-primitive constants (camera relative): ox, oy, a0 = radius at camera height, k, z0, z1
-    consts = np.stack([fr.C[0] - F[:, 0], fr.C[1] - F[:, 1], F[:, 4] + k_all * (cz - F[:, 2]), k_all,
-                       F[:, 2] - cz, F[:, 3] - cz], axis=1).astype(np.float32)
+    consts = np.stack(
+        [fr.C[0] - F[:, 0], fr.C[1] - F[:, 1], F[:, 4] + k_all * (cz - F[:, 2]), k_all, F[:, 2] - cz, F[:, 3] - cz],
+        axis=1,
+    ).astype(np.float32)
     ox, oy, a0, k, z0, z1 = consts[prim].T
     dx, dy, dz = fr.d[0][pix], fr.d[1][pix], fr.d[2][pix]
     qa = dx * dx + dy * dy - k * k * dz * dz
@@ -280,8 +294,7 @@ def _cast_frusta(fr: _Frame, scene: Scene) -> None:
     nz = np.where(lateral, -k * inv_len, cap.astype(np.float32))
     sun = SUN_DIRECTION_WORLD.astype(np.float32)
     shade = np.float32(AMBIENT) + np.float32(DIFFUSE) * np.maximum(nx * sun[0] + ny * sun[1] + nz * sun[2], 0)
-    cos_inc = np.maximum(np.abs(nx * dx + ny * dy + nz * dz) * fr.inv_norm[pix],
-                         np.float32(MIN_COS_INCIDENCE))
+    cos_inc = np.maximum(np.abs(nx * dx + ny * dy + nz * dz) * fr.inv_norm[pix], np.float32(MIN_COS_INCIDENCE))
     off_u, off_v, inv_tex, albedo, contrast = comp.frustum_tex[prim].T
     r_ref = np.maximum(F[:, 4], F[:, 5]).astype(np.float32)[prim]
     # lateral texture: (azimuth * r_ref, z); caps: (x, y). Near a cone apex the azimuthal mapping

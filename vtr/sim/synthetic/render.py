@@ -75,7 +75,7 @@ def render(
     if k < 1:
         raise ConfigError(f"supersample must be >= 1, got {supersample}")
     fr = _cast(scene, camera, T_world_view, k)
-    img: np.ndarray = (_texture(fr, scene.texture).reshape(-1) * fr.gain + fr.bias)
+    img: np.ndarray = _texture(fr, scene.texture).reshape(-1) * fr.gain + fr.bias
     sky = np.flatnonzero(~np.isfinite(fr.depth))
     img[sky] = _sky(fr, sky)
     img = img.reshape(fr.H, fr.W)
@@ -125,14 +125,23 @@ def render_stereo(
     right_camera = dataclasses.replace(camera, cx=camera.cx + right_cx_offset_px)
     out: list[tuple[np.ndarray, np.ndarray | None]] = []
     for j, (T, cam) in enumerate(((T_world_cam, camera), (T_world_right, right_camera))):
-        res = render(scene, cam, T, noise_sigma=noise_sigma, noise_seed=2 * int(noise_seed) + j,
-                     supersample=supersample, return_depth=return_depth, blur_sigma_px=blur_sigma_px)
+        res = render(
+            scene,
+            cam,
+            T,
+            noise_sigma=noise_sigma,
+            noise_seed=2 * int(noise_seed) + j,
+            supersample=supersample,
+            return_depth=return_depth,
+            blur_sigma_px=blur_sigma_px,
+        )
         out.append(cast(tuple[np.ndarray, np.ndarray], res) if return_depth else (cast(np.ndarray, res), None))
     return StereoRender(out[0][0], out[1][0], out[0][1], out[1][1])
 
 
-def backproject(camera: StereoCamera, T_world_cam: np.ndarray, depth: np.ndarray, u: np.ndarray,
-                v: np.ndarray) -> np.ndarray:
+def backproject(
+    camera: StereoCamera, T_world_cam: np.ndarray, depth: np.ndarray, u: np.ndarray, v: np.ndarray
+) -> np.ndarray:
     """World points (N, 3) (ENU, m) seen at integer left pixels (u, v) given a rendered depth map (m);
     NaN rows for sky pixels (infinite depth)."""
     u = np.asarray(u, int)

@@ -31,8 +31,9 @@ def camera_pose(position_world: Sequence[float], heading_rad: float, pitch_down_
     return make_T(camera_rotation(heading_rad, pitch_down_rad), np.asarray(position_world, float))
 
 
-def _arc_path(segments: Sequence[tuple[float, float]], s: np.ndarray, start_xy: tuple[float, float],
-              heading_rad: float) -> tuple[np.ndarray, np.ndarray]:
+def _arc_path(
+    segments: Sequence[tuple[float, float]], s: np.ndarray, start_xy: tuple[float, float], heading_rad: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Positions (N, 2) and headings (N,) at arc lengths ``s`` (m) along consecutive segments of
     (length m, curvature 1/m; positive turns left). Beyond the end the last segment continues."""
     s = np.asarray(s, float)
@@ -66,9 +67,18 @@ def _arc_path(segments: Sequence[tuple[float, float]], s: np.ndarray, start_xy: 
     return xy, psi
 
 
-def _poses_along(segments: Sequence[tuple[float, float]], spacing_m: float, start_offset_m: float,
-                 start_xy: tuple[float, float], heading_rad: float, height_m: float, pitch_down_rad: float,
-                 lateral_offset_m: float, vertical_offset_m: float, yaw_offset_rad: float) -> np.ndarray:
+def _poses_along(
+    segments: Sequence[tuple[float, float]],
+    spacing_m: float,
+    start_offset_m: float,
+    start_xy: tuple[float, float],
+    heading_rad: float,
+    height_m: float,
+    pitch_down_rad: float,
+    lateral_offset_m: float,
+    vertical_offset_m: float,
+    yaw_offset_rad: float,
+) -> np.ndarray:
     if spacing_m <= 0:
         raise ConfigError(f"spacing_m must be positive, got {spacing_m}")
     total = sum(length for length, _ in segments)
@@ -80,8 +90,7 @@ def _poses_along(segments: Sequence[tuple[float, float]], spacing_m: float, star
     xy = xy + lateral_offset_m * left
     T = np.tile(np.eye(4), (len(s), 1, 1))
     for i in range(len(s)):
-        T[i] = camera_pose([xy[i, 0], xy[i, 1], height_m + vertical_offset_m], psi[i] + yaw_offset_rad,
-                           pitch_down_rad)
+        T[i] = camera_pose([xy[i, 0], xy[i, 1], height_m + vertical_offset_m], psi[i] + yaw_offset_rad, pitch_down_rad)
     return T
 
 
@@ -108,18 +117,41 @@ def aerial_route(
     A repeat run of the same path is offset ``lateral_offset_m`` to the left (negative: right),
     ``vertical_offset_m`` up, and yawed by ``yaw_offset_rad``.
     """
-    return _poses_along([(length_m, curvature_per_m)], spacing_m, start_offset_m, start_xy, heading_rad,
-                        altitude_m, pitch_down_rad, lateral_offset_m, vertical_offset_m, yaw_offset_rad)
+    return _poses_along(
+        [(length_m, curvature_per_m)],
+        spacing_m,
+        start_offset_m,
+        start_xy,
+        heading_rad,
+        altitude_m,
+        pitch_down_rad,
+        lateral_offset_m,
+        vertical_offset_m,
+        yaw_offset_rad,
+    )
 
 
-def drifting_aerial_route(length_m: float, spacing_m: float, lateral_offset_m: float, vertical_offset_m: float,
-                          ramp_m: float, start_offset_m: float = 0.0, **kwargs) -> np.ndarray:
+def drifting_aerial_route(
+    length_m: float,
+    spacing_m: float,
+    lateral_offset_m: float,
+    vertical_offset_m: float,
+    ramp_m: float,
+    start_offset_m: float = 0.0,
+    **kwargs,
+) -> np.ndarray:
     """An aerial repeat that starts on the taught path and drifts to a constant offset over ``ramp_m``
     metres (as a vehicle leaving its path does; a repeat starts where the teach started). Same
     frames as :func:`aerial_route`; only the camera centres move."""
     on_path = aerial_route(length_m, spacing_m, start_offset_m=start_offset_m, **kwargs)
-    off = aerial_route(length_m, spacing_m, lateral_offset_m=lateral_offset_m, vertical_offset_m=vertical_offset_m,
-                       start_offset_m=start_offset_m, **kwargs)
+    off = aerial_route(
+        length_m,
+        spacing_m,
+        lateral_offset_m=lateral_offset_m,
+        vertical_offset_m=vertical_offset_m,
+        start_offset_m=start_offset_m,
+        **kwargs,
+    )
     along = np.arange(len(on_path)) * spacing_m
     s = np.clip(along / max(ramp_m, 1e-9), 0.0, 1.0)
     T = on_path.copy()
@@ -194,10 +226,19 @@ def turning_route(
     if turn_radius_m <= 0:
         raise ConfigError(f"turn_radius_m must be positive, got {turn_radius_m}")
     kappa = math.copysign(1.0 / turn_radius_m, turn_angle_rad)
-    segments = [(straight_before_m, 0.0), (abs(turn_angle_rad) * turn_radius_m, kappa),
-                (straight_after_m, 0.0)]
-    return _poses_along(segments, spacing_m, start_offset_m, start_xy, heading_rad, camera_height_m,
-                        pitch_down_rad, lateral_offset_m, vertical_offset_m, yaw_offset_rad)
+    segments = [(straight_before_m, 0.0), (abs(turn_angle_rad) * turn_radius_m, kappa), (straight_after_m, 0.0)]
+    return _poses_along(
+        segments,
+        spacing_m,
+        start_offset_m,
+        start_xy,
+        heading_rad,
+        camera_height_m,
+        pitch_down_rad,
+        lateral_offset_m,
+        vertical_offset_m,
+        yaw_offset_rad,
+    )
 
 
 def route_times(T_world_cam: np.ndarray, speed_mps: float, start_ns: int = 0) -> np.ndarray:

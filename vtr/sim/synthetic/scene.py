@@ -189,13 +189,11 @@ def _compile(scene: Scene) -> _CompiledScene:
     frusta, fcorners, ftex = [], [], []
     for tr in scene.trees:
         top = tr.trunk_height + tr.crown_height
-        parts = ((0.0, tr.trunk_height, tr.trunk_radius, tr.trunk_radius),
-                 (tr.trunk_height, top, tr.crown_radius, 0.0))
+        parts = ((0.0, tr.trunk_height, tr.trunk_radius, tr.trunk_radius), (tr.trunk_height, top, tr.crown_radius, 0.0))
         for z0, z1, r0, r1 in parts:
             r = max(r0, r1)
             frusta.append([tr.x, tr.y, z0, z1, r0, r1])
-            fcorners.append([[tr.x + sx * r, tr.y + sy * r, z]
-                             for sx in (-1, 1) for sy in (-1, 1) for z in (z0, z1)])
+            fcorners.append([[tr.x + sx * r, tr.y + sy * r, z] for sx in (-1, 1) for sy in (-1, 1) for z in (z0, z1)])
             off = rng.uniform(0, size, 2)
             ftex.append([off[0], off[1], inv_tex, tr.albedo, tr.contrast])
     g = scene.ground
@@ -217,12 +215,15 @@ def _compile(scene: Scene) -> _CompiledScene:
     return _CompiledScene(
         rect_axis=np.array(axes, np.int64),
         rect_axes=np.array([[a, *(b for b in range(3) if b != a)] for a in axes], np.int64).reshape(-1, 3).T,
-        rect_c=np.array(cs, float), rect_sign=np.array(signs, float),
+        rect_c=np.array(cs, float),
+        rect_sign=np.array(signs, float),
         rect_bounds=np.array(bounds, float).reshape(-1, 4),
         rect_corners=np.array(corners, float).reshape(-1, 4, 3),
         rect_tex=np.array(tex, f32).reshape(-1, 5),
         frusta=np.array(frusta, float).reshape(-1, 6),
         frustum_corners=np.array(fcorners, float).reshape(-1, 8, 3),
         frustum_tex=np.array(ftex, f32).reshape(-1, 5),
-        ground_tex=ground_tex, backdrop_tex=backdrop_tex, backdrop_heights=heights,
+        ground_tex=ground_tex,
+        backdrop_tex=backdrop_tex,
+        backdrop_heights=heights,
     )

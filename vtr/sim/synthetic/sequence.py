@@ -57,10 +57,17 @@ def write_sequence(
     if write_depth:
         (out / "depth_0").mkdir(parents=True, exist_ok=True)
     for i in range(len(T)):
-        res = render_stereo(scene, camera, T[i], noise_sigma=noise_sigma,
-                            noise_seed=noise_seed * 1_000_003 + i,
-                            supersample=supersample, return_depth=write_depth, blur_sigma_px=blur_sigma_px,
-                            right_cx_offset_px=right_cx_offset_px)
+        res = render_stereo(
+            scene,
+            camera,
+            T[i],
+            noise_sigma=noise_sigma,
+            noise_seed=noise_seed * 1_000_003 + i,
+            supersample=supersample,
+            return_depth=write_depth,
+            blur_sigma_px=blur_sigma_px,
+            right_cx_offset_px=right_cx_offset_px,
+        )
         writer.add(int(t_ns[i]), res.left, res.right)
         if write_depth and res.depth_left is not None:
             np.save(out / "depth_0" / f"{i:06d}.npy", res.depth_left)
@@ -71,7 +78,7 @@ def write_sequence(
     meta = {
         "generator": "vtr.sim.synthetic",
         "frames": "poses.txt: T_cam0_cam (left rectified camera, KITTI convention); "
-                  "poses_world.txt: T_world_cam (world ENU, z up, ground at z=0)",
+        "poses_world.txt: T_world_cam (world ENU, z up, ground at z=0)",
         "T_world_cam0": T[0].tolist(),
         "seed": scene.seed,
         "texture_size": scene.texture_size,

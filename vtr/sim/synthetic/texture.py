@@ -48,7 +48,7 @@ class TextureAtlas:
         """Mip level ``index`` as a (size >> index)-square uint8 view (for inspection and tests)."""
         n = self.size >> index
         y, x = int(self.origin_y[index]), int(self.origin_x[index])
-        return self.packed[y:y + n, x:x + n]
+        return self.packed[y : y + n, x : x + n]
 
 
 def _wrap_blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -62,7 +62,7 @@ def _wrap_pyr_down(img: np.ndarray) -> np.ndarray:
     """``cv2.pyrDown`` with periodic borders: output texel i is centred on input texel 2 i."""
     pad = 4
     p = np.pad(img, pad, mode="wrap")
-    return cv2.pyrDown(p)[pad // 2:-pad // 2, pad // 2:-pad // 2]
+    return cv2.pyrDown(p)[pad // 2 : -pad // 2, pad // 2 : -pad // 2]
 
 
 def _noise_octaves(rng: np.random.Generator, size: int) -> np.ndarray:
@@ -73,7 +73,7 @@ def _noise_octaves(rng: np.random.Generator, size: int) -> np.ndarray:
         n = size // lam
         grid = np.pad(rng.standard_normal((n, n), dtype=np.float32), 2, mode="wrap")
         up = cv2.resize(grid, ((n + 4) * lam, (n + 4) * lam), interpolation=cv2.INTER_CUBIC)
-        img += np.float32(lam**NOISE_AMPLITUDE_EXPONENT) * up[2 * lam:2 * lam + size, 2 * lam:2 * lam + size]
+        img += np.float32(lam**NOISE_AMPLITUDE_EXPONENT) * up[2 * lam : 2 * lam + size, 2 * lam : 2 * lam + size]
         lam *= 2
     img -= img.mean()
     img /= img.std()
@@ -108,8 +108,9 @@ def _draw_shapes(rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.nd
     return layer, mask
 
 
-def _draw_one(img: np.ndarray, kind: int, x: float, y: float, r: float, ang: float, asp: float,
-              vang: np.ndarray, colour: float) -> None:
+def _draw_one(
+    img: np.ndarray, kind: int, x: float, y: float, r: float, ang: float, asp: float, vang: np.ndarray, colour: float
+) -> None:
     c = (round(x), round(y))
     if kind == 0:
         cv2.circle(img, c, max(1, round(r)), colour, -1)
@@ -118,8 +119,9 @@ def _draw_one(img: np.ndarray, kind: int, x: float, y: float, r: float, ang: flo
     elif kind == 2:
         ca, sa = math.cos(ang), math.sin(ang)
         hx, hy = r, r * asp
-        corners = [(x + ca * px - sa * py, y + sa * px + ca * py) for px, py in
-                   ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))]
+        corners = [
+            (x + ca * px - sa * py, y + sa * px + ca * py) for px, py in ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))
+        ]
         cv2.fillConvexPoly(img, np.round(corners).astype(np.int32), colour)
     elif kind == 3:
         pts = np.stack([x + r * np.cos(vang), y + r * np.sin(vang)], axis=1)
@@ -160,7 +162,7 @@ def make_texture_atlas(seed: int, size: int = DEFAULT_TEXTURE_SIZE) -> TextureAt
     y = 0
     for lv in levels[1:]:
         n = lv.shape[0]
-        packed[y:y + n + 2 * p, size + 2 * p:size + 2 * p + n + 2 * p] = np.pad(lv, p, mode="wrap")
+        packed[y : y + n + 2 * p, size + 2 * p : size + 2 * p + n + 2 * p] = np.pad(lv, p, mode="wrap")
         ox.append(size + 3 * p)
         oy.append(y + p)
         y += n + 2 * p

@@ -123,8 +123,9 @@ def radius_match(pred_uv, q_desc, uv, t_desc, radius, max_distance, ratio, mutua
 
 
 @njit(cache=True, nogil=True)
-def row_band_match(uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_disparity, max_disparity,
-                   max_octave_gap, max_distance):
+def row_band_match(
+    uv_l, oct_l, desc_l, uv_r, oct_r, desc_r, row_tol, min_disparity, max_disparity, max_octave_gap, max_distance
+):
     """Stereo matches on epipolar rows: right features within ``row_tol[oct_l]`` rows of the left
     one, disparity in [min_disparity, max_disparity] and pyramid levels at most ``max_octave_gap``
     apart; closest descriptor, mutual. Returns (left indices, right indices, distances)."""
