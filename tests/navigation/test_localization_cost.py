@@ -13,7 +13,7 @@ from vtr.app.pipeline import teach_command
 from vtr.config import Config
 from vtr.io import open_source
 from vtr.map import Map
-from vtr.navigation import chain as chain_module
+from vtr.navigation import chain_localizer as chain_module
 from vtr.navigation import localization as loc_module
 from vtr.navigation.repeat import Repeat
 
