@@ -1,29 +1,9 @@
-"""The taught-path perception field: every taught vertex's landmarks, trunk selection, horizon evaluation.
-
-Built once from a taught map and a perception model. Frames follow :mod:`perception_model.frames`:
-the field works in the map's gravity-aligned frame g (z up; x the first teach camera's forward
-direction on the horizontal plane; ``up_map`` gives gravity in the map frame); each vertex's
-landmarks are cached in its own controller frame o (origin at the taught vehicle, x along its
-heading) as ``perception_model.horizon.TrunkLandmarks``.
-
-The vehicle is a level multirotor with flat outputs ``(p, psi)`` in g; its camera sits at
-``CameraMount.lever_arm_m`` (vehicle FLU frame) with the optical axis yawed ``mount_yaw_rad`` from
-the vehicle's x axis and the taught pitch below the horizon. The taught vehicle's yaw is the
-taught optical axis' heading minus ``mount_yaw_rad`` (the map stores camera poses).
-
-Trunk selection is the localizer's rule (``vtr.navigation.trunk``, as ``vtr.navigation.chain.LocalizationChain.prior``):
-in a window of ``trunk_window_back``/``trunk_window_forward`` vertices around the previous trunk,
-the vertex minimizing ``||rho|| + rotation_weight ||phi||`` of the relative camera pose
-(``config.localization``). Along a horizon the previous trunk of step k is step k-1's; ``direction``
-(+1 taught order, -1 the route flown backward) mirrors the window.
-
-Validity (:class:`FieldEvaluation`): each step's distance to its trunk and to the taught path, and the flag
-``perception_model.horizon.OFF_ROUTE`` past the route's ends or too far from it (``ControlConfig.off_route_*``).
-Gradient guard: where ``mu < c_bar**2 / 4`` the constraint's gradient points *away* from the taught landmarks
-(``d(mu - c_bar sqrt(mu))/d mu < 0``), so those steps carry ``grad mu`` instead (``guarded``). Errors of
-``perception_model`` raised through the field are :class:`PerceptionFieldError` (a ``VtrError``).
-See docs/perception_aware_mpc/README.md.
-"""
+"""The taught-path perception field: every taught vertex's landmarks in its own controller frame o, built once from a
+taught map and a perception model, and a horizon's constraint evaluated against each step's trunk (trunk selection is
+the localizer's rule, :mod:`vtr.navigation.trunk`). Validity per step (distance to the trunk and the path, off the
+route past its ends) and the gradient guard where the constraint's gradient points away from the landmarks; errors of
+``perception_model`` raised through the field are :class:`PerceptionFieldError`. Frames, mount and rules:
+docs/perception_aware_mpc/README.md."""
 
 from __future__ import annotations
 

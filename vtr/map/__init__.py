@@ -18,11 +18,8 @@ Typical use (teach, then a repeat localized against it)::
 
 Leaving a ``with`` block normally finishes the open run; an exception (Ctrl-C and SIGTERM too)
 records it aborted with the reason (``RunInfo.state``: running, finished, aborted, interrupted).
-See docs/map.md; :mod:`vtr.map.store` for durability, lifecycle and immutability rules,
-:mod:`vtr.map.database` for the file layer (SQLite connection, exclusive creation, WAL folding),
-:mod:`vtr.map.lock` for the single-writer lock, :mod:`vtr.map.writing` for the writes,
-:mod:`vtr.map.localizations` for a repeat's localization records, :mod:`vtr.map.writer` for the writer thread,
-:mod:`vtr.map.schema` for the file layout, :mod:`vtr.map.codec` for the vertex codec.
+See docs/map.md: the file, its modules (store, writing, reading, database, lock, localizations, writer, schema,
+codec) and their rules.
 """
 
 from .database import copy_map_file

@@ -1,37 +1,9 @@
-"""The durable pose-graph map: one SQLite file holding runs, keyframe vertices and edges (docs/map.md).
-
-Vertices are keyframes (time, features, descriptors, 3-D landmarks in the vertex camera frame,
-``T_vehicle_sensor``); edges are relative transforms with covariance, ``temporal`` (odometry
-between consecutive vertices of a run) or ``spatial`` (localization of a repeat vertex against a
-taught one). Teach runs are *privileged*: their vertices form the path a repeat follows. Each
-run's poses ``T_world_vertex`` are expressed in that run's first camera frame.
-
-Durability: WAL journal while writing, ``synchronous=FULL``, one transaction per vertex, so a
-process killed at any point leaves a map that opens with every vertex whose ``add_vertex``
-(or ``add_keyframe``) returned (and survives power loss too). Closing folds the write-ahead log back into the file and
-returns it to a rollback journal, so a closed map is one self-contained file (copy it alone; open
-it read-only from read-only media).
-
-Run lifecycle (true on disk): a run is ``running`` while its session writes it, then
-``finished`` (orderly end: ``finish_run``, ``close`` or leaving the ``with`` block normally) or
-``aborted`` with a reason (``abort_run``; leaving the ``with`` block on an exception, Ctrl-C or
-SIGTERM does it). A run still marked running when no process holds the map's writer lock was left
-by a killed process and reads as ``interrupted``. A map appends only to its *open run*; finished
-and aborted runs never change (SQLite triggers enforce it as well as this class).
-
-The file itself (SQLite connection, exclusive creation by hard link, the writer lock, WAL folding,
-transactions) is :mod:`vtr.map.database`; this module gives it its meaning (the writing half, runs, vertices,
-keyframes, leaves and edges, in :mod:`vtr.map.writing`; a repeat's localization records in
-:mod:`vtr.map.localizations`). Creation is exclusive:
-of two processes creating one map exactly one wins and the other's cleanup never touches the
-winner's file. One writing process at a time (``MapLock``: a second writer gets "another process is
-writing this map"); the per-session caches (vertex LRU, privileged path, k-d tree) do not see
-writes made by other processes after opening.
-
-Memory stays bounded on long routes: :meth:`Map.vertex` keeps at most ``cache_size`` decoded
-vertices, and poses and the privileged path (:class:`vtr.map.path.TaughtPath`, which answers window
-and nearest-vertex queries) come from the small pose index without reading feature data.
-"""
+"""The durable pose-graph map (:class:`Map`): one SQLite file of runs, keyframe vertices and edges, written by one
+process at a time and read by any. This module holds the map's lifecycle and queries; :mod:`vtr.map.writing` its
+writes (one transaction per vertex, a repeat's leaf with its localization record), :mod:`vtr.map.reading` its vertex
+and edge reads (a bounded cache of decoded vertices), :mod:`vtr.map.database` the file layer (exclusive creation,
+writer lock, WAL folded on close so a closed map is one self-contained file). Vertices, edges, durability and the
+run lifecycle (running, finished, aborted, interrupted): docs/map.md."""
 
 from __future__ import annotations
 

@@ -1,36 +1,10 @@
-"""Continuous-time trajectory smoothing with a white-noise-on-acceleration (WNOA) Gaussian-process prior.
-
-The state at every keyframe time ``t_k`` (a *knot*) is the pose ``T_world_sensor`` (GTSAM ``Pose3``) and
-the body-frame twist ``varpi_k = [omega, v]`` of the sensor (rad/s, m/s, in the sensor frame, GTSAM's
-tangent order). Between knots the trajectory follows the WNOA prior (thesis §6.3.4, "STEAM"; Anderson
-& Barfoot 2015) with power spectral density ``Qc = diag(qc_rot I3, qc_trans I3)`` (rad²/s³, m²/s³,
-from :class:`vtr.config.SmoothingConfig`). GTSAM's own ``WnoaMotionFactorPose3`` carries the prior
-(no Python factor in the hot path); its error between knots 1 and 2, ``dt = t2 - t1`` (s), is::
-
-    xi_21 = Log(T1^-1 T2)                     (right / body-side convention)
-    e     = [ xi_21 - dt varpi_1 ;  Jr^-1(xi_21) varpi_2 - varpi_1 ]
-    cov   = [[dt³/3, dt²/2], [dt²/2, dt]] ⊗ Qc
-
-The estimator is GTSAM's ``IncrementalFixedLagSmoother`` (ISAM2 inside) over ``config.lag_s``
-seconds, so the cost per keyframe does not grow with the run (ISAM2 is told to reuse the slots of
-marginalized factors, which it otherwise keeps forever).
-
-Queries (:meth:`TrajectorySmoother.state_at`) use only cached knot states and GTSAM's closed-form
-``Pose3`` maps, never the factor graph:
-
-* inside the knots: GP interpolation in the local variable ``xi(tau) = Log(T1^-1 T(tau))``, whose
-  posterior mean is the cubic Hermite curve through ``(0, varpi_1)`` at ``tau = 0`` and
-  ``(xi_21, Jr^-1(xi_21) varpi_2)`` at ``tau = dt``; ``T(tau) = T1 Exp(xi(tau))`` and
-  ``varpi(tau) = Jr(xi(tau)) xi'(tau)``;
-* after the last knot: constant-velocity extrapolation ``T(t) = T_k Exp((t - t_k) varpi_k)`` (the
-  thesis' ``Exp((t - t_k) varpi_k) T_k`` written for GTSAM's right-hand convention).
-
-The WNOA algebra itself (transition matrix, process covariance, interpolation matrices, the Hermite
-mean) is :mod:`vtr.state.wnoa` (numpy only); this module holds the GTSAM smoother and its queries.
-
-Covariances are 12x12 over ``[pose perturbation (rot, trans), twist]`` where the pose perturbation is
-GTSAM's right (body-frame) one, ``T = T_hat Exp(delta)``, as for every ``Pose3`` marginal in GTSAM.
-"""
+"""Continuous-time trajectory smoothing with a white-noise-on-acceleration (WNOA) Gaussian-process prior (thesis
+§6.3.4, "STEAM"). Each knot holds the pose ``T_world_sensor`` and the body-frame twist ``[omega, v]``; GTSAM's own
+``WnoaMotionFactorPose3`` links consecutive knots with ``Qc`` (:class:`vtr.config.SmoothingConfig`), inside GTSAM's
+``IncrementalFixedLagSmoother`` over ``lag_s`` seconds. Queries (:meth:`TrajectorySmoother.state_at`) use cached knot
+states only: GP interpolation between knots, constant-velocity extrapolation after the last; covariances are 12x12
+over ``[pose (rot, trans) as GTSAM's right perturbation, twist]``. The WNOA algebra is :mod:`vtr.state.wnoa`; the
+factor, the queries and their covariances: docs/smoother.md."""
 
 from __future__ import annotations
 
