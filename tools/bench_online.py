@@ -29,7 +29,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from perception_model.model import PerceptionModel
-from vtr.app.mission import render, up_in_map
+from vtr.app.mission import render_sequence, up_in_map
 from vtr.app.pipeline import teach_command
 from vtr.app.return_flight import CAMERA_RATE_HZ, ROUTE_SEGMENTS
 from vtr.config import Config
@@ -209,14 +209,14 @@ def aerial_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
     spacing = args.speed / CAMERA_RATE_HZ
     total = sum(length for length, _ in ROUTE_SEGMENTS)
     T_teach = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing)
-    teach_seq = render(out / "aerial" / "teach", scene, T_teach, speed_mps=args.speed)
+    teach_seq = render_sequence(out / "aerial" / "teach", scene, T_teach, speed_mps=args.speed)
     map_path = out / "aerial" / "route.vtrmap"
     if not map_path.exists():
         teach_command(teach_seq, map_path, None, Config(), gravity_up=up_in_map(T_teach[0]))
     s = np.arange(spacing, total - spacing + 1e-9, spacing)[::-1]
     T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[-1]))
     T = T[: len(s)][::-1].copy()
-    seq = render(out / "aerial" / "backward", scene, T, noise_seed=1, speed_mps=args.speed)
+    seq = render_sequence(out / "aerial" / "backward", scene, T, noise_seed=1, speed_mps=args.speed)
     truth = Truth(syn.route_times(T_teach, args.speed), T_teach, syn.route_times(T, args.speed), T)
     return map_path, seq, list(range(len(T))), truth
 
@@ -230,7 +230,7 @@ def aerial_forward_case(out: Path, args) -> tuple[Path, Path, list[int], Truth]:
     T_teach = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing)
     s = np.arange(spacing, total - spacing + 1e-9, spacing)
     T = syn.segmented_aerial_route(ROUTE_SEGMENTS, spacing, lateral_offset_m=2.0, start_offset_m=float(s[0]))[: len(s)]
-    seq = render(out / "aerial" / "forward", scene, T, noise_seed=2, speed_mps=args.speed)
+    seq = render_sequence(out / "aerial" / "forward", scene, T, noise_seed=2, speed_mps=args.speed)
     truth = Truth(syn.route_times(T_teach, args.speed), T_teach, syn.route_times(T, args.speed), T)
     return map_path, seq, list(range(len(T))), truth
 
