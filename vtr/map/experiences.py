@@ -4,13 +4,13 @@
 A repeat's vertices, landmarks and the spatial edges to the taught vertices it localized against are in the map
 already; this module says which repeats are trustworthy experiences (:func:`experiences`), where their vertices
 sit relative to the taught path (:func:`experience_links`, through the stored spatial edges), how much later
-repeats used them (table ``experience_use``, :func:`record_use`) and which ones a retention rule keeps
-(:func:`retention`, :func:`prune`).
+repeats used them (table ``experience_use``, written with each leaf by :meth:`vtr.map.Map.add_leaf`) and which
+ones a retention rule keeps (:func:`retention`, :func:`prune`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +18,6 @@ import numpy as np
 from ..errors import MapError
 from . import localizations
 from .records import INDEX_MASK, RUN_FINISHED, RUN_SHIFT, blob_matrix
-from .schema import USE_SQL, USE_TABLE
 from .store import Map
 
 #: the triggers that keep vertices, their data, checksums, edges and runs append-only; `prune` lifts them inside
@@ -149,15 +148,6 @@ def experience_links(m: Map, runs: Iterable[int]) -> ExperienceLinks:
     )
 
 
-def record_use(m: Map, repeat_run: int, counts: Mapping[int, int]) -> None:
-    """Add ``counts`` (experience run -> keyframes it gave inliers to) to repeat ``repeat_run``'s use of them."""
-    if not counts:
-        return
-    with m.file.transaction() as conn:
-        conn.execute(USE_TABLE)
-        conn.executemany(USE_SQL, [(int(e), int(repeat_run), int(k)) for e, k in counts.items()])
-
-
 @dataclass(frozen=True)
 class Retention:
     """What the retention rule keeps and removes (repeat run ids), and why each kept one is kept."""
@@ -267,7 +257,6 @@ __all__ = [
     "experience_links",
     "experiences",
     "prune",
-    "record_use",
     "retention",
     "use_counts",
 ]

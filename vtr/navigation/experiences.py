@@ -37,7 +37,6 @@ from ..map.experiences import (
     ExperienceLinks,
     experience_links,
     experiences,
-    record_use,
 )
 from ..map.records import RUN_SHIFT
 from ..state.trajectory import adjoint
@@ -508,10 +507,6 @@ class ExperienceSubmaps:
     def chosen_submap(self, trunk: int) -> TaughtSubmap | None:
         """The submap this leaf was localized against at ``trunk`` (None when none was built)."""
         return self._leaf_submaps.get(trunk)
-
-    def record(self, repeat_run: int, used: tuple[int, ...]) -> None:
-        """Count one keyframe of ``repeat_run`` for each of ``used`` in the map's ``experience_use``."""
-        record_use(self.map, repeat_run, {e: 1 for e in used})
 
 
 __all__ = [
