@@ -64,3 +64,16 @@ def test_a_taught_path_gives_the_prior_and_a_disabled_estimate_the_configured_qc
     assert np.array_equal(est.of_poses(t[:5], T[:5], max_step_s=1.0), FALLBACK)  # too short to say
     off = MotionPsd(FALLBACK, window_s=0.0, min_samples=5, floor_share=1e-3, long_steps=4)
     assert np.array_equal(off.of_poses(t, T, max_step_s=1.0), FALLBACK)
+
+
+def test_the_floor_is_a_share_of_the_configured_qc_even_when_the_fallback_is_an_estimate():
+    """A repeat starts from its taught path's estimate; on a motion with no acceleration at all (a synthetic constant-
+    velocity flight) that estimate sits at its own floor, and a floor taken as a share of *it* fell to 1e-6 of the
+    configured Qc: a prior so stiff against odometry that GTSAM found the system indeterminate (the demo's aerial
+    mission failed). The floor is a share of the configured Qc."""
+    configured = np.r_[np.full(3, 0.1), np.full(3, 1.0)]
+    taught = 1e-3 * configured  # a taught estimate at its own floor
+    est = MotionPsd(taught, window_s=1e9, min_samples=5, floor_share=1e-3, long_steps=4, configured=configured)
+    for _ in range(200):  # exactly constant velocity: no motion PSD at all
+        est.add(np.r_[0.0, 0.0, 0.0, 0.5, 0.0, 0.0], 0.1)
+    np.testing.assert_allclose(est.qc, 1e-3 * configured)

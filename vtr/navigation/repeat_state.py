@@ -124,6 +124,7 @@ class RepeatStateEstimator:
             smoothing.qc_min_samples,
             smoothing.qc_floor_share,
             smoothing.qc_long_steps,
+            configured=self.smoother.q_psd,
         )
         self.trunk_window = (int(trunk_window[0]), int(trunk_window[1]))
         self.off_route_distance_m = float(off_route_distance_m)

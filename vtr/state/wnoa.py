@@ -123,16 +123,24 @@ class MotionPsd:
     (averaged with exponential forgetting over ``window_s`` seconds of motion: a straight, a turn, a stop differ),
     solved for ``Qc`` and ``r`` (with ``r`` at 0 when the solution would make it negative). Until the
     forgetting-weighted count of long-span samples reaches ``min_samples`` the configured ``fallback`` is used, and
-    the estimate never falls below ``floor_share`` of it.
+    the estimate never falls below ``floor_share`` of it (of ``configured`` when given: the configured ``Qc`` when the
+    fallback is itself an estimate).
     """
 
     def __init__(
-        self, fallback: np.ndarray, window_s: float, min_samples: float, floor_share: float, long_steps: int
+        self,
+        fallback: np.ndarray,
+        window_s: float,
+        min_samples: float,
+        floor_share: float,
+        long_steps: int,
+        configured: np.ndarray | None = None,
     ) -> None:
         self.fallback = np.asarray(fallback, float).copy()
         self.window_s = float(window_s)
         self.min_samples = float(min_samples)
-        self.floor = float(floor_share) * self.fallback
+        # the floor is a share of the configured Qc, also when the fallback is itself an estimate (a taught path's)
+        self.floor = float(floor_share) * (self.fallback if configured is None else np.asarray(configured, float))
         self.spans = (1, int(long_steps))
         # per span: forgetting-weighted sums of d^2 (6,), of the two regressors and of the weights
         self._y = np.zeros((2, POSE_DIM))
