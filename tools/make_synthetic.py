@@ -16,7 +16,7 @@ Usage: ``python tools/make_synthetic.py [OUT_DIR]`` (default ``/tmp/vtr_syntheti
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 from pathlib import Path
 
@@ -62,7 +62,9 @@ def write_examples(out_dir: Path) -> list[Path]:
 
 
 def main() -> None:
-    out = Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT_OUT
+    ap = argparse.ArgumentParser(description="Write example synthetic stereo sequences (KITTI layout).")
+    ap.add_argument("out", nargs="?", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
+    out = ap.parse_args().out
     t0 = time.perf_counter()
     for path in write_examples(out):
         n = len(list((path / "image_0").iterdir()))
