@@ -17,6 +17,7 @@ from vtr.map import Map
 from vtr.map.check import check_map
 from vtr.map.experiences import WORDS_KEY, experience_links, experiences, prune, retention, use_counts
 from vtr.navigation.experiences import ExperienceSubmaps, Recommender
+from vtr.navigation.localization import TaughtSubmap
 from vtr.navigation.repeat import Repeat
 
 LENGTH_M = 16.0
@@ -269,10 +270,28 @@ def test_a_damaged_experience_is_dropped_with_a_warning(tmp_path_factory, forwar
     assert len(ok) >= MIN_RATE_AFTER * (len(locs) - MAX_FIRST_CORRECT) and all(loc.experiences for loc in ok)
 
 
+def _landmarkless_submap(vertex_ids: np.ndarray, T_x_trunk: np.ndarray, slot: np.ndarray) -> TaughtSubmap:
+    """A submap of ``vertex_ids`` placed by ``T_x_trunk`` whose landmarks (one per ``slot``) carry no data: what the
+    placement covariances read is which vertex each inlier came from and where that vertex sits."""
+    n = len(slot)
+    return TaughtSubmap(
+        vertex_ids,
+        T_x_trunk,
+        0,
+        np.zeros((n, 3)),
+        np.zeros((n, 32), np.uint8),
+        slot,
+        np.zeros((n, 3)),
+        np.arange(n),
+        np.ones(n),
+        np.zeros(n, bool),
+    )
+
+
 def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
     from vtr.geometry import exp_se3
     from vtr.navigation.experiences import experience_covariance
-    from vtr.navigation.localization import LocalizationEstimate, TaughtSubmap
+    from vtr.navigation.localization import LocalizationEstimate
     from vtr.state.trajectory import adjoint
 
     taught, exp_a, exp_b = 5, (3 << 32) | 7, (4 << 32) | 2
@@ -285,18 +304,7 @@ def test_experience_covariance_adds_each_contributing_edge_moved_to_the_leaf():
     )
     slot = np.array([0, 0, 1, 1, 2])
     n = len(slot)
-    sub = TaughtSubmap(
-        np.array([taught, exp_a, exp_b]),
-        T_x_trunk,
-        0,
-        np.zeros((n, 3)),
-        np.zeros((n, 32), np.uint8),
-        slot,
-        np.zeros((n, 3)),
-        np.arange(n),
-        np.ones(n),
-        np.zeros(n, bool),
-    )
+    sub = _landmarkless_submap(np.array([taught, exp_a, exp_b]), T_x_trunk, slot)
     np.testing.assert_array_equal(sub.experience, [0, 0, 3, 3, 4])
     P = {exp_a: np.diag([1e-6] * 3 + [1e-4] * 3), exp_b: np.diag([4e-6] * 3 + [9e-4] * 3)}
     T = exp_se3(np.array([0.02, 0.0, -0.01, 0.5, 0.0, 1.0]))
@@ -313,7 +321,7 @@ def test_taught_covariance_adds_each_taught_vertex_s_edge_moved_to_the_leaf():
     moved to the leaf; experience vertices (no taught edge) and vertices without inliers add nothing."""
     from vtr.geometry import exp_se3
     from vtr.navigation.experiences import taught_covariance
-    from vtr.navigation.localization import LocalizationEstimate, TaughtSubmap
+    from vtr.navigation.localization import LocalizationEstimate
     from vtr.state.trajectory import adjoint
 
     trunk, before, experience = (1 << 32) | 5, (1 << 32) | 4, (3 << 32) | 7
@@ -326,18 +334,7 @@ def test_taught_covariance_adds_each_taught_vertex_s_edge_moved_to_the_leaf():
     )
     slot = np.array([0, 0, 1, 2, 2])
     n = len(slot)
-    sub = TaughtSubmap(
-        np.array([trunk, before, experience]),
-        T_x_trunk,
-        0,
-        np.zeros((n, 3)),
-        np.zeros((n, 32), np.uint8),
-        slot,
-        np.zeros((n, 3)),
-        np.arange(n),
-        np.ones(n),
-        np.zeros(n, bool),
-    )
+    sub = _landmarkless_submap(np.array([trunk, before, experience]), T_x_trunk, slot)
     P = {trunk: np.diag([1e-6] * 3 + [4e-5, 2e-5, 1e-4]), before: np.diag([2e-6] * 3 + [1e-5, 1e-5, 9e-5])}
     T = exp_se3(np.array([0.0, 0.02, 0.0, 0.5, 0.0, 1.0]))
     matched = np.arange(n)
