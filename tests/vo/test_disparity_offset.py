@@ -13,6 +13,7 @@ import pytest
 from vtr.app.evaluation import drift_metrics
 from vtr.app.scale_check import disparity_offset, disparity_samples
 from vtr.config import Config
+from vtr.errors import ConfigError
 from vtr.geometry import inv_T
 from vtr.io import open_source
 from vtr.sim import synthetic as syn
@@ -90,6 +91,22 @@ def test_without_enough_samples_nothing_is_removed():
     few = lm < 30
     est = DisparityOffsetEstimator(cam, Config().odometry, Config().stereo.pixel_sigma)
     assert est.add_window(T, slot[few], lm[few], z[few], n) == 0.0 and est.fit is None
+
+
+def test_the_samples_kept_stay_bounded_and_follow_a_changed_offset():
+    rng = np.random.default_rng(3)
+    odometry = Config().replace("odometry", disparity_offset_max_samples=2000).odometry
+    est = DisparityOffsetEstimator(syn.kitti_like_camera(), odometry, Config().stereo.pixel_sigma)
+    for offset_px in (-1.1,) * 4 + (-0.6,) * 4:
+        cam, T, slot, lm, z, n = _window(offset_px, 1.0, rng)
+        est.add_window(T, slot, lm, z, n)
+        assert est.samples < 2000 + n
+    assert est.fit is not None and abs(est.fit.offset_px + 0.6) < 0.05
+
+
+def test_max_samples_below_min_samples_is_refused():
+    with pytest.raises(ConfigError, match="disparity_offset_max_samples"):
+        Config().replace("odometry", disparity_offset_min_samples=500, disparity_offset_max_samples=100)
 
 
 def test_corrected_frame_moves_the_right_column_and_drops_what_falls_below_the_minimum():

@@ -137,6 +137,9 @@ class OdometryConfig(Section):
     # pulls the offset towards 0 (kitti00_ramp_clip: 0.5 deg -0.69 px, 1 deg -0.69, 2 deg -1.24, 3 deg -1.20;
     # scale_check against ground truth -1.16)
     disparity_offset_min_parallax_deg: float = setting(2.0, Range(0.0, 180.0, lo_open=True))
+    # the fit keeps the latest keyframes' samples, at least this many (bounded cost on a long route; the ramp's 26
+    # frames give about 800, kitti06's 51 frames 4 700)
+    disparity_offset_max_samples: int = setting(20_000, Range(1, 100_000_000, integer=True))
     # the removed offset is the fitted one shrunk towards 0 by this many of its standard errors (evidence within
     # them leaves 0)
     disparity_offset_shrink_sigmas: float = setting(3.0, Range(0.0, 100.0))
@@ -171,6 +174,10 @@ class OdometryConfig(Section):
             (
                 self.match_radius_no_prior_px >= self.match_radius_px,
                 "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px",
+            ),
+            (
+                self.disparity_offset_max_samples >= self.disparity_offset_min_samples,
+                "odometry.disparity_offset_max_samples must be >= odometry.disparity_offset_min_samples",
             ),
         ]
 

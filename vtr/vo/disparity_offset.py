@@ -91,7 +91,9 @@ class DisparityOffsetEstimator:
 
     ``offset_px`` is what to *remove* from measured disparities: the fitted intercept shrunk towards 0 by
     ``odometry.disparity_offset_shrink_sigmas`` of its standard error; 0 until ``disparity_offset_min_samples``
-    samples are in and while the shrunk offset is below ``disparity_offset_min_px``. Samples: landmarks whose rays
+    samples are in and while the shrunk offset is below ``disparity_offset_min_px``. The fit keeps the latest
+    keyframes' samples, at least ``disparity_offset_max_samples`` of them (a long route's cost stays flat, and an
+    offset that drifts, e.g. with temperature, is followed). Samples: landmarks whose rays
     span ``disparity_offset_min_parallax_deg`` and meet within ``pixel_sigma`` in every view.
     """
 
@@ -126,6 +128,8 @@ class DisparityOffsetEstimator:
         )
         self._implied.append(implied)
         self._measured.append(measured)
+        while len(self._measured) > 1 and self.samples - len(self._measured[0]) >= cfg.disparity_offset_max_samples:
+            del self._implied[0], self._measured[0]  # the oldest keyframe's samples: memory and cost stay bounded
         if self.samples < cfg.disparity_offset_min_samples:
             return self.offset_px
         self.fit = robust_line(np.concatenate(self._implied), np.concatenate(self._measured))
