@@ -43,17 +43,30 @@ class OffsetFit:
 
 
 def robust_line(implied: np.ndarray, measured: np.ndarray) -> OffsetFit:
-    """Huber-weighted least squares of ``measured = slope * implied + offset`` with the offset's standard error."""
-    A = np.column_stack([implied, np.ones(len(implied))])
-    w = np.ones(len(implied))
-    coef, sigma = np.zeros(2), 1.0
+    """Huber-weighted least squares of ``measured = slope * implied + offset`` with the offset's standard error.
+
+    Each reweighting solves the 2x2 normal equations from weighted sums (no design matrix is formed): the cost per
+    keyframe stays a few vector passes over the samples however many the window keeps."""
+    x = np.asarray(implied, float)
+    y = np.asarray(measured, float)
+    w = np.ones(len(x))
+    slope, offset, sigma = 0.0, 0.0, 1.0
     for _ in range(ROBUST_ITERATIONS):
-        coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], measured * np.sqrt(w), rcond=None)[0]
-        r = measured - A @ coef
+        N, b = _normal_equations(w, x, y)
+        slope, offset = np.linalg.solve(N, b)
+        r = y - (slope * x + offset)
         sigma = float(MAD_TO_SIGMA * np.median(np.abs(r))) + 1e-12
         w = 1.0 / np.maximum(1.0, np.abs(r) / (HUBER_K * sigma))
-    cov = sigma**2 * np.linalg.inv((A * w[:, None]).T @ A)
-    return OffsetFit(float(coef[1]), float(np.sqrt(cov[1, 1])), float(coef[0]), sigma, len(implied))
+    cov = sigma**2 * np.linalg.inv(_normal_equations(w, x, y)[0])
+    return OffsetFit(float(offset), float(np.sqrt(cov[1, 1])), float(slope), sigma, len(x))
+
+
+def _normal_equations(w: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted line fit's 2x2 normal equations, summed without BLAS (whose threads stall a loaded machine on
+    vectors of this length)."""
+    wx = w * x
+    sxx, sx, sw = np.einsum("i,i->", wx, x), wx.sum(), w.sum()
+    return np.array([[sxx, sx], [sx, sw]]), np.array([np.einsum("i,i->", wx, y), np.einsum("i,i->", w, y)])
 
 
 def window_samples(
