@@ -19,9 +19,9 @@ at most, microseconds). Phases are exclusive (a step timed inside another is tak
 
 - ``interpreter``: process start to this file's first line (Python's own start-up);
 - ``imports``: ``vtr.cli`` and ``vtr.app.pipeline`` (numpy, OpenCV, numba, scipy, GTSAM...);
-- ``cli``: click parsing, the config, the output-folder check (what the command does before the run);
-- ``open``: the source, the output folder, and for the repeat the map (opened, its checksums, the taught path,
-  the place index) and the ``Repeat``;
+- ``cli``: click parsing, the config, the output-folder check, the summary lines printed (the command around its run);
+- ``open``: the source, the output folder, and for the repeat the map (opened, the taught path, the place index:
+  each vertex's checksums are verified when it is read) and the ``Repeat``;
 - ``loop``: every frame (odometry; for the repeat also localization and the map writes, ``Repeat.steps``), less
   the following, timed on their own: ``state_add`` (the controller-state estimator fed each step),
   ``loc_rows`` (``localization.csv`` and ``landmarks.csv`` rows), ``finish_run`` (the run finished in the map),
@@ -29,11 +29,13 @@ at most, microseconds). Phases are exclusive (a step timed inside another is tak
 - ``evaluate`` (path errors, ground truth), ``state_output`` (the smoothed state at the output rate), one phase per
   file written (``trajectory_tum.txt``, ``frames.csv``, ``state.csv``, ``trajectory.png``, ``report.png``),
   ``summarize``, ``run.json``, ``close`` (the map closed: its write-ahead log folded back);
-- ``teardown``: the command's return to the process's exit (summary lines printed, interpreter shutdown);
+- ``teardown``: the command's return to the process's exit (exit handlers, the interpreter's shutdown);
 - ``other``: what no phase holds (the rest of the run's code between the steps).
 
-Writes ``bench_processes.json`` (every process: wall, frames, frames/s, the command's own printed frames/s, phases)
-and ``bench_processes.csv`` (one row per process, one column per phase) to ``--out``.
+The frames/s each command prints (run.json's ``fps``) are over its loop: they are recorded beside the whole-process
+figures. Writes ``bench_processes.json`` (every process: wall, frames, frames/s, the command's own frames/s, phases)
+and ``bench_processes.csv`` (one row per process, one column per phase) to ``--out``. Figures and what they showed:
+docs/localization.md, "Whole process".
 """
 
 from __future__ import annotations
