@@ -4,11 +4,14 @@ synthetic chains for the anchoring before the first localization and for a camer
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from perception_model.frames import T_VEHICLE_LEVEL_CAMERA
 from vtr.app.pipeline import repeat_command, teach_command
@@ -251,6 +254,42 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
     assert np.allclose(s.along_track, 0.5 + SPEED * (s.t_ns - s.t_ns[0]) * 1e-9, atol=1e-3)
     assert np.allclose(s.yaw, 0.0, atol=1e-6)
     assert np.allclose(s.position[:, 1:], [[-0.3, 0.0]], atol=1e-3)
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    map_sigma_m=st.floats(0.003, 0.1),
+    map_sigma_rad=st.floats(1e-4, 0.01),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_the_map_s_part_is_added_once_not_averaged(map_sigma_m, map_sigma_rad, seed):
+    """Each localization's covariance holds the adjustment's part and the map's placement part (frame_covariance),
+    which consecutive leaves share. The smoother is fed the adjustment's part only and every state adds the map's
+    part once: the state equals, mean and covariance, that of a run whose localizations carry no map part at all,
+    plus the map part of the latest localization. (Before, the smoother was fed both parts and the map part was
+    added again: counted twice at the first knot, averaged as independent afterwards.)"""
+    rng = np.random.default_rng(seed)
+    L = np.diag(np.r_[[map_sigma_rad] * 3, [map_sigma_m] * 3]) @ (np.eye(6) + 0.3 * rng.normal(size=(6, 6)))
+    F = L @ L.T  # the map's part: any covariance, correlated across axes
+    ids, T_priv, steps = _synthetic_steps(20, failed={4, 9})
+    with_map = []
+    for step in steps:
+        loc = step.localization
+        if loc is not None and loc.success:
+            loc = dataclasses.replace(loc, covariance=loc.covariance + F, frame_covariance=F)
+        with_map.append(dataclasses.replace(step, localization=loc))
+    plain = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
+    mapped = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
+    for a, b in zip(steps, with_map, strict=True):
+        plain.add(a)
+        mapped.add(b)
+    for t in (0, 7 * DT_NS, 9 * DT_NS + DT_NS // 3, 19 * DT_NS, 19 * DT_NS + 40_000_000):
+        p = plain.controller_state_at(t, with_covariance=True)
+        m = mapped.controller_state_at(t, with_covariance=True)
+        F_out = mapped.view().frame_output_covariance(t, m.T_o_a)
+        assert np.allclose(m.position, p.position, atol=1e-9)
+        assert np.allclose(m.position_covariance, p.position_covariance + F_out[:3, :3], rtol=1e-6, atol=1e-12)
+        assert np.isclose(m.yaw_variance, p.yaw_variance + F_out[3, 3], rtol=1e-6, atol=1e-14)
 
 
 def test_never_localized_uses_chain_assumption():

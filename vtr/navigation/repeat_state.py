@@ -210,15 +210,15 @@ class RepeatStateEstimator:
             T_teach_leaf = loc_cov = None
             frame_cov = self.vertex_frame_covariance[-1] if self.vertex_frame_covariance else np.zeros((6, 6))
             if loc is not None and loc.success:
-                # the smoother averages localizations as independent; the map's placement part of each, shared in
-                # part by the leaves localized against the same taught vertices, is added to every state after it
-                # (RepeatStateView.frame_output_covariance): an upper bound whatever that share (docs/smoother.md)
-                loc_cov = usable_covariance(loc.covariance)
+                # the smoother averages localizations as independent, so it is fed the part of each that is: the
+                # adjustment's. The map's placement part, shared by consecutive leaves (their errors at a place are
+                # the map's, not their pixels'), is added once to every state after it
+                # (RepeatStateView.frame_output_covariance), not averaged and not counted twice (docs/smoother.md)
+                shared = np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance, float)
+                loc_cov = usable_covariance(np.asarray(loc.covariance, float) - shared)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
-                    frame_cov = (
-                        np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance, float)
-                    )
+                    frame_cov = shared
             self.vertex_frame_covariance.append(frame_cov)
             v = _Vertex(
                 int(r.t_ns),
