@@ -262,31 +262,46 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
     map_sigma_rad=st.floats(1e-4, 0.01),
     seed=st.integers(0, 2**31 - 1),
 )
-def test_the_map_s_part_is_added_once_not_averaged(map_sigma_m, map_sigma_rad, seed):
-    """Each localization's covariance holds the adjustment's part and the map's placement part (frame_covariance),
-    which consecutive leaves share. The smoother is fed the adjustment's part only and every state adds the map's
-    part once: the state equals, mean and covariance, that of a run whose localizations carry no map part at all,
-    plus the map part of the latest localization. (Before, the smoother was fed both parts and the map part was
-    added again: counted twice at the first knot, averaged as independent afterwards.)"""
+def test_the_map_s_part_is_split_into_what_consecutive_leaves_share_and_what_differs(map_sigma_m, map_sigma_rad, seed):
+    """Each localization's covariance holds the measurements' part and the map's placement part F
+    (frame_covariance), a Gauss-Markov error along the path: consecutive leaves d apart share rho = exp(-d / L) of it,
+    L the taught spacing. The smoother is fed the measurements' part plus (1 - rho) F and every state adds rho F of the
+    latest localization once: the state equals, mean and covariance, a run whose localizations carry the measurements'
+    part plus (1 - rho) F and no map part, plus rho F. Here the taught vertices are 1 m apart and the leaves 0.5 m
+    (rho = exp(-0.5)), 1 m across a failed localization (exp(-1)); the first localization shares nothing before it
+    (rho = 1: all of F added at the output, the same total as feeding it)."""
     rng = np.random.default_rng(seed)
     L = np.diag(np.r_[[map_sigma_rad] * 3, [map_sigma_m] * 3]) @ (np.eye(6) + 0.3 * rng.normal(size=(6, 6)))
     F = L @ L.T  # the map's part: any covariance, correlated across axes
-    ids, T_priv, steps = _synthetic_steps(20, failed={4, 9})
-    with_map = []
-    for step in steps:
+    failed = {4, 9}
+    ids, T_priv, steps = _synthetic_steps(20, failed=failed)
+    spacing_m = 1.0  # _synthetic_steps' taught vertices
+    with_map, fed, rho_of = [], [], {}
+    previous = None
+    for j, step in enumerate(steps):
         loc = step.localization
+        m = f = loc
         if loc is not None and loc.success:
-            loc = dataclasses.replace(loc, covariance=loc.covariance + F, frame_covariance=F)
-        with_map.append(dataclasses.replace(step, localization=loc))
+            p = step.odometry.T_world_frame[:3, 3]
+            rho = 1.0 if previous is None else float(np.exp(-np.linalg.norm(p - previous) / spacing_m))
+            previous, rho_of[j] = p, rho
+            m = dataclasses.replace(loc, covariance=loc.covariance + F, frame_covariance=F)
+            f = dataclasses.replace(loc, covariance=loc.covariance + (1.0 - rho) * F)
+        with_map.append(dataclasses.replace(step, localization=m))
+        fed.append(dataclasses.replace(step, localization=f))
+    assert np.isclose(rho_of[3], np.exp(-0.5)) and np.isclose(rho_of[5], np.exp(-1.0)) and rho_of[0] == 1.0
     plain = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
     mapped = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
-    for a, b in zip(steps, with_map, strict=True):
+    for a, b in zip(fed, with_map, strict=True):
         plain.add(a)
         mapped.add(b)
     for t in (0, 7 * DT_NS, 9 * DT_NS + DT_NS // 3, 19 * DT_NS, 19 * DT_NS + 40_000_000):
         p = plain.controller_state_at(t, with_covariance=True)
         m = mapped.controller_state_at(t, with_covariance=True)
+        latest = max(j for j in rho_of if j * DT_NS <= t)
         F_out = mapped.view().frame_output_covariance(t, m.T_o_a)
+        F_whole = dataclasses.replace(mapped.view(), vertex_frame_covariance=np.broadcast_to(F, (20, 6, 6)))
+        assert np.allclose(F_out, rho_of[latest] * F_whole.frame_output_covariance(t, m.T_o_a), rtol=1e-9, atol=1e-15)
         assert np.allclose(m.position, p.position, atol=1e-9)
         assert np.allclose(m.position_covariance, p.position_covariance + F_out[:3, :3], rtol=1e-6, atol=1e-12)
         assert np.isclose(m.yaw_variance, p.yaw_variance + F_out[3, 3], rtol=1e-6, atol=1e-14)
