@@ -10,7 +10,8 @@ point with noise no one can see is luck, not accuracy (docs/odometry_stability.m
 usage: python tools/bench_noise.py [CLIP ...] [--seeds 1 2 3 4] [--sigma 1] [--threads 1] [--out out/bench_noise]
         [--set section.key=value ...]
 Defaults: datasets/kitti06_clip and datasets/kitti00_ramp_clip. Writes noise.csv, noise.json and noise.png
-(t_err per variant, per clip) into --out, and each variant's trajectory_tum.txt under --out/CLIP/VARIANT.
+(t_err per variant, per clip) into --out, and each variant's trajectory_tum.txt and steps.csv (per frame: step
+length against ground truth, matches, inliers, the offset removed) under --out/CLIP/VARIANT.
 The noise of a frame depends only on (seed, frame index), so a variant is the same images every time.
 """
 
@@ -89,10 +90,10 @@ def run_variant(clip: Path, seed: int | None, sigma: float, config: Config, out:
         source = NoisySource(src, seed, sigma)
         vo = StereoOdometry(source.camera, OdometrySettings.of(config))  # as vtr.app.pipeline.run_odometry
         t0 = time.perf_counter()
-        records = [
-            vo.process_frame(frame).record()
-            for frame in frames_of(source, list(range(len(source))), vo.stereo, None, "odometry")
-        ]
+        records, offsets = [], []
+        for frame in frames_of(source, list(range(len(source))), vo.stereo, None, "odometry"):
+            records.append(vo.process_frame(frame).record())
+            offsets.append(vo.disparity_offset_px)
         poses, seconds = vo.final_poses(), time.perf_counter() - t0
         gt = src.ground_truth()
     fit = None if vo.disparity_offset is None else vo.disparity_offset.fit
@@ -103,6 +104,7 @@ def run_variant(clip: Path, seed: int | None, sigma: float, config: Config, out:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         write_tum(out / "trajectory_tum.txt", t_ns, poses)
+        write_steps(out / "steps.csv", records, offsets, poses[ie], T_gt)
     return {
         "clip": clip.name,
         "variant": "clean" if seed is None else f"seed {seed}",
@@ -118,6 +120,19 @@ def run_variant(clip: Path, seed: int | None, sigma: float, config: Config, out:
         "frames": len(records),
         "seconds": seconds,
     }
+
+
+def write_steps(path: Path, records: list, offsets: list[float], poses: np.ndarray, T_gt: np.ndarray) -> None:
+    """Per frame: the step's length against ground truth's (the final poses; a frame without ground truth is left
+    out), matches, inliers and the disparity offset removed after it: where a variant's scale parts from another's."""
+    est = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    gt = np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "step_m", "step_ratio", "matches", "inliers", "disparity_offset_removed_px"])
+        for i, r in enumerate(records[1 : len(est) + 1], start=1):
+            ratio = est[i - 1] / gt[i - 1] if gt[i - 1] > 0 else float("nan")
+            w.writerow([i, f"{est[i - 1]:.5f}", f"{ratio:.5f}", r.matches, r.inliers, f"{offsets[i]:+.3f}"])
 
 
 def spread(rows: list[dict]) -> dict:
