@@ -13,7 +13,11 @@ Stages (position NEES, 3 dof; 2.37 is the median of an exact covariance, 11.34 i
   ``localization_chain`` (each neighbour that gave inliers adds the covariance of the taught edges between it and
   the trunk, ``T_s_trunk``, instead of its own edge);
 - ``knots``: the state at each vertex's time right after it was fed (the smoother's newest knot);
-- ``ticks``: the state at every control tick 0-90 ms after each frame (bench_online's replay).
+- ``ticks``: the state at every control tick 0-90 ms after each frame (bench_online's replay);
+- ``qc_estimate``: the median over the knots of the ``Qc`` the repeat's motion prior used
+  (``vtr.state.wnoa.MotionPsd``, [rot x3, trans x3] in the camera's axes), beside ``qc_truth``: the same estimator
+  (spans of 1 and ``TRUTH_QC_LONG_STEPS`` steps, unforgotten, no floor) on the true motion sampled every
+  ``TRUTH_QC_STEP_S`` over the knots' span.
 
 Writes OUT/nees_stages.json.
 """
@@ -36,8 +40,13 @@ from vtr.io import open_source  # noqa: E402
 from vtr.map import Map  # noqa: E402
 from vtr.navigation.localization import LocalizationEstimate, TaughtSubmap  # noqa: E402
 from vtr.state.trajectory import adjoint  # noqa: E402
+from vtr.state.wnoa import MotionPsd  # noqa: E402
 
 CASES = ("aerial backward", "kitti06", "aerial forward", "kitti06 reversed", "ramp", "ramp reversed")
+#: the true motion's PSD: the truth sampled this often (s), mean twists over spans of 1 and this many samples (0.4 s,
+#: long enough that the ground truth's own noise is small against the motion on the KITTI clips)
+TRUTH_QC_STEP_S = 0.05
+TRUTH_QC_LONG_STEPS = 8
 
 
 def _stats(a: list[float]) -> dict:
@@ -60,6 +69,8 @@ def stages(map_path: Path, images: list, truth: bo.Truth, args) -> dict:
     out: dict[str, list[float]] = {k: [] for k in (*names, "localization_chain")}
     out.update({"knots": [], "knots_smoother_only": [], "ticks": [], "ticks_0": [], "ticks_after": []})
     previous = None  # (T_world_kf, t_ns) of the previous vertex
+    qc_used: list[np.ndarray] = []
+    knot_t: list[int] = []
     with OnlineRepeat(map_path) as live:
         est = live.estimator
         attempts: list[tuple[TaughtSubmap, LocalizationEstimate]] = []
@@ -107,6 +118,8 @@ def stages(map_path: Path, images: list, truth: bo.Truth, args) -> dict:
             view = live.view
             if kf is not None and view.trajectory.last_time_ns == int(kf.t_ns):
                 t = int(kf.t_ns)
+                qc_used.append(est.motion_psd.qc)
+                knot_t.append(t)
                 s = view.controller_state_at(t, with_covariance=True)
                 out["knots"].append(bo._nees(view, s, t, truth, teach_t))
                 k = int(view.trunk_index_at(np.array([t]))[0])
@@ -119,7 +132,18 @@ def stages(map_path: Path, images: list, truth: bo.Truth, args) -> dict:
                 n = bo._nees(view, s, t, truth, teach_t)
                 out["ticks"].append(n)
                 (out["ticks_0"] if j == 0 else out["ticks_after"]).append(n)
-    return {k: _stats(v) for k, v in out.items()}
+    res: dict = {k: _stats(v) for k, v in out.items()}
+    res["qc_estimate"] = np.median(qc_used, axis=0).tolist()
+    res["qc_truth"] = _truth_qc(knot_t, truth).tolist()
+    return res
+
+
+def _truth_qc(knot_t: list[int], truth: bo.Truth) -> np.ndarray:
+    """``MotionPsd`` on the true motion over the knots' span (see TRUTH_QC_*): what the estimate should be near."""
+    t = np.arange(knot_t[0], knot_t[-1], int(TRUTH_QC_STEP_S * 1e9), dtype=np.int64)
+    T = np.array([truth.repeat_at(int(x)) for x in t])
+    est = MotionPsd(np.zeros(6), float("inf"), 1.0, 0.0, TRUTH_QC_LONG_STEPS)
+    return est.of_poses(t, T, 2 * TRUTH_QC_STEP_S)
 
 
 def _map_parts(sub: TaughtSubmap, e: LocalizationEstimate, edge) -> tuple[np.ndarray, np.ndarray]:
@@ -192,8 +216,11 @@ def main() -> None:
         if name not in CASES:
             raise SystemExit(f"--cases: unknown case {name!r} (known: {', '.join(CASES)})")
         rows[name] = stages(*case(name, args), args)
-        cells = ", ".join(f"{k} {v['median']:.2f}/{100 * v['inside_99']:.0f}%" for k, v in rows[name].items() if v["n"])
-        print(f"{name}: {cells}", flush=True)
+        r = rows[name]
+        stats = {k: v for k, v in r.items() if isinstance(v, dict) and v["n"]}
+        cells = ", ".join(f"{k} {v['median']:.2f}/{100 * v['inside_99']:.0f}%" for k, v in stats.items())
+        qc = "; ".join(f"{k} trans {' '.join(f'{q:.2g}' for q in r[k][3:])}" for k in ("qc_estimate", "qc_truth"))
+        print(f"{name}: {cells}; {qc}", flush=True)
     (args.out / "nees_stages.json").write_text(json.dumps(rows, indent=2) + "\n")
 
 
