@@ -4,6 +4,7 @@ trajectory with keyframe positions measured with noise, the two spans recover Qc
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -77,3 +78,37 @@ def test_the_floor_is_a_share_of_the_configured_qc_even_when_the_fallback_is_an_
     for _ in range(200):  # exactly constant velocity: no motion PSD at all
         est.add(np.r_[0.0, 0.0, 0.0, 0.5, 0.0, 0.0], 0.1)
     np.testing.assert_allclose(est.qc, 1e-3 * configured)
+
+
+def _odometry_like_steps(qc: float, step_sd: float, scale_sd: float, scale_s: float, seed: int) -> list[np.ndarray]:
+    """Along-track keyframe steps (0.2 s at 12 m/s) of a WNOA motion with PSD ``qc``, measured as odometry errs: each
+    step off by an independent share ``step_sd`` of itself plus a scale error ``scale_sd`` that varies over
+    ``scale_s`` seconds (a first-order Gauss-Markov process)."""
+    rng = np.random.default_rng(seed)
+    n, fine, dt = 3000, 20, 0.2
+    h = dt / fine
+    dv = rng.normal(0.0, np.sqrt(qc * h), n * fine)
+    v = 12.0 + np.r_[0.0, np.cumsum(dv)[:-1]]
+    true = (v * h + dv * h / 2).reshape(n, fine).sum(axis=1)
+    a = np.exp(-dt / scale_s)
+    kick = np.sqrt(1 - a * a) * rng.normal(0.0, scale_sd, n)
+    scale = np.zeros(n)
+    for i in range(1, n):
+        scale[i] = a * scale[i - 1] + kick[i]
+    measured = true * (1.0 + scale + rng.normal(0.0, step_sd, n))
+    return [np.r_[0.0, 0.0, 0.0, 0.0, 0.0, x] for x in measured]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured: odometry's along-track error on kitti06 is partly a scale varying over ~1 s (steps off by +60, "
+    "+69, then -80, -42, -51, -32 mm); with 1.25 % independent step errors and a 0.75 % scale correlated over 1 s the "
+    "estimate reads 0.022-0.028 m2/s3 for a true 0.001 (the independent part alone 0.015-0.020: the positions' noise "
+    "model reads it as 0.14 s / tau^3); on kitti06 0.014 against the true motion's 0.0013 (docs/online.md)",
+)
+def test_the_estimate_finds_the_motion_s_psd_under_odometry_like_errors():
+    for seed in range(3):
+        est = MotionPsd(FALLBACK, window_s=1e9, min_samples=5, floor_share=1e-6, long_steps=4)
+        for xi in _odometry_like_steps(1e-3, 0.0125, 0.0075, 1.0, seed):
+            est.add(xi, 0.2)
+        assert 0.5e-3 < est.qc[5] < 2e-3, (seed, est.qc[5])
