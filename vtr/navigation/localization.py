@@ -22,9 +22,10 @@ from ..geometry import inv_T
 from ..map.records import RUN_SHIFT
 from ..timing import StageTimer
 from ..types import StereoFrame
-from ..vo.estimation import bundle_adjust, odometry_row_weights, ransac_pnp
+from ..vo.estimation import odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
 from ..vo.matching import match_landmarks
+from .leaf_adjustment import adjust_leaf
 
 
 class LocalizationStatus(StrEnum):
@@ -300,18 +301,17 @@ class Localizer:
         depths too would turn the two windows' scale difference, times the depth, into translation.
         """
         o = self.estimation
-        n, V = len(landmarks), len(submap.vertex_ids)
+        n = len(landmarks)
         z_taught = submap.z[landmarks].copy()
         w = self._row_weights(np.concatenate([z_taught, z_leaf]))
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
         w[np.flatnonzero(refined), 2] = 1.0  # taught rows come first
-        res = bundle_adjust(
-            np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
-            np.r_[np.ones(V, bool), False],
+        res = adjust_leaf(  # bundle_adjust of this one shape, in one compiled kernel
+            submap.T_vertex_trunk,
+            submap.slot[landmarks],
+            T_leaf_trunk,
             submap.points_trunk[landmarks],
-            np.r_[submap.slot[landmarks], np.full(n, V)],
-            np.r_[np.arange(n), np.arange(n)],
             np.nan_to_num(np.concatenate([z_taught, z_leaf])),
             w,
             self.camera,
@@ -325,7 +325,7 @@ class Localizer:
         # the measured rows less the parameters fitted to them (3 per landmark, 6 for the leaf)
         dof = int(np.count_nonzero(w > 0)) - 3 * n - 6
         factor = res.cost / dof if dof > 0 else float("inf")
-        return res.T_cam_world[V], res.pose_covariance[V], inlier, err_sq, factor
+        return res.T_leaf_trunk, res.covariance, inlier, err_sq, factor
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         return odometry_row_weights(z, self.camera, self.estimation)
