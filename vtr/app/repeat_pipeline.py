@@ -82,7 +82,7 @@ class RepeatSummary:
     frames: int
     vertices: int
     localized: int
-    seconds: float
+    seconds: float  # the frame loop's, as odometry's and teach's summaries count theirs
     localization_seconds: float
     median_inliers: float
     path_error_m: float
@@ -92,6 +92,7 @@ class RepeatSummary:
     integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
     ground_truth_note: str | None = None  # why the repeat was not judged against ground truth (None: it was)
     experiences: dict | None = None  # trusted experiences available, successes that used one, keyframes per run
+    output_seconds: float = 0.0  # after the loop: evaluation, state.csv, trajectory_tum.txt, report.png
 
     @property
     def success_rate(self) -> float:
@@ -105,6 +106,7 @@ class RepeatSummary:
             "success_rate": self.success_rate,
             "seconds": self.seconds,
             "fps": self.frames / self.seconds if self.seconds > 0 else None,
+            "output_seconds": self.output_seconds,
             "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
             "median_inliers": self.median_inliers,
             "median_path_error_m": self.path_error_m,
@@ -395,7 +397,8 @@ class RepeatRun:
             frames=len(loop.t_ns),
             vertices=len(loop.localizations),
             localized=len(ok),
-            seconds=loop.seconds + seconds_after_loop,
+            seconds=loop.seconds,
+            output_seconds=seconds_after_loop,
             localization_seconds=loop.localization_seconds,
             median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
             path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),

@@ -242,7 +242,8 @@ class Localizer:
 
         Without a trusted prior (searching: the start, after a loss) a localization needs
         ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong. The search
-        radius around the prior's prediction grows with the failures since the last success, as the
+        radius around the prior's prediction (``tracking_match_radius_px`` around the chain's own, trusted prior,
+        ``match_radius_px`` around a place candidate's) grows with the failures since the last success, as the
         prior (odometry since then) grows less certain. An estimate is refused (with its reason) unless
         it has enough inliers, enough inliers per match, and inlier residuals that fit the pixel noise
         (median at most ``max_median_residual_px``); its covariance is the adjustment's with the pixel noise the
@@ -251,7 +252,8 @@ class Localizer:
         """
         c = self.config
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
-        radius = min(c.match_radius_px * c.match_radius_growth**consecutive_failures, c.max_match_radius_px)
+        base = c.tracking_match_radius_px if trusted_prior else c.match_radius_px  # the chain's own prior is tighter
+        radius = min(base * c.match_radius_growth**consecutive_failures, c.max_match_radius_px)
         with self.timer("match"):
             li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
