@@ -107,3 +107,15 @@ def test_a_pose_the_measurements_do_not_fix_gets_a_nan_covariance_as_bundle_adju
     assert np.isnan(ref.pose_covariance[len(T_vertex_trunk)]).all()
     assert np.isnan(got.covariance).all()
     np.testing.assert_array_equal(got.T_leaf_trunk, T_start)
+
+
+def test_the_warm_up_compiles_the_signature_a_localization_calls():
+    """``.ci/setup`` warms the kernel up (vtr.navigation.kernels.warm_up): a localization's call then needs no
+    compilation of its own (the first repeat after an install would otherwise take ~15 s longer)."""
+    from vtr.navigation import kernels
+
+    kernels.warm_up()
+    before = list(kernels.adjust.signatures)
+    T_vertex_trunk, slot, T_start, X_start, z, w = _problem(3)
+    adjust_leaf(T_vertex_trunk, slot, T_start, X_start, np.nan_to_num(z), w, CAMERA, 1.0, 1.5, 10)
+    assert list(kernels.adjust.signatures) == before

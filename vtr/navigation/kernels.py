@@ -149,7 +149,7 @@ def _normal_equations(Rt, slot, R, Y, e, wh, info, fx, fy, fb, H, b, Hll, bl, W)
                     W[i, a, c] = Jp[0, a] * Jx[0, c] + Jp[1, a] * Jx[1, c] + Jp[2, a] * Jx[2, c]
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _inv3(A, out, i):
     a, b_, c = A[0, 0], A[0, 1], A[0, 2]
     d, e, f = A[1, 1], A[1, 2], A[2, 2]
@@ -337,3 +337,12 @@ def adjust(Rt, tt, slot, T0, X0, z, meas, info, k_huber, fx, fy, cx, cy, fb, ite
         d2 = u - fb * iz - z[m, 2]
         err_sq[m] = d0 * d0 * meas[m, 0] + d1 * d1 * meas[m, 1] + d2 * d2 * meas[m, 2]
     return T, X, err_sq, cov, cost, True
+
+
+def warm_up() -> None:
+    """Compile the leaf adjustment (``adjust``, ~15 s) on tiny inputs of the dtypes it is called with, so later
+    processes load it from the cache (``.ci/setup`` runs this after ``python3 -m vtr.vo.kernels``; the place kernels
+    are small and compile on first use)."""
+    z, ones = np.array([[100.0, 100.0, 90.0], [100.0, 100.0, 90.0]]), np.ones((2, 3))
+    R, t, X = np.eye(3)[None].copy(), np.zeros((1, 3)), np.array([[0.0, 0.0, 5.0]])
+    adjust(R, t, np.zeros(1, np.int64), np.eye(4), X, z, ones, ones, 1.5, 500.0, 500.0, 100.0, 100.0, 50.0, 3)
