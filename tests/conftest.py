@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,6 +31,20 @@ def euroc_micro() -> Path:
 @pytest.fixture(scope="session")
 def euroc_pairs() -> Path:
     return DATASETS / "euroc_revisit_pairs"
+
+
+@pytest.fixture
+def permissions_bind() -> Callable[[list[str]], list[str]]:
+    """A command line that runs ``args`` so that file permissions bind: as is for a normal user; for root, through
+    ``setpriv`` with the capabilities that override permissions dropped (root keeps its uid). Skips when root has no
+    ``setpriv``."""
+    if os.geteuid() != 0:
+        return lambda args: args
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("running as root without setpriv: permissions do not bind")
+    caps = "-dac_override,-dac_read_search"
+    return lambda args: [setpriv, f"--bounding-set={caps}", f"--inh-caps={caps}", *args]
 
 
 #: The long end-to-end modules (runs on imagery, Dask clusters, subprocess commands): marked ``slow`` and left out

@@ -4,7 +4,6 @@ constraint read it without writing anything beside it."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -103,19 +102,9 @@ def test_readers_write_nothing_beside_a_read_only_map(small_map, tmp_path):
         small_map.chmod(0o644)
 
 
-def _without_permission_override(args: list[str]) -> list[str]:
-    """``args`` run so that file permissions bind (root keeps its uid but drops the capabilities that
-    override them)."""
-    if os.geteuid() != 0:
-        return args
-    setpriv = shutil.which("setpriv")
-    if setpriv is None:
-        pytest.skip("running as root without setpriv: permissions do not bind")
-    caps = "-dac_override,-dac_read_search"
-    return [setpriv, f"--bounding-set={caps}", f"--inh-caps={caps}", *args]
-
-
-def test_a_writer_on_a_read_only_folder_is_told_the_map_is_readable_and_how_to_use_it(small_map, tmp_path):
+def test_a_writer_on_a_read_only_folder_is_told_the_map_is_readable_and_how_to_use_it(
+    small_map, tmp_path, permissions_bind
+):
     """Appending to a map whose folder is read-only: one line saying it cannot write there and naming
     --read-only-map (it said "not a readable vtr map"); the map is untouched and still opens read-only."""
     folder = small_map.parent
@@ -130,11 +119,11 @@ def test_a_writer_on_a_read_only_folder_is_told_the_map_is_readable_and_how_to_u
             [sys.executable, "-c", code, str(small_map)],
             [sys.executable, "-m", "vtr", "map", "prune", str(small_map)],
         ):
-            r = subprocess.run(_without_permission_override(args), capture_output=True, text=True, timeout=120)
+            r = subprocess.run(permissions_bind(args), capture_output=True, text=True, timeout=120)
             assert r.returncode != 0 and r.stderr.count("\n") == 1, r.stderr
             assert "cannot write it or create files beside it" in r.stderr and "--read-only-map" in r.stderr, r.stderr
         r = subprocess.run(
-            _without_permission_override([sys.executable, "-m", "vtr", "map", "info", str(small_map)]),
+            permissions_bind([sys.executable, "-m", "vtr", "map", "info", str(small_map)]),
             capture_output=True,
             text=True,
             timeout=120,

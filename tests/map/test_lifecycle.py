@@ -252,21 +252,36 @@ def test_opens_read_only_from_read_only_folder_and_media(tmp_path):
         path.chmod(0o644)
 
 
-@pytest.mark.skipif(
-    hasattr(os, "geteuid") and os.geteuid() == 0,
-    reason="root ignores file permissions (the read-only open is checked above and through the immutable URI directly)",
-)
-def test_read_only_folder_refuses_writing_but_reads(tmp_path):
+def test_read_only_folder_refuses_writing_but_reads(tmp_path, permissions_bind):
+    """A map in a read-only folder: opening it to append is refused naming the map, reading it works, and nothing
+    is created beside it (run in a process where permissions bind, root included)."""
     path = tmp_path / "route.vtrmap"
     with Map.create(path, CAMERA) as m:
         add_vertices(m, m.begin_run("teach"), 2)
+    code = textwrap.dedent(
+        """
+        import sys
+        from vtr.errors import MapError
+        from vtr.map import Map
+        try:
+            Map.open(sys.argv[1], "a").close()
+            sys.exit("opened for appending")
+        except MapError as err:
+            assert "route.vtrmap" in str(err), err
+        with Map.open(sys.argv[1]) as m:
+            print(m.runs()[0].n_vertices)
+        """
+    )
+    pristine = path.read_bytes()
     tmp_path.chmod(0o555)
     path.chmod(0o444)
     try:
-        with pytest.raises(MapError, match="route.vtrmap"):
-            Map.open(path, "a")
-        with Map.open(path) as m:
-            assert m.runs()[0].n_vertices == 2
+        r = subprocess.run(
+            permissions_bind([sys.executable, "-c", code, str(path)]), capture_output=True, text=True, timeout=120
+        )
+        assert r.returncode == 0 and r.stdout.strip() == "2", r.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["route.vtrmap"]
+        assert path.read_bytes() == pristine
     finally:
         tmp_path.chmod(0o755)
         path.chmod(0o644)

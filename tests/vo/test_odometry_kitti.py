@@ -17,9 +17,11 @@ R_ERR_BOUND_DEG_PER_M = 0.015
 NAIVE_T_ERR_PCT = 2.5
 # kitti00_ramp_clip (far structure): ORB-SLAM3 stereo 5.97 %, naive PnP 8.8 %; vtr before the far-structure
 # estimator 10.6 % and path x1.108. Near points alone put this clip's motion about 1-2 % above its ground truth
-# (tools/scale_check.py), so the path length may exceed it by that much.
+# (tools/scale_check.py: its disparities sit 1.16 px low); the odometry estimates that offset online and removes it
+# (odometry.disparity_offset): path x0.998, t_err 0.73 % (with the calibration trusted x1.010, 1.41 %, inside the
+# (1.00, 1.04) this range was before)
 RAMP_T_ERR_BOUND_PCT = 4.0
-RAMP_PATH_LENGTH_RANGE = (1.00, 1.04)
+RAMP_PATH_LENGTH_RANGE = (0.99, 1.01)
 
 
 @pytest.fixture(scope="module")

@@ -127,6 +127,27 @@ class OdometryConfig(Section):
     # subsampled runs (KITTI at stride 3 moves 3.6 m between frames) are judged by speed, not by step
     max_speed_mps: float = setting(40.0, Range(0.0, 10_000.0, lo_open=True))
     max_rotation_rate_dps: float = setting(200.0, Range(0.0, 100_000.0, lo_open=True))
+    # online self-calibration of the stereo pair's disparity offset (vtr.vo.disparity_offset): "online" fits
+    # measured = slope * implied + offset over the window's landmarks at each keyframe (implied: the disparity their
+    # parallax depth gives) and removes the offset from every disparity; "off" trusts the calibration
+    disparity_offset: str = setting("online", Choice("online", "off"))
+    # samples (keyframe observations of landmarks triangulated by parallax) before an offset is removed
+    disparity_offset_min_samples: int = setting(200, Range(1, 10_000_000, integer=True))
+    # a sample's rays must span this angle: with less, the parallax depth's own error flattens the fitted line and
+    # pulls the offset towards 0 (kitti00_ramp_clip: 0.5 deg -0.69 px, 1 deg -0.69, 2 deg -1.24, 3 deg -1.20;
+    # scale_check against ground truth -1.16)
+    disparity_offset_min_parallax_deg: float = setting(2.0, Range(0.0, 180.0, lo_open=True))
+    # the fit keeps the latest keyframes' samples, at least this many (bounded cost on a long route; the ramp's 26
+    # frames give about 800, kitti06's 51 frames 4 700)
+    disparity_offset_max_samples: int = setting(20_000, Range(1, 100_000_000, integer=True))
+    # the removed offset is the fitted one shrunk towards 0 by this many of its standard errors (evidence within
+    # them leaves 0)
+    disparity_offset_shrink_sigmas: float = setting(3.0, Range(0.0, 100.0))
+    # an offset below this stays unremoved: the calibration's scale (baseline, focal length), which motion cannot
+    # observe, is not known better than this offset's effect on near depth. kitti06_clip's -0.2 px (its ground truth
+    # shows a +0.3 % scale error that the offset hides at near disparities: removed, t_err 0.61 -> 0.85 %) stays,
+    # kitti00_ramp_clip's -1.0..-1.2 px (path x1.010-1.014 long) goes
+    disparity_offset_min_px: float = setting(0.5, Range(0.0, 1000.0))
     # keyframes in the local map matched and refined together
     window_keyframes: int = setting(5, Range(1, 1000, integer=True))
     # landmarks in the windowed bundle adjustment (near ones first, then the longest tracks); on kitti00_ramp_clip
@@ -153,6 +174,10 @@ class OdometryConfig(Section):
             (
                 self.match_radius_no_prior_px >= self.match_radius_px,
                 "odometry.match_radius_no_prior_px must be >= odometry.match_radius_px",
+            ),
+            (
+                self.disparity_offset_max_samples >= self.disparity_offset_min_samples,
+                "odometry.disparity_offset_max_samples must be >= odometry.disparity_offset_min_samples",
             ),
         ]
 

@@ -15,7 +15,7 @@ import numpy as np
 from ..config import SmoothingConfig
 from ..errors import EstimationError
 from .discrete_flatness import CONTROLLER_TYPES
-from .output_sources import MeasuredOutputs, OutputSource, SmootherBatch, SmootherOutputs
+from .output_sources import MeasuredOutputs, OutputSource, ReceivedPositions, SmootherBatch, SmootherOutputs
 from .pitch_model import (
     CONTROLLERS,
     LOOPS,
@@ -47,8 +47,9 @@ def simulate(
 ) -> ClosedLoopRun:
     """Fly ``controller`` with outputs from ``source``; ``noise_m`` (batch, warmup_ticks + ticks) is added to
     the true position at each tick the source measures. Tick ``-warmup_ticks`` is at time 0 (ns). Each tick the
-    source is told the acceleration the commands sent so far produce by the controller's model of the pitch loop
-    (:class:`~vtr.control.pitch_model.InnerLoopModel`): the commands in, for an estimator's extrapolation."""
+    source is told the mean acceleration over the coming control period that the commands sent so far produce by
+    the controller's model of the pitch loop (:class:`~vtr.control.pitch_model.InnerLoopModel`): the commands in,
+    for an estimator's extrapolation."""
     noise = np.asarray(noise_m, float)
     W, K, n = settings.warmup_ticks, settings.ticks, settings.substeps
     if noise.ndim != 2 or noise.shape[1] != W + K or not np.all(np.isfinite(noise)):
@@ -64,8 +65,8 @@ def simulate(
         if t_ns % source.measurement_period_ns == 0:
             source.measure(t_ns, plant.position + noise[:, k + W])
         u = ctrl.command(t_ns, source) if k >= 0 else np.zeros(noise.shape[0])
-        source.command(t_ns, inner.acceleration_mps2)
         inner.hold(u)
+        source.command(t_ns, inner.held_acceleration_mps2)
         if k >= 0:
             cmds.append(u)
         for _ in range(n):
@@ -80,7 +81,10 @@ def simulate(
 
 def make_source(settings: DiscreteFlatnessSettings, loop: Loop, batch: int, sigma_m: float) -> OutputSource:
     """The outputs a loop's controllers read: raw measurements at the control rate (``perfect``) or one
-    smoother per vehicle fed at ``measurement_rate_hz`` (``estimator``)."""
+    smoother per vehicle fed at ``measurement_rate_hz`` (``estimator``): windows end and the extrapolation with the
+    commands sent starts ``window_knots_back`` camera periods before the newest knot, and with
+    ``estimator_derivatives`` = ``finite_difference`` the state is the first-order differences of the positions
+    answered at the control ticks (:class:`~vtr.control.output_sources.ReceivedPositions`)."""
     if loop == "perfect":
         return MeasuredOutputs(settings.control_dt_ns)
     if loop == "estimator":
@@ -89,11 +93,13 @@ def make_source(settings: DiscreteFlatnessSettings, loop: Loop, batch: int, sigm
             lag_s=settings.smoother_lag_s,
             max_extrapolation_s=max(1.0, 2.0 / settings.measurement_rate_hz),
         )
-        return SmootherBatch(
-            [SmootherOutputs(smoothing, sigma_m) for _ in range(batch)],
-            settings.measurement_every * settings.control_dt_ns,
-            settings.window_knots_back,
-        )
+        period_ns = settings.measurement_every * settings.control_dt_ns
+        anchor_ns = settings.window_knots_back * period_ns
+        vehicles = [SmootherOutputs(smoothing, sigma_m, anchor_ns) for _ in range(batch)]
+        smoothers = SmootherBatch(vehicles, period_ns, settings.window_knots_back)
+        if settings.estimator_derivatives == "finite_difference":
+            return ReceivedPositions(smoothers, settings.control_dt_ns)
+        return smoothers
     raise EstimationError(f"loop: expected one of {LOOPS}, got {loop!r}")
 
 

@@ -3,8 +3,9 @@
 :class:`MeasuredOutputs` holds the noisy positions at the control rate and their first-order finite differences (the
 thesis' PD and flatness MPC); :class:`SmootherOutputs` is vtr's continuous-time smoother fed at a camera's rate,
 queried as the online estimator (:class:`~vtr.control.online.OnlineRepeat`) is: ``window(t_end_ns, n, dt_s)``,
-``state(t_ns)`` and ``command(t_ns, acceleration)`` (the commands sent, for the extrapolation past the newest knot,
-eq. 8.15); :class:`SmootherBatch` stacks one per trial.
+``state(t_ns)`` and ``command(t_ns, acceleration)`` (the commands sent, for the extrapolation with them, eq. 8.15);
+:class:`SmootherBatch` stacks one per trial. :class:`ReceivedPositions` gives PD and the flatness MPC the
+first-order differences of the positions a source answered at their ticks (the thesis' definition of both).
 """
 
 from __future__ import annotations
@@ -94,11 +95,20 @@ class SmootherOutputs:
     acceleration fitted to the knots' velocities (``smoothing.acceleration_window_s``; the WNOA mean's when 0),
     and, past the newest knot, the constant-velocity extrapolation moved by the commands sent
     (:class:`~vtr.navigation.state_view.CommandLog`, zero-order hold) with the command in force as acceleration.
+
+    With ``command_anchor_ns`` > 0 and commands given, that extrapolation starts ``command_anchor_ns`` before the
+    newest knot instead (inside the smoothed trajectory, not at its natural-spline end): any ``t_ns`` after the
+    anchor is the mean's position and velocity at the anchor carried to ``t_ns`` with the commands sent (eq. 8.15
+    carries a past window forward with the inputs sent the same way). ``OnlineRepeat.state`` extrapolates from
+    the newest knot (``command_anchor_ns`` = 0).
     """
 
-    def __init__(self, smoothing: SmoothingConfig, sigma_m: float) -> None:
+    def __init__(self, smoothing: SmoothingConfig, sigma_m: float, command_anchor_ns: int = 0) -> None:
         if not (sigma_m > 0 and math.isfinite(sigma_m)):
             raise EstimationError(f"sigma_m: expected a positive finite noise level, got {sigma_m}")
+        if isinstance(command_anchor_ns, bool) or not isinstance(command_anchor_ns, int) or command_anchor_ns < 0:
+            raise EstimationError(f"command_anchor_ns: expected a whole number of ns >= 0, got {command_anchor_ns!r}")
+        self.command_anchor_ns = command_anchor_ns
         self.smoother = TrajectorySmoother(smoothing)
         self.acceleration_window_s = smoothing.acceleration_window_s
         self._cov = np.diag([ROTATION_SIGMA_RAD**2] * 3 + [sigma_m**2] * 3)
@@ -138,11 +148,20 @@ class SmootherOutputs:
     def state(self, t_ns: int) -> np.ndarray:
         """``(p m, v m/s, a m/s^2)`` at ``t_ns``."""
         v = self.view
+        last = v.last_time_ns
+        if self._commands is not None and self.command_anchor_ns > 0 and last is not None:
+            first = v.first_time_ns
+            t_anchor = max(last - self.command_anchor_ns, last if first is None else first)
+            if t_ns > t_anchor:
+                s = v.state_at(t_anchor, with_covariance=False)
+                dp, dv, a_now = self._commands.integrate(t_anchor, t_ns)
+                ahead_s = (t_ns - t_anchor) / NS_PER_S
+                vel = s.linear_velocity_world[0]
+                return np.array([s.position[0] + vel * ahead_s + dp[0], vel + dv[0], a_now[0]])
         s = v.state_at(t_ns, with_covariance=False)
         p, vel, a = s.position[0], s.linear_velocity_world[0], s.linear_acceleration_world[0]
         if self.acceleration_window_s > 0:
             a = v.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
-        last = v.last_time_ns
         if self._commands is not None and last is not None and t_ns > last:
             dp, dv, a_now = self._commands.integrate(last, t_ns)
             p, vel, a = p + dp[0], vel + dv[0], a_now[0]
@@ -157,7 +176,8 @@ class SmootherOutputs:
 
 class SmootherBatch:
     """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``; windows
-    end ``knots_back`` measurement periods before the newest knot."""
+    end ``knots_back`` measurement periods before the newest knot (the same depth as the sources'
+    ``command_anchor_ns`` in :func:`~vtr.control.flatness_sweep.make_source`)."""
 
     def __init__(self, sources: Sequence[SmootherOutputs], period_ns: int, knots_back: int = 0) -> None:
         self.sources = list(sources)
@@ -183,11 +203,50 @@ class SmootherBatch:
         return min(t_ns, newest - self.knots_back * self.measurement_period_ns)
 
 
+class ReceivedPositions:
+    """:class:`OutputSource` over ``source`` whose ``state`` is the first-order differences of the positions
+    ``source.state`` answered at the control ticks, ``v_k = (p_k - p_{k-1}) / dt``, ``a_k = (v_k - v_{k-1}) / dt``
+    (``dt`` = ``period_ns``): PD and the flatness MPC of §8.4.1 as defined there ("position and first-order
+    finite-difference velocity and acceleration estimates"), with an estimator's positions in place of the sensor's.
+    Each tick's position is kept as it was answered then; a tick not queried before (the first ones) is the
+    source's answer now. ``measure``, ``command``, ``window`` and ``measured_until_ns`` pass through."""
+
+    def __init__(self, source: OutputSource, period_ns: int) -> None:
+        self.source = source
+        self.period_ns = int(period_ns)
+        self.measurement_period_ns = source.measurement_period_ns
+        self._p: dict[int, np.ndarray] = {}
+
+    def measure(self, t_ns: int, positions_m: np.ndarray) -> None:
+        self.source.measure(t_ns, positions_m)
+
+    def command(self, t_ns: int, acceleration_mps2: np.ndarray) -> None:
+        self.source.command(t_ns, acceleration_mps2)
+
+    def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
+        return self.source.window(t_end_ns, n, dt_s)
+
+    def measured_until_ns(self, t_ns: int) -> int:
+        return self.source.measured_until_ns(t_ns)
+
+    def _position(self, t_ns: int) -> np.ndarray:
+        if t_ns not in self._p:
+            self._p[t_ns] = np.asarray(self.source.state(t_ns), float)[:, 0].copy()
+        return self._p[t_ns]
+
+    def state(self, t_ns: int) -> np.ndarray:
+        self._p[t_ns] = np.asarray(self.source.state(t_ns), float)[:, 0].copy()  # this tick's answer, kept
+        dt = self.period_ns / NS_PER_S
+        y0, y1, y2 = (self._position(t_ns - i * self.period_ns) for i in range(3))
+        return np.stack([y0, (y0 - y1) / dt, (y0 - 2 * y1 + y2) / dt**2], axis=1)
+
+
 __all__ = [
     "HISTORY_S",
     "ROTATION_SIGMA_RAD",
     "MeasuredOutputs",
     "OutputSource",
+    "ReceivedPositions",
     "SmootherBatch",
     "SmootherOutputs",
     "sample_times",

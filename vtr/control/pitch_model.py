@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from ..config import Range, Section, setting
+from ..config import Choice, Range, Section, setting
 from ..conventions import NS_PER_S
 from ..errors import ConfigError, EstimationError
 from .flat_model import GRAVITY_MPS2
@@ -70,7 +70,13 @@ class DiscreteFlatnessSettings(Section):
     smoother_lag_s: float = setting(1.0, Range(0.0, 3600.0, lo_open=True))  # fixed-lag window
     # the discrete-time flatness window ends this many measurement periods before the smoother's newest knot:
     # there the WNOA mean is a natural spline's end (zero acceleration); a knot or two inside it is not
+    # (the same depth anchors the estimator's state: state(now) is the mean there carried to now with the commands
+    # sent, so that all three controllers read the smoothed trajectory at the same latency)
     window_knots_back: int = setting(2, Range(0, 100, integer=True))
+    # where PD and the flatness MPC take velocity and acceleration in the estimator loop: first-order differences of
+    # the positions state(now) answered at their ticks, as §8.4.1 defines both controllers ("finite_difference"),
+    # or state(now)'s own velocity and acceleration ("estimator"; measured, docs/discrete_flatness.md)
+    estimator_derivatives: str = setting("finite_difference", Choice("finite_difference", "estimator"))
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -191,19 +197,26 @@ class PitchPlant:
 
 class InnerLoopModel:
     """The pitch loop of (8.11) as a controller predicts it from the commands it sent, from rest: the acceleration
-    ``g tan(theta)`` it expects of the vehicle (the flat model's map from attitude to acceleration), which it hands
-    to an estimator that extrapolates with the commands sent (eq. 8.15; ``OnlineRepeat.command``)."""
+    ``g tan(theta)`` it expects of the vehicle (the flat model's map from attitude to acceleration); the mean of it
+    over each held command is what it hands to an estimator that extrapolates with the commands sent (eq. 8.15;
+    ``OnlineRepeat.command``)."""
 
     def __init__(self, settings: DiscreteFlatnessSettings, batch: int) -> None:
         self.s = settings
         self.pitch_rad = np.zeros(batch)
+        self.held_acceleration_mps2 = np.zeros(batch)
 
     @property
     def acceleration_mps2(self) -> np.ndarray:
         return GRAVITY_MPS2 * np.tan(self.pitch_rad)
 
     def hold(self, command: np.ndarray) -> None:
-        """The pitch after one control period with ``command`` held (plant steps of ``1 / plant_rate_hz``)."""
+        """The pitch after one control period with ``command`` held (plant steps of ``1 / plant_rate_hz``), and
+        ``held_acceleration_mps2``, the mean acceleration over that period: the one constant that, held from the
+        command's time to the next (``CommandLog``'s zero-order hold), gives the period's velocity change."""
         s, dt = self.s, 1.0 / self.s.plant_rate_hz
+        total = np.zeros_like(self.pitch_rad)
         for _ in range(s.substeps):
+            total = total + self.acceleration_mps2
             self.pitch_rad = self.pitch_rad + dt * (s.attitude_gain * command - self.pitch_rad) / s.time_constant_s
+        self.held_acceleration_mps2 = total / s.substeps

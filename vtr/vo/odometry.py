@@ -28,6 +28,7 @@ from ..errors import ConfigError, EstimationError
 from ..geometry import exp_se3, inv_T, log_se3, rotation_angle, usable_covariance
 from ..timing import StageTimer
 from ..types import FrameKind, Keyframe, OdometryResult, StereoFrame, StereoImages
+from .disparity_offset import DisparityOffsetEstimator, corrected
 from .estimation import bundle_adjust, odometry_row_weights, ransac_pnp, triangulate_bearings
 from .matching import MIN_DEPTH_M, match_landmarks
 from .stereo import StereoProcessor
@@ -40,11 +41,12 @@ class _WindowKeyframe:
     """A keyframe inside the local map; pose and landmarks still being refined."""
 
     id: int
-    frame: StereoFrame
+    frame: StereoFrame  # as measured, less the current disparity offset estimate
     T_cam_world: np.ndarray
     landmark_ids: np.ndarray  # (N,) landmark of each feature, -1 if none
     edge_covariance: np.ndarray
     edge_inliers: int
+    raw: StereoFrame  # as measured
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,19 @@ class StereoOdometry:
         self._velocity: np.ndarray | None = None  # twist per second of T_cur_prev ([rot, trans])
         self._keyframe_poses: dict[int, np.ndarray] = {}  # id -> T_world_kf (latest estimate)
         self._frame_refs: list[tuple[int, np.ndarray]] = []
+        self.disparity_offset = (
+            DisparityOffsetEstimator(camera, self.config.odometry, self.config.stereo.pixel_sigma)
+            if self.config.odometry.disparity_offset == "online"
+            else None
+        )
+
+    @property
+    def disparity_offset_px(self) -> float:
+        """The disparity offset removed from every measured disparity now (0 without the online estimate)."""
+        return 0.0 if self.disparity_offset is None else self.disparity_offset.offset_px
+
+    def _corrected(self, frame: StereoFrame) -> StereoFrame:
+        return corrected(frame, self.camera, self.disparity_offset_px, self.config.stereo.min_disparity_px)
 
     def process(self, images: StereoImages) -> OdometryResult:
         """Stereo-process a rectified pair, then track it (``process_frame``)."""
@@ -140,8 +155,9 @@ class StereoOdometry:
     def process_frame(self, frame: StereoFrame) -> OdometryResult:
         """Track one stereo frame against the local map; returns what happened to it."""
         cfg = self.config.odometry
+        raw, frame = frame, self._corrected(frame)
         if self._T_cw_last is None:
-            return self._start(frame)
+            return self._start(frame, raw)
         ref = self.map.keyframes[-1]
         dt = (frame.t_ns - self._t_last) * 1e-9
         T_pred = self._T_cw_last if self._velocity is None else exp_se3(self._velocity * dt) @ self._T_cw_last
@@ -152,7 +168,7 @@ class StereoOdometry:
         if est is not None and not self._plausible(est.T_cam_world, dt):
             est = None
         if est is None:
-            return self._fail(frame, T_pred, ref)
+            return self._fail(frame, raw, T_pred, ref)
         T_cw, cov, n_matches = est.T_cam_world, est.covariance, est.matches
         n_inliers = len(est.landmarks)
         T_step = T_cw @ inv_T(self._T_cw_last)
@@ -169,7 +185,7 @@ class StereoOdometry:
             or rot > cfg.keyframe_rotation_deg
             or n_inliers < cfg.keyframe_min_inliers
         ):
-            new_kf, finalized = self._add_keyframe(frame, T_cw, cov, n_inliers, est.landmarks, est.features)
+            new_kf, finalized = self._add_keyframe(frame, raw, T_cw, cov, n_inliers, est.landmarks, est.features)
             kind = FrameKind.CREATE_VERTEX
             T_world_frame = self._keyframe_poses[new_kf.id]
             T_kf_frame = ref.T_cam_world @ T_world_frame  # ref may have just left the window
@@ -222,11 +238,16 @@ class StereoOdometry:
         return self._next_id - 1
 
     def _start(
-        self, frame: StereoFrame, T_cw: np.ndarray | None = None, covariance: np.ndarray | None = None
+        self,
+        frame: StereoFrame,
+        raw: StereoFrame,
+        T_cw: np.ndarray | None = None,
+        covariance: np.ndarray | None = None,
     ) -> OdometryResult:
         T_cw = np.eye(4) if T_cw is None else T_cw
         kf = self._new_window_keyframe(
             frame,
+            raw,
             T_cw,
             covariance if covariance is not None else np.zeros((6, 6)),
             0,
@@ -252,6 +273,7 @@ class StereoOdometry:
     def _new_window_keyframe(
         self,
         frame: StereoFrame,
+        raw: StereoFrame,
         T_cw: np.ndarray,
         cov: np.ndarray,
         inliers: int,
@@ -267,13 +289,13 @@ class StereoOdometry:
         ids[fresh] = self.map.add_landmarks(
             frame.points[fresh] @ T_wc[:3, :3].T + T_wc[:3, 3], frame.features.descriptors[fresh]
         )
-        kf = _WindowKeyframe(self._take_id(), frame, T_cw, ids, cov, inliers)
+        kf = _WindowKeyframe(self._take_id(), frame, T_cw, ids, cov, inliers, raw)
         self.map.keyframes.append(kf)
         self._keyframe_poses[kf.id] = T_wc
         return kf
 
-    def _add_keyframe(self, frame, T_cw, cov, inliers, lm_ids, feat_idx):
-        kf = self._new_window_keyframe(frame, T_cw, cov, inliers, lm_ids, feat_idx)
+    def _add_keyframe(self, frame, raw, T_cw, cov, inliers, lm_ids, feat_idx):
+        kf = self._new_window_keyframe(frame, raw, T_cw, cov, inliers, lm_ids, feat_idx)
         with self.timer("window_ba"):
             self._bundle_adjust()
         finalized = []
@@ -382,6 +404,25 @@ class StereoOdometry:
         bad = res.error_sq > cfg.ransac_threshold_px**2
         for s in np.unique(slot[bad]):
             kfs[s].landmark_ids[feat[bad & (slot == s)]] = -1
+        self._update_disparity_offset(res.T_cam_world, slot[~bad], lm_local[~bad], feat[~bad], len(uniq))
+
+    def _update_disparity_offset(
+        self, T_cam_world: np.ndarray, slot: np.ndarray, lm_local: np.ndarray, feat: np.ndarray, n_points: int
+    ) -> None:
+        """Feed the window's newest keyframe to the disparity offset estimate (raw measurements); when the offset to
+        remove changes, the window's keyframes are measured again with it."""
+        if self.disparity_offset is None:
+            return
+        kfs = list(self.map.keyframes)
+        z_raw = np.concatenate([kfs[s].raw.stereo_measurements[feat[slot == s]] for s in range(len(kfs))])
+        order = np.argsort(slot, kind="stable")  # z_raw is grouped by slot
+        before = self.disparity_offset.offset_px
+        z = np.empty_like(z_raw)
+        z[order] = z_raw
+        after = self.disparity_offset.add_window(T_cam_world, slot, lm_local, z, n_points)
+        if after != before:
+            for kf in kfs:
+                kf.frame = self._corrected(kf.raw)
 
     def _place_far_by_parallax(
         self,
@@ -416,12 +457,12 @@ class StereoOdometry:
             and np.degrees(rotation_angle(step[:3, :3])) <= cfg.max_rotation_rate_dps * dt
         )
 
-    def _fail(self, frame: StereoFrame, T_pred: np.ndarray, ref: _WindowKeyframe) -> OdometryResult:
+    def _fail(self, frame: StereoFrame, raw: StereoFrame, T_pred: np.ndarray, ref: _WindowKeyframe) -> OdometryResult:
         """No reliable estimate: carry the pose by the motion prior and restart the local map here."""
         finalized = tuple(self.flush())
         self.map = LocalMap(self.config.odometry.window_keyframes)
         unknown = np.eye(6) * self.config.odometry.failure_variance
-        res = self._start(frame, T_pred, unknown)
+        res = self._start(frame, raw, T_pred, unknown)
         T_kf_frame = ref.T_cam_world @ inv_T(T_pred)
         return OdometryResult(
             t_ns=frame.t_ns,
