@@ -35,7 +35,7 @@ from vtr.app.return_flight import CAMERA_RATE_HZ, ROUTE_SEGMENTS
 from vtr.config import Config
 from vtr.control.online import OnlineRepeat
 from vtr.errors import NotLocalizedError
-from vtr.geometry import inv_T
+from vtr.geometry import exp_se3, inv_T, log_se3
 from vtr.io import open_source
 from vtr.map import Map
 from vtr.navigation.state_view import RepeatStateView
@@ -53,12 +53,12 @@ class Truth:
         self.t_teach, self.T_teach, self.t_rep, self.T_rep = t_teach, T_teach, t_rep, T_rep
 
     def repeat_at(self, t_ns: int) -> np.ndarray:
-        """Camera pose at ``t_ns`` (nearest repeat frame, positions interpolated linearly)."""
+        """Camera pose at ``t_ns``: the constant-twist (SE(3) geodesic) motion between the repeat frames around it.
+        (Positions on the straight chord cut the corner of a turn: 23 mm at the middle of the 0.2 s steps of
+        kitti00_ramp_clip's odd frames against its even frames' ground truth, the geodesic 3.3 mm.)"""
         j = int(np.clip(np.searchsorted(self.t_rep, t_ns) - 1, 0, len(self.t_rep) - 2))
         a = (t_ns - self.t_rep[j]) / (self.t_rep[j + 1] - self.t_rep[j])
-        T = self.T_rep[j if a < 0.5 else j + 1].copy()
-        T[:3, 3] = (1 - a) * self.T_rep[j][:3, 3] + a * self.T_rep[j + 1][:3, 3]
-        return T
+        return self.T_rep[j] @ exp_se3(a * log_se3(inv_T(self.T_rep[j]) @ self.T_rep[j + 1]))
 
     def teach_at(self, t_ns: int) -> np.ndarray:
         return self.T_teach[int(np.argmin(np.abs(self.t_teach - t_ns)))]

@@ -133,11 +133,6 @@ def test_demo_is_the_readme_main_command(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "localized 24 (96.0 %)" in r.stdout
     assert "T_leaf_trunk error vs ground truth" in r.stdout
-    # the repeat's frames/s is its frame loop's, as odometry's; the outputs written after it are timed apart
-    summary = json.loads((tmp_path / "demo" / "repeat" / "run.json").read_text())["summary"]
-    assert summary["fps"] == pytest.approx(summary["frames"] / summary["seconds"])
-    assert summary["output_seconds"] > 0
-    assert f"{summary['fps']:.1f} frames/s (then {summary['output_seconds']:.1f} s for its outputs)" in r.stdout
     for f in (
         "odometry/trajectory.png",
         "repeat/report.png",

@@ -235,32 +235,42 @@ NEES_3DOF_MEDIAN = 2.366  # median of chi-square with 3 degrees of freedom
 NEES_3DOF_99 = 11.345  # its 99 % quantile
 
 
-def _position_nees(taught, kitti_clip) -> np.ndarray:
-    """NEES of the online state's position (in o, relative to the trunk) at each frame's time against KITTI's ground
-    truth relative to the true trunk pose."""
-    from vtr.geometry import inv_T
+def _position_nees(taught, kitti_clip, ticks: int = 1, last: int = 40) -> np.ndarray:
+    """NEES of the online state's position (in o, relative to the trunk) at each odd frame's time before ``last``
+    (None: the whole clip) and, with ``ticks`` > 1, at the control ticks after it (``CONTROL_PERIOD_S`` apart: what a
+    controller reads until the next camera frame at 10 Hz) against KITTI's ground truth (every frame, constant-twist
+    between them) relative to the true trunk."""
+    from vtr.geometry import exp_se3, inv_T, log_se3
 
     with open_source(kitti_clip) as src:
         gt = src.ground_truth()
-        frames = [src[i] for i in range(1, 40, 2)]
+        frames = [src[i] for i in range(1, len(src) if last is None else last, 2)]
     assert gt is not None
     with Map.open(taught) as m:
         teach_t = dict(zip(m.taught_path().ids.tolist(), m.taught_path().t_ns.tolist(), strict=True))
+
+    def truth_at(t: int) -> np.ndarray:
+        j = int(np.clip(np.searchsorted(gt.t_ns, t, side="right") - 1, 0, len(gt.t_ns) - 2))
+        a = (t - gt.t_ns[j]) / (gt.t_ns[j + 1] - gt.t_ns[j])
+        return gt.T_world_cam[j] @ exp_se3(a * log_se3(inv_T(gt.T_world_cam[j]) @ gt.T_world_cam[j + 1]))
+
     out = []
     with OnlineRepeat(taught) as live:
         for f in frames:
             live.feed(f)
             if not live.localized:
                 continue
-            s = live.state(f.t_ns)
             v = live.view
-            k = int(v.trunk_index_at(np.array([f.t_ns]))[0])
-            T_trunk = gt.T_world_cam[int(np.argmin(np.abs(gt.t_ns - teach_t[int(v.route.path.ids[k])])))]
-            T_rel = inv_T(T_trunk) @ gt.T_world_cam[int(np.argmin(np.abs(gt.t_ns - f.t_ns)))]
-            T_sv = v.route.T_sensor_vehicle
-            p_true = (v.route.trunk(k)[0] @ inv_T(T_sv) @ T_rel @ T_sv)[:3, 3]
-            e = s.position - p_true
-            out.append(float(e @ np.linalg.solve(s.position_covariance, e)))
+            for j in range(ticks):
+                t = int(f.t_ns) + int(round(j * CONTROL_PERIOD_S * 1e9))
+                s = live.state(t)
+                k = int(v.trunk_index_at(np.array([t]))[0])
+                T_trunk = gt.T_world_cam[int(np.argmin(np.abs(gt.t_ns - teach_t[int(v.route.path.ids[k])])))]
+                T_rel = inv_T(T_trunk) @ truth_at(t)
+                T_sv = v.route.T_sensor_vehicle
+                p_true = (v.route.trunk(k)[0] @ inv_T(T_sv) @ T_rel @ T_sv)[:3, 3]
+                e = s.position - p_true
+                out.append(float(e @ np.linalg.solve(s.position_covariance, e)))
     return np.array(out)
 
 
@@ -293,14 +303,20 @@ def test_position_covariance_covers_the_error(taught, kitti_clip):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured on kitti06 (odd frames 1:40:2 against even 0:40:2, the state at each "
-    "frame's time): position NEES median 0.48 over 19 states, 100 % inside the 99 % bound (the bound: "
-    "median within 30 % of 3; 0.96 before odometry.inlier_rounds 4, 1.49 with Qc 1 m^2/s^3 and the "
-    "localization covariance x9); "
-    "conservative: the localization's own NEES median is 0.73 here, its taught-edge term (each taught "
-    "vertex's temporal edge, whole) is wider than kitti06's errors while right on kitti00_ramp_clip "
-    "(2.62) and the aerial flights (2.34-2.60); docs/localization.md 'What the covariance holds'",
+    reason="measured on the whole kitti06 clip (the state at each odd frame's time and the 9 control ticks after it, "
+    "240 states): position NEES median 1.91, 97 % inside the 99 % bound (the bound: median within 30 % of 3, 2.1-3.9); "
+    "at the frame times alone 2.29, 100 %; on the first 40 frames 2.24, 100 %. Before the map's part was split into "
+    "what consecutive leaves share and what differs: 1.75, 96 % at the ticks. After the newest knot the covariance "
+    "grows faster than the error (10-90 ms after a frame 1.88): it follows the Qc estimated from the motion "
+    "(x0.1: ticks 3.13, 91 %; x10: 1.27), not changed (a scale would be fitted to these clips); tools/nees_stages.py, "
+    "docs/online.md 'Covariance: how well it is calibrated'",
 )
-def test_position_covariance_is_calibrated(taught, kitti_clip):
-    nees = _position_nees(taught, kitti_clip)
-    assert 0.7 * 3 <= np.median(nees) <= 1.3 * 3, np.median(nees)
+def test_position_covariance_is_calibrated(kitti_clip, tmp_path):
+    """The issue's bound on the state a controller reads, on the whole kitti06 clip (taught on its even frames,
+    repeated on its odd ones, as tools/nees_stages.py): at each frame's time and at the control ticks until the next
+    camera frame, position NEES median within 30 % of 3 and >= 90 % inside the 99 % bound."""
+    whole = tmp_path / "route.vtrmap"
+    teach_command(kitti_clip, whole, "0::2", Config())
+    nees = _position_nees(whole, kitti_clip, ticks=int(round(CAMERA_PERIOD_S / CONTROL_PERIOD_S)), last=None)
+    median, inside = float(np.median(nees)), float(np.mean(nees <= NEES_3DOF_99))
+    assert 0.7 * 3 <= median <= 1.3 * 3 and inside >= 0.9, (median, inside, len(nees))

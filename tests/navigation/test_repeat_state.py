@@ -4,11 +4,14 @@ synthetic chains for the anchoring before the first localization and for a camer
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from perception_model.frames import T_VEHICLE_LEVEL_CAMERA
 from vtr.app.pipeline import repeat_command, teach_command
@@ -251,6 +254,57 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
     assert np.allclose(s.along_track, 0.5 + SPEED * (s.t_ns - s.t_ns[0]) * 1e-9, atol=1e-3)
     assert np.allclose(s.yaw, 0.0, atol=1e-6)
     assert np.allclose(s.position[:, 1:], [[-0.3, 0.0]], atol=1e-3)
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    map_sigma_m=st.floats(0.003, 0.1),
+    map_sigma_rad=st.floats(1e-4, 0.01),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_the_map_s_part_is_split_into_what_consecutive_leaves_share_and_what_differs(map_sigma_m, map_sigma_rad, seed):
+    """Each localization's covariance holds the measurements' part and the map's placement part F
+    (frame_covariance), a Gauss-Markov error along the path: consecutive leaves d apart share rho = exp(-d / L) of it,
+    L the taught spacing. The smoother is fed the measurements' part plus (1 - rho) F and every state adds rho F of the
+    latest localization once: the state equals, mean and covariance, a run whose localizations carry the measurements'
+    part plus (1 - rho) F and no map part, plus rho F. Here the taught vertices are 1 m apart and the leaves 0.5 m
+    (rho = exp(-0.5)), 1 m across a failed localization (exp(-1)); the first localization shares nothing before it
+    (rho = 1: all of F added at the output, the same total as feeding it)."""
+    rng = np.random.default_rng(seed)
+    L = np.diag(np.r_[[map_sigma_rad] * 3, [map_sigma_m] * 3]) @ (np.eye(6) + 0.3 * rng.normal(size=(6, 6)))
+    F = L @ L.T  # the map's part: any covariance, correlated across axes
+    failed = {4, 9}
+    ids, T_priv, steps = _synthetic_steps(20, failed=failed)
+    spacing_m = 1.0  # _synthetic_steps' taught vertices
+    with_map, fed, rho_of = [], [], {}
+    previous = None
+    for j, step in enumerate(steps):
+        loc = step.localization
+        m = f = loc
+        if loc is not None and loc.success:
+            p = step.odometry.T_world_frame[:3, 3]
+            rho = 1.0 if previous is None else float(np.exp(-np.linalg.norm(p - previous) / spacing_m))
+            previous, rho_of[j] = p, rho
+            m = dataclasses.replace(loc, covariance=loc.covariance + F, frame_covariance=F)
+            f = dataclasses.replace(loc, covariance=loc.covariance + (1.0 - rho) * F)
+        with_map.append(dataclasses.replace(step, localization=m))
+        fed.append(dataclasses.replace(step, localization=f))
+    assert np.isclose(rho_of[3], np.exp(-0.5)) and np.isclose(rho_of[5], np.exp(-1.0)) and rho_of[0] == 1.0
+    plain = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
+    mapped = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, np.eye(4))
+    for a, b in zip(fed, with_map, strict=True):
+        plain.add(a)
+        mapped.add(b)
+    for t in (0, 7 * DT_NS, 9 * DT_NS + DT_NS // 3, 19 * DT_NS, 19 * DT_NS + 40_000_000):
+        p = plain.controller_state_at(t, with_covariance=True)
+        m = mapped.controller_state_at(t, with_covariance=True)
+        latest = max(j for j in rho_of if j * DT_NS <= t)
+        F_out = mapped.view().frame_output_covariance(t, m.T_o_a)
+        F_whole = dataclasses.replace(mapped.view(), vertex_frame_covariance=np.broadcast_to(F, (20, 6, 6)))
+        assert np.allclose(F_out, rho_of[latest] * F_whole.frame_output_covariance(t, m.T_o_a), rtol=1e-9, atol=1e-15)
+        assert np.allclose(m.position, p.position, atol=1e-9)
+        assert np.allclose(m.position_covariance, p.position_covariance + F_out[:3, :3], rtol=1e-6, atol=1e-12)
+        assert np.isclose(m.yaw_variance, p.yaw_variance + F_out[3, 3], rtol=1e-6, atol=1e-14)
 
 
 def test_never_localized_uses_chain_assumption():

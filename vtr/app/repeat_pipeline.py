@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -82,7 +81,7 @@ class RepeatSummary:
     frames: int
     vertices: int
     localized: int
-    seconds: float  # the frame loop's, as odometry's and teach's summaries count theirs
+    seconds: float
     localization_seconds: float
     median_inliers: float
     path_error_m: float
@@ -92,7 +91,6 @@ class RepeatSummary:
     integrity: Integrity | None = None  # correct / wrong successes when ground truth covers teach and repeat
     ground_truth_note: str | None = None  # why the repeat was not judged against ground truth (None: it was)
     experiences: dict | None = None  # trusted experiences available, successes that used one, keyframes per run
-    output_seconds: float = 0.0  # after the loop: evaluation, state.csv, trajectory_tum.txt, report.png
 
     @property
     def success_rate(self) -> float:
@@ -106,7 +104,6 @@ class RepeatSummary:
             "success_rate": self.success_rate,
             "seconds": self.seconds,
             "fps": self.frames / self.seconds if self.seconds > 0 else None,
-            "output_seconds": self.output_seconds,
             "localization_ms_per_vertex": 1000 * self.localization_seconds / max(self.vertices, 1),
             "median_inliers": self.median_inliers,
             "median_path_error_m": self.path_error_m,
@@ -244,10 +241,9 @@ class RepeatRun:
         with ExitStack() as stack:
             opened = self.open(stack)
             loop = self.loop(opened)
-            t_after = time.perf_counter()
             evaluation = self.evaluate(opened, loop)
             state = self.write(opened, loop, evaluation)
-            summary = self.summarize(opened, loop, evaluation, state, time.perf_counter() - t_after)
+            summary = self.summarize(opened, loop, evaluation, state)
             opened.log.write(summary.to_dict())
         return summary
 
@@ -376,9 +372,11 @@ class RepeatRun:
         loop: RepeatLoop,
         evaluation: RepeatEvaluation,
         state: StateTable,
-        seconds_after_loop: float,
     ) -> RepeatSummary:
-        """The run's record (run.json's summary; the command line prints it)."""
+        """The run's record (run.json's summary; the command line prints it). Its seconds are the loop's, as the
+        odometry's and the teach's: every frame through odometry, localization, the map writes and the state
+        estimator, the run finished in the map; the reports written after it (``state.csv`` at the output rate,
+        ``report.png``) are not in its frames/s (``tools/bench_processes.py`` times whole processes)."""
         ok = [loc for loc in loop.localizations if loc.success]
         state_summary = StateSummary.of(
             state, self.options.rate_hz, loop.state_estimator.seconds, len(loop.t_ns), loop.state_estimator.pauses_s
@@ -398,7 +396,6 @@ class RepeatRun:
             vertices=len(loop.localizations),
             localized=len(ok),
             seconds=loop.seconds,
-            output_seconds=seconds_after_loop,
             localization_seconds=loop.localization_seconds,
             median_inliers=float(np.median([loc.inliers for loc in ok])) if ok else 0.0,
             path_error_m=float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan"),

@@ -56,7 +56,7 @@ def repeat_lines(s: RepeatSummary) -> list[str]:
     out = [
         f"repeat: frames {s.frames}  vertices {s.vertices}  localized {s.localized} "
         f"{rate}  median inliers {inliers}  "
-        f"{_fps(s.frames, s.seconds):.1f} frames/s (then {s.output_seconds:.1f} s for its outputs)"
+        f"{_fps(s.frames, s.seconds):.1f} frames/s"
     ]
     if s.statuses:
         out.append(refusals_line(s.statuses))

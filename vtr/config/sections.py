@@ -249,6 +249,11 @@ class LocalizationConfig(Section):
     # (vtr.navigation.experiences.taught_covariance), not by a scale: a fixed 9 was conservative on kitti06 and the
     # synthetic aerial routes (position NEES 0.9 / 0.4) and overconfident on kitti00_ramp_clip (3.4-4.5)
     covariance_scale: float = setting(1.0, Range(0.0, 1e6, lo_open=True))
+    # the pixel part of a localization's covariance: the delete-one-block jackknife over this many cells per side of
+    # the leaf's image (features in one cell share their errors); 0, or fewer than covariance_min_blocks cells with
+    # inliers: the adjustment's inverse Hessian times its variance factor (docs/localization.md)
+    covariance_blocks: int = setting(8, Range(0, 1000, integer=True))
+    covariance_min_blocks: int = setting(16, Range(7, 1_000_000, integer=True))
     # chi-square gate (6 dof) on the innovation of a localization against the odometry-propagated prior, and
     # between two keyframes' place candidates before the first success: 22.46 = 99.9 %
     innovation_gate: float = setting(22.46, Range(0.0, 1e9, lo_open=True))

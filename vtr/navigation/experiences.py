@@ -82,14 +82,24 @@ def experience_covariance(
 def taught_covariance(
     submap: TaughtSubmap, est: LocalizationEstimate, edge_covariance: Callable[[int], np.ndarray | None]
 ) -> np.ndarray:
-    """What the taught submap's own placement adds to the covariance of ``est`` (6x6, [rot, trans], as
-    :func:`experience_covariance`): the adjustment holds each taught vertex ``s`` and the landmarks the teach placed
-    with it fixed, but the teach placed vertex ``s`` relative to its predecessor only as well as its temporal edge's
-    covariance ``P_s`` says (and its landmarks, triangulated and refined in that window, with it). Each taught vertex
-    that gave inliers adds ``Ad(T_leaf_s) P_s Ad(T_leaf_s)'`` whole, as an experience's placement does (weighted by
-    the vertices' shares of the inliers it covered 81 % of the errors on the backward aerial flight, whole 89 %).
-    Zero without taught inliers (docs/localization.md, "What the covariance holds")."""
-    return _placement_covariance(submap, est, edge_covariance)  # None: an experience's vertex
+    """What the taught map's own placement adds to the covariance of ``est`` (6x6, [rot, trans], as
+    :func:`experience_covariance`): the taught landmarks sit where odometry's window refined them, consistent with
+    each other and with the window's poses, and the trunk's stored pose is off from them by the error its temporal
+    edge's covariance ``P_t`` says. The estimate is relative to that stored pose, so it carries ``P_t`` moved to the
+    leaf, ``Ad(T_leaf_trunk) P_t Ad(T_leaf_trunk)'``, whichever taught vertices gave the inliers. (Each vertex's
+    edge added whole, as before, was about twice kitti06's errors in sigma; the adjustment with the neighbours free
+    under their edges' priors moves the covariance by a few percent.) Zero without taught inliers
+    (docs/localization.md, "What the covariance holds")."""
+    if not est.ok or not est.inliers or est.T_leaf_trunk is None:
+        return np.zeros((6, 6))
+    slots = np.unique(submap.slot[est.matched[est.inlier]])
+    if not any(edge_covariance(int(submap.vertex_ids[s])) is not None for s in slots):
+        return np.zeros((6, 6))  # experiences' inliers only
+    P = edge_covariance(int(submap.vertex_ids[submap.trunk_slot]))
+    if P is None:
+        return np.zeros((6, 6))
+    A = adjoint(est.T_leaf_trunk)
+    return A @ np.asarray(P, float) @ A.T
 
 
 class ExperienceLocalizer(Localizer):

@@ -24,8 +24,9 @@ from ..timing import StageTimer
 from ..types import StereoFrame
 from ..vo.estimation import odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
+from ..vo.jackknife import leaf_pose_jackknife
 from ..vo.matching import match_landmarks
-from .leaf_adjustment import adjust_leaf
+from .leaf_adjustment import LeafAdjustment, adjust_leaf
 
 
 class LocalizationStatus(StrEnum):
@@ -246,8 +247,8 @@ class Localizer:
         ``match_radius_px`` around a place candidate's) grows with the failures since the last success, as the
         prior (odometry since then) grows less certain. An estimate is refused (with its reason) unless
         it has enough inliers, enough inliers per match, and inlier residuals that fit the pixel noise
-        (median at most ``max_median_residual_px``); its covariance is the adjustment's with the pixel noise the
-        residuals estimate (their robust cost per degree of freedom). What the taught map's own placement adds is
+        (median at most ``max_median_residual_px``); its covariance is the measurements' (:meth:`_pixel_covariance`:
+        the jackknife over cells of the leaf's image). What the taught map's own placement adds is
         :func:`vtr.navigation.experiences.taught_covariance` (docs/localization.md, "What the covariance holds").
         """
         c = self.config
@@ -285,8 +286,8 @@ class Localizer:
             return LocalizationEstimate.failed(li, LocalizationStatus.LOW_INLIER_RATIO, inlier, median_px)
         if not median_px <= c.max_median_residual_px:
             return LocalizationEstimate.failed(li, LocalizationStatus.RESIDUALS, inlier, median_px)
-        # the pixel noise as the residuals estimate it (the a-posteriori variance factor), times the user's scale
-        cov = cov * factor * c.covariance_scale
+        # the pixel part (the image-block jackknife, or the adjustment's with its variance factor), times the scale
+        cov = cov * c.covariance_scale
         return LocalizationEstimate(T, cov, len(li), li, inlier, LocalizationStatus.LOCALIZED, median_px)
 
     def _refine(
@@ -324,10 +325,51 @@ class Localizer:
         err_sq = np.maximum(res.error_sq[:n], res.error_sq[n:])
         inlier = err_sq <= self.config.ransac_threshold_px**2
         # the a-posteriori variance factor: the robust cost (in units of the modelled noise) per degree of freedom,
-        # the measured rows less the parameters fitted to them (3 per landmark, 6 for the leaf)
-        dof = int(np.count_nonzero(w > 0)) - 3 * n - 6
+        # the measured rows counted by their weight (a row of weight w adds w times its noise to the cost: a far
+        # landmark's disparity at far_disparity_weight adds almost nothing) less the parameters fitted to them (3 per
+        # landmark, 6 for the leaf); counting such rows whole read the noise variance 0.6 of itself on the KITTI clips
+        dof = float(w.sum()) - 3 * n - 6
         factor = res.cost / dof if dof > 0 else float("inf")
-        return res.T_leaf_trunk, res.covariance, inlier, err_sq, factor
+        cov = self._pixel_covariance(res, submap, landmarks, z_taught, z_leaf, w, factor, inlier)
+        return res.T_leaf_trunk, cov, inlier, err_sq, factor
+
+    def _pixel_covariance(
+        self,
+        res: LeafAdjustment,
+        submap: TaughtSubmap,
+        landmarks: np.ndarray,
+        z_taught: np.ndarray,
+        z_leaf: np.ndarray,
+        w: np.ndarray,
+        factor: float,
+        inlier: np.ndarray,
+    ) -> np.ndarray:
+        """The covariance of the leaf pose from the measurements (:meth:`_refine`'s adjustment ``res``): the
+        delete-one-block jackknife over cells of the leaf's image (``covariance_blocks`` per side; features that
+        share a cell share their errors, which the adjustment's inverse Hessian with independent pixel noise does
+        not see), or, with fewer than ``covariance_min_blocks`` cells holding inliers, the adjustment's covariance
+        times its variance factor (docs/localization.md, "What the covariance holds")."""
+        c, cam, n = self.config, self.camera, len(landmarks)
+        iid = res.covariance * factor
+        sel = np.flatnonzero(inlier)
+        if c.covariance_blocks == 0 or len(sel) == 0:
+            return iid
+        uv = z_leaf[sel, :2]
+        cells = np.clip((uv / [cam.width, cam.height] * c.covariance_blocks).astype(int), 0, c.covariance_blocks - 1)
+        jk, blocks = leaf_pose_jackknife(
+            res.T_leaf_trunk,
+            submap.T_vertex_trunk[submap.slot[landmarks[sel]]],
+            res.points[sel],
+            np.nan_to_num(z_taught[sel]),
+            w[sel],
+            np.nan_to_num(z_leaf[sel]),
+            w[n + sel],
+            cells[:, 0] * c.covariance_blocks + cells[:, 1],
+            cam,
+            self.pixel_sigma,
+            self.estimation.huber_px,
+        )
+        return jk if blocks >= c.covariance_min_blocks else iid
 
     def _row_weights(self, z: np.ndarray) -> np.ndarray:
         return odometry_row_weights(z, self.camera, self.estimation)

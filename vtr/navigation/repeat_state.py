@@ -158,6 +158,13 @@ class RepeatStateEstimator:
         # the map's placement error (6x6, leaf camera) of the latest localization at or before the vertex
         self.vertex_frame_covariance: list[np.ndarray] = []
         self.frame_t_ns: list[int] = []  # every frame fed (a state long after the last one is unknown)
+        # the taught spacing at each path index (m, mean of its steps to its neighbours): the correlation length of
+        # the map's placement error along the path; and the repeat pose of the last localized vertex
+        step = np.linalg.norm(np.diff(path.positions, axis=0), axis=1)
+        self._vertex_spacing_m = (
+            0.5 * (np.r_[step[:1], step] + np.r_[step, step[-1:]]) if len(step) else np.zeros(len(path))
+        )
+        self._last_localized_world: np.ndarray | None = None
         self._ever = False
         self.unknown: str | None = None  # why the state of a never-localized run is unknown
         self.first_t_ns: int | None = None
@@ -210,15 +217,20 @@ class RepeatStateEstimator:
             T_teach_leaf = loc_cov = None
             frame_cov = self.vertex_frame_covariance[-1] if self.vertex_frame_covariance else np.zeros((6, 6))
             if loc is not None and loc.success:
-                # the smoother averages localizations as independent; the map's placement part of each, shared in
-                # part by the leaves localized against the same taught vertices, is added to every state after it
-                # (RepeatStateView.frame_output_covariance): an upper bound whatever that share (docs/smoother.md)
-                loc_cov = usable_covariance(loc.covariance)
+                # the map's placement part F of a localization is a first-order Gauss-Markov error along the path:
+                # consecutive leaves share rho F, rho = exp(-d / L) with d the distance between them and L the
+                # taught vertex spacing (the distance over which the trunk, whose placement F is, is replaced). The
+                # smoother, which averages localizations as independent, is fed the measurements' part plus the
+                # part that differs, (1 - rho) F; every state after it adds the shared part rho F once
+                # (RepeatStateView.frame_output_covariance). Exact for one leaf and for a pair, conservative for
+                # any average of more (docs/smoother.md "Feeding it from a repeat")
+                F = np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance, float)
+                rho = self._map_error_correlation(loc.trunk_id, np.asarray(kf.T_world_kf, float))
+                loc_cov = usable_covariance(np.asarray(loc.covariance, float) - rho * F)
                 if loc_cov is not None:
                     T_teach_leaf = self.path.T_world_localized(loc.trunk_id, loc.T_leaf_trunk)
-                    frame_cov = (
-                        np.zeros((6, 6)) if loc.frame_covariance is None else np.asarray(loc.frame_covariance, float)
-                    )
+                    frame_cov = rho * F
+                    self._last_localized_world = np.asarray(kf.T_world_kf, float)
             self.vertex_frame_covariance.append(frame_cov)
             v = _Vertex(
                 int(r.t_ns),
@@ -257,6 +269,18 @@ class RepeatStateEstimator:
         self.smoother = TrajectorySmoother(self.smoothing)
         self._anchored = False
         self._last = None
+        self._last_localized_world = None
+
+    def _map_error_correlation(self, trunk_id: int, T_world_leaf: np.ndarray) -> float:
+        """The correlation of the map's placement error between this leaf and the previous localized one (1 for
+        the first of a segment: all of it is then added at the output, the same total for a single leaf):
+        ``exp(-d / L)``, d the distance travelled between them (repeat odometry), L the taught spacing at the trunk
+        (the mean of its steps to its neighbours on the path)."""
+        if self._last_localized_world is None:
+            return 1.0
+        d = float(np.linalg.norm(T_world_leaf[:3, 3] - self._last_localized_world[:3, 3]))
+        spacing = float(self._vertex_spacing_m[self.path.index(trunk_id)])
+        return math.exp(-d / spacing) if spacing > 0.0 else 0.0
 
     def _drift_covariance(self, T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
         """Odometry drift between two vertices, growing with the distance travelled ([rot, trans])."""
