@@ -22,10 +22,11 @@ from ..geometry import inv_T
 from ..map.records import RUN_SHIFT
 from ..timing import StageTimer
 from ..types import StereoFrame
-from ..vo.estimation import BundleResult, bundle_adjust, odometry_row_weights, ransac_pnp
+from ..vo.estimation import odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
 from ..vo.jackknife import leaf_pose_jackknife
 from ..vo.matching import match_landmarks
+from .leaf_adjustment import LeafAdjustment, adjust_leaf
 
 
 class LocalizationStatus(StrEnum):
@@ -242,7 +243,8 @@ class Localizer:
 
         Without a trusted prior (searching: the start, after a loss) a localization needs
         ``min_inliers_unlocalized`` inliers: unguided matches are far more often wrong. The search
-        radius around the prior's prediction grows with the failures since the last success, as the
+        radius around the prior's prediction (``tracking_match_radius_px`` around the chain's own, trusted prior,
+        ``match_radius_px`` around a place candidate's) grows with the failures since the last success, as the
         prior (odometry since then) grows less certain. An estimate is refused (with its reason) unless
         it has enough inliers, enough inliers per match, and inlier residuals that fit the pixel noise
         (median at most ``max_median_residual_px``); its covariance is the measurements' (:meth:`_pixel_covariance`:
@@ -251,7 +253,8 @@ class Localizer:
         """
         c = self.config
         min_inliers = c.min_inliers if trusted_prior else c.min_inliers_unlocalized
-        radius = min(c.match_radius_px * c.match_radius_growth**consecutive_failures, c.max_match_radius_px)
+        base = c.tracking_match_radius_px if trusted_prior else c.match_radius_px  # the chain's own prior is tighter
+        radius = min(base * c.match_radius_growth**consecutive_failures, c.max_match_radius_px)
         with self.timer("match"):
             li, lj = self._match(leaf, submap, T_prior, radius)
         if len(li) < c.min_matches:
@@ -301,18 +304,17 @@ class Localizer:
         depths too would turn the two windows' scale difference, times the depth, into translation.
         """
         o = self.estimation
-        n, V = len(landmarks), len(submap.vertex_ids)
+        n = len(landmarks)
         z_taught = submap.z[landmarks].copy()
         w = self._row_weights(np.concatenate([z_taught, z_leaf]))
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
         w[np.flatnonzero(refined), 2] = 1.0  # taught rows come first
-        res = bundle_adjust(
-            np.concatenate([submap.T_vertex_trunk, T_leaf_trunk[None]]),
-            np.r_[np.ones(V, bool), False],
+        res = adjust_leaf(  # bundle_adjust of this one shape, in one compiled kernel
+            submap.T_vertex_trunk,
+            submap.slot[landmarks],
+            T_leaf_trunk,
             submap.points_trunk[landmarks],
-            np.r_[submap.slot[landmarks], np.full(n, V)],
-            np.r_[np.arange(n), np.arange(n)],
             np.nan_to_num(np.concatenate([z_taught, z_leaf])),
             w,
             self.camera,
@@ -329,11 +331,11 @@ class Localizer:
         dof = float(w.sum()) - 3 * n - 6
         factor = res.cost / dof if dof > 0 else float("inf")
         cov = self._pixel_covariance(res, submap, landmarks, z_taught, z_leaf, w, factor, inlier)
-        return res.T_cam_world[V], cov, inlier, err_sq, factor
+        return res.T_leaf_trunk, cov, inlier, err_sq, factor
 
     def _pixel_covariance(
         self,
-        res: BundleResult,
+        res: LeafAdjustment,
         submap: TaughtSubmap,
         landmarks: np.ndarray,
         z_taught: np.ndarray,
@@ -347,15 +349,15 @@ class Localizer:
         share a cell share their errors, which the adjustment's inverse Hessian with independent pixel noise does
         not see), or, with fewer than ``covariance_min_blocks`` cells holding inliers, the adjustment's covariance
         times its variance factor (docs/localization.md, "What the covariance holds")."""
-        c, cam, n, V = self.config, self.camera, len(landmarks), len(submap.vertex_ids)
-        iid = res.pose_covariance[V] * factor
+        c, cam, n = self.config, self.camera, len(landmarks)
+        iid = res.covariance * factor
         sel = np.flatnonzero(inlier)
         if c.covariance_blocks == 0 or len(sel) == 0:
             return iid
         uv = z_leaf[sel, :2]
         cells = np.clip((uv / [cam.width, cam.height] * c.covariance_blocks).astype(int), 0, c.covariance_blocks - 1)
         jk, blocks = leaf_pose_jackknife(
-            res.T_cam_world[V],
+            res.T_leaf_trunk,
             submap.T_vertex_trunk[submap.slot[landmarks[sel]]],
             res.points[sel],
             np.nan_to_num(z_taught[sel]),
