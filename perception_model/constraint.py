@@ -258,11 +258,11 @@ class PerceptionConstraint:
             for name in ("notcut", "inside"):
                 work[name] = np.empty((n, m), dtype=bool)
             work["lin"] = np.empty((5 * n, m))  # rows: v_x, v_y, v_z, z.v, (dz/dyaw).v
+            work["prod"] = np.empty((n, m))
             work["sq"] = np.empty((3, n, m))
             work["u"] = np.ascontiguousarray(np.broadcast_to(self._u[:, None, :], (3, n, m)))
             work["h"] = np.empty((5, n, m))  # per-landmark terms summed over landmarks
             work["hw"] = np.empty((5, n, m))
-            work["coef"] = np.zeros((5 * n, 4))
             work["a_stack"] = np.empty((2 * n, m))
             self._work, self._work_n = work, n
         return self._work
@@ -353,21 +353,23 @@ class PerceptionConstraint:
         w = self._workspace(n)
         mul, add, sub = np.multiply, np.add, np.subtract
         t0 = w["t0"]
-        # One small matmul gives v = p_ao - p_is (landmark -> camera) and the projections z.v, dz.v:
-        # rows [X_k, -e_k] and [z.X, -z] times [1; P^T]  (5N x 4) @ (4 x M)
-        coef = w["coef"]
+        # v = p_ao - p_is (landmark -> camera) and the projections z.v, dz.v, elementwise into the rows of "lin"
+        # (v_x, v_y, v_z, z.v, dz.v; z.v = z.X - z.P). Not as one (5N x 4) @ (4 x M) matmul: BLAS rounds a row
+        # differently with its place in the matrix (blocking, FMA), so a path evaluated in chunks would differ
+        # from the whole in the last bits
+        lin, prod, pt = w["lin"], w["prod"], self._affine[1:]
         for k in range(3):
-            coef[k * n : (k + 1) * n, 0] = x[:, k]
-            coef[k * n : (k + 1) * n, k + 1] = -1.0
-        coef[3 * n : 4 * n, 0] = np.einsum("ij,ij->i", z, x)
-        coef[3 * n : 4 * n, 1:] = -z
-        rows = 4 * n
-        if dz is not None:
-            coef[4 * n :, 0] = np.einsum("ij,ij->i", dz, x)
-            coef[4 * n :, 1:] = -dz
-            rows = 5 * n
+            sub(x[:, k : k + 1], pt[k], out=lin[k * n : (k + 1) * n])
+        for r, axis in ((3, z), (4, dz)):
+            if axis is None:
+                continue
+            out, tmp = lin[r * n : (r + 1) * n], prod[:n]
+            mul(axis[:, 0:1], pt[0], out=out)
+            for k in (1, 2):
+                mul(axis[:, k : k + 1], pt[k], out=tmp)
+                add(out, tmp, out=out)
+            sub(np.einsum("ij,ij->i", axis, x)[:, None], out, out=out)
         lin = w["lin"]
-        np.matmul(coef[:rows], self._affine, out=lin[:rows])
         v = lin[: 3 * n].reshape(3, n, -1)
         sq = w["sq"]
         # r = |v|,  v^ = v / r
