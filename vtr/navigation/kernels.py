@@ -1,7 +1,8 @@
 """Compiled (numba) inner loops of place recognition's queries (:mod:`vtr.navigation.place`: the first pass
 over the inverted file and the exact scores of the shortlisted vertices) and of the localization's submap adjustment
 (:mod:`vtr.navigation.leaf_adjustment`: its whole Levenberg-Marquardt loop, ``adjust``). Plain arrays in, plain arrays
-out; compiled on first use and cached next to this file, as ``vtr.vo.kernels`` are."""
+out; compiled on first use and cached next to this file, as ``vtr.vo.kernels`` are. ``jackknife`` is the covariance
+the localization reports (:func:`vtr.navigation.leaf_adjustment.leaf_pose_jackknife`)."""
 
 from __future__ import annotations
 
@@ -339,10 +340,119 @@ def adjust(Rt, tt, slot, T0, X0, z, meas, info, k_huber, fx, fy, cx, cy, fb, ite
     return T, X, err_sq, cov, cost, True
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _whitened_view(R, t, x, z, w, sigma2, k_huber, fx, fy, cx, cy, fb, Y, J, ew):
+    """One stereo view of point ``x`` from pose (R, t): the camera-frame point into Y, d(whitened residual)/d(Y)
+    (3x3) into J and the whitened residual into ew; rows weighted by ``w`` (0: not measured) and Huber-weighted as
+    the adjustment weighs them."""
+    for a in range(3):
+        Y[a] = R[a, 0] * x[0] + R[a, 1] * x[1] + R[a, 2] * x[2] + t[a]
+    iz = 1.0 / Y[2]
+    u = fx * Y[0] * iz + cx
+    proj0, proj1, proj2 = u, fy * Y[1] * iz + cy, u - fb * iz
+    r2 = 0.0
+    for a in range(3):
+        pa = proj0 if a == 0 else (proj1 if a == 1 else proj2)
+        ew[a] = pa - z[a] if w[a] > 0 else 0.0
+        r2 += w[a] / sigma2 * ew[a] * ew[a]
+    r = np.sqrt(r2)
+    huber = 1.0 if r <= k_huber else k_huber / max(r, 1e-12)
+    J[0, 0], J[0, 1], J[0, 2] = fx * iz, 0.0, -fx * Y[0] * iz * iz
+    J[1, 0], J[1, 1], J[1, 2] = 0.0, fy * iz, -fy * Y[1] * iz * iz
+    J[2, 0], J[2, 1], J[2, 2] = fx * iz, 0.0, -(fx * Y[0] - fb) * iz * iz
+    for a in range(3):
+        sa = np.sqrt(huber * w[a] / sigma2)
+        ew[a] *= sa
+        for c in range(3):
+            J[a, c] *= sa
+
+
+@njit(cache=True, nogil=True)
+def jackknife(Rt, tt, T_leaf, X, zt, wt, zl, wl, cell, n_cells, sigma_px, huber_px, damping, fx, fy, cx, cy, fb):
+    """The delete-one-block jackknife of the leaf pose (vtr.navigation.leaf_adjustment.leaf_pose_jackknife): per
+    landmark i (X (N, 3)) seen from its held taught pose (Rt[i], tt[i]) and from the leaf, its share of the reduced
+    leaf system and gradient, summed per ``cell[i]`` (< n_cells); each block's step with that block left out.
+    Returns the covariance (6x6) and the number of non-empty blocks (0 when a system without a block is singular)."""
+    R, t = T_leaf[:3, :3], T_leaf[:3, 3]
+    sigma2, k_huber = sigma_px * sigma_px, huber_px / sigma_px
+    Sb, gb = np.zeros((n_cells, 6, 6)), np.zeros((n_cells, 6))
+    used = np.zeros(n_cells, np.bool_)
+    Y, Jyt, Jyl, et, el = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
+    Jxt, Jxl, Jp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 6))
+    A, Hinv, W, C = np.empty((3, 3)), np.empty((1, 3, 3)), np.empty((6, 3)), np.empty((3, 6))
+    bl = np.empty(3)
+    for i in range(len(X)):
+        _whitened_view(Rt[i], tt[i], X[i], zt[i], wt[i], sigma2, k_huber, fx, fy, cx, cy, fb, Y, Jyt, et)
+        _whitened_view(R, t, X[i], zl[i], wl[i], sigma2, k_huber, fx, fy, cx, cy, fb, Y, Jyl, el)
+        for a in range(3):
+            for c in range(3):
+                Jxt[a, c] = Jyt[a, 0] * Rt[i, 0, c] + Jyt[a, 1] * Rt[i, 1, c] + Jyt[a, 2] * Rt[i, 2, c]
+                Jxl[a, c] = Jyl[a, 0] * R[0, c] + Jyl[a, 1] * R[1, c] + Jyl[a, 2] * R[2, c]
+            # d/d(leaf pose), left perturbation: [-Jy [Y]x, Jy] with Y the leaf's camera-frame point
+            Jp[a, 0] = Jyl[a, 2] * Y[1] - Jyl[a, 1] * Y[2]
+            Jp[a, 1] = Jyl[a, 0] * Y[2] - Jyl[a, 2] * Y[0]
+            Jp[a, 2] = Jyl[a, 1] * Y[0] - Jyl[a, 0] * Y[1]
+            Jp[a, 3], Jp[a, 4], Jp[a, 5] = Jyl[a, 0], Jyl[a, 1], Jyl[a, 2]
+        for a in range(3):
+            for c in range(3):
+                A[a, c] = (
+                    Jxt[0, a] * Jxt[0, c]
+                    + Jxt[1, a] * Jxt[1, c]
+                    + Jxt[2, a] * Jxt[2, c]
+                    + Jxl[0, a] * Jxl[0, c]
+                    + Jxl[1, a] * Jxl[1, c]
+                    + Jxl[2, a] * Jxl[2, c]
+                )
+            bl[a] = -(Jxt[0, a] * et[0] + Jxt[1, a] * et[1] + Jxt[2, a] * et[2])
+            bl[a] -= Jxl[0, a] * el[0] + Jxl[1, a] * el[1] + Jxl[2, a] * el[2]
+        scale = damping * ((A[0, 0] + A[1, 1] + A[2, 2]) / 3.0 + 1e-9)
+        for a in range(3):
+            A[a, a] += scale
+        _inv3(A, Hinv, 0)
+        for a in range(6):
+            for c in range(3):
+                W[a, c] = Jp[0, a] * Jxl[0, c] + Jp[1, a] * Jxl[1, c] + Jp[2, a] * Jxl[2, c]
+        for a in range(3):
+            for c in range(6):
+                C[a, c] = Hinv[0, a, 0] * W[c, 0] + Hinv[0, a, 1] * W[c, 1] + Hinv[0, a, 2] * W[c, 2]
+        k = cell[i]
+        used[k] = True
+        for a in range(6):
+            ga = -(Jp[0, a] * el[0] + Jp[1, a] * el[1] + Jp[2, a] * el[2])
+            gb[k, a] += ga - (C[0, a] * bl[0] + C[1, a] * bl[1] + C[2, a] * bl[2])
+            for c in range(6):
+                h = Jp[0, a] * Jp[0, c] + Jp[1, a] * Jp[1, c] + Jp[2, a] * Jp[2, c]
+                Sb[k, a, c] += h - (W[a, 0] * C[0, c] + W[a, 1] * C[1, c] + W[a, 2] * C[2, c])
+    S, g = np.zeros((6, 6)), np.zeros(6)
+    for k in range(n_cells):
+        if used[k]:
+            S += Sb[k]
+            g += gb[k]
+    n_blocks = 0
+    d = np.zeros((n_cells, 6))
+    mean = np.zeros(6)
+    for k in range(n_cells):
+        if not used[k]:
+            continue
+        if not _lu_solve(S - Sb[k], g - gb[k], d[n_blocks]):
+            return np.zeros((6, 6)), 0
+        mean += d[n_blocks]
+        n_blocks += 1
+    mean /= n_blocks
+    cov = np.zeros((6, 6))
+    for b in range(n_blocks):
+        for a in range(6):
+            for c in range(6):
+                cov[a, c] += (d[b, a] - mean[a]) * (d[b, c] - mean[c])
+    return cov * ((n_blocks - 1) / n_blocks), n_blocks
+
+
 def warm_up() -> None:
-    """Compile the leaf adjustment (``adjust``, ~15 s) on tiny inputs of the dtypes it is called with, so later
-    processes load it from the cache (``.ci/setup`` runs this after ``python3 -m vtr.vo.kernels``; the place kernels
-    are small and compile on first use)."""
+    """Compile the leaf adjustment (``adjust``, ~15 s) and its jackknife on tiny inputs of the dtypes they are called
+    with, so later processes load them from the cache (``.ci/setup`` runs this after ``python3 -m vtr.vo.kernels``;
+    the place kernels are small and compile on first use)."""
     z, ones = np.array([[100.0, 100.0, 90.0], [100.0, 100.0, 90.0]]), np.ones((2, 3))
+    cam = (500.0, 500.0, 100.0, 100.0, 50.0)
     R, t, X = np.eye(3)[None].copy(), np.zeros((1, 3)), np.array([[0.0, 0.0, 5.0]])
     adjust(R, t, np.zeros(1, np.int64), np.eye(4), X, z, ones, ones, 1.5, 500.0, 500.0, 100.0, 100.0, 50.0, 3)
+    jackknife(R, t, np.eye(4), X, z[:1], ones[:1], z[:1], ones[:1], np.zeros(1, np.int64), 1, 0.5, 1.5, 1e-7, *cam)

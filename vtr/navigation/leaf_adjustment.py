@@ -10,6 +10,9 @@ algorithm is the same step for step: the same residuals, Huber weights, normal e
 landmark blocks, Schur complement, acceptance and stopping rules (``RELATIVE_COST_TOLERANCE``,
 ``POSE_STEP_TOLERANCE``, ``MAX_LM_ATTEMPTS``, ``MIN_LM_DAMPING``), and the covariance is the inverse of the last
 reduced system, so the results agree with ``bundle_adjust`` to rounding (tests/navigation/test_leaf_adjustment.py).
+
+:func:`leaf_pose_jackknife` is the covariance of the leaf pose that the localization reports: the delete-one-block
+jackknife over cells of the leaf's image, linearized at the adjustment's solution, in one kernel too.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import EstimationError
-from .kernels import adjust
+from ..vo.estimation import MIN_LM_DAMPING
+from .kernels import adjust, jackknife
 
 
 @dataclass(frozen=True)
@@ -79,4 +83,58 @@ def adjust_leaf(
     return LeafAdjustment(T, X, err_sq, cov, float(cost))
 
 
-__all__ = ["LeafAdjustment", "adjust_leaf"]
+def leaf_pose_jackknife(
+    T_leaf: np.ndarray,
+    T_taught: np.ndarray,
+    points: np.ndarray,
+    z_taught: np.ndarray,
+    w_taught: np.ndarray,
+    z_leaf: np.ndarray,
+    w_leaf: np.ndarray,
+    block: np.ndarray,
+    camera: StereoCamera,
+    sigma_px: float,
+    huber_px: float,
+) -> tuple[np.ndarray, int]:
+    """The covariance of one pose of a stereo bundle adjustment by the delete-one-block jackknife: the pose's shift
+    when the landmarks of one block (a cell of the image) are left out, over the blocks. Feature errors that share a
+    cell (texture, the detector's position on a pattern, a rectification error over a region) move the pose
+    together, which the adjustment's own inverse Hessian, with independent pixel noise, does not see
+    (docs/localization.md, "What the covariance holds"). Linearized at the solution: one Gauss-Newton step of the
+    reduced system without the block.
+
+    ``T_leaf`` is the free pose, each landmark (``points`` (N, 3) at the solution) seen once from a held pose
+    (``T_taught`` (N, 4, 4), the pose of its observer) and once from the leaf, with measurements (``z_*`` (N, 3), any
+    value where unmeasured) and row weights (``w_*`` (N, 3), 0: not measured) as the adjustment had them, the
+    landmarks free; ``block`` (N,) labels each landmark's block (non-negative integers). Returns the covariance (6x6,
+    [rot, trans], left perturbation as the adjustment's) and the number of non-empty blocks ``B``:
+    ``(B - 1) / B * sum_b (d_b - mean)(d_b - mean)'``, ``d_b`` the leaf's step when block b is left out; B = 0 when
+    a system without one block is singular."""
+    block = np.asarray(block, dtype=np.int64)
+    if len(block) == 0:
+        return np.zeros((6, 6)), 0
+    T_taught = np.asarray(T_taught, np.float64)
+    cov, blocks = jackknife(
+        np.ascontiguousarray(T_taught[:, :3, :3]),
+        np.ascontiguousarray(T_taught[:, :3, 3]),
+        np.ascontiguousarray(T_leaf, dtype=np.float64),
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(z_taught, dtype=np.float64),
+        np.ascontiguousarray(w_taught, dtype=np.float64),
+        np.ascontiguousarray(z_leaf, dtype=np.float64),
+        np.ascontiguousarray(w_leaf, dtype=np.float64),
+        block,
+        int(block.max()) + 1,
+        float(sigma_px),
+        float(huber_px),
+        MIN_LM_DAMPING,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.fb,
+    )
+    return cov, int(blocks)
+
+
+__all__ = ["LeafAdjustment", "adjust_leaf", "leaf_pose_jackknife"]

@@ -24,9 +24,8 @@ from ..timing import StageTimer
 from ..types import StereoFrame
 from ..vo.estimation import odometry_row_weights, ransac_pnp
 from ..vo.features import match_all
-from ..vo.jackknife import leaf_pose_jackknife
 from ..vo.matching import match_landmarks
-from .leaf_adjustment import LeafAdjustment, adjust_leaf
+from .leaf_adjustment import LeafAdjustment, adjust_leaf, leaf_pose_jackknife
 
 
 class LocalizationStatus(StrEnum):

@@ -1,0 +1,179 @@
+"""The localization's jackknife covariance kernel (vtr.navigation.leaf_adjustment.leaf_pose_jackknife) against the
+vectorized numpy form it replaced, kept here as the oracle: the same covariance and block count to rounding on noisy
+problems with outliers (Huber), missing and down-weighted disparity rows, few and many blocks, and at the solution of
+the leaf adjustment on them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vtr.camera import StereoCamera
+from vtr.geometry import exp_se3
+from vtr.navigation.leaf_adjustment import adjust_leaf, leaf_pose_jackknife
+from vtr.vo.estimation import MIN_LM_DAMPING
+
+CAMERA = StereoCamera(fx=718.856, fy=718.856, cx=607.19, cy=185.22, baseline=0.537, width=1226, height=370)
+
+POSE_DIM = 6
+
+
+def _stereo_jacobians(Y: np.ndarray, camera: StereoCamera) -> np.ndarray:
+    """d(u_l, v, u_r)/d(Y) (N, 3, 3) at camera-frame points Y (N, 3)."""
+    x, y, z = Y[:, 0], Y[:, 1], Y[:, 2]
+    iz = 1.0 / z
+    J = np.zeros((len(Y), 3, 3))
+    J[:, 0, 0] = J[:, 2, 0] = camera.fx * iz
+    J[:, 1, 1] = camera.fy * iz
+    J[:, 0, 2] = -camera.fx * x * iz * iz
+    J[:, 1, 2] = -camera.fy * y * iz * iz
+    J[:, 2, 2] = -(camera.fx * x - camera.fb) * iz * iz
+    return J
+
+
+def _skews(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (N, 3, 3) of vectors v (N, 3)."""
+    K = np.zeros((len(v), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    return K - np.transpose(K, (0, 2, 1))
+
+
+def _whitened(
+    Y: np.ndarray, z: np.ndarray, w: np.ndarray, camera: StereoCamera, sigma_px: float, huber_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation of camera-frame points Y (N, 3) at z (N, 3) with row weights w (N, 3): d(whitened
+    residual)/d(Y) (N, 3, 3) and the whitened residuals (N, 3), Huber-weighted as
+    :func:`vtr.vo.estimation.bundle_adjust` weighs them."""
+    info = w / sigma_px**2
+    measured = w > 0
+    e = np.where(measured, camera.project(Y) - np.where(measured, z, 0.0), 0.0)
+    r = np.sqrt(np.sum(info * e**2, axis=1))
+    k = huber_px / sigma_px
+    huber = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+    s = np.sqrt(huber[:, None] * info)
+    return _stereo_jacobians(Y, camera) * s[:, :, None], e * s
+
+
+def _reference_jackknife(
+    T_leaf: np.ndarray,
+    T_taught: np.ndarray,
+    points: np.ndarray,
+    z_taught: np.ndarray,
+    w_taught: np.ndarray,
+    z_leaf: np.ndarray,
+    w_leaf: np.ndarray,
+    block: np.ndarray,
+    camera: StereoCamera,
+    sigma_px: float,
+    huber_px: float,
+) -> tuple[np.ndarray, int]:
+    """Jackknife covariance (6x6, [rot, trans], left perturbation as the adjustment's) of the free pose ``T_leaf``
+    of an adjustment where each landmark (``points`` (N, 3) at the solution) is seen once from a held pose
+    (``T_taught`` (N, 4, 4), the pose of its observer) and once from the leaf, with measurements and row weights as
+    the adjustment had them, the landmarks free. ``block`` (N,) labels each landmark's block. Returns the covariance
+    and the number of non-empty blocks ``B``: ``(B - 1) / B * sum_b (d_b - mean)(d_b - mean)'``, ``d_b`` the leaf's
+    step when block b is left out."""
+    R_t = T_taught[:, :3, :3]
+    Y_t = np.einsum("nij,nj->ni", R_t, points) + T_taught[:, :3, 3]
+    Y_l = points @ T_leaf[:3, :3].T + T_leaf[:3, 3]
+    Jyt, et = _whitened(Y_t, z_taught, w_taught, camera, sigma_px, huber_px)
+    Jyl, el = _whitened(Y_l, z_leaf, w_leaf, camera, sigma_px, huber_px)
+    Jxt = Jyt @ R_t  # d/d(point) of the taught observation
+    Jxl = Jyl @ T_leaf[:3, :3]
+    Jp = np.concatenate([-Jyl @ _skews(Y_l), Jyl], axis=2)  # (N, 3, 6): d/d(leaf pose), left perturbation
+    Hll = np.einsum("nri,nrj->nij", Jxt, Jxt) + np.einsum("nri,nrj->nij", Jxl, Jxl)
+    Wl = np.einsum("nri,nrj->nij", Jp, Jxl)  # (N, 6, 3)
+    Hpp = np.einsum("nri,nrj->nij", Jp, Jp)
+    bp = -np.einsum("nri,nr->ni", Jp, el)
+    bl = -(np.einsum("nri,nr->ni", Jxt, et) + np.einsum("nri,nr->ni", Jxl, el))
+    # the adjustment's smallest damping on the landmark blocks: a far landmark seen along one ray is ill-conditioned
+    Hll = Hll + MIN_LM_DAMPING * (np.trace(Hll, axis1=1, axis2=2) / 3 + 1e-9)[:, None, None] * np.eye(3)
+    C = np.linalg.solve(Hll, np.transpose(Wl, (0, 2, 1)))  # Hll^-1 W' (N, 3, 6)
+    S_l = Hpp - Wl @ C  # each landmark's share of the reduced (leaf) system
+    g_l = bp - np.einsum("nji,nj->ni", C, bl)
+    labels, which = np.unique(np.asarray(block), return_inverse=True)
+    B = len(labels)
+    S_b = np.zeros((B, POSE_DIM, POSE_DIM))
+    g_b = np.zeros((B, POSE_DIM))
+    np.add.at(S_b, which, S_l)
+    np.add.at(g_b, which, g_l)
+    S, g = S_b.sum(axis=0), g_b.sum(axis=0)
+    d = np.linalg.solve(S[None] - S_b, (g[None] - g_b)[:, :, None])[:, :, 0]
+    d = d - d.mean(axis=0)
+    return (B - 1) / B * d.T @ d, B
+
+
+def _problem(seed: int, n: int, cells: int):
+    """Landmarks 3-60 m ahead seen from one of three taught poses and from a leaf near them, noisy stereo
+    measurements with outliers on the leaf's side, some right rows missing, far disparities down-weighted, and each
+    landmark's block the cell of its leaf pixel on a cells x cells grid."""
+    rng = np.random.default_rng(seed)
+    T_vertex = np.stack([np.eye(4) for _ in range(3)])
+    for s in range(3):
+        T_vertex[s, 2, 3] = -0.4 * (s - 1)
+    T_leaf = exp_se3(np.r_[rng.normal(0, 0.02, 3), rng.normal(0, 0.3, 3)])
+    depth = rng.uniform(3.0, 60.0, n)
+    X = np.column_stack([rng.uniform(-0.5, 0.5, n) * depth, rng.uniform(-0.15, 0.15, n) * depth, depth])
+    slot = rng.integers(0, 3, n)
+    T_taught = T_vertex[slot]
+    Y_t = np.einsum("nij,nj->ni", T_taught[:, :3, :3], X) + T_taught[:, :3, 3]
+    z_t = CAMERA.project(Y_t) + rng.normal(0, 0.4, (n, 3))
+    z_l = CAMERA.project(X @ T_leaf[:3, :3].T + T_leaf[:3, 3]) + rng.normal(0, 0.4, (n, 3))
+    bad = rng.random(n) < 0.1
+    z_l[bad] += rng.normal(0, 8.0, (int(bad.sum()), 3))
+    w_t, w_l = np.ones((n, 3)), np.ones((n, 3))
+    w_l[rng.random(n) < 0.1, 2] = 0.0
+    w_t[depth > 40, 2] = 1e-4
+    w_l[depth > 40, 2] = 1e-4
+    uv = np.clip(z_l[:, :2] / [CAMERA.width, CAMERA.height], 0, 0.999)
+    block = (uv * cells).astype(int) @ np.array([cells, 1])
+    return T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block
+
+
+def _both(T_leaf, T_taught, X, z_t, w_t, z_l, w_l, block, sigma=0.5, huber=1.5):
+    args = (T_leaf, T_taught, X, np.where(w_t > 0, z_t, 0.0), w_t, np.where(w_l > 0, z_l, 0.0), w_l, block)
+    return leaf_pose_jackknife(*args, CAMERA, sigma, huber), _reference_jackknife(*args, CAMERA, sigma, huber)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(20, 400), cells=st.integers(2, 8))
+def test_the_kernel_gives_the_reference_jackknife(seed, n, cells):
+    T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block = _problem(seed, n, cells)
+    (cov, b), (ref, b_ref) = _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+    assert b == b_ref == len(np.unique(block))
+    np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+
+
+def test_at_the_leaf_adjustment_s_solution_as_the_localization_calls_it():
+    T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block = _problem(7, 600, 8)
+    z = np.concatenate([z_t, z_l])
+    w = np.concatenate([w_t, w_l])
+    res = adjust_leaf(T_vertex, slot, np.eye(4), X + 0.05, z, w, CAMERA, 0.5, 1.5, 10)
+    (cov, b), (ref, b_ref) = _both(res.T_leaf_trunk, T_vertex[slot], res.points, z_t, w_t, z_l, w_l, block)
+    assert b == b_ref and b >= 16
+    np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+    assert np.all(np.linalg.eigvalsh(cov) >= -1e-15)
+
+
+def test_labels_need_not_be_consecutive_and_one_block_leaves_nothing():
+    T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, _ = _problem(3, 50, 1)
+    cov, b = leaf_pose_jackknife(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, np.zeros(50, int), CAMERA, 0.5, 1.5)
+    assert b == 0  # without its one block the system is empty
+    block = np.where(np.arange(50) < 25, 3, 40)  # two blocks labelled 3 and 40
+    (cov, b), (ref, b_ref) = _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+    assert b == b_ref == 2
+    np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+
+
+def test_a_singular_system_without_a_block_counts_no_blocks():
+    """A block holding every landmark but one leaves a system without enough landmarks to fix the pose: the
+    localization then falls back to the adjustment's own covariance (fewer blocks than covariance_min_blocks)."""
+    T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, _ = _problem(5, 40, 1)
+    block = np.r_[np.zeros(39, int), 1]
+    w_l[39] = 0.0  # the lone landmark's leaf view is not measured: nothing fixes the pose without block 0
+    cov, b = leaf_pose_jackknife(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block, CAMERA, 0.5, 1.5)
+    with pytest.raises(np.linalg.LinAlgError):
+        _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+    assert b == 0
