@@ -3,7 +3,8 @@ written to the map and localized) and of ``StereoOdometry`` alone on the same fr
 even frames, repeat the odd ones), with 1 and 2 threads, their ratio, CPU milliseconds per frame of each, the
 localization's split per keyframe, and whether every thread count gives the same localizations.
 
-usage: python tools/bench_repeat.py [--repeats N] [--threads 1 2] [--frames 1::2] [--out DIR]
+usage: python tools/bench_repeat.py [--repeats N] [--threads 1 2] [--localization-thread own caller] [--frames 1::2]
+                                   [--out DIR]
 
 Images are decoded before timing (load time is neither's time). On a shared machine the load of other jobs hits
 any single figure: odometry and repeat are run back to back in each round (thread counts interleaved), the ratio
@@ -86,6 +87,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="rounds (each: odometry then repeat, every thread count)")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="vtr thread counts to compare")
     ap.add_argument("--frames", default="1::2", help="repeat frames of the clip (the teach takes the even ones)")
+    ap.add_argument(
+        "--localization-thread",
+        nargs="+",
+        default=["own"],
+        choices=["own", "caller"],
+        help="localization.thread of the repeat: its own thread (default) or the caller's; both: A/B in each round",
+    )
     ap.add_argument("--cv-threads", type=int, default=1, help="cv2.setNumThreads (OpenCV's own pool)")
     ap.add_argument("--out", type=Path, default=Path("out/bench_repeat"))
     args = ap.parse_args()
@@ -109,8 +117,10 @@ def main() -> None:
             camera = src.camera
         copy = Path(tmp) / "repeat.vtrmap"
         for k in range(-1, args.repeats):  # round -1 warms up (kernels, caches) and is not kept
-            for threads in args.threads:  # interleaved: a shared machine's load hits every count
-                config = Config().replace("features", threads=threads)
+            for threads, where in ((t, w) for t in args.threads for w in args.localization_thread):
+                # interleaved: a shared machine's load hits every count
+                config = Config().replace("features", threads=threads).replace("localization", thread=where)
+                label = threads if len(args.localization_thread) == 1 else f"{threads} ({where})"
                 vo = timed_odometry(images, camera, config)
                 copy.write_bytes(taught.read_bytes())
                 rp = timed_repeat(copy, images, config)
@@ -119,7 +129,7 @@ def main() -> None:
                     rows.append(
                         {
                             "round": k,
-                            "threads": threads,
+                            "threads": label,
                             "odometry_fps": vo["fps"],
                             "repeat_fps": rp["fps"],
                             "ratio": rp["fps"] / vo["fps"],
@@ -143,14 +153,15 @@ def main() -> None:
         "target_ratio": TARGET_RATIO,
         "threads": {},
     }
-    first = [r for r in rows if r["threads"] == args.threads[0]][0]
+    labels = list(dict.fromkeys(r["threads"] for r in rows))
+    first = rows[0]
     identical_loc = all(r["_rp"]["key"] == first["_rp"]["key"] for r in rows)
     identical_vo = all(np.array_equal(r["_vo"]["poses"], first["_vo"]["poses"]) for r in rows)
     print(
         f"{CLIP.name} frames {args.frames} ({len(idx)} frames), medians of {args.repeats} rounds "
         f"(odometry and repeat back to back in each round):"
     )
-    for threads in args.threads:
+    for threads in labels:
         mine = [r for r in rows if r["threads"] == threads]
         med = {
             k: float(np.median([r[k] for r in mine]))
@@ -199,7 +210,8 @@ def main() -> None:
     summary["localizations_identical_across_threads_and_rounds"] = identical_loc
     summary["odometry_identical_across_threads_and_rounds"] = identical_vo
     print(
-        f"  localizations {'identical' if identical_loc else 'DIFFERENT'} for threads {args.threads} in every round; "
+        f"  localizations {'identical' if identical_loc else 'DIFFERENT'} for every configuration ({labels}) in "
+        "every round; "
         f"odometry trajectories {'identical' if identical_vo else 'DIFFERENT'}"
     )
     print(

@@ -1,4 +1,4 @@
-"""Repeat.steps with 2 threads: localizations on their own thread, in order, the map whole on every way out."""
+"""Repeat.steps: localizations on their own thread or the caller's, in order, the map whole on every way out."""
 
 from __future__ import annotations
 
@@ -24,9 +24,8 @@ def taught(kitti_clip, tmp_path_factory):
     return path
 
 
-def _config(threads: int) -> Config:
-    cfg = Config().replace("features", threads=threads)
-    return cfg
+def _config(threads: int, thread: str = "own") -> Config:
+    return Config().replace("features", threads=threads).replace("localization", thread=thread)
 
 
 def _copy(path, tmp_path, name="route.vtrmap"):
@@ -59,27 +58,33 @@ def _threads(prefix: str) -> list[str]:
 
 
 def test_steps_on_two_threads_equal_process_frame(kitti_clip, taught, tmp_path):
+    """process_frame frame after frame, and steps with the localizations on the caller's thread or on their own
+    (1 and 2 feature threads): the same steps bit for bit."""
     keys, latest = {}, {}
-    for threads in (1, 2):
-        with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path, f"t{threads}.vtrmap"), "a") as m:
-            rp = Repeat(m, _config(threads), "test")
+    for case in ("process_frame", (1, "caller"), (1, "own"), (2, "own"), (2, "caller")):
+        threads, thread = (1, "own") if case == "process_frame" else case
+        name = "pf" if case == "process_frame" else f"t{threads}{thread}"
+        with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path, f"{name}.vtrmap"), "a") as m:
+            rp = Repeat(m, _config(threads, thread), "test")
             frames = rp.odometry.stereo.frames(src.iter_frames(FRAMES))
-            if threads == 1:
+            if case == "process_frame":
                 steps = [rp.process_frame(f) for f in frames]  # the one-frame-at-a-time API
             else:
                 steps = list(rp.steps(frames))
-            keys[threads] = [_key(s) for s in steps]
-            latest[threads] = rp.latest.T_leaf_trunk.tobytes()
+            keys[name] = [_key(s) for s in steps]
+            latest[name] = rp.latest.T_leaf_trunk.tobytes()
             assert all(s.localization_seconds > 0 for s in steps if s.localization is not None)
             m.finish_run()
             _repeat_vertices_whole(m, rp.run)
-    assert len(keys[1]) == len(FRAMES) and keys[1] == keys[2]
-    assert latest[1] == latest[2]
+    assert len(keys["pf"]) == len(FRAMES)
+    for name in keys:
+        assert keys[name] == keys["pf"], name
+        assert latest[name] == latest["pf"], name
     assert not _threads("vtr-localize")
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_path, monkeypatch, threads):
+@pytest.mark.parametrize(("threads", "thread"), [(1, "caller"), (1, "own"), (2, "own")])
+def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_path, monkeypatch, threads, thread):
     """The write of the 4th vertex fails (a full disk) on the writer thread: the error comes out at its step, after
     the three steps before it, and no later vertex is written although the odometry (and with 2 threads the
     localization) had run ahead."""
@@ -96,7 +101,7 @@ def test_a_failed_vertex_write_stops_every_later_one(kitti_clip, taught, tmp_pat
 
     monkeypatch.setattr(Map, "add_leaf", add_leaf)
     with open_source(kitti_clip) as src, Map.open(_copy(taught, tmp_path), "a") as m:
-        rp = Repeat(m, _config(threads), "test")
+        rp = Repeat(m, _config(threads, thread), "test")
         got, localized = [], []
         with pytest.raises(MapError, match="disk full"):
             for step in rp.steps(rp.odometry.stereo.frames(src.iter_frames(FRAMES))):

@@ -41,10 +41,10 @@ class FeatureConfig(Section):
     corner_score: str = setting("fast", Choice("fast", "harris"))
     # threads for one run's per-frame work (allowed: 0..1024; 0 = every core the process may use): with 2 or
     # more, a background thread decodes the frames and that many workers extract features and match stereo on
-    # whole frames ahead of the tracking thread (vtr/vo/stereo.py, vtr/parallel.py), and a repeat localizes on a
-    # thread of its own (Repeat.steps; docs/architecture.md "Threads inside one run"); a single frame given to
-    # StereoProcessor.process has its left and right images' features extracted concurrently. Results are
-    # bit-identical for every value (tests/vo/test_threads.py). KITTI 1226x370 odometry on 2 cores with 2
+    # whole frames ahead of the tracking thread (vtr/vo/stereo.py, vtr/parallel.py; a repeat localizes on a thread
+    # of its own with any value: localization.thread; docs/architecture.md "Threads inside one run"); a single
+    # frame given to StereoProcessor.process has its left and right images' features extracted concurrently.
+    # Results are bit-identical for every value (tests/vo/test_threads.py). KITTI 1226x370 odometry on 2 cores with 2
     # threads: 1.8-1.9x the frames/s of 1 thread (tools/bench_odometry.py). OpenCV's own pool
     # (cv2.setNumThreads) is left alone: ORB extraction runs serially inside OpenCV, and 1 or 2 OpenCV threads
     # measured the same; batch workers set it to this value
@@ -293,6 +293,12 @@ class LocalizationConfig(Section):
     # teach even / repeat odd on kitti00_ramp_clip, T_leaf_trunk median over four feature variants:
     # 0 -> 21-54 mm, 1 -> 20-40 mm, 2 -> 20-43 mm; kitti06_clip 10-13 mm for each
     neighbour_vertices: int = setting(1, Range(0, 50, integer=True))
+    # where Repeat.steps (vtr repeat) localizes each new vertex: "own" on a localizer thread beside the frame loop,
+    # in order, for every features.threads (the localization of one vertex overlaps the next frames' extraction and
+    # odometry, as the map writes do on their writer thread); "caller" on the thread that runs the frames (with
+    # features.threads 1 all per-frame computation but the map writes on one thread: frames/s 0.79 of the
+    # odometry's on kitti06 instead of ~1). Results are identical either way (docs/localization.md, "Cost")
+    thread: str = setting("own", Choice("own", "caller"))
 
     def rules(self) -> list[tuple[bool, str]]:
         return [

@@ -8,8 +8,8 @@
 
 Localizing a leaf needs its odometry and the localizations before it, never a later frame's odometry nor the map's
 repeat vertices, and the odometry never needs a localization: so ``steps`` commits each leaf on a writer thread while
-the next frames are processed, and with 2 or more threads localizes on a thread of its own too, in order, while the
-odometry goes on with the next frames. The results are those of ``process_frame`` frame after frame, bit for bit.
+the next frames are processed, and localizes on a thread of its own too (``localization.thread``), in order, while
+the odometry goes on with the next frames. The results are those of ``process_frame`` frame after frame, bit for bit.
 """
 
 from __future__ import annotations
@@ -196,15 +196,17 @@ class Repeat:
 
         Each new vertex's map write (:meth:`~vtr.map.Map.add_leaf`: vertex, edges and localization record in one
         transaction) is committed by a writer thread (:class:`~vtr.map.writer.LeafWriter`) while the next frames
-        are processed, and with ``features.threads`` of 2 or more the localizations run on a thread of their own
-        too (in order) while the odometry goes on. A step is handed out only once its write committed, at most
-        ``LOCALIZATION_LOOKAHEAD`` frames after its odometry: the map holds every vertex whose step was handed out.
+        are processed, and the localizations run on a thread of their own too (in order; ``localization.thread``
+        "own", the default, for every ``features.threads``) while the odometry goes on. A step is handed out only
+        once its write committed, at most ``LOCALIZATION_LOOKAHEAD`` frames after its odometry: the map holds every
+        vertex whose step was handed out.
         While the stream is open only the writer writes the map. Closing it early (an error, Ctrl-C) lets the
         localization under way finish, drops those not started and commits the ones localized; after a failed
         localization or write (a full disk...) nothing later is written: the vertices in the map are whole and in
         order, and :meth:`take_undelivered` gives the steps the map holds that the stream did not hand out.
         """
-        pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-localize") if self.odometry.stereo.threads > 1 else None
+        own = self.config.localization.thread == "own"
+        pool = ThreadPoolExecutor(1, thread_name_prefix="vtr-localize") if own else None
         writer = LeafWriter(self.map, self.timer)
         failed = threading.Event()
 
