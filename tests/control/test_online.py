@@ -305,8 +305,8 @@ def test_position_covariance_covers_the_error(taught, kitti_clip):
     strict=True,
     reason="measured on the whole kitti06 clip (the state at each odd frame's time and the 9 control ticks after it, "
     "240 states): position NEES median 2.08, 96 % inside the 99 % bound (the bound: median within 30 % of 3, 2.1-3.9; "
-    "1.91, 97 % before the merge that brought the 15 px guided matching while tracking; which part moved it was not "
-    "isolated); before it at the frame times alone 2.29, 100 %; on the first 40 frames 2.24, 100 %. Before the map's "
+    "1.91, 97 % with the previous 30 px search while tracking, localization.tracking_match_radius_px: "
+    "tools/nees_stages.py); before it at the frame times alone 2.29, 100 %; on the first 40 frames 2.24, 100 %. Before the map's "
     "part was split into what consecutive leaves share and what differs: 1.75, 96 % at the ticks. After the newest "
     "knot the covariance "
     "grows faster than the error (10-90 ms after a frame 1.88): the Qc estimated from the motion (MotionPsd) is biased "
