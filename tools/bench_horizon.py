@@ -30,7 +30,7 @@ from perception_model.model import PerceptionModel
 from vtr.config import Config
 from vtr.control.field import CameraMount, TaughtPathField, TaughtVertex
 from vtr.io import open_source
-from vtr.vo.odometry import StereoOdometry
+from vtr.vo.odometry import OdometrySettings, StereoOdometry
 
 N_STEPS = 15
 N_LANDMARKS = 800
@@ -51,7 +51,7 @@ def odometry_frame_ms() -> float:
     """Median ms of one kitti06 frame through stereo + odometry alone (odd frames 1..39, the first two skipped)."""
     with open_source(KITTI06) as src:
         images = [src[i] for i in range(1, 40, 2)]
-        odo = StereoOdometry(src.camera, Config(), keep_history=False)
+        odo = StereoOdometry(src.camera, OdometrySettings.of(Config()), keep_history=False)
     times = []
     for im in images:
         t0 = time.perf_counter()
