@@ -296,8 +296,9 @@ class LocalizationConfig(Section):
     # where Repeat.steps (vtr repeat) localizes each new vertex: "own" on a localizer thread beside the frame loop,
     # in order, for every features.threads (the localization of one vertex overlaps the next frames' extraction and
     # odometry, as the map writes do on their writer thread); "caller" on the thread that runs the frames (with
-    # features.threads 1 all per-frame computation but the map writes on one thread: frames/s 0.79 of the
-    # odometry's on kitti06 instead of ~1). Results are identical either way (docs/localization.md, "Cost")
+    # features.threads 1 all per-frame computation but the map writes on one thread: the repeat's frames/s 0.85 of
+    # the odometry's on kitti06 instead of 1.02, tools/bench_repeat.py; "caller" costs less CPU, so it suits a
+    # process that shares its cores). Results are identical either way (docs/localization.md, "Cost")
     thread: str = setting("own", Choice("own", "caller"))
 
     def rules(self) -> list[tuple[bool, str]]:
