@@ -414,7 +414,8 @@ class RepeatStateView:
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
-        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))  # cs: t_end's
+        # (np.tile: the same blocks as np.kron(np.ones((n, n)), F), exactly, without the products by 1.0)
+        cov = cov + np.tile(self.frame_output_covariance(int(t_end_ns), cs.T_o_a), (n, n))  # cs: t_end's
         return OutputWindow(
             t_ns=t,
             position=P,
