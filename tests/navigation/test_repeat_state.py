@@ -270,17 +270,22 @@ def _bits(x: object) -> object:
     return x
 
 
-def _answers(view, t_ns: int, commands: CommandLog) -> list[object]:
-    """Every query a controller makes of a view at ``t_ns`` (an error's text where one raises)."""
+def _answers(view, t_ns: int, commands: CommandLog, knots_only: bool = False) -> list[object]:
+    """Every query a controller makes of a view at ``t_ns`` (an error's text where one raises); ``knots_only``: those
+    that read nothing but the knots around ``t_ns`` (not the fitted acceleration, whose window reaches further back
+    than a short history)."""
     queries = (
-        lambda: view.controller_state_at(t_ns, with_covariance=True),
-        lambda: view.controller_state_at(t_ns, with_covariance=True, commands=commands),
-        lambda: view.controller_state_at(t_ns),
         lambda: view.window(t_ns, 3, 0.02),
         lambda: view.trajectory.joint_covariance(np.array([t_ns - 30_000_000, t_ns - 10_000_000, t_ns])),
         lambda: view.trajectory.state_at(t_ns),
-        lambda: view.states(np.array([t_ns, t_ns + 7_000_000])),
     )
+    if not knots_only:
+        queries += (
+            lambda: view.controller_state_at(t_ns, with_covariance=True),
+            lambda: view.controller_state_at(t_ns, with_covariance=True, commands=commands),
+            lambda: view.controller_state_at(t_ns),
+            lambda: view.states(np.array([t_ns, t_ns + 7_000_000])),
+        )
     out: list[object] = []
     for query in queries:
         try:
@@ -294,7 +299,8 @@ def _answers(view, t_ns: int, commands: CommandLog) -> list[object]:
 def test_a_view_queried_many_times_answers_as_a_fresh_one(T_vehicle_sensor):
     """A published view memoizes per knot, per segment and per trunk: queried many times (and after the estimator
     went on), it gives exactly, bit for bit, the answers of a view never queried before, at knots, between them,
-    before the first and after the newest."""
+    before the first and after the newest; and its window, joint covariance and state those of the view over the
+    smoother's live cache (which memoizes no covariance), the next published view's likewise."""
     ids, T_priv, steps = _synthetic_steps(30, failed={0, 1}, turn_rad_s=0.3)
     est = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, T_vehicle_sensor)
     history_s = 0.4
@@ -314,11 +320,17 @@ def test_a_view_queried_many_times_answers_as_a_fresh_one(T_vehicle_sensor):
         assert _answers(used, t, commands) == first[t]
     for t in times:
         assert _answers(est.view(history_s), t, commands) == first[t]  # a fresh view per time: no memo
+    whole = est.view()  # over the smoother's live cache, the covariances' roots never memoized
+    for t in [t for t in times if t - 40_000_000 >= knots[0]]:
+        assert _answers(whole, t, commands, knots_only=True) == first[t][:3]
     for step in steps[20:]:
         est.add(step)
-    later = est.view(history_s)
-    for t in [int(t) for t in later.trajectory.times_ns] + [t + 20_000_000 for t in later.trajectory.times_ns]:
-        _answers(later, t, commands)  # the next views' memos filled
+    later, whole = est.view(history_s), est.view()
+    for t in [int(t) + d for t in later.trajectory.times_ns for d in (0, 20_000_000)]:
+        answers = _answers(later, t, commands)  # the next view's memos filled while the first view's are
+        assert answers == _answers(est.view(history_s), t, commands)
+        if t - 40_000_000 >= int(later.trajectory.times_ns[0]):
+            assert answers[:3] == _answers(whole, t, commands, knots_only=True)
     for t in times:  # the estimator went on: the published view is a snapshot
         assert _answers(used, t, commands) == first[t]
 

@@ -197,12 +197,9 @@ class Segment:
 
     ``M`` stacks the Hermite control vectors ``[dt v1, xi21, dt g21]`` (3x6) of the local variable; the
     derivative tensor ``S`` (3x6x24) holds ``d(v1, xi21, g21)/d(delta1, dv1, delta2, dv2)`` and is built
-    only when a covariance is asked for. The memo slots (``acc_start``/``acc_end``: the mean acceleration at the
-    segment's ends; ``root_first``: the square root of its first knot's marginal; ``corr``: the whitened
-    correlation of its two knots) are filled by :class:`KnotTrajectory` on first use from the segment's knots and
-    joint covariance; a segment is dropped from its trajectory's memo whenever either changes (the smoother's
-    live cache), so they stay valid as long as the segment is. Any thread may fill one: a race computes the same
-    value twice and stores it whole.
+    only when a covariance is asked for. The memo slots ``acc_start``/``acc_end`` (the mean acceleration at the
+    segment's ends, functions of ``M`` and ``dt`` alone) are filled by :class:`KnotTrajectory` on first use; any
+    thread may fill one: a race computes the same value twice and stores it whole.
     """
 
     __slots__ = (
@@ -218,8 +215,6 @@ class Segment:
         "_S",
         "acc_start",
         "acc_end",
-        "root_first",
-        "corr",
     )
 
     def __init__(self, T1: np.ndarray, v1: np.ndarray, T2: np.ndarray, v2: np.ndarray, dt: float) -> None:
@@ -234,8 +229,6 @@ class Segment:
         self._S: np.ndarray | None = None
         self.acc_start: np.ndarray | None = None
         self.acc_end: np.ndarray | None = None
-        self.root_first: np.ndarray | None = None
-        self.corr: np.ndarray | None = None
 
     @property
     def S(self) -> np.ndarray:
@@ -261,8 +254,10 @@ class KnotTrajectory:
     ``last_cov`` (12, 12) (the newest knot's marginal).
 
     Memos: per segment in :attr:`segments` (see :class:`Segment`; the live cache drops a segment whenever its knots
-    or its joint covariance change) and the square root of ``last_cov`` on the instance (``last_cov`` is never
-    written in place: the smoother replaces its array whole, and an instance keeps the one it was built with).
+    change); with ``immutable`` (a snapshot: arrays nobody writes), per knot the square roots and correlations of
+    the knots' covariances that :meth:`joint_covariance` uses (over the live cache they are recomputed: its
+    covariances are updated in place). A memo entry is built whole before it is stored: readers on several threads
+    at worst build one twice.
     """
 
     def __init__(
@@ -275,13 +270,16 @@ class KnotTrajectory:
         qc: np.ndarray,
         max_extrapolation_s: float,
         segments: dict[int, Segment] | None = None,
+        immutable: bool = False,
     ) -> None:
         self.times_ns, self.poses, self.vels, self.seg_cov, self.last_cov = times_ns, poses, vels, seg_cov, last_cov
         self.n = len(times_ns)
         self.qc = qc  # (N, 6): per knot the PSD of the prior into it (the newest's: the extrapolation's)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.segments: dict[int, Segment] = {} if segments is None else segments
-        self._last_root: np.ndarray | None = None  # _psd_sqrt(last_cov), on first use
+        # knot i: _psd_sqrt of its marginal; (knots i, i+1): their whitened correlation (None: no memo)
+        self._roots: dict[int, np.ndarray] | None = {} if immutable else None
+        self._corrs: dict[int, np.ndarray] | None = {} if immutable else None
 
     @property
     def first_time_ns(self) -> int | None:
@@ -436,26 +434,26 @@ class KnotTrajectory:
         return K
 
     def _knot_root(self, i: int) -> np.ndarray:
-        """``_psd_sqrt`` of knot i's marginal (memo: the newest knot's on the instance, the others' on their
-        segment)."""
-        if i == self.n - 1:
-            root = self._last_root
-            if root is None:
-                root = self._last_root = _psd_sqrt(self.last_cov)
-            return root
-        seg = self._segment(i)
-        if seg.root_first is None:
-            seg.root_first = _psd_sqrt(self._knot_cov(i))
-        return seg.root_first
+        """``_psd_sqrt`` of knot i's marginal (memo on an immutable instance)."""
+        memo = self._roots
+        root = None if memo is None else memo.get(i)
+        if root is None:
+            root = _psd_sqrt(self._knot_cov(i))
+            if memo is not None:
+                root = memo.setdefault(i, root)
+        return root
 
     def _knot_corr(self, i: int) -> np.ndarray:
-        """Whitened cross-correlation (12x12) of knots i and i+1 from their joint covariance (memo: on the
-        segment)."""
-        seg = self._segment(i)
-        if seg.corr is None:
+        """Whitened cross-correlation (12x12) of knots i and i+1 from their joint covariance (memo on an immutable
+        instance)."""
+        memo = self._corrs
+        corr = None if memo is None else memo.get(i)
+        if corr is None:
             d, P = STATE_DIM, self.seg_cov[i]
-            seg.corr = _psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True)
-        return seg.corr
+            corr = _psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True)
+            if memo is not None:
+                corr = memo.setdefault(i, corr)
+        return corr
 
     def _segment(self, i: int) -> Segment:
         seg = self.segments.get(i)
