@@ -20,13 +20,14 @@ from vtr.app.runfiles.state_csv import read_state_csv
 from vtr.cli import main
 from vtr.config import Config
 from vtr.errors import ConfigError
-from vtr.geometry import inv_T, make_T
+from vtr.geometry import exp_se3, inv_T, make_T
 from vtr.io.trajectory import read_tum
 from vtr.map import Map, TaughtPath
 from vtr.navigation.chain import LocalizationChain
 from vtr.navigation.localization import Localization
 from vtr.navigation.repeat import RepeatStep
 from vtr.navigation.repeat_state import RepeatStateEstimator, output_times
+from vtr.navigation.state_view import CommandLog
 from vtr.types import FrameKind, Keyframe, OdometryResult
 
 SECTIONS = (Config().smoothing, Config().localization)  # RepeatStateEstimator.for_route's defaults
@@ -187,13 +188,17 @@ DT_NS = 50_000_000  # one repeat vertex every 0.05 s
 OFFSET = make_T(np.eye(3), [0.3, 0.0, 0.5])  # repeat world in the teach world: 0.3 m right, 0.5 m ahead
 
 
-def _synthetic_steps(n: int, failed: set[int]):
-    """Repeat steps on a straight taught path (vertices every metre along the camera z axis)."""
+def _synthetic_steps(n: int, failed: set[int], turn_rad_s: float = 0.0):
+    """Repeat steps on a straight taught path (vertices every metre along the camera z axis); ``turn_rad_s``: the
+    repeat turns at this rate about the camera's y axis (an arc off the taught path)."""
     T_priv = np.stack([make_T(np.eye(3), [0.0, 0.0, float(k)]) for k in range(n)])
     steps = []
     for j in range(n):
         t = j * DT_NS
-        T_w = make_T(np.eye(3), [0.0, 0.0, SPEED * t * 1e-9])
+        if turn_rad_s:
+            T_w = exp_se3(np.array([0.0, turn_rad_s, 0.0, 0.0, 0.0, SPEED]) * t * 1e-9)
+        else:
+            T_w = make_T(np.eye(3), [0.0, 0.0, SPEED * t * 1e-9])
         T_teach = OFFSET @ T_w
         trunk = int(np.clip(np.round(T_teach[2, 3]), 0, n - 1))
         cov = np.diag([1e-8] * 3 + [1e-6] * 3)
@@ -254,6 +259,80 @@ def test_anchored_at_first_localization(T_vehicle_sensor):
     assert np.allclose(s.along_track, 0.5 + SPEED * (s.t_ns - s.t_ns[0]) * 1e-9, atol=1e-3)
     assert np.allclose(s.yaw, 0.0, atol=1e-6)
     assert np.allclose(s.position[:, 1:], [[-0.3, 0.0]], atol=1e-3)
+
+
+def _bits(x: object) -> object:
+    """A query's answer as comparable bits: dataclasses field by field, arrays by their bytes (NaN included)."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: _bits(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, np.ndarray):
+        return (x.dtype.str, x.shape, x.tobytes())
+    return x
+
+
+def _answers(view, t_ns: int, commands: CommandLog, knots_only: bool = False) -> list[object]:
+    """Every query a controller makes of a view at ``t_ns`` (an error's text where one raises); ``knots_only``: those
+    that read nothing but the knots around ``t_ns`` (not the fitted acceleration, whose window reaches further back
+    than a short history)."""
+    queries = (
+        lambda: view.window(t_ns, 3, 0.02),
+        lambda: view.trajectory.joint_covariance(np.array([t_ns - 30_000_000, t_ns - 10_000_000, t_ns])),
+        lambda: view.trajectory.state_at(t_ns),
+    )
+    if not knots_only:
+        queries += (
+            lambda: view.controller_state_at(t_ns, with_covariance=True),
+            lambda: view.controller_state_at(t_ns, with_covariance=True, commands=commands),
+            lambda: view.controller_state_at(t_ns),
+            lambda: view.states(np.array([t_ns, t_ns + 7_000_000])),
+        )
+    out: list[object] = []
+    for query in queries:
+        try:
+            out.append(_bits(query()))
+        except Exception as err:  # noqa: BLE001 - the same error is part of the same answer
+            out.append(f"{type(err).__name__}: {err}")
+    return out
+
+
+@pytest.mark.parametrize("T_vehicle_sensor", [np.eye(4), T_VEHICLE_LEVEL_CAMERA @ make_T(np.eye(3), [0, -1.5, 1.0])])
+def test_a_view_queried_many_times_answers_as_a_fresh_one(T_vehicle_sensor):
+    """A published view memoizes per knot, per segment and per trunk: queried many times (and after the estimator
+    went on), it gives exactly, bit for bit, the answers of a view never queried before, at knots, between them,
+    before the first and after the newest; and its window, joint covariance and state those of the view over the
+    smoother's live cache (which memoizes no covariance), the next published view's likewise."""
+    ids, T_priv, steps = _synthetic_steps(30, failed={0, 1}, turn_rad_s=0.3)
+    est = RepeatStateEstimator.for_route(_chain(ids, T_priv).path, *SECTIONS, T_vehicle_sensor)
+    history_s = 0.4
+    for step in steps[:20]:
+        est.add(step)
+    used = est.view(history_s)
+    knots = [int(t) for t in used.trajectory.times_ns]
+    assert len(knots) >= 4
+    times = sorted(
+        {knots[0] - 5_000_000}
+        | {t + d for t in knots for d in (0, -13_000_000, 17_000_000)}
+        | {knots[-1] + k * 10_000_000 for k in range(1, 10)}
+    )
+    commands = CommandLog(np.array([knots[-1] + 5_000_000], np.int64), np.array([[0.2, -0.1, 0.0]]))
+    first = {t: _answers(used, t, commands) for t in times}
+    for t in times[::-1] + times:  # the memos filled in another order, then again
+        assert _answers(used, t, commands) == first[t]
+    for t in times:
+        assert _answers(est.view(history_s), t, commands) == first[t]  # a fresh view per time: no memo
+    whole = est.view()  # over the smoother's live cache, the covariances' roots never memoized
+    for t in [t for t in times if t - 40_000_000 >= knots[0]]:
+        assert _answers(whole, t, commands, knots_only=True) == first[t][:3]
+    for step in steps[20:]:
+        est.add(step)
+    later, whole = est.view(history_s), est.view()
+    for t in [int(t) + d for t in later.trajectory.times_ns for d in (0, 20_000_000)]:
+        answers = _answers(later, t, commands)  # the next view's memos filled while the first view's are
+        assert answers == _answers(est.view(history_s), t, commands)
+        if t - 40_000_000 >= int(later.trajectory.times_ns[0]):
+            assert answers[:3] == _answers(whole, t, commands, knots_only=True)
+    for t in times:  # the estimator went on: the published view is a snapshot
+        assert _answers(used, t, commands) == first[t]
 
 
 @settings(max_examples=6, deadline=None)

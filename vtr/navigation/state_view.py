@@ -15,18 +15,18 @@ import numpy as np
 
 from ..conventions import NS_PER_S
 from ..errors import DataError, EstimationError, NotLocalizedError
-from ..geometry import inv_T
+from ..geometry import check_se3, inv_T
 from ..map import TaughtPath
 from ..state.controller import (
     ControllerState,
     PathError,
     ReferencePath,
     StateStatus,
-    controller_state,
+    controller_state_unchecked,
     gravity_aligned_T_o_t,
-    output_jacobian,
+    output_jacobian_unchecked,
 )
-from ..state.trajectory import KnotTrajectory, TrajectoryState
+from ..state.trajectory import KnotTrajectory, TrajectoryState, adjoint
 from .trunk import BACKWARD
 
 
@@ -153,8 +153,11 @@ class OutputWindow:
 
 
 class RouteFrames:
-    """The taught route as the controller state sees it (immutable once built; the memo of each trunk's frame and
-    reference path fills on first use, from any thread: entries are pure functions of the route)."""
+    """The taught route as the controller state sees it (immutable once built; the memos of each trunk's frames and
+    reference path and of the vehicle's mount fill on first use, from any thread: entries are pure functions of the
+    route, built whole before they are stored, so a race at worst builds one twice). The memo's transforms are
+    read-only and validated once (``check_se3``, as :func:`~vtr.state.controller.controller_state` does on every
+    call)."""
 
     def __init__(
         self,
@@ -176,18 +179,43 @@ class RouteFrames:
         self.T_world_trunk = path.T_world_vertex @ T_sensor_vehicle  # taught vehicle poses, teach world
         self.arc = path.arc_length_m(T_sensor_vehicle)
         self._memo: dict[tuple[int, int], tuple[np.ndarray, ReferencePath | None, float]] = {}
+        self._frames: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # k: (T_world_trunk, T_o_t, T_g_o)
+        self._mount: tuple[np.ndarray, np.ndarray] | None = None  # (T_sensor_vehicle, its Ad_vs), validated
 
     def trunk_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world)."""
+        """``(T_world_trunk, T_o_t)`` of the taught vertex at path index k (vehicle frame, teach world; ``T_o_t``
+        read-only, from the memo)."""
         T_wt = self.T_world_trunk[k]
-        return T_wt, gravity_aligned_T_o_t(self.C_g_world @ T_wt[:3, :3])
+        return T_wt, self.trunk_frames(k)[1]
 
     def T_g_o(self, k: int) -> np.ndarray:
-        """The frame o of trunk k in the map's gravity-aligned frame g (4x4): ``T_g_world T_world_t inv(T_o_t)``."""
-        T_wt, T_o_t = self.trunk_frame(k)
-        T_g_world = np.eye(4)
-        T_g_world[:3, :3] = self.C_g_world
-        return T_g_world @ T_wt @ inv_T(T_o_t)
+        """The frame o of trunk k in the map's gravity-aligned frame g (4x4): ``T_g_world T_world_t inv(T_o_t)``
+        (a copy of the memo's)."""
+        return self.trunk_frames(k)[2].copy()
+
+    def trunk_frames(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(T_world_trunk, T_o_t, T_g_o)`` of trunk k, read-only, ``T_world_trunk`` validated (memo)."""
+        hit = self._frames.get(k)
+        if hit is None:
+            T_wt = self.T_world_trunk[k]
+            T_o_t = gravity_aligned_T_o_t(self.C_g_world @ T_wt[:3, :3])
+            T_g_world = np.eye(4)
+            T_g_world[:3, :3] = self.C_g_world
+            T_g_o = T_g_world @ T_wt @ inv_T(T_o_t)
+            T_wt = check_se3(T_wt, "T_world_trunk").copy()
+            for T in (T_wt, T_o_t, T_g_o):
+                T.setflags(write=False)
+            hit = self._frames.setdefault(k, (T_wt, T_o_t, T_g_o))
+        return hit
+
+    def mount(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(T_sensor_vehicle, Ad_vs)``: the mount validated and the adjoint ``adjoint(inv_T(T_sensor_vehicle))``
+        that moves a sensor twist to the vehicle (memo)."""
+        hit = self._mount
+        if hit is None:
+            T_sv = check_se3(self.T_sensor_vehicle, "T_sensor_vehicle")
+            hit = self._mount = (T_sv, adjoint(inv_T(T_sv)))
+        return hit
 
     def trunk(self, k: int, direction: int = 1) -> tuple[np.ndarray, ReferencePath | None, float]:
         """``T_o_t``, the reference path in o around trunk k (its window mirrored for a route travelled backward),
@@ -293,9 +321,9 @@ class RepeatStateView:
         """The smoother's state at ``t_ns`` in trunk k's frame o, without validity (``fit_acceleration`` False: the
         WNOA mean's, for callers that read only the outputs)."""
         self._check_state_at(t_ns)
-        T_o_t, _, _ = self.route.trunk(k)
+        T_world_trunk, T_o_t, _ = self.route.trunk_frames(k)
         s = self.trajectory.state_at(int(t_ns), with_covariance=with_covariance)
-        cs = controller_state(s, self.route.T_world_trunk[k], T_o_t, self.route.T_sensor_vehicle)
+        cs = controller_state_unchecked(s, T_world_trunk, T_o_t, *self.route.mount())
         if cs.position_covariance is not None and cs.yaw_variance is not None:
             F = self.frame_output_covariance(int(t_ns), cs.T_o_a)
             cs = dataclasses.replace(
@@ -320,7 +348,7 @@ class RepeatStateView:
         i = int(self._vertex_at(np.array([t_ns]))[0])
         if self.vertex_frame_covariance is None or i < 0 or i >= len(self.vertex_frame_covariance):
             return np.zeros((4, 4))
-        H = output_jacobian(T_o_a, self.route.T_sensor_vehicle)[:, :6]
+        H = output_jacobian_unchecked(np.asarray(T_o_a, float), self.route.mount()[1])[:, :6]
         F = H @ self.vertex_frame_covariance[i] @ H.T
         return 0.5 * (F + F.T)
 
@@ -381,12 +409,13 @@ class RepeatStateView:
         for j, tj in enumerate(t):
             cs = self._state(int(tj), k, with_covariance=False, fit_acceleration=False)
             P[j], yaw[j] = cs.position, cs.yaw
-            H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian(cs.T_o_a, self.route.T_sensor_vehicle)
+            H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian_unchecked(cs.T_o_a, self.route.mount()[1])
         _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
-        cov = cov + np.kron(np.ones((n, n)), self.frame_output_covariance(int(t_end_ns), cs.T_o_a))  # cs: t_end's
+        # (np.tile: the same blocks as np.kron(np.ones((n, n)), F), exactly, without the products by 1.0)
+        cov = cov + np.tile(self.frame_output_covariance(int(t_end_ns), cs.T_o_a), (n, n))  # cs: t_end's
         return OutputWindow(
             t_ns=t,
             position=P,

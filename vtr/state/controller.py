@@ -162,14 +162,27 @@ def controller_state(
     smoother's covariance to first order; the trunk pose and the gravity alignment are taken as exact.
     """
     if T_sensor_vehicle is None:
-        T_world_a = state.pose
-        Ad_vs = np.eye(6)
+        T_sv, Ad_vs = None, np.eye(6)
     else:
         T_sv = check_se3(T_sensor_vehicle, "T_sensor_vehicle")
-        T_world_a = state.pose @ T_sv
         Ad_vs = adjoint(inv_T(T_sv))
-    T_a_t = inv_T(T_world_a) @ check_se3(T_world_trunk, "T_world_trunk")
-    T_o_a = check_se3(T_o_t, "T_o_t") @ inv_T(T_a_t)
+    T_world_trunk = check_se3(T_world_trunk, "T_world_trunk")
+    return controller_state_unchecked(state, T_world_trunk, check_se3(T_o_t, "T_o_t"), T_sv, Ad_vs)
+
+
+def controller_state_unchecked(
+    state: TrajectoryState,
+    T_world_trunk: np.ndarray,
+    T_o_t: np.ndarray,
+    T_sensor_vehicle: np.ndarray | None,
+    Ad_vs: np.ndarray,
+) -> ControllerState:
+    """:func:`controller_state` on transforms the caller has validated (``check_se3``, float64), with
+    ``Ad_vs = adjoint(inv_T(T_sensor_vehicle))`` (``np.eye(6)`` without one) computed once: the same arithmetic,
+    for callers that query one route many times (:class:`~vtr.navigation.state_view.RouteFrames`)."""
+    T_world_a = state.pose if T_sensor_vehicle is None else state.pose @ T_sensor_vehicle
+    T_a_t = inv_T(T_world_a) @ T_world_trunk
+    T_o_a = T_o_t @ inv_T(T_a_t)
     C_o_a = T_o_a[:3, :3]
     twist_a = Ad_vs @ state.velocity
     rate_a = Ad_vs @ state.acceleration
@@ -208,8 +221,15 @@ def controller_state(
 def output_jacobian(T_o_a: np.ndarray, T_sensor_vehicle: np.ndarray | None = None) -> np.ndarray:
     """Jacobian (4x12) of the output ``y = (p_o, psi)`` of :func:`controller_state` w.r.t. the smoother's state
     perturbation ``[right pose perturbation (rot, trans), twist]`` of the sensor (the trunk taken as exact)."""
-    C_o_a = np.asarray(T_o_a, float)[:3, :3]
+    T_o_a = np.asarray(T_o_a, float)
     Ad_vs = np.eye(6) if T_sensor_vehicle is None else adjoint(inv_T(check_se3(T_sensor_vehicle, "T_sensor_vehicle")))
+    return output_jacobian_unchecked(T_o_a, Ad_vs)
+
+
+def output_jacobian_unchecked(T_o_a: np.ndarray, Ad_vs: np.ndarray) -> np.ndarray:
+    """:func:`output_jacobian` with ``Ad_vs = adjoint(inv_T(T_sensor_vehicle))`` computed once by the caller from a
+    validated transform (``T_o_a`` float64)."""
+    C_o_a = T_o_a[:3, :3]
     H = np.zeros((4, 12))
     Hv = np.zeros((4, 6))  # w.r.t. the vehicle's pose perturbation (rot, trans)
     Hv[:3, 3:6] = C_o_a
@@ -356,8 +376,10 @@ __all__ = [
     "ReferencePath",
     "StateStatus",
     "controller_state",
+    "controller_state_unchecked",
     "gravity_aligned_T_o_t",
     "output_jacobian",
+    "output_jacobian_unchecked",
     "trunk_in_world",
     "yaw_jacobian",
     "yaw_of",

@@ -277,6 +277,7 @@ class TrajectorySmoother:
             c.last_cov.copy(),
             c.qc[lo : c.n].copy(),
             self.config.max_extrapolation_s,
+            immutable=True,
         )
 
     def _view(self) -> KnotTrajectory:

@@ -197,10 +197,25 @@ class Segment:
 
     ``M`` stacks the Hermite control vectors ``[dt v1, xi21, dt g21]`` (3x6) of the local variable; the
     derivative tensor ``S`` (3x6x24) holds ``d(v1, xi21, g21)/d(delta1, dv1, delta2, dv2)`` and is built
-    only when a covariance is asked for.
+    only when a covariance is asked for. The memo slots ``acc_start``/``acc_end`` (the mean acceleration at the
+    segment's ends, functions of ``M`` and ``dt`` alone) are filled by :class:`KnotTrajectory` on first use; any
+    thread may fill one: a race computes the same value twice and stores it whole.
     """
 
-    __slots__ = ("dt", "T1", "v1", "v2", "xi21", "g21", "Jr_inv21", "Jl_inv21", "M", "_S")
+    __slots__ = (
+        "dt",
+        "T1",
+        "v1",
+        "v2",
+        "xi21",
+        "g21",
+        "Jr_inv21",
+        "Jl_inv21",
+        "M",
+        "_S",
+        "acc_start",
+        "acc_end",
+    )
 
     def __init__(self, T1: np.ndarray, v1: np.ndarray, T2: np.ndarray, v2: np.ndarray, dt: float) -> None:
         self.dt = dt
@@ -212,6 +227,8 @@ class Segment:
         self.Jl_inv21 = self.Jr_inv21 @ adjoint_inv(T21)
         self.M = np.stack([dt * v1, self.xi21, dt * self.g21])
         self._S: np.ndarray | None = None
+        self.acc_start: np.ndarray | None = None
+        self.acc_end: np.ndarray | None = None
 
     @property
     def S(self) -> np.ndarray:
@@ -235,6 +252,12 @@ class KnotTrajectory:
     publishes immutable copies (:meth:`TrajectorySmoother.snapshot`) for readers on other threads. ``times_ns``
     (N,), ``poses`` (N, 4, 4), ``vels`` (N, 6), ``seg_cov`` (N, 24, 24) (joint covariance of knots i, i+1),
     ``last_cov`` (12, 12) (the newest knot's marginal).
+
+    Memos: per segment in :attr:`segments` (see :class:`Segment`; the live cache drops a segment whenever its knots
+    change); with ``immutable`` (a snapshot: arrays nobody writes), per knot the square roots and correlations of
+    the knots' covariances that :meth:`joint_covariance` uses (over the live cache they are recomputed: its
+    covariances are updated in place). A memo entry is built whole before it is stored: readers on several threads
+    at worst build one twice.
     """
 
     def __init__(
@@ -247,12 +270,16 @@ class KnotTrajectory:
         qc: np.ndarray,
         max_extrapolation_s: float,
         segments: dict[int, Segment] | None = None,
+        immutable: bool = False,
     ) -> None:
         self.times_ns, self.poses, self.vels, self.seg_cov, self.last_cov = times_ns, poses, vels, seg_cov, last_cov
         self.n = len(times_ns)
         self.qc = qc  # (N, 6): per knot the PSD of the prior into it (the newest's: the extrapolation's)
         self.max_extrapolation_s = float(max_extrapolation_s)
         self.segments: dict[int, Segment] = {} if segments is None else segments
+        # knot i: _psd_sqrt of its marginal; (knots i, i+1): their whitened correlation (None: no memo)
+        self._roots: dict[int, np.ndarray] | None = {} if immutable else None
+        self._corrs: dict[int, np.ndarray] | None = {} if immutable else None
 
     @property
     def first_time_ns(self) -> int | None:
@@ -265,6 +292,16 @@ class KnotTrajectory:
     def state_at(self, t_ns: int, *, with_covariance: bool = True) -> TrajectoryState:
         """State at ``t_ns`` (see :meth:`TrajectorySmoother.state_at`)."""
         t_ns = check_time(t_ns)
+        i, at_knot = self._locate(t_ns)
+        if at_knot:
+            return self._knot_state(i, t_ns, with_covariance)
+        if i == self.n - 1:
+            return self._extrapolate(i, t_ns, with_covariance)
+        return self._interpolate(i, t_ns, with_covariance)
+
+    def _locate(self, t_ns: int) -> tuple[int, bool]:
+        """``(i, at_knot)``: the last knot at or before ``t_ns`` and whether ``t_ns`` is its time; the range checks
+        of :meth:`state_at` (EstimationError before the first knot or beyond the extrapolation limit)."""
         if self.n == 0:
             raise EstimationError("state_at: no measurement yet")
         t_first = int(self.times_ns[0])
@@ -272,7 +309,7 @@ class KnotTrajectory:
             raise EstimationError(f"state_at: t_ns={t_ns} is before the first keyframe ({t_first})")
         i = int(np.searchsorted(self.times_ns[: self.n], t_ns, side="right")) - 1
         if int(self.times_ns[i]) == t_ns:
-            return self._knot_state(i, t_ns, with_covariance)
+            return i, True
         if i == self.n - 1:
             ahead_s = (t_ns - int(self.times_ns[i])) / NS_PER_S
             if ahead_s > self.max_extrapolation_s:
@@ -280,8 +317,7 @@ class KnotTrajectory:
                     f"state_at: t_ns={t_ns} is {ahead_s:.6g} s after the newest keyframe, beyond "
                     f"smoothing.max_extrapolation_s={self.max_extrapolation_s:g} s"
                 )
-            return self._extrapolate(i, t_ns, with_covariance)
-        return self._interpolate(i, t_ns, with_covariance)
+        return i, False
 
     def fitted_acceleration(
         self, t_ns: int, window_s: float, T_sensor_point: np.ndarray | None = None
@@ -338,16 +374,19 @@ class KnotTrajectory:
         """
         times = [check_time(int(t)) for t in np.atleast_1d(np.asarray(t_ns))]
         maps: list[list[tuple[int, np.ndarray]]] = []
+        owns: list[np.ndarray] = []  # each state's own covariance: state_at's, from the same Jacobian
         for t in times:
-            self.state_at(t, with_covariance=False)  # the same range checks
-            i = int(np.searchsorted(self.times_ns[: self.n], t, side="right")) - 1
-            if int(self.times_ns[i]) == t:
+            i, at_knot = self._locate(t)  # the same range checks as state_at
+            if at_knot:
                 maps.append([(i, np.eye(STATE_DIM))])
+                owns.append(self._knot_cov(i))
             elif i == self.n - 1:
                 dt = (t - int(self.times_ns[i])) / NS_PER_S
                 v = self.vels[i]
                 E_xi, Jr = expmap(dt * v)
-                maps.append([(i, extrapolation_jacobian(dt, v, E_xi, Jr))])
+                F = extrapolation_jacobian(dt, v, E_xi, Jr)
+                maps.append([(i, F)])
+                owns.append(self._extrapolated_covariance(i, dt, v, Jr, F))
             else:
                 seg = self._segment(i)
                 tau = (t - int(self.times_ns[i])) / NS_PER_S
@@ -356,6 +395,7 @@ class KnotTrajectory:
                 E = d_jr_times(xi, dxi)
                 A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
                 maps.append([(i, A[:, :STATE_DIM]), (i + 1, A[:, STATE_DIM:])])
+                owns.append(self._interpolated_covariance(i, seg, tau, Jr, E, A))
         knots = [k for m in maps for k, _ in m]
         lo, hi = min(knots), max(knots)
         K = self._knot_joint(lo, hi)
@@ -368,10 +408,8 @@ class KnotTrajectory:
         # noise), the cross-time blocks keep the correlations of J K J': a congruence, so the result stays PSD
         d = STATE_DIM
         L = np.zeros_like(C)
-        for r, t in enumerate(times):
+        for r, own in enumerate(owns):
             blk = slice(r * d, (r + 1) * d)
-            own = self.state_at(t).covariance
-            assert own is not None
             L[blk, blk] = _psd_sqrt(own) @ _psd_sqrt(C[blk, blk], inverse=True)
         cov = L @ C @ L.T
         return 0.5 * (cov + cov.T)
@@ -382,11 +420,8 @@ class KnotTrajectory:
         matrix is positive semi-definite although the pairs were computed when different knots were the newest."""
         m, d = hi - lo + 1, STATE_DIM
         marg = [self._knot_cov(lo + a) for a in range(m)]
-        roots = [_psd_sqrt(M) for M in marg]
-        corr = []  # whitened cross-correlation of knots (b-1, b)
-        for b in range(1, m):
-            P = self.seg_cov[lo + b - 1]
-            corr.append(_psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True))
+        roots = [self._knot_root(lo + a) for a in range(m)]
+        corr = [self._knot_corr(lo + b - 1) for b in range(1, m)]  # whitened cross-correlation of knots (b-1, b)
         K = np.zeros((m * d, m * d))
         for a in range(m):
             K[a * d : (a + 1) * d, a * d : (a + 1) * d] = marg[a]
@@ -397,6 +432,28 @@ class KnotTrajectory:
                 K[a * d : (a + 1) * d, b * d : (b + 1) * d] = blk
                 K[b * d : (b + 1) * d, a * d : (a + 1) * d] = blk.T
         return K
+
+    def _knot_root(self, i: int) -> np.ndarray:
+        """``_psd_sqrt`` of knot i's marginal (memo on an immutable instance)."""
+        memo = self._roots
+        root = None if memo is None else memo.get(i)
+        if root is None:
+            root = _psd_sqrt(self._knot_cov(i))
+            if memo is not None:
+                root = memo.setdefault(i, root)
+        return root
+
+    def _knot_corr(self, i: int) -> np.ndarray:
+        """Whitened cross-correlation (12x12) of knots i and i+1 from their joint covariance (memo on an immutable
+        instance)."""
+        memo = self._corrs
+        corr = None if memo is None else memo.get(i)
+        if corr is None:
+            d, P = STATE_DIM, self.seg_cov[i]
+            corr = _psd_sqrt(P[:d, :d], inverse=True) @ P[:d, d:] @ _psd_sqrt(P[d:, d:], inverse=True)
+            if memo is not None:
+                corr = memo.setdefault(i, corr)
+        return corr
 
     def _segment(self, i: int) -> Segment:
         seg = self.segments.get(i)
@@ -413,15 +470,25 @@ class KnotTrajectory:
 
     def _knot_state(self, i: int, t_ns: int, with_cov: bool) -> TrajectoryState:
         if i < self.n - 1:
-            seg = self._segment(i)
-            acc = self._segment_acceleration(seg, 0.0)
+            acc = self._start_acceleration(self._segment(i))
         elif i > 0:
-            seg = self._segment(i - 1)
-            acc = self._segment_acceleration(seg, seg.dt)
+            acc = self._end_acceleration(self._segment(i - 1))
         else:
             acc = np.zeros(POSE_DIM)
         cov = self._knot_cov(i) if with_cov else None
         return TrajectoryState(t_ns, frozen(self.poses[i]), frozen(self.vels[i]), frozen(acc), frozen(cov), "knot")
+
+    def _start_acceleration(self, seg: Segment) -> np.ndarray:
+        """The mean acceleration at the segment's first knot (memo: on the segment; callers copy it)."""
+        if seg.acc_start is None:
+            seg.acc_start = self._segment_acceleration(seg, 0.0)
+        return seg.acc_start
+
+    def _end_acceleration(self, seg: Segment) -> np.ndarray:
+        """The mean acceleration at the segment's second knot (memo: on the segment; callers copy it)."""
+        if seg.acc_end is None:
+            seg.acc_end = self._segment_acceleration(seg, seg.dt)
+        return seg.acc_end
 
     def _segment_acceleration(self, seg: Segment, tau: float) -> np.ndarray:
         """``d/dt [Jr(xi) xi']`` at ``tau`` = ``Jr(xi) xi'' + (d(Jr(xi) xi')/d xi) xi'``."""
@@ -440,9 +507,7 @@ class KnotTrajectory:
             E = d_jr_times(xi, dxi)
             acc = Jr @ ddxi + E @ dxi
             A = interpolation_jacobian(seg, tau, xi, dxi, E_xi, Jr, E)
-            B = noise_map(Jr, E)
-            cov = A @ self.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self.qc[i + 1]) @ B.T
-            cov = 0.5 * (cov + cov.T)
+            cov = self._interpolated_covariance(i, seg, tau, Jr, E, A)
         else:
             acc = Jr @ ddxi + directional_d_jr(xi, dxi)
         return TrajectoryState(t_ns, frozen(T), frozen(vel), frozen(acc), frozen(cov), "interpolated")
@@ -453,18 +518,27 @@ class KnotTrajectory:
         xi = dt * v
         E_xi, Jr = expmap(xi)
         T = self.poses[i] @ E_xi
-        if i > 0:
-            seg = self._segment(i - 1)
-            acc = self._segment_acceleration(seg, seg.dt)
-        else:
-            acc = np.zeros(POSE_DIM)
+        acc = self._end_acceleration(self._segment(i - 1)) if i > 0 else np.zeros(POSE_DIM)
         cov = None
         if with_cov:
-            F = extrapolation_jacobian(dt, v, E_xi, Jr)
-            B = noise_map(Jr, d_jr_times(xi, v))
-            cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self.qc[i]) @ B.T
-            cov = 0.5 * (cov + cov.T)
+            cov = self._extrapolated_covariance(i, dt, v, Jr, extrapolation_jacobian(dt, v, E_xi, Jr))
         return TrajectoryState(t_ns, frozen(T), frozen(v), frozen(acc), frozen(cov), "extrapolated")
+
+    def _interpolated_covariance(
+        self, i: int, seg: Segment, tau: float, Jr: np.ndarray, E: np.ndarray, A: np.ndarray
+    ) -> np.ndarray:
+        """Covariance (12x12) of the state ``tau`` into segment i: the knots' part through ``A``
+        (:func:`interpolation_jacobian`) plus the GP's conditional noise through ``noise_map(Jr, E)``."""
+        B = noise_map(Jr, E)
+        cov = A @ self.seg_cov[i] @ A.T + B @ kron_qc(wnoa_conditional_Q(tau, seg.dt), self.qc[i + 1]) @ B.T
+        return 0.5 * (cov + cov.T)
+
+    def _extrapolated_covariance(self, i: int, dt: float, v: np.ndarray, Jr: np.ndarray, F: np.ndarray) -> np.ndarray:
+        """Covariance (12x12) of the state ``dt`` after the newest knot i at its twist ``v``: the knot's marginal
+        through ``F`` (:func:`extrapolation_jacobian`) plus the prior's noise over ``dt``."""
+        B = noise_map(Jr, d_jr_times(dt * v, v))
+        cov = F @ self.last_cov @ F.T + B @ kron_qc(wnoa_Q(dt), self.qc[i]) @ B.T
+        return 0.5 * (cov + cov.T)
 
 
 #: eigenvalues of a covariance below this share of its largest are floored when it is inverted
