@@ -132,16 +132,34 @@ def _problem(seed: int, n: int, cells: int):
     return T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block
 
 
-def _both(T_leaf, T_taught, X, z_t, w_t, z_l, w_l, block, sigma=0.5, huber=1.5):
-    args = (T_leaf, T_taught, X, np.where(w_t > 0, z_t, 0.0), w_t, np.where(w_l > 0, z_l, 0.0), w_l, block)
-    return leaf_pose_jackknife(*args, CAMERA, sigma, huber), _reference_jackknife(*args, CAMERA, sigma, huber)
+def _kernel(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block, sigma=0.5, huber=1.5):
+    """leaf_pose_jackknife on adjust_leaf's layout (the taught rows, then the leaf's)."""
+    z, w = np.concatenate([z_t, z_l]), np.concatenate([w_t, w_l])
+    return leaf_pose_jackknife(T_vertex, slot, T_leaf, X, z, w, block, CAMERA, sigma, huber)
+
+
+def _both(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block, sigma=0.5, huber=1.5):
+    ref = _reference_jackknife(
+        T_leaf,
+        T_vertex[slot],
+        X,
+        np.where(w_t > 0, z_t, 0.0),
+        w_t,
+        np.where(w_l > 0, z_l, 0.0),
+        w_l,
+        block,
+        CAMERA,
+        sigma,
+        huber,
+    )
+    return _kernel(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block, sigma, huber), ref
 
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(20, 400), cells=st.integers(2, 8))
 def test_the_kernel_gives_the_reference_jackknife(seed, n, cells):
     T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block = _problem(seed, n, cells)
-    (cov, b), (ref, b_ref) = _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+    (cov, b), (ref, b_ref) = _both(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block)
     assert b == b_ref == len(np.unique(block))
     np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
 
@@ -151,7 +169,7 @@ def test_at_the_leaf_adjustment_s_solution_as_the_localization_calls_it():
     z = np.concatenate([z_t, z_l])
     w = np.concatenate([w_t, w_l])
     res = adjust_leaf(T_vertex, slot, np.eye(4), X + 0.05, z, w, CAMERA, 0.5, 1.5, 10)
-    (cov, b), (ref, b_ref) = _both(res.T_leaf_trunk, T_vertex[slot], res.points, z_t, w_t, z_l, w_l, block)
+    (cov, b), (ref, b_ref) = _both(T_vertex, slot, res.T_leaf_trunk, res.points, z_t, w_t, z_l, w_l, block)
     assert b == b_ref and b >= 16
     np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
     assert np.all(np.linalg.eigvalsh(cov) >= -1e-15)
@@ -159,10 +177,10 @@ def test_at_the_leaf_adjustment_s_solution_as_the_localization_calls_it():
 
 def test_labels_need_not_be_consecutive_and_one_block_leaves_nothing():
     T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, _ = _problem(3, 50, 1)
-    cov, b = leaf_pose_jackknife(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, np.zeros(50, int), CAMERA, 0.5, 1.5)
+    cov, b = _kernel(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, np.zeros(50, int))
     assert b == 0  # without its one block the system is empty
     block = np.where(np.arange(50) < 25, 3, 40)  # two blocks labelled 3 and 40
-    (cov, b), (ref, b_ref) = _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+    (cov, b), (ref, b_ref) = _both(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block)
     assert b == b_ref == 2
     np.testing.assert_allclose(cov, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
 
@@ -173,7 +191,7 @@ def test_a_singular_system_without_a_block_counts_no_blocks():
     T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, _ = _problem(5, 40, 1)
     block = np.r_[np.zeros(39, int), 1]
     w_l[39] = 0.0  # the lone landmark's leaf view is not measured: nothing fixes the pose without block 0
-    cov, b = leaf_pose_jackknife(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block, CAMERA, 0.5, 1.5)
+    cov, b = _kernel(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block)
     with pytest.raises(np.linalg.LinAlgError):
-        _both(T_leaf, T_vertex[slot], X, z_t, w_t, z_l, w_l, block)
+        _both(T_vertex, slot, T_leaf, X, z_t, w_t, z_l, w_l, block)
     assert b == 0

@@ -340,59 +340,26 @@ def adjust(Rt, tt, slot, T0, X0, z, meas, info, k_huber, fx, fy, cx, cy, fb, ite
     return T, X, err_sq, cov, cost, True
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _whitened_view(R, t, x, z, w, sigma2, k_huber, fx, fy, cx, cy, fb, Y, J, ew):
-    """One stereo view of point ``x`` from pose (R, t): the camera-frame point into Y, d(whitened residual)/d(Y)
-    (3x3) into J and the whitened residual into ew; rows weighted by ``w`` (0: not measured) and Huber-weighted as
-    the adjustment weighs them."""
-    for a in range(3):
-        Y[a] = R[a, 0] * x[0] + R[a, 1] * x[1] + R[a, 2] * x[2] + t[a]
-    iz = 1.0 / Y[2]
-    u = fx * Y[0] * iz + cx
-    proj0, proj1, proj2 = u, fy * Y[1] * iz + cy, u - fb * iz
-    r2 = 0.0
-    for a in range(3):
-        pa = proj0 if a == 0 else (proj1 if a == 1 else proj2)
-        ew[a] = pa - z[a] if w[a] > 0 else 0.0
-        r2 += w[a] / sigma2 * ew[a] * ew[a]
-    r = np.sqrt(r2)
-    huber = 1.0 if r <= k_huber else k_huber / max(r, 1e-12)
-    J[0, 0], J[0, 1], J[0, 2] = fx * iz, 0.0, -fx * Y[0] * iz * iz
-    J[1, 0], J[1, 1], J[1, 2] = 0.0, fy * iz, -fy * Y[1] * iz * iz
-    J[2, 0], J[2, 1], J[2, 2] = fx * iz, 0.0, -(fx * Y[0] - fb) * iz * iz
-    for a in range(3):
-        sa = np.sqrt(huber * w[a] / sigma2)
-        ew[a] *= sa
-        for c in range(3):
-            J[a, c] *= sa
-
-
 @njit(cache=True, nogil=True)
-def jackknife(Rt, tt, T_leaf, X, zt, wt, zl, wl, cell, n_cells, sigma_px, huber_px, damping, fx, fy, cx, cy, fb):
-    """The delete-one-block jackknife of the leaf pose (vtr.navigation.leaf_adjustment.leaf_pose_jackknife): per
-    landmark i (X (N, 3)) seen from its held taught pose (Rt[i], tt[i]) and from the leaf, its share of the reduced
-    leaf system and gradient, summed per ``cell[i]`` (< n_cells); each block's step with that block left out.
-    Returns the covariance (6x6) and the number of non-empty blocks (0 when a system without a block is singular)."""
+def jackknife(Rt, tt, slot, T_leaf, X, z, meas, info, k_huber, fx, fy, cx, cy, fb, cell, n_cells, damping):
+    """The delete-one-block jackknife of the leaf pose (vtr.navigation.leaf_adjustment.leaf_pose_jackknife) at the
+    leaf adjustment's solution, with its inputs (``adjust``'s: observations, their weights and the Huber weights
+    linearized as there, by ``_evaluate`` and ``_jacobians``): per landmark i its share of the reduced leaf system
+    and gradient, summed per ``cell[i]`` (< n_cells); each block's step with that block left out. Returns the
+    covariance (6x6) and the number of non-empty blocks (0 when a system without a block is singular)."""
+    n = len(X)
     R, t = T_leaf[:3, :3], T_leaf[:3, 3]
-    sigma2, k_huber = sigma_px * sigma_px, huber_px / sigma_px
+    Y, e, wh = np.empty((2 * n, 3)), np.empty((2 * n, 3)), np.empty(2 * n)
+    _evaluate(Rt, tt, slot, R, t, X, z, meas, info, k_huber, fx, fy, cx, cy, fb, Y, e, wh)
     Sb, gb = np.zeros((n_cells, 6, 6)), np.zeros((n_cells, 6))
     used = np.zeros(n_cells, np.bool_)
-    Y, Jyt, Jyl, et, el = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
-    Jxt, Jxl, Jp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 6))
+    Jy, Jp, Jxt, Jxl = np.empty((3, 3)), np.empty((3, 6)), np.empty((3, 3)), np.empty((3, 3))
+    et, el = np.empty(3), np.empty(3)
     A, Hinv, W, C = np.empty((3, 3)), np.empty((1, 3, 3)), np.empty((6, 3)), np.empty((3, 6))
     bl = np.empty(3)
-    for i in range(len(X)):
-        _whitened_view(Rt[i], tt[i], X[i], zt[i], wt[i], sigma2, k_huber, fx, fy, cx, cy, fb, Y, Jyt, et)
-        _whitened_view(R, t, X[i], zl[i], wl[i], sigma2, k_huber, fx, fy, cx, cy, fb, Y, Jyl, el)
-        for a in range(3):
-            for c in range(3):
-                Jxt[a, c] = Jyt[a, 0] * Rt[i, 0, c] + Jyt[a, 1] * Rt[i, 1, c] + Jyt[a, 2] * Rt[i, 2, c]
-                Jxl[a, c] = Jyl[a, 0] * R[0, c] + Jyl[a, 1] * R[1, c] + Jyl[a, 2] * R[2, c]
-            # d/d(leaf pose), left perturbation: [-Jy [Y]x, Jy] with Y the leaf's camera-frame point
-            Jp[a, 0] = Jyl[a, 2] * Y[1] - Jyl[a, 1] * Y[2]
-            Jp[a, 1] = Jyl[a, 0] * Y[2] - Jyl[a, 2] * Y[0]
-            Jp[a, 2] = Jyl[a, 1] * Y[0] - Jyl[a, 0] * Y[1]
-            Jp[a, 3], Jp[a, 4], Jp[a, 5] = Jyl[a, 0], Jyl[a, 1], Jyl[a, 2]
+    for i in range(n):
+        _jacobians(Rt[slot[i]], Y, e, wh, info, i, fx, fy, fb, Jy, Jp, Jxt, et, False)  # the taught view
+        _jacobians(R, Y, e, wh, info, n + i, fx, fy, fb, Jy, Jp, Jxl, el, True)  # the leaf's
         for a in range(3):
             for c in range(3):
                 A[a, c] = (
@@ -454,5 +421,6 @@ def warm_up() -> None:
     z, ones = np.array([[100.0, 100.0, 90.0], [100.0, 100.0, 90.0]]), np.ones((2, 3))
     cam = (500.0, 500.0, 100.0, 100.0, 50.0)
     R, t, X = np.eye(3)[None].copy(), np.zeros((1, 3)), np.array([[0.0, 0.0, 5.0]])
-    adjust(R, t, np.zeros(1, np.int64), np.eye(4), X, z, ones, ones, 1.5, 500.0, 500.0, 100.0, 100.0, 50.0, 3)
-    jackknife(R, t, np.eye(4), X, z[:1], ones[:1], z[:1], ones[:1], np.zeros(1, np.int64), 1, 0.5, 1.5, 1e-7, *cam)
+    slot = np.zeros(1, np.int64)
+    adjust(R, t, slot, np.eye(4), X, z, ones, ones, 1.5, *cam, 3)
+    jackknife(R, t, slot, np.eye(4), X, z, ones, ones, 1.5, *cam, slot, 1, 1e-7)

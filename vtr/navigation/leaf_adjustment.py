@@ -57,19 +57,16 @@ def adjust_leaf(
     measurements (u_l, v, u_r): the taught views first, then the leaf's, in landmark order; ``row_weight`` (2N, 3) a
     weight per row (0: not measured). The same problem and result as
     ``bundle_adjust(concat(T_vertex_trunk, T_leaf_trunk), fixed=[True]*V + [False], ...)``."""
-    T_vertex_trunk = np.asarray(T_vertex_trunk, np.float64)
-    w = np.asarray(row_weight, np.float64)
-    measured = (w > 0).astype(np.float64)
-    zz = np.ascontiguousarray(np.where(w > 0, z, 0.0), dtype=np.float64)
+    Rt, tt, zz, measured, info = _kernel_rows(T_vertex_trunk, z, row_weight, sigma_px)
     T, X, err_sq, cov, cost, ok = adjust(
-        np.ascontiguousarray(T_vertex_trunk[:, :3, :3]),
-        np.ascontiguousarray(T_vertex_trunk[:, :3, 3]),
+        Rt,
+        tt,
         np.ascontiguousarray(slot, dtype=np.int64),
         np.ascontiguousarray(T_leaf_trunk, dtype=np.float64),
         np.ascontiguousarray(points, dtype=np.float64),
         zz,
         measured,
-        np.ascontiguousarray(w / sigma_px**2),
+        info,
         huber_px / sigma_px,
         camera.fx,
         camera.fy,
@@ -84,57 +81,70 @@ def adjust_leaf(
 
 
 def leaf_pose_jackknife(
-    T_leaf: np.ndarray,
-    T_taught: np.ndarray,
+    T_vertex_trunk: np.ndarray,
+    slot: np.ndarray,
+    T_leaf_trunk: np.ndarray,
     points: np.ndarray,
-    z_taught: np.ndarray,
-    w_taught: np.ndarray,
-    z_leaf: np.ndarray,
-    w_leaf: np.ndarray,
+    z: np.ndarray,
+    row_weight: np.ndarray,
     block: np.ndarray,
     camera: StereoCamera,
     sigma_px: float,
     huber_px: float,
 ) -> tuple[np.ndarray, int]:
-    """The covariance of one pose of a stereo bundle adjustment by the delete-one-block jackknife: the pose's shift
-    when the landmarks of one block (a cell of the image) are left out, over the blocks. Feature errors that share a
-    cell (texture, the detector's position on a pattern, a rectification error over a region) move the pose
-    together, which the adjustment's own inverse Hessian, with independent pixel noise, does not see
-    (docs/localization.md, "What the covariance holds"). Linearized at the solution: one Gauss-Newton step of the
-    reduced system without the block.
+    """The covariance of the leaf pose by the delete-one-block jackknife: the pose's shift when the landmarks of one
+    block (a cell of the image) are left out, over the blocks. Feature errors that share a cell (texture, the
+    detector's position on a pattern, a rectification error over a region) move the pose together, which the
+    adjustment's own inverse Hessian, with independent pixel noise, does not see (docs/localization.md, "What the
+    covariance holds"). Linearized at the solution: one Gauss-Newton step of the reduced system without the block.
 
-    ``T_leaf`` is the free pose, each landmark (``points`` (N, 3) at the solution) seen once from a held pose
-    (``T_taught`` (N, 4, 4), the pose of its observer) and once from the leaf, with measurements (``z_*`` (N, 3), any
-    value where unmeasured) and row weights (``w_*`` (N, 3), 0: not measured) as the adjustment had them, the
-    landmarks free; ``block`` (N,) labels each landmark's block (non-negative integers). Returns the covariance (6x6,
-    [rot, trans], left perturbation as the adjustment's) and the number of non-empty blocks ``B``:
+    The problem is :func:`adjust_leaf`'s, at its solution (``T_leaf_trunk``, ``points``), with its inputs
+    (``T_vertex_trunk``, ``slot``, ``z`` and ``row_weight`` (2N, 3): the taught views first, then the leaf's) and
+    linearized as it linearizes; ``block`` (N,) labels each landmark's block (non-negative integers). Returns the
+    covariance (6x6, [rot, trans], left perturbation as the adjustment's) and the number of non-empty blocks ``B``:
     ``(B - 1) / B * sum_b (d_b - mean)(d_b - mean)'``, ``d_b`` the leaf's step when block b is left out; B = 0 when
     a system without one block is singular."""
     block = np.asarray(block, dtype=np.int64)
     if len(block) == 0:
         return np.zeros((6, 6)), 0
-    T_taught = np.asarray(T_taught, np.float64)
+    Rt, tt, zz, measured, info = _kernel_rows(T_vertex_trunk, z, row_weight, sigma_px)
     cov, blocks = jackknife(
-        np.ascontiguousarray(T_taught[:, :3, :3]),
-        np.ascontiguousarray(T_taught[:, :3, 3]),
-        np.ascontiguousarray(T_leaf, dtype=np.float64),
+        Rt,
+        tt,
+        np.ascontiguousarray(slot, dtype=np.int64),
+        np.ascontiguousarray(T_leaf_trunk, dtype=np.float64),
         np.ascontiguousarray(points, dtype=np.float64),
-        np.ascontiguousarray(z_taught, dtype=np.float64),
-        np.ascontiguousarray(w_taught, dtype=np.float64),
-        np.ascontiguousarray(z_leaf, dtype=np.float64),
-        np.ascontiguousarray(w_leaf, dtype=np.float64),
-        block,
-        int(block.max()) + 1,
-        float(sigma_px),
-        float(huber_px),
-        MIN_LM_DAMPING,
+        zz,
+        measured,
+        info,
+        huber_px / sigma_px,
         camera.fx,
         camera.fy,
         camera.cx,
         camera.cy,
         camera.fb,
+        block,
+        int(block.max()) + 1,
+        MIN_LM_DAMPING,
     )
     return cov, int(blocks)
+
+
+def _kernel_rows(
+    T_vertex_trunk: np.ndarray, z: np.ndarray, row_weight: np.ndarray, sigma_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' view of the held poses and the observations: rotations and translations of ``T_vertex_trunk``,
+    the measurements with unmeasured rows zeroed, a 0/1 mask of the measured rows and each row's information
+    (weight / sigma^2)."""
+    T_vertex_trunk = np.asarray(T_vertex_trunk, np.float64)
+    w = np.asarray(row_weight, np.float64)
+    return (
+        np.ascontiguousarray(T_vertex_trunk[:, :3, :3]),
+        np.ascontiguousarray(T_vertex_trunk[:, :3, 3]),
+        np.ascontiguousarray(np.where(w > 0, z, 0.0), dtype=np.float64),
+        (w > 0).astype(np.float64),
+        np.ascontiguousarray(w / sigma_px**2),
+    )
 
 
 __all__ = ["LeafAdjustment", "adjust_leaf", "leaf_pose_jackknife"]

@@ -309,12 +309,13 @@ class Localizer:
         refined = submap.refined[landmarks]
         z_taught[refined, 2] = z_taught[refined, 0] - self.camera.fb / submap.depth_m[landmarks[refined]]
         w[np.flatnonzero(refined), 2] = 1.0  # taught rows come first
+        z = np.nan_to_num(np.concatenate([z_taught, z_leaf]))
         res = adjust_leaf(  # bundle_adjust of this one shape, in one compiled kernel
             submap.T_vertex_trunk,
             submap.slot[landmarks],
             T_leaf_trunk,
             submap.points_trunk[landmarks],
-            np.nan_to_num(np.concatenate([z_taught, z_leaf])),
+            z,
             w,
             self.camera,
             self.pixel_sigma,
@@ -329,7 +330,7 @@ class Localizer:
         # landmark, 6 for the leaf); counting such rows whole read the noise variance 0.6 of itself on the KITTI clips
         dof = float(w.sum()) - 3 * n - 6
         factor = res.cost / dof if dof > 0 else float("inf")
-        cov = self._pixel_covariance(res, submap, landmarks, z_taught, z_leaf, w, factor, inlier)
+        cov = self._pixel_covariance(res, submap, landmarks, z, w, factor, inlier)
         return res.T_leaf_trunk, cov, inlier, err_sq, factor
 
     def _pixel_covariance(
@@ -337,8 +338,7 @@ class Localizer:
         res: LeafAdjustment,
         submap: TaughtSubmap,
         landmarks: np.ndarray,
-        z_taught: np.ndarray,
-        z_leaf: np.ndarray,
+        z: np.ndarray,
         w: np.ndarray,
         factor: float,
         inlier: np.ndarray,
@@ -353,16 +353,16 @@ class Localizer:
         sel = np.flatnonzero(inlier)
         if c.covariance_blocks == 0 or len(sel) == 0:
             return iid
-        uv = z_leaf[sel, :2]
+        uv = z[n + sel, :2]
         cells = np.clip((uv / [cam.width, cam.height] * c.covariance_blocks).astype(int), 0, c.covariance_blocks - 1)
+        rows = np.concatenate([sel, n + sel])  # the inliers' taught rows, then their leaf rows (adjust_leaf's layout)
         jk, blocks = leaf_pose_jackknife(
+            submap.T_vertex_trunk,
+            submap.slot[landmarks[sel]],
             res.T_leaf_trunk,
-            submap.T_vertex_trunk[submap.slot[landmarks[sel]]],
             res.points[sel],
-            np.nan_to_num(z_taught[sel]),
-            w[sel],
-            np.nan_to_num(z_leaf[sel]),
-            w[n + sel],
+            z[rows],
+            w[rows],
             cells[:, 0] * c.covariance_blocks + cells[:, 1],
             cam,
             self.pixel_sigma,
