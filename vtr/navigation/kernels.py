@@ -330,13 +330,8 @@ def adjust(Rt, tt, slot, T0, X0, z, meas, info, k_huber, fx, fy, cx, cy, fb, ite
             cov[:] = np.nan
             break
         cov[:, k] = col
-    for m in range(2 * n):
-        iz = 1.0 / Y[m, 2]
-        u = fx * Y[m, 0] * iz + cx
-        d0 = u - z[m, 0]
-        d1 = fy * Y[m, 1] * iz + cy - z[m, 1]
-        d2 = u - fb * iz - z[m, 2]
-        err_sq[m] = d0 * d0 * meas[m, 0] + d1 * d1 * meas[m, 1] + d2 * d2 * meas[m, 2]
+    for m in range(2 * n):  # e: the residuals at (T, X), unmeasured rows zeroed (_observe)
+        err_sq[m] = e[m, 0] * e[m, 0] + e[m, 1] * e[m, 1] + e[m, 2] * e[m, 2]
     return T, X, err_sq, cov, cost, True
 
 
