@@ -50,22 +50,6 @@ if TYPE_CHECKING:
 FRAMES_KEPT = 96  # decoded frames held for submaps before the cache starts again (memory stays flat)
 
 
-def _placement_covariance(
-    submap: TaughtSubmap, est: LocalizationEstimate, edge_covariance: Callable[[int], np.ndarray | None]
-) -> np.ndarray:
-    """The sum over the submap vertices that gave ``est`` inliers of ``Ad(T_leaf_s) P_s Ad(T_leaf_s)'``, ``P_s`` the
-    covariance ``edge_covariance`` holds for vertex ``s`` (None: the vertex adds nothing); zero without inliers."""
-    out = np.zeros((6, 6))
-    if not est.ok or not est.inliers or est.T_leaf_trunk is None:
-        return out
-    for s in np.unique(submap.slot[est.matched[est.inlier]]):
-        P = edge_covariance(int(submap.vertex_ids[s]))
-        if P is not None:
-            A = adjoint(est.T_leaf_trunk @ inv_T(submap.T_vertex_trunk[s]))
-            out += A @ P @ A.T
-    return out
-
-
 def experience_covariance(
     submap: TaughtSubmap, est: LocalizationEstimate, edge_covariance: Callable[[int], np.ndarray | None]
 ) -> np.ndarray:
@@ -76,7 +60,15 @@ def experience_covariance(
     is placed by that experience's landmarks almost alone (weighting the terms by the experiences' share of the
     inliers covered 93-94 % of the errors on kitti06 repeats against earlier ones, whole terms 100 %). Zero without
     experience inliers."""
-    return _placement_covariance(submap, est, edge_covariance)  # None: a taught vertex, placed by the path itself
+    out = np.zeros((6, 6))
+    if not est.ok or not est.inliers or est.T_leaf_trunk is None:
+        return out
+    for s in np.unique(submap.slot[est.matched[est.inlier]]):
+        P = edge_covariance(int(submap.vertex_ids[s]))
+        if P is not None:  # None: a taught vertex, placed by the path itself
+            A = adjoint(est.T_leaf_trunk @ inv_T(submap.T_vertex_trunk[s]))
+            out += A @ P @ A.T
+    return out
 
 
 def taught_covariance(
