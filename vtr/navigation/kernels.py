@@ -17,6 +17,9 @@ INITIAL_LM_DAMPING = 1e-4
 DIAGONAL_FLOOR = 1e-9
 #: rotation angle (rad) below which the exponential map takes its series
 SMALL_ANGLE_RAD = 1e-8
+#: a block whose leverage reaches 1 minus this in some direction holds all of that direction's information: the
+#: system without it is singular (the jackknife counts no blocks then)
+LEVERAGE_MARGIN = 1e-9
 
 
 @njit(cache=True, nogil=True)
@@ -385,28 +388,35 @@ def jackknife(Rt, tt, slot, T_leaf, X, z, meas, info, k_huber, fx, fy, cx, cy, f
             for c in range(6):
                 h = Jp[0, a] * Jp[0, c] + Jp[1, a] * Jp[1, c] + Jp[2, a] * Jp[2, c]
                 Sb[k, a, c] += h - (W[a, 0] * C[0, c] + W[a, 1] * C[1, c] + W[a, 2] * C[2, c])
-    S, g = np.zeros((6, 6)), np.zeros(6)
+    S = np.zeros((6, 6))
     for k in range(n_cells):
         if used[k]:
             S += Sb[k]
-            g += gb[k]
+    # CR2 (Bell & McCaffrey's bias-reduced cluster-robust sandwich): u_b = S^-1/2 (I - M_b)^-1/2 S^-1/2 g_b with
+    # M_b = S^-1/2 S_b S^-1/2 the block's leverage; the plain delete-one-block step, (S - S_b)^-1 g_b =
+    # S^-1/2 (I - M_b)^-1 S^-1/2 g_b, over-corrects it (CR3: the jackknife's known upward bias)
+    lam, V = np.linalg.eigh(S)
+    if lam[0] <= 0.0:
+        return np.zeros((6, 6)), 0
+    S_ih = (V / np.sqrt(lam)) @ V.T
+    cov = np.zeros((6, 6))
     n_blocks = 0
-    d = np.zeros((n_cells, 6))
-    mean = np.zeros(6)
     for k in range(n_cells):
         if not used[k]:
             continue
-        if not _lu_solve(S - Sb[k], g - gb[k], d[n_blocks]):
+        M = S_ih @ Sb[k] @ S_ih
+        mu, U = np.linalg.eigh(0.5 * (M + M.T))
+        if mu[5] >= 1.0 - LEVERAGE_MARGIN:  # without block k nothing fixes some direction of the pose
             return np.zeros((6, 6)), 0
-        mean += d[n_blocks]
-        n_blocks += 1
-    mean /= n_blocks
-    cov = np.zeros((6, 6))
-    for b in range(n_blocks):
+        y = U.T @ (S_ih @ gb[k])
+        for a in range(6):
+            y[a] /= np.sqrt(1.0 - max(mu[a], 0.0))
+        u = S_ih @ (U @ y)
         for a in range(6):
             for c in range(6):
-                cov[a, c] += (d[b, a] - mean[a]) * (d[b, c] - mean[c])
-    return cov * ((n_blocks - 1) / n_blocks), n_blocks
+                cov[a, c] += u[a] * u[c]
+        n_blocks += 1
+    return cov, n_blocks
 
 
 def warm_up() -> None:
