@@ -283,7 +283,7 @@ def test_perfect_high_noise_discrete_flatness_is_better_than_pd(ordering):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured (10 trials, seed 0, sigma 0.0005): pd 0.0302, flatness_mpc 0.0363, discrete_flatness 0.0321 m "
+    reason="measured (10 trials, seed 0, sigma 0.0005): pd 0.0302, flatness_mpc 0.0363, discrete_flatness 0.0325 m "
     "(spread 20.4 %; 12 % and 13 % at 0.0001 and 0.0002; 19.1, 21.1, 22.6 % with seeds 1-3): the MPC's finite "
     "differences of the positions state(now) answered at its ticks jump where a knot arrives (the extrapolation "
     "restarts from the new anchor), 4.2 m/s^2 rms acceleration error",
@@ -297,12 +297,6 @@ def test_estimator_high_noise_flatness_mpc_is_worse_than_pd(ordering):
     assert e["flatness_mpc"] > e["pd"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured (10 trials, seed 0, sigma 0.005): discrete_flatness 0.03271, pd 0.03269, flatness_mpc 0.146 m "
-    "(a tie with PD, whose finite-difference velocity reads smoothed positions; with seeds 1-3: 0.0329 vs 0.0372, "
-    "0.0325 vs 0.0335, 0.0328 vs 0.0318; discrete flatness better than both at 0.01, 0.02, 0.05)",
-)
 def test_estimator_high_noise_discrete_flatness_is_better_than_both(ordering):
     e = ordering["estimator", HIGH_SIGMA]
     assert e["discrete_flatness"] < min(e["pd"], e["flatness_mpc"])
@@ -311,22 +305,43 @@ def test_estimator_high_noise_discrete_flatness_is_better_than_both(ordering):
 # -- the smoother adapter -----------------------------------------------------------------------
 
 
-def test_smoother_outputs_follow_the_motion_and_stop_the_window_inside_the_knots():
+def test_smoother_outputs_follow_the_motion_and_carry_the_window_to_now_with_the_commands():
     ref = SpiralReference(1.4, 1.0)
     period_ns = 100_000_000
+    anchor_ns = 2 * period_ns
     batch = SmootherBatch(
-        [SmootherOutputs(SmoothingConfig(qc_translation=S.qc_translation), 1e-4)], period_ns, knots_back=2
+        [SmootherOutputs(SmoothingConfig(qc_translation=S.qc_translation), 1e-4, command_anchor_ns=anchor_ns)],
+        period_ns,
     )
+    with pytest.raises(EstimationError, match="no measurement"):
+        batch.window_end_ns(0)
     for i in range(20):
         batch.measure(i * period_ns, ref.position(np.array([i * 0.1])))
     newest = 19 * period_ns
-    assert batch.measured_until_ns(newest + 40_000_000) == newest - 2 * period_ns
+    assert batch.window_end_ns(newest + 40_000_000) == newest + 40_000_000
+    # without commands: the mean inside the knots (an extrapolation at constant velocity after them)
     t_end = 1.5
     w = batch.window(int(t_end * 1e9), 3, 0.02)[0]
     np.testing.assert_allclose(w, ref.position(t_end - np.array([0.04, 0.02, 0.0])), atol=1e-3)
     p, v, _ = batch.state(int(t_end * 1e9))[0]
     _, v_true, _, _ = ref.derivatives(np.array(t_end))
     assert abs(p - ref.position(np.array(t_end))) < 1e-3 and abs(v - v_true) < 0.05
+    # with commands: after the anchor (two knots back) the window's positions are the state's, carried with them
+    batch.command(newest - anchor_ns, np.array([2.0]))
+    now = newest + 60_000_000
+    times = now - 20_000_000 * np.arange(19, -1, -1)
+    w = batch.window(now, 20, 0.02)[0]
+    np.testing.assert_allclose(w, [batch.state(int(t))[0, 0] for t in times], rtol=0, atol=1e-12)
+    src = batch.sources[0]
+    before = times <= newest - anchor_ns
+    np.testing.assert_allclose(
+        w[before], [src.view.state_at(int(t), with_covariance=False).position[0] for t in times[before]], atol=1e-12
+    )
+    anchor = src.view.state_at(newest - anchor_ns, with_covariance=False)
+    ahead = (now - (newest - anchor_ns)) / 1e9
+    assert w[-1] == pytest.approx(
+        anchor.position[0] + anchor.linear_velocity_world[0] * ahead + 0.5 * 2.0 * ahead**2, abs=1e-12
+    )
 
 
 def test_the_commands_sent_move_the_extrapolation_past_the_newest_knot():

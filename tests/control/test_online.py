@@ -223,6 +223,13 @@ def test_commands_move_the_extrapolation(taught, kitti_clip):
         assert np.allclose(moved.position - plain.position, C_o_g @ a_g * 0.5 * 0.3**2, atol=1e-9)
         assert np.allclose(moved.velocity - plain.velocity, C_o_g @ a_g * 0.3, atol=1e-9)
         assert np.allclose(moved.acceleration, C_o_g @ a_g)
+        # the window extrapolates as the state does: the commands' positions after the knot, the knots' before
+        w = live.window(t, 20, 0.02)
+        after = w.t_ns > t_knot
+        assert after.sum() == 15 and not after.all()
+        for tj, p in zip(w.t_ns, w.position, strict=True):
+            assert np.allclose(p, live.state(int(tj), with_covariance=False).position, atol=1e-9)
+        assert np.allclose(w.position[-1] - plain.position, C_o_g @ a_g * 0.5 * 0.3**2, atol=1e-9)
         with pytest.raises(EstimationError, match="not after"):
             live.command(t_knot, a_g)
         with pytest.raises(EstimationError, match="finite"):

@@ -195,9 +195,10 @@ class DiscreteFlatnessController(_Controller):
     output-to-input (8.12): ``u_k = (tau (theta_{k+1} - theta_k) / dt + theta_k) / k`` with ``theta_k`` from
     outputs ``k..k+2`` and ``theta_{k+1}`` from ``k+1..k+3``; input-to-output (8.13):
     ``y_{k+3} = 2 y_{k+2} - y_{k+1} + g dt^2 tan(theta_{k+1})``. Each tick the window of ``window_length`` outputs
-    ends at the newest tick the source has measured; (8.13) with the inputs sent carries it to ``y_k, y_{k+1},
-    y_{k+2}`` (8.15; with M > 3 outputs, through the fit :func:`fit_window`), which fix the first ``r`` outputs of
-    (8.16): ``min sum_{i=0..N} q (y_i - r_i)^2 + r' (y_{i+3} - 3 y_{i+2} + 3 y_{i+1} - y_i)^2`` with
+    ends at the latest tick its source answers for (``window_end_ns``: the newest measurement, or now for an
+    estimator that carries its outputs there with the commands sent); (8.13) with the inputs sent carries it to
+    ``y_k, y_{k+1}, y_{k+2}`` (8.15; with M > 3 outputs, through the fit :func:`fit_window`), which fix the first
+    ``r`` outputs of (8.16): ``min sum_{i=0..N} q (y_i - r_i)^2 + r' (y_{i+3} - 3 y_{i+2} + 3 y_{i+1} - y_i)^2`` with
     ``r' = r_jerk_discrete_flatness / dt^6`` (the third difference is ``dt^3`` times the jerk). Only ``y*_{k+3}``
     enters ``u_k`` (8.14), so the QP is one gain row.
     """
@@ -232,7 +233,7 @@ class DiscreteFlatnessController(_Controller):
     def fixed_outputs(self, k: int, source: OutputSource) -> np.ndarray:
         """``y_k, y_{k+1}, y_{k+2}`` (B, 3) from the source's window and the inputs sent (8.15)."""
         M = self.s.window_length
-        j = (source.measured_until_ns(self.t_start_ns + k * self.dt_ns) - self.t_start_ns) // self.dt_ns
+        j = (source.window_end_ns(self.t_start_ns + k * self.dt_ns) - self.t_start_ns) // self.dt_ns
         measured = source.window(self.t_start_ns + j * self.dt_ns, M, self.dt)  # ticks j-M+1 .. j
         if M == WINDOW:  # (8.15) as printed: the three measured outputs carried forward one input at a time
             ys = list(measured.T)

@@ -165,8 +165,9 @@ class OnlineRepeat:
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
         """``n`` outputs ``(p, psi)`` ``dt_s`` apart ending at ``t_end_ns`` in one frame, with their joint covariance
-        (:meth:`RepeatStateView.window`)."""
-        return self._view.window(_time(t_end_ns), n, dt_s)
+        (:meth:`RepeatStateView.window`); samples after the newest keyframe extrapolated with the commands sent, as
+        :meth:`state` is."""
+        return self._view.window(_time(t_end_ns), n, dt_s, commands=self._commands)
 
     def constraint(
         self, positions_g: np.ndarray, yaw_g: np.ndarray, *, axes: np.ndarray | None = None, gradient: bool = True

@@ -34,8 +34,9 @@ class OutputSource(Protocol):
     """Outputs of a batch of vehicles as a controller reads them (times in int ns, positions in m).
 
     ``window`` returns positions (batch, n) at ``t_end_ns - (n - 1 - i) dt_s``; ``state`` the flat state
-    ``(p, v, a)`` (batch, 3) at ``t_ns``; ``measured_until_ns`` the latest time at or before ``t_ns`` whose
-    window rests on measurements alone (no extrapolation); ``command`` takes the acceleration (batch,) the
+    ``(p, v, a)`` (batch, 3) at ``t_ns``; ``window_end_ns`` the latest time at or before ``t_ns`` its window answers
+    for (the newest measurement of raw outputs; ``t_ns`` itself for an estimator that carries its outputs to now
+    with the commands sent); ``command`` takes the acceleration (batch,) the
     controllers expect from ``t_ns`` on (the commands sent).
     """
 
@@ -45,7 +46,7 @@ class OutputSource(Protocol):
     def command(self, t_ns: int, acceleration_mps2: np.ndarray) -> None: ...
     def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray: ...
     def state(self, t_ns: int) -> np.ndarray: ...
-    def measured_until_ns(self, t_ns: int) -> int: ...
+    def window_end_ns(self, t_ns: int) -> int: ...
 
 
 def sample_times(t_end_ns: int, n: int, dt_s: float) -> list[int]:
@@ -81,7 +82,7 @@ class MeasuredOutputs:
         y2, y1, y0 = self.window(t_ns, 3, dt).T
         return np.stack([y0, (y0 - y1) / dt, (y0 - 2 * y1 + y2) / dt**2], axis=1)
 
-    def measured_until_ns(self, t_ns: int) -> int:
+    def window_end_ns(self, t_ns: int) -> int:
         return max(t for t in self._y if t <= t_ns)
 
 
@@ -141,31 +142,41 @@ class SmootherOutputs:
         return self._view
 
     def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
-        """Positions (n,) at ``t_end_ns - (n - 1 - i) dt_s``."""
-        v = self.view
-        return np.array([v.state_at(t, with_covariance=False).position[0] for t in sample_times(t_end_ns, n, dt_s)])
+        """Positions (n,) at ``t_end_ns - (n - 1 - i) dt_s``: the mean's, and after the anchor (the newest knot
+        when ``command_anchor_ns`` = 0) the ones :meth:`state` answers, carried there with the commands sent
+        (``OnlineRepeat.window`` extrapolates so too)."""
+        return np.array([self._carried(t)[0] for t in sample_times(t_end_ns, n, dt_s)])
 
     def state(self, t_ns: int) -> np.ndarray:
         """``(p m, v m/s, a m/s^2)`` at ``t_ns``."""
+        p, vel, a = self._carried(t_ns)
+        if a is None:
+            a = self.view.state_at(t_ns, with_covariance=False).linear_acceleration_world[0]
+            if self.acceleration_window_s > 0:
+                a = self.view.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
+        return np.array([p, vel, a])
+
+    def _carried(self, t_ns: int) -> tuple[float, float, float | None]:
+        """Position and velocity at ``t_ns``: the mean's up to the anchor, carried from it with the commands sent
+        after; and the command in force there (None where the mean answers)."""
         v = self.view
         last = v.last_time_ns
+        t_anchor = last
         if self._commands is not None and self.command_anchor_ns > 0 and last is not None:
             first = v.first_time_ns
             t_anchor = max(last - self.command_anchor_ns, last if first is None else first)
-            if t_ns > t_anchor:
-                s = v.state_at(t_anchor, with_covariance=False)
-                dp, dv, a_now = self._commands.integrate(t_anchor, t_ns)
-                ahead_s = (t_ns - t_anchor) / NS_PER_S
-                vel = s.linear_velocity_world[0]
-                return np.array([s.position[0] + vel * ahead_s + dp[0], vel + dv[0], a_now[0]])
-        s = v.state_at(t_ns, with_covariance=False)
-        p, vel, a = s.position[0], s.linear_velocity_world[0], s.linear_acceleration_world[0]
-        if self.acceleration_window_s > 0:
-            a = v.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
-        if self._commands is not None and last is not None and t_ns > last:
-            dp, dv, a_now = self._commands.integrate(last, t_ns)
-            p, vel, a = p + dp[0], vel + dv[0], a_now[0]
-        return np.array([p, vel, a])
+        if self._commands is None or t_anchor is None or t_ns <= t_anchor:
+            s = v.state_at(t_ns, with_covariance=False)
+            return float(s.position[0]), float(s.linear_velocity_world[0]), None
+        if self.command_anchor_ns > 0:  # the mean at the anchor carried at its velocity, moved by the commands
+            s = v.state_at(t_anchor, with_covariance=False)
+            vel = s.linear_velocity_world[0]
+            p = s.position[0] + vel * (t_ns - t_anchor) / NS_PER_S
+        else:  # the mean's own constant-velocity extrapolation past the newest knot, moved by the commands
+            s = v.state_at(t_ns, with_covariance=False)
+            p, vel = s.position[0], s.linear_velocity_world[0]
+        dp, dv, a_now = self._commands.integrate(t_anchor, t_ns)
+        return float(p + dp[0]), float(vel + dv[0]), float(a_now[0])
 
     def newest_ns(self) -> int:
         t = self.view.last_time_ns
@@ -175,14 +186,12 @@ class SmootherOutputs:
 
 
 class SmootherBatch:
-    """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``; windows
-    end ``knots_back`` measurement periods before the newest knot (the same depth as the sources'
-    ``command_anchor_ns`` in :func:`~vtr.control.flatness_sweep.make_source`)."""
+    """:class:`OutputSource` over one :class:`SmootherOutputs` per vehicle, fed every ``period_ns``; windows end
+    at the time asked (each source carries its outputs there with the commands sent)."""
 
-    def __init__(self, sources: Sequence[SmootherOutputs], period_ns: int, knots_back: int = 0) -> None:
+    def __init__(self, sources: Sequence[SmootherOutputs], period_ns: int) -> None:
         self.sources = list(sources)
         self.measurement_period_ns = period_ns
-        self.knots_back = knots_back
 
     def measure(self, t_ns: int, positions_m: np.ndarray) -> None:
         for src, x in zip(self.sources, np.asarray(positions_m, float), strict=True):
@@ -198,9 +207,11 @@ class SmootherBatch:
     def state(self, t_ns: int) -> np.ndarray:
         return np.stack([src.state(t_ns) for src in self.sources])
 
-    def measured_until_ns(self, t_ns: int) -> int:
-        newest = min(src.newest_ns() for src in self.sources)
-        return min(t_ns, newest - self.knots_back * self.measurement_period_ns)
+    def window_end_ns(self, t_ns: int) -> int:
+        """``t_ns`` (an ``EstimationError`` before the first measurement)."""
+        for src in self.sources:
+            src.newest_ns()
+        return t_ns
 
 
 class ReceivedPositions:
@@ -209,7 +220,7 @@ class ReceivedPositions:
     (``dt`` = ``period_ns``): PD and the flatness MPC of §8.4.1 as defined there ("position and first-order
     finite-difference velocity and acceleration estimates"), with an estimator's positions in place of the sensor's.
     Each tick's position is kept as it was answered then; a tick not queried before (the first ones) is the
-    source's answer now. ``measure``, ``command``, ``window`` and ``measured_until_ns`` pass through."""
+    source's answer now. ``measure``, ``command``, ``window`` and ``window_end_ns`` pass through."""
 
     def __init__(self, source: OutputSource, period_ns: int) -> None:
         self.source = source
@@ -226,8 +237,8 @@ class ReceivedPositions:
     def window(self, t_end_ns: int, n: int, dt_s: float) -> np.ndarray:
         return self.source.window(t_end_ns, n, dt_s)
 
-    def measured_until_ns(self, t_ns: int) -> int:
-        return self.source.measured_until_ns(t_ns)
+    def window_end_ns(self, t_ns: int) -> int:
+        return self.source.window_end_ns(t_ns)
 
     def _position(self, t_ns: int) -> np.ndarray:
         if t_ns not in self._p:

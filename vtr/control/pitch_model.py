@@ -68,10 +68,10 @@ class DiscreteFlatnessSettings(Section):
     # over one camera period has the reference's size
     qc_translation: float = setting(1.83, Range(0.0, 1e6, lo_open=True))
     smoother_lag_s: float = setting(1.0, Range(0.0, 3600.0, lo_open=True))  # fixed-lag window
-    # the discrete-time flatness window ends this many measurement periods before the smoother's newest knot:
-    # there the WNOA mean is a natural spline's end (zero acceleration); a knot or two inside it is not
-    # (the same depth anchors the estimator's state: state(now) is the mean there carried to now with the commands
-    # sent, so that all three controllers read the smoothed trajectory at the same latency)
+    # the estimator loop's outputs are the smoother's mean up to this many measurement periods before its newest
+    # knot, carried from there to now with the commands sent (state(now) and the discrete-time flatness window
+    # alike): at the newest knot the WNOA mean is a natural spline's end (zero acceleration); a knot or two inside
+    # it is not
     window_knots_back: int = setting(2, Range(0, 100, integer=True))
     # where PD and the flatness MPC take velocity and acceleration in the estimator loop: first-order differences of
     # the positions state(now) answered at their ticks, as §8.4.1 defines both controllers ("finite_difference"),

@@ -393,10 +393,13 @@ class RepeatStateView:
             acceleration_covariance=None,
         )
 
-    def window(self, t_end_ns: int, n: int, dt_s: float) -> OutputWindow:
+    def window(self, t_end_ns: int, n: int, dt_s: float, *, commands: CommandLog | None = None) -> OutputWindow:
         """The outputs ``y = (p, psi)`` of ``n`` samples ``dt_s`` apart ending at ``t_end_ns``, all in the frame o of
         the trunk at ``t_end_ns`` (one fixed frame: no jump where the trunk moves on), with their joint covariance
-        (:meth:`~vtr.state.smoothing.KnotTrajectory.joint_covariance` mapped through each output's Jacobian)."""
+        (:meth:`~vtr.state.smoothing.KnotTrajectory.joint_covariance` mapped through each output's Jacobian).
+        Samples after the newest knot are extrapolated as :meth:`controller_state_at` does: at constant velocity,
+        or moved by the ``commands`` sent (the same positions ``controller_state_at(t, k, commands=...)`` gives;
+        the covariance stays the constant-velocity extrapolation's, the commands being known inputs)."""
         if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
             raise EstimationError(f"window: n must be a whole number >= 1, got {n!r}")
         if not (isinstance(dt_s, int | float) and math.isfinite(dt_s) and dt_s > 0):
@@ -412,6 +415,11 @@ class RepeatStateView:
             H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian_unchecked(cs.T_o_a, self.route.mount()[1])
         _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
+        last = self.trajectory.last_time_ns
+        if commands is not None and last is not None and int(t[-1]) > last:
+            C_o_g = self.route.T_g_o(k)[:3, :3].T
+            for i in np.flatnonzero(t > last):
+                P[i] = P[i] + C_o_g @ commands.integrate(last, int(t[i]))[0]
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
         # (np.tile: the same blocks as np.kron(np.ones((n, n)), F), exactly, without the products by 1.0)
