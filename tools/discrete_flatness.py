@@ -4,13 +4,15 @@ and the discrete-time flatness controller, with perfect measurements and with vt
 usage: python tools/discrete_flatness.py --out OUT [--trials 10] [--seed 0] [--sigmas 0.0001,...,0.05]
                                          [--loops perfect,estimator] [--calibrate]
                                          [--estimator-derivatives finite_difference|estimator]
+                                         [--estimator-inputs prior|extrapolation]
 
 Writes OUT/results.csv (loop, controller, sigma_m, mean_error_m, std_error_m, max_error_m, trials) and
 OUT/error_vs_sigma.png (error against sigma on log axes, one line per controller, one panel per loop); prints a
 progress line per loop, sigma and controller and a summary of the ordering of Fig. 8.2 at the end.
 ``--calibrate`` re-derives the tuning of the settings' defaults (no noise involved) and prints it;
 ``--estimator-derivatives estimator`` gives PD and the flatness MPC the estimator's own velocity and acceleration in
-the estimator loop instead of finite differences of its positions.
+the estimator loop instead of finite differences of its positions; ``--estimator-inputs extrapolation`` keeps the
+commands sent out of the smoother's prior (they only carry its outputs past the anchor, as OnlineRepeat does).
 The model and settings: vtr/control/pitch_model.py; the controllers: vtr/control/discrete_flatness.py; the loop and
 the sweep: vtr/control/flatness_sweep.py; docs/discrete_flatness.md.
 """
@@ -134,9 +136,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="finite_difference",
         help="estimator loop: PD's and the MPC's velocity and acceleration (default %(default)s)",
     )
+    ap.add_argument(
+        "--estimator-inputs",
+        choices=("prior", "extrapolation"),
+        default="prior",
+        help="estimator loop: where the smoother uses the commands sent (default %(default)s)",
+    )
     args = ap.parse_args(argv)
     try:
-        settings = DiscreteFlatnessSettings(estimator_derivatives=args.estimator_derivatives)
+        settings = DiscreteFlatnessSettings(
+            estimator_derivatives=args.estimator_derivatives, estimator_inputs=args.estimator_inputs
+        )
         if args.calibrate:
             say("calibrating (noiseless, perfect loop) ...")
             settings = calibrate(settings)

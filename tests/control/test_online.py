@@ -205,6 +205,27 @@ def test_the_command_log_integrates_a_zero_order_hold(times, acc, t1):
     assert np.allclose(now, a[k] if k >= 0 else 0.0)
 
 
+@settings(max_examples=50, deadline=None)
+@given(
+    times=st.lists(st.integers(0, 400), min_size=1, max_size=5, unique=True),
+    acc=st.lists(st.floats(-5, 5), min_size=15, max_size=15),
+    t0=st.integers(-50, 600),
+    t1=st.integers(-50, 600),
+)
+def test_the_commanded_motion_is_what_integrate_differences(times, acc, t0, t1):
+    from vtr.navigation.repeat_state import CommandLog
+
+    t = np.sort(np.array(times, np.int64)) * 1_000_000
+    log = CommandLog(t, np.array(acc).reshape(5, 3)[: len(t)])
+    t0_ns, t1_ns = sorted((t0 * 1_000_000, t1 * 1_000_000))
+    p0, v0, _ = log.motion(t0_ns)
+    p1, v1, a1 = log.motion(t1_ns)
+    dp, dv, a = log.integrate(t0_ns, t1_ns)
+    assert np.allclose(p1 - p0 - v0 * (t1_ns - t0_ns) / 1e9, dp, atol=1e-9)
+    assert np.allclose(v1 - v0, dv, atol=1e-9) and np.allclose(a1, a)
+    assert np.allclose(log.motion(int(t[0]) - 1), 0.0)  # at rest before the first command
+
+
 def test_commands_move_the_extrapolation(taught, kitti_clip):
     """After the newest keyframe the state follows the commanded acceleration (eq. 8.15), not constant velocity."""
     with open_source(kitti_clip) as src:

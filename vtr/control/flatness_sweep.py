@@ -83,7 +83,7 @@ def make_source(settings: DiscreteFlatnessSettings, loop: Loop, batch: int, sigm
     """The outputs a loop's controllers read: raw measurements at the control rate (``perfect``) or one
     smoother per vehicle fed at ``measurement_rate_hz`` (``estimator``): its state and windows are the smoother's mean
     up to ``window_knots_back`` camera periods before the newest knot, carried from there to the time asked with the
-    commands sent, and with
+    commands sent (with ``estimator_inputs`` = ``prior`` the smoother's prior holds the commands too), and with
     ``estimator_derivatives`` = ``finite_difference`` the state is the first-order differences of the positions
     answered at the control ticks (:class:`~vtr.control.output_sources.ReceivedPositions`)."""
     if loop == "perfect":
@@ -96,7 +96,8 @@ def make_source(settings: DiscreteFlatnessSettings, loop: Loop, batch: int, sigm
         )
         period_ns = settings.measurement_every * settings.control_dt_ns
         anchor_ns = settings.window_knots_back * period_ns
-        vehicles = [SmootherOutputs(smoothing, sigma_m, anchor_ns) for _ in range(batch)]
+        prior = settings.estimator_inputs == "prior"
+        vehicles = [SmootherOutputs(smoothing, sigma_m, anchor_ns, inputs_in_prior=prior) for _ in range(batch)]
         smoothers = SmootherBatch(vehicles, period_ns)
         if settings.estimator_derivatives == "finite_difference":
             return ReceivedPositions(smoothers, settings.control_dt_ns)

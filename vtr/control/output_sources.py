@@ -102,14 +102,24 @@ class SmootherOutputs:
     anchor is the mean's position and velocity at the anchor carried to ``t_ns`` with the commands sent (eq. 8.15
     carries a past window forward with the inputs sent the same way). ``OnlineRepeat.state`` extrapolates from
     the newest knot (``command_anchor_ns`` = 0).
+
+    With ``inputs_in_prior`` the smoother knows the commands sent inside its window too, not only past it: it
+    smooths the measured positions minus the commanded motion alone (:meth:`CommandLog.motion`, from rest) and the
+    queries add that motion back. For a 1-D translation this is exactly the WNOA prior about the commanded
+    acceleration (``p'' = a_cmd + w`` instead of ``p'' = w``); past the anchor the answers take the same form as
+    without it (the mean at the anchor carried with the commands sent), only the mean there differs.
+    ``OnlineRepeat``'s SE(3) smoother uses the commands past its newest knot only.
     """
 
-    def __init__(self, smoothing: SmoothingConfig, sigma_m: float, command_anchor_ns: int = 0) -> None:
+    def __init__(
+        self, smoothing: SmoothingConfig, sigma_m: float, command_anchor_ns: int = 0, inputs_in_prior: bool = False
+    ) -> None:
         if not (sigma_m > 0 and math.isfinite(sigma_m)):
             raise EstimationError(f"sigma_m: expected a positive finite noise level, got {sigma_m}")
         if isinstance(command_anchor_ns, bool) or not isinstance(command_anchor_ns, int) or command_anchor_ns < 0:
             raise EstimationError(f"command_anchor_ns: expected a whole number of ns >= 0, got {command_anchor_ns!r}")
         self.command_anchor_ns = command_anchor_ns
+        self.inputs_in_prior = bool(inputs_in_prior)
         self.smoother = TrajectorySmoother(smoothing)
         self.acceleration_window_s = smoothing.acceleration_window_s
         self._cov = np.diag([ROTATION_SIGMA_RAD**2] * 3 + [sigma_m**2] * 3)
@@ -121,7 +131,7 @@ class SmootherOutputs:
     def add(self, t_ns: int, x_m: float) -> None:
         """A measured position ``x_m`` (m) at ``t_ns``; publishes the knots the queries read."""
         T = np.eye(4)
-        T[0, 3] = x_m
+        T[0, 3] = x_m - self._commanded(int(t_ns))[0]
         self.smoother.add_pose(t_ns, T, self._cov)
         self._view = self.smoother.snapshot(int(t_ns) - round(HISTORY_S * NS_PER_S))
 
@@ -154,7 +164,16 @@ class SmootherOutputs:
             a = self.view.state_at(t_ns, with_covariance=False).linear_acceleration_world[0]
             if self.acceleration_window_s > 0:
                 a = self.view.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
+            a += self._commanded(t_ns)[2]
         return np.array([p, vel, a])
+
+    def _commanded(self, t_ns: int) -> tuple[float, float, float]:
+        """Position, velocity and acceleration of the commanded motion alone at ``t_ns`` where the smoother's prior
+        holds it (``inputs_in_prior``); zeros otherwise."""
+        if not self.inputs_in_prior or self._commands is None:
+            return 0.0, 0.0, 0.0
+        p, v, a = self._commands.motion(t_ns)
+        return float(p[0]), float(v[0]), float(a[0])
 
     def _carried(self, t_ns: int) -> tuple[float, float, float | None]:
         """Position and velocity at ``t_ns``: the mean's up to the anchor, carried from it with the commands sent
@@ -165,6 +184,12 @@ class SmootherOutputs:
         if self._commands is not None and self.command_anchor_ns > 0 and last is not None:
             first = v.first_time_ns
             t_anchor = max(last - self.command_anchor_ns, last if first is None else first)
+        if self.inputs_in_prior:  # the mean (at the anchor, carried at its velocity after it) + the commanded motion
+            t_mean = t_ns if t_anchor is None else min(t_ns, t_anchor)
+            s = v.state_at(t_mean, with_covariance=False)
+            c, c_v, c_a = self._commanded(t_ns)
+            p = s.position[0] + s.linear_velocity_world[0] * (t_ns - t_mean) / NS_PER_S + c
+            return float(p), float(s.linear_velocity_world[0] + c_v), (c_a if t_ns > t_mean else None)
         if self._commands is None or t_anchor is None or t_ns <= t_anchor:
             s = v.state_at(t_ns, with_covariance=False)
             return float(s.position[0]), float(s.linear_velocity_world[0]), None

@@ -77,6 +77,11 @@ class DiscreteFlatnessSettings(Section):
     # the positions state(now) answered at their ticks, as §8.4.1 defines both controllers ("finite_difference"),
     # or state(now)'s own velocity and acceleration ("estimator"; measured, docs/discrete_flatness.md)
     estimator_derivatives: str = setting("finite_difference", Choice("finite_difference", "estimator"))
+    # where the estimator loop's smoother uses the commands sent: in its prior as well ("prior": it smooths the
+    # positions minus the commanded motion, the WNOA prior about the commanded acceleration, exact in 1-D), or only
+    # to carry the outputs past the anchor ("extrapolation", as OnlineRepeat's SE(3) smoother does past its newest
+    # knot); measured both ways in docs/discrete_flatness.md
+    estimator_inputs: str = setting("prior", Choice("prior", "extrapolation"))
 
     def __post_init__(self) -> None:
         super().__post_init__()

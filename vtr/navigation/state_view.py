@@ -8,6 +8,7 @@ query one (docs/smoother.md, docs/online.md).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -130,6 +131,27 @@ class CommandLog:
             dp += a[j] * (0.5 * d_s**2 + d_s * rest_s)
         j = int(np.searchsorted(t, t1_ns, side="right")) - 1
         return dp, dv, a[j].copy() if j >= 0 else np.zeros(3)
+
+    @functools.cached_property
+    def _at_commands(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position and velocity (N, 3) of the commanded motion alone at each command's time (from rest)."""
+        a = np.asarray(self.acceleration_g, float).reshape(-1, 3)
+        d = np.diff(np.asarray(self.t_ns, np.int64)).astype(float)[:, None] / NS_PER_S
+        v = np.vstack([np.zeros((1, 3)), np.cumsum(a[:-1] * d, axis=0)])
+        p = np.vstack([np.zeros((1, 3)), np.cumsum(v[:-1] * d + 0.5 * a[:-1] * d * d, axis=0)])
+        return p, v
+
+    def motion(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(p, v, a)`` (g) of the commanded motion alone at ``t_ns``: at rest at the origin until the first
+        command, then each acceleration held to the next (``integrate(t0, t1)`` is its difference from the constant
+        velocity it had at ``t0``). Zeros before the first command."""
+        j = int(np.searchsorted(self.t_ns, t_ns, side="right")) - 1
+        if j < 0:
+            return np.zeros(3), np.zeros(3), np.zeros(3)
+        p, v = self._at_commands
+        a = np.asarray(self.acceleration_g, float).reshape(-1, 3)[j]
+        d = (int(t_ns) - int(self.t_ns[j])) / NS_PER_S
+        return p[j] + v[j] * d + 0.5 * a * d * d, v[j] + a * d, a.copy()
 
 
 @dataclass(frozen=True)
