@@ -248,8 +248,9 @@ def test_commands_move_the_extrapolation(taught, kitti_clip):
         w = live.window(t, 20, 0.02)
         after = w.t_ns > t_knot
         assert after.sum() == 15 and not after.all()
-        for tj, p in zip(w.t_ns, w.position, strict=True):
-            assert np.allclose(p, live.state(int(tj), with_covariance=False).position, atol=1e-9)
+        for tj, p, status in zip(w.t_ns, w.position, w.status, strict=True):
+            s_j = live.state(int(tj), with_covariance=False)
+            assert np.allclose(p, s_j.position, atol=1e-9) and str(status) == str(s_j.status)
         assert np.allclose(w.position[-1] - plain.position, C_o_g @ a_g * 0.5 * 0.3**2, atol=1e-9)
         with pytest.raises(EstimationError, match="not after"):
             live.command(t_knot, a_g)

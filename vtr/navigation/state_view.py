@@ -435,13 +435,13 @@ class RepeatStateView:
             cs = self._state(int(tj), k, with_covariance=False, fit_acceleration=False)
             P[j], yaw[j] = cs.position, cs.yaw
             H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian_unchecked(cs.T_o_a, self.route.mount()[1])
-        _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
-        along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         last = self.trajectory.last_time_ns
         if commands is not None and last is not None and int(t[-1]) > last:
             C_o_g = self.route.T_g_o(k)[:3, :3].T
             for i in np.flatnonzero(t > last):
                 P[i] = P[i] + C_o_g @ commands.integrate(last, int(t[i]))[0]
+        _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
+        along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
         # the frame's placement error is one error for every sample (all in the same o): every block gets it
         # (np.tile: the same blocks as np.kron(np.ones((n, n)), F), exactly, without the products by 1.0)
