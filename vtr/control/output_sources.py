@@ -176,32 +176,26 @@ class SmootherOutputs:
         return float(p[0]), float(v[0]), float(a[0])
 
     def _carried(self, t_ns: int) -> tuple[float, float, float | None]:
-        """Position and velocity at ``t_ns``: the mean's up to the anchor, carried from it with the commands sent
-        after; and the command in force there (None where the mean answers)."""
+        """Position and velocity at ``t_ns``: the mean's up to the anchor (the newest knot without commands or with
+        ``command_anchor_ns`` = 0), carried from it at its velocity after, plus the commanded motion (all of it where
+        the prior holds it, else what the commands add after the anchor); and the command in force there (None where
+        the mean answers)."""
         v = self.view
-        last = v.last_time_ns
-        t_anchor = last
+        t_anchor = last = v.last_time_ns
         if self._commands is not None and self.command_anchor_ns > 0 and last is not None:
             first = v.first_time_ns
             t_anchor = max(last - self.command_anchor_ns, last if first is None else first)
-        if self.inputs_in_prior:  # the mean (at the anchor, carried at its velocity after it) + the commanded motion
-            t_mean = t_ns if t_anchor is None else min(t_ns, t_anchor)
-            s = v.state_at(t_mean, with_covariance=False)
-            c, c_v, c_a = self._commanded(t_ns)
-            p = s.position[0] + s.linear_velocity_world[0] * (t_ns - t_mean) / NS_PER_S + c
-            return float(p), float(s.linear_velocity_world[0] + c_v), (c_a if t_ns > t_mean else None)
-        if self._commands is None or t_anchor is None or t_ns <= t_anchor:
-            s = v.state_at(t_ns, with_covariance=False)
-            return float(s.position[0]), float(s.linear_velocity_world[0]), None
-        if self.command_anchor_ns > 0:  # the mean at the anchor carried at its velocity, moved by the commands
-            s = v.state_at(t_anchor, with_covariance=False)
-            vel = s.linear_velocity_world[0]
-            p = s.position[0] + vel * (t_ns - t_anchor) / NS_PER_S
-        else:  # the mean's own constant-velocity extrapolation past the newest knot, moved by the commands
-            s = v.state_at(t_ns, with_covariance=False)
-            p, vel = s.position[0], s.linear_velocity_world[0]
-        dp, dv, a_now = self._commands.integrate(t_anchor, t_ns)
-        return float(p + dp[0]), float(vel + dv[0]), float(a_now[0])
+        t_mean = t_ns if t_anchor is None else min(t_ns, t_anchor)
+        s = v.state_at(t_mean, with_covariance=False)
+        ahead_s = (t_ns - t_mean) / NS_PER_S
+        p, vel = s.position[0] + s.linear_velocity_world[0] * ahead_s, s.linear_velocity_world[0]
+        if self._commands is None:
+            return float(p), float(vel), None
+        c, c_v, c_a = (x[0] for x in self._commands.motion(t_ns))
+        if not self.inputs_in_prior:  # only what the commands add after t_mean
+            c0, c0_v, _ = (x[0] for x in self._commands.motion(t_mean))
+            c, c_v = c - c0 - c0_v * ahead_s, c_v - c0_v
+        return float(p + c), float(vel + c_v), (float(c_a) if t_ns > t_mean else None)
 
     def newest_ns(self) -> int:
         t = self.view.last_time_ns

@@ -114,23 +114,13 @@ class CommandLog:
 
     def integrate(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(dp, dv, a)``: the displacement and velocity change (g) the commands add between ``t0`` and ``t1`` over
-        constant velocity, and the command in force at ``t1`` (zero before the first command)."""
-        t = np.asarray(self.t_ns, np.int64)
-        a = np.asarray(self.acceleration_g, float).reshape(-1, 3)
-        dp, dv = np.zeros(3), np.zeros(3)
-        if not len(t):
-            return dp, dv, np.zeros(3)
-        edges = np.r_[t, np.iinfo(np.int64).max]
-        for j in range(len(t)):
-            lo, hi = max(int(edges[j]), t0_ns), min(int(edges[j + 1]), t1_ns)
-            if hi <= lo:
-                continue
-            d_s = (hi - lo) / NS_PER_S
-            rest_s = (t1_ns - hi) / NS_PER_S
-            dv += a[j] * d_s
-            dp += a[j] * (0.5 * d_s**2 + d_s * rest_s)
-        j = int(np.searchsorted(t, t1_ns, side="right")) - 1
-        return dp, dv, a[j].copy() if j >= 0 else np.zeros(3)
+        constant velocity (zeros when ``t1 <= t0``), and the command in force at ``t1`` (zero before the first
+        command): differences of :meth:`motion`."""
+        p1, v1, a1 = self.motion(t1_ns)
+        if t1_ns <= t0_ns:
+            return np.zeros(3), np.zeros(3), a1
+        p0, v0, _ = self.motion(t0_ns)
+        return p1 - p0 - v0 * ((t1_ns - t0_ns) / NS_PER_S), v1 - v0, a1
 
     @functools.cached_property
     def _at_commands(self) -> tuple[np.ndarray, np.ndarray]:
