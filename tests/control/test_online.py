@@ -224,6 +224,12 @@ def test_the_commanded_motion_is_what_integrate_differences(times, acc, t0, t1):
     assert np.allclose(p1 - p0 - v0 * (t1_ns - t0_ns) / 1e9, dp, atol=1e-9)
     assert np.allclose(v1 - v0, dv, atol=1e-9) and np.allclose(a1, a)
     assert np.allclose(log.motion(int(t[0]) - 1), 0.0)  # at rest before the first command
+    # and motion itself (integrate is its difference): the held accelerations integrated twice on a 0.1 ms grid
+    grid = np.arange(0, max(t1_ns, 0), 100_000)
+    j = np.searchsorted(t, grid, side="right") - 1
+    a_grid = np.where((j >= 0)[:, None], log.acceleration_g[np.maximum(j, 0)], 0.0)
+    assert np.allclose(p1, (a_grid * ((t1_ns - grid - 50_000) / 1e9)[:, None]).sum(axis=0) * 1e-4, atol=1e-6)
+    assert np.allclose(v1, a_grid.sum(axis=0) * 1e-4, atol=1e-9)
 
 
 def test_commands_move_the_extrapolation(taught, kitti_clip):
