@@ -4,7 +4,7 @@ even frames, repeat the odd ones), with 1 and 2 threads, their ratio, CPU millis
 localization's split per keyframe, and whether every thread count gives the same localizations.
 
 usage: python tools/bench_repeat.py [--repeats N] [--threads 1 2] [--localization-thread own caller] [--frames 1::2]
-                                   [--out DIR]
+                                   [--floor] [--out DIR]
 
 Images are decoded before timing (load time is neither's time). On a shared machine the load of other jobs hits
 any single figure: odometry and repeat are run back to back in each round (thread counts interleaved), the ratio
@@ -12,6 +12,12 @@ is taken within each round, and medians over the rounds are printed. CPU time (t
 frame says what each costs whatever the load; CPU time of the caller's thread what the frame's own path costs (with
 1 thread the repeat's map writes run on its writer thread: off that path); frames/s what a user sees. Writes
 ``bench_repeat.json`` and ``bench_repeat.csv`` (one row per run) to ``--out`` (default out/bench_repeat).
+
+``--floor`` says what part of the gap each of the repeat's own jobs takes: in each round two more repeats run beside
+the real one, one whose localization is free (each leaf's localization and map record replayed from the round's
+real repeat: the odometry, the pipeline and the map writes remain) and one whose map writes are skipped (the odometry,
+the pipeline and the localization remain). Their ratios to the same round's odometry are diagnostics, not results:
+neither repeat is one a user could run.
 """
 
 from __future__ import annotations
@@ -26,7 +32,9 @@ import csv  # noqa: E402
 import json  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+from concurrent.futures import Future  # noqa: E402
 from pathlib import Path  # noqa: E402
+from unittest import mock  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -36,6 +44,8 @@ from vtr.app.pipeline import teach_command  # noqa: E402
 from vtr.config import Config  # noqa: E402
 from vtr.io import open_source, parse_frame_range  # noqa: E402
 from vtr.map import Map  # noqa: E402
+from vtr.map.localizations import Leaf  # noqa: E402
+from vtr.navigation.localization import Localization  # noqa: E402
 from vtr.navigation.repeat import Repeat  # noqa: E402
 from vtr.types import StereoImages  # noqa: E402
 from vtr.vo.odometry import OdometrySettings, StereoOdometry  # noqa: E402
@@ -55,10 +65,51 @@ def timed_odometry(images: list[StereoImages], camera, config: Config) -> dict:
     return {"fps": n / seconds, "cpu_ms": 1000 * cpu / n, "main_cpu_ms": 1000 * main / n, "poses": vo.final_poses()}
 
 
-def timed_repeat(map_path: Path, images: list[StereoImages], config: Config) -> dict:
+class RecordingRepeat(Repeat):
+    """A repeat that keeps each leaf's localization and map record (``answers``, by leaf id) for ``ReplayedRepeat``."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.answers: dict[int, tuple[Localization, Leaf]] = {}
+
+    def _localize(self, leaf_id, kf, window):
+        out = self.answers[leaf_id] = super()._localize(leaf_id, kf, window)
+        return out
+
+
+class ReplayedRepeat(Repeat):
+    """``--floor``: a repeat whose localization costs nothing (each leaf's recorded answer handed back)."""
+
+    def __init__(self, *args, answers: dict[int, tuple[Localization, Leaf]], **kwargs):
+        super().__init__(*args, **kwargs)
+        self.answers = answers
+
+    def _localize(self, leaf_id, kf, window):
+        return self.answers[leaf_id]
+
+
+class SkippedWrites:
+    """``--floor``: a LeafWriter that writes and reads nothing (each leaf's write done at once)."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def submit(self, *args, **kwargs) -> Future:
+        done: Future = Future()
+        done.set_result(None)
+        return done
+
+    def prefetch(self, vertex_ids) -> None:
+        pass
+
+    def close(self, cancel_pending: bool = False) -> None:
+        pass
+
+
+def timed_repeat(map_path: Path, images: list[StereoImages], config: Config, kind=RecordingRepeat, **kw) -> dict:
     """``Repeat.steps`` over the preloaded ``images`` against the map at ``map_path`` (a fresh copy)."""
     with Map.open(map_path, "a") as m:
-        rp = Repeat(m, config, str(CLIP))
+        rp = kind(m, config, str(CLIP), **kw)
         rp.timer.reset()
         c0, m0, t0 = time.process_time(), time.thread_time(), time.perf_counter()
         steps = list(rp.steps(rp.odometry.stereo.frames(images)))
@@ -79,6 +130,7 @@ def timed_repeat(map_path: Path, images: list[StereoImages], config: Config) -> 
         "localization_split_ms_per_keyframe": {k: 1000 * v / max(len(locs), 1) for k, v in split.items()},
         "loc_ms": [1000 * s.localization_seconds for s in steps if s.localization is not None],
         "key": key,
+        "answers": getattr(rp, "answers", {}),
     }
 
 
@@ -95,6 +147,11 @@ def main() -> None:
         help="localization.thread of the repeat: its own thread (default) or the caller's; both: A/B in each round",
     )
     ap.add_argument("--cv-threads", type=int, default=1, help="cv2.setNumThreads (OpenCV's own pool)")
+    ap.add_argument(
+        "--floor",
+        action="store_true",
+        help="also time a repeat with its localization replayed and one with its map writes skipped (diagnostics)",
+    )
     ap.add_argument("--out", type=Path, default=Path("out/bench_repeat"))
     args = ap.parse_args()
     cv2.setNumThreads(args.cv_threads)
@@ -125,6 +182,21 @@ def main() -> None:
                 copy.write_bytes(taught.read_bytes())
                 rp = timed_repeat(copy, images, config)
                 copy.unlink()
+                floor = {}
+                if args.floor:
+                    copy.write_bytes(taught.read_bytes())
+                    free = timed_repeat(copy, images, config, ReplayedRepeat, answers=rp["answers"])
+                    copy.unlink()
+                    copy.write_bytes(taught.read_bytes())
+                    with mock.patch("vtr.navigation.repeat.LeafWriter", SkippedWrites):
+                        unwritten = timed_repeat(copy, images, config)
+                    copy.unlink()
+                    floor = {
+                        "ratio_localization_replayed": free["fps"] / vo["fps"],
+                        "ratio_writes_skipped": unwritten["fps"] / vo["fps"],
+                        "cpu_ms_localization_replayed": free["cpu_ms"],
+                        "cpu_ms_writes_skipped": unwritten["cpu_ms"],
+                    }
                 if k >= 0:
                     rows.append(
                         {
@@ -139,6 +211,7 @@ def main() -> None:
                             "odometry_main_cpu_ms": vo["main_cpu_ms"],
                             "repeat_main_cpu_ms": rp["main_cpu_ms"],
                             "main_cpu_ratio": vo["main_cpu_ms"] / rp["main_cpu_ms"],
+                            **floor,
                             "_vo": vo,
                             "_rp": rp,
                         }
@@ -189,6 +262,12 @@ def main() -> None:
             "localization_split_ms_per_keyframe": rp["localization_split_ms_per_keyframe"],
         }
         s = summary["threads"][threads]
+        if args.floor:
+            for key in ("ratio_localization_replayed", "ratio_writes_skipped"):
+                s[key] = float(np.median([r[key] for r in mine]))
+                s[key + "_range"] = [min(r[key] for r in mine), max(r[key] for r in mine)]
+            for key in ("cpu_ms_localization_replayed", "cpu_ms_writes_skipped"):
+                s[key] = float(np.median([r[key] for r in mine]))
         print(
             f"  threads {threads}: odometry {med['odometry_fps']:.1f} frames/s, repeat {med['repeat_fps']:.1f} "
             f"frames/s: ratio {med['ratio']:.2f} (rounds {s['ratio_range'][0]:.2f}-{s['ratio_range'][1]:.2f}; "
@@ -202,6 +281,15 @@ def main() -> None:
             f"localization {s['localization_ms_median']:.1f} ms median per keyframe"
         )
         print("    repeat ms/frame: " + "  ".join(f"{k} {v:.1f}" for k, v in rp["stages_ms_per_frame"].items()))
+        if args.floor:
+            print(
+                f"    floor (diagnostics): localization replayed ratio {s['ratio_localization_replayed']:.2f} "
+                f"(rounds {s['ratio_localization_replayed_range'][0]:.2f}-"
+                f"{s['ratio_localization_replayed_range'][1]:.2f}), CPU {s['cpu_ms_localization_replayed']:.1f} ms "
+                f"per frame; map writes skipped ratio {s['ratio_writes_skipped']:.2f} (rounds "
+                f"{s['ratio_writes_skipped_range'][0]:.2f}-{s['ratio_writes_skipped_range'][1]:.2f}), CPU "
+                f"{s['cpu_ms_writes_skipped']:.1f} ms per frame"
+            )
         if rp["localization_split_ms_per_keyframe"]:
             print(
                 "    localization ms/keyframe: "
