@@ -421,15 +421,13 @@ class RepeatStateView:
         self._check_state_at(int(t[0]))
         k = int(self.trunk_index_at(np.array([t_end_ns]))[0])
         P, yaw, H = np.zeros((n, 3)), np.zeros(n), np.zeros((4 * n, 12 * n))
+        last = self.trajectory.last_time_ns
         for j, tj in enumerate(t):
             cs = self._state(int(tj), k, with_covariance=False, fit_acceleration=False)
+            if commands is not None and last is not None and int(tj) > last:
+                cs = self._with_commands(cs, k, last, int(tj), commands)
             P[j], yaw[j] = cs.position, cs.yaw
             H[4 * j : 4 * j + 4, 12 * j : 12 * j + 12] = output_jacobian_unchecked(cs.T_o_a, self.route.mount()[1])
-        last = self.trajectory.last_time_ns
-        if commands is not None and last is not None and int(t[-1]) > last:
-            C_o_g = self.route.T_g_o(k)[:3, :3].T
-            for i in np.flatnonzero(t > last):
-                P[i] = P[i] + C_o_g @ commands.integrate(last, int(t[i]))[0]
         _, path, offset = self.route.trunk(k, int(self.direction_at(np.array([t_end_ns]))[0]))
         along = path.error(P).along_track + offset if path is not None else np.full(n, math.nan)
         cov = H @ self.trajectory.joint_covariance(t) @ H.T
