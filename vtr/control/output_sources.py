@@ -21,7 +21,7 @@ from ..conventions import NS_PER_S
 from ..errors import EstimationError
 from ..navigation.state_view import CommandLog
 from ..state.smoothing import TrajectorySmoother
-from ..state.trajectory import KnotTrajectory
+from ..state.trajectory import KnotTrajectory, TrajectoryState
 
 #: The 1-D motion has no rotation; the smoother is told its (identity) attitude with this standard deviation
 #: (rad) so that the 6x6 pose covariance is definite. Rotation and x are uncoupled about the identity.
@@ -155,13 +155,13 @@ class SmootherOutputs:
         """Positions (n,) at ``t_end_ns - (n - 1 - i) dt_s``: the mean's, and after the anchor (the newest knot
         when ``command_anchor_ns`` = 0) the ones :meth:`state` answers, carried there with the commands sent
         (``OnlineRepeat.window`` extrapolates so too)."""
-        return np.array([self._carried(t)[0] for t in sample_times(t_end_ns, n, dt_s)])
+        return np.array([self._carried(t)[0][0] for t in sample_times(t_end_ns, n, dt_s)])
 
     def state(self, t_ns: int) -> np.ndarray:
         """``(p m, v m/s, a m/s^2)`` at ``t_ns``."""
-        p, vel, a = self._carried(t_ns)
+        (p, vel, a), mean = self._carried(t_ns)
         if a is None:
-            a = self.view.state_at(t_ns, with_covariance=False).linear_acceleration_world[0]
+            a = mean.linear_acceleration_world[0]
             if self.acceleration_window_s > 0:
                 a = self.view.fitted_acceleration(t_ns, self.acceleration_window_s)[0][0]
             a += self._commanded(t_ns)[2]
@@ -175,11 +175,11 @@ class SmootherOutputs:
         p, v, a = self._commands.motion(t_ns)
         return float(p[0]), float(v[0]), float(a[0])
 
-    def _carried(self, t_ns: int) -> tuple[float, float, float | None]:
+    def _carried(self, t_ns: int) -> tuple[tuple[float, float, float | None], TrajectoryState]:
         """Position and velocity at ``t_ns``: the mean's up to the anchor (the newest knot without commands or with
         ``command_anchor_ns`` = 0), carried from it at its velocity after, plus the commanded motion (all of it where
         the prior holds it, else what the commands add after the anchor); and the command in force there (None where
-        the mean answers)."""
+        the mean answers). Also the mean's state it started from (at ``t_ns`` where the mean answers)."""
         v = self.view
         t_anchor = last = v.last_time_ns
         if self._commands is not None and self.command_anchor_ns > 0 and last is not None:
@@ -190,12 +190,12 @@ class SmootherOutputs:
         ahead_s = (t_ns - t_mean) / NS_PER_S
         p, vel = s.position[0] + s.linear_velocity_world[0] * ahead_s, s.linear_velocity_world[0]
         if self._commands is None:
-            return float(p), float(vel), None
+            return (float(p), float(vel), None), s
         c, c_v, c_a = (x[0] for x in self._commands.motion(t_ns))
         if not self.inputs_in_prior:  # only what the commands add after t_mean
             c0, c0_v, _ = (x[0] for x in self._commands.motion(t_mean))
             c, c_v = c - c0 - c0_v * ahead_s, c_v - c0_v
-        return float(p + c), float(vel + c_v), (float(c_a) if t_ns > t_mean else None)
+        return (float(p + c), float(vel + c_v), (float(c_a) if t_ns > t_mean else None)), s
 
     def newest_ns(self) -> int:
         t = self.view.last_time_ns
